@@ -1,0 +1,6 @@
+"""Device description, electromagnetic model, and (later) hardware drivers."""
+
+from maglev_haptics.hardware.device import (  # noqa: F401
+    AmplifierSpec, CoilArraySpec, CoilSpec, DeviceConfig, DisplaySpec,
+    InstrumentSpec, MagnetSpec, TrackerSpec, default_instrument,
+)

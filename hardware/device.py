@@ -1,0 +1,220 @@
+"""The device description: coil array, instruments, amplifiers, display, trackers.
+
+Every number defaults to DESIGN.md section 4 (the paper's device plus the stated
+physical assumptions) and every field is settable from a scenario's ``device:``
+block. SI units throughout; frames as in DESIGN.md section 3 (W display, A coil
+array, C_j coil j, I instrument).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from typing import List, Optional
+
+import numpy as np
+
+NDFEB_DENSITY_KG_M3 = 7500.0
+INSTRUMENT_KINDS = ("two_magnet", "four_magnet")
+
+
+@dataclass
+class CoilSpec:
+    """One cylindrical air-core coil (all coils of the array are alike)."""
+
+    inner_diameter_m: float = 0.010  # assumption (DESIGN.md 4)
+    outer_diameter_m: float = 0.025  # paper
+    height_m: float = 0.030  # paper
+    turns: int = 1000  # paper
+    resistance_ohm: float = 6.5  # assumption
+    inductance_h: float = 6.0e-3  # assumption
+
+
+@dataclass
+class CoilArraySpec:
+    """Hexagonal close-packed planar array; coil tops in the plane z_A = 0.
+
+    Rows run along x at y = (k - (n_rows - 1) / 2) * row_spacing_m; the row with
+    the lowest y has ``row_counts[0]`` coils; within a row coils sit at x centred
+    on 0 with ``pitch_m`` spacing. Coils are numbered row by row from the lowest
+    y, x ascending within a row.
+    """
+
+    pitch_m: float = 0.026  # centre distance along a row
+    row_spacing_m: float = 0.022517  # pitch * sqrt(3) / 2
+    row_counts: List[int] = field(default_factory=lambda: [5, 6, 5, 6, 5])
+
+    def coil_positions_A(self) -> np.ndarray:
+        """Coil top-face centres p_ACj, shape (n_coils, 3) [m]."""
+        positions = []
+        n_rows = len(self.row_counts)
+        for row, count in enumerate(self.row_counts):
+            y = (row - (n_rows - 1) / 2) * self.row_spacing_m
+            for k in range(count):
+                x = (k - (count - 1) / 2) * self.pitch_m
+                positions.append((x, y, 0.0))
+        return np.array(positions, dtype=float)
+
+    @property
+    def n_coils(self) -> int:
+        return int(sum(self.row_counts))
+
+
+@dataclass
+class MagnetSpec:
+    """An axially magnetized cylindrical magnet (NdFeB N42 by default)."""
+
+    diameter_m: float = 0.0254
+    height_m: float = 0.0127
+    remanence_t: float = 1.30  # Br; magnetization M = Br / mu0 along the axis
+    density_kg_m3: float = NDFEB_DENSITY_KG_M3
+
+    @property
+    def volume_m3(self) -> float:
+        return math.pi * (self.diameter_m / 2) ** 2 * self.height_m
+
+    @property
+    def mass_kg(self) -> float:
+        return self.volume_m3 * self.density_kg_m3
+
+
+@dataclass
+class InstrumentSpec:
+    """A levitated instrument: a rigid body carrying magnets and tracker markers.
+
+    Positions are in the instrument frame I (origin at the centroid of the
+    magnet centres, z along the common magnetization axis, x along the magnet
+    row). The body without its magnets is modelled as a uniform box centred on
+    I (``body_size_m``) so that mass and inertia are consistent.
+    """
+
+    kind: str
+    mass_kg: float  # total, magnets included
+    magnet: MagnetSpec
+    p_IM_m: List[List[float]]  # magnet centres in I [m]
+    p_IK_m: List[List[float]]  # tracker marker positions in I [m]
+    body_size_m: List[float]  # box (x, y, z) extents of the non-magnet body [m]
+    model_url: str
+
+    @property
+    def p_IM(self) -> np.ndarray:
+        return np.asarray(self.p_IM_m, dtype=float)
+
+    @property
+    def p_IK(self) -> np.ndarray:
+        return np.asarray(self.p_IK_m, dtype=float)
+
+    @property
+    def rest_height_m(self) -> float:
+        """Height of I above the display top when resting level on it [m]."""
+        return self.body_size_m[2] / 2
+
+    def inertia_about_I(self) -> np.ndarray:
+        """Rotational inertia about I's origin in I, (3, 3) [kg m^2]."""
+        magnet = self.magnet
+        r, h, m = magnet.diameter_m / 2, magnet.height_m, magnet.mass_kg
+        own = np.diag([m * (3 * r**2 + h**2) / 12] * 2 + [m * r**2 / 2])
+        inertia = np.zeros((3, 3))
+        for p in self.p_IM:
+            inertia += own + m * (p @ p * np.eye(3) - np.outer(p, p))
+        body_mass = self.mass_kg - len(self.p_IM) * m
+        a, b, c = self.body_size_m
+        inertia += body_mass / 12 * np.diag([b**2 + c**2, a**2 + c**2, a**2 + b**2])
+        return inertia
+
+
+def _marker_triangle(radius_m: float, height_m: float) -> List[List[float]]:
+    """Three markers on an equilateral triangle above the instrument [m]."""
+    return [
+        [radius_m * math.cos(a), radius_m * math.sin(a), height_m]
+        for a in (math.pi / 2, math.pi / 2 + 2 * math.pi / 3, math.pi / 2 + 4 * math.pi / 3)
+    ]
+
+
+def default_instrument(kind: str) -> InstrumentSpec:
+    """The paper's instruments with the magnets of DESIGN.md section 4."""
+    if kind == "two_magnet":
+        return InstrumentSpec(
+            kind=kind,
+            mass_kg=0.125,
+            magnet=MagnetSpec(diameter_m=0.0254, height_m=0.0127),
+            p_IM_m=[[-0.020, 0.0, 0.0], [0.020, 0.0, 0.0]],
+            p_IK_m=_marker_triangle(0.035, 0.060),
+            body_size_m=[0.070, 0.030, 0.014],
+            model_url="package://maglev_haptics/two_magnet_instrument.sdf",
+        )
+    if kind == "four_magnet":
+        return InstrumentSpec(
+            kind=kind,
+            mass_kg=0.075,
+            magnet=MagnetSpec(diameter_m=0.015875, height_m=0.009525),
+            p_IM_m=[[-0.020, -0.020, 0.0], [0.020, -0.020, 0.0],
+                    [-0.020, 0.020, 0.0], [0.020, 0.020, 0.0]],
+            p_IK_m=_marker_triangle(0.035, 0.060),
+            body_size_m=[0.058, 0.058, 0.011],
+            model_url="package://maglev_haptics/four_magnet_instrument.sdf",
+        )
+    raise ValueError(
+        f"device.instrument = {kind!r}: must be one of {', '.join(INSTRUMENT_KINDS)}")
+
+
+@dataclass
+class AmplifierSpec:
+    """Current-mode coil amplifiers (one per coil)."""
+
+    current_limit_a: float = 4.0  # peak per coil; allocator and amplifier both respect it
+    bandwidth_hz: float = 1000.0  # closed-loop current bandwidth, first-order lag
+
+
+@dataclass
+class DisplaySpec:
+    """The flat display lying on the coil array; its top surface is W's z = 0."""
+
+    thickness_m: float = 0.010  # paper: "under 10 mm" with the backlight
+    size_m: List[float] = field(default_factory=lambda: [0.4738, 0.2961])  # 22" 16:10 active area
+
+
+@dataclass
+class TrackerSpec:
+    """Optical tracker of the instrument's markers (Optotrak Certus by default)."""
+
+    rate_hz: float = 860.0
+    noise_m: float = 1.0e-5  # standard deviation per marker coordinate
+    latency_s: float = 1.5e-3  # measurement to availability (Optotrak ~1-2 ms)
+
+
+@dataclass
+class DeviceConfig:
+    """The whole device. ``DeviceConfig(instrument="four_magnet")`` picks the 4-magnet one.
+
+    ``instrument`` selects a kind; ``magnet`` and ``instrument_mass_kg``, when
+    set, override that kind's defaults (the shipped body model must then match,
+    which ``instrument_spec()`` users check).
+    """
+
+    instrument: str = "two_magnet"
+    magnet: Optional[MagnetSpec] = None  # None: the kind's magnets
+    instrument_mass_kg: Optional[float] = None  # None: the kind's mass
+    coil: CoilSpec = field(default_factory=CoilSpec)
+    array: CoilArraySpec = field(default_factory=CoilArraySpec)
+    amplifier: AmplifierSpec = field(default_factory=AmplifierSpec)
+    display: DisplaySpec = field(default_factory=DisplaySpec)
+    tracker: TrackerSpec = field(default_factory=TrackerSpec)
+
+    def instrument_spec(self) -> InstrumentSpec:
+        spec = default_instrument(self.instrument)
+        if self.magnet is not None:
+            spec = dataclasses.replace(spec, magnet=self.magnet)
+        if self.instrument_mass_kg is not None:
+            spec = dataclasses.replace(spec, mass_kg=self.instrument_mass_kg)
+        return spec
+
+    @property
+    def n_coils(self) -> int:
+        return self.array.n_coils
+
+    @property
+    def p_WA(self) -> np.ndarray:
+        """Coil-array origin in W: the coil tops lie one display thickness below [m]."""
+        return np.array([0.0, 0.0, -self.display.thickness_m])
