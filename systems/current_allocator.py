@@ -1,0 +1,111 @@
+"""Current allocation: 27 coil currents that produce a wanted wrench.
+
+The minimum-norm (minimum-power, all coils alike) solution ``I = A^+ w`` of
+``A(X) I = w`` is used while no coil exceeds its limit. When some would, the
+redistributed pseudoinverse (Durham's control-allocation scheme) pins those
+coils at their limit and re-solves for the rest; if the wrench is still out of
+reach, the direction-preserving scaled solution is kept when it misses by less.
+Either way no coil ever exceeds its limit and the shortfall ``w - A I`` is
+reported.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from pydrake.common.value import AbstractValue
+from pydrake.systems.framework import LeafSystem, ValueProducer
+
+from maglev_haptics.systems.levitation_controller import rotation_from_quaternion
+
+
+def minimum_norm_currents(A: np.ndarray, wrench: np.ndarray) -> np.ndarray:
+    """I = A^T (A A^T)^-1 w: exact when A (6 x n) has full row rank."""
+    return A.T @ np.linalg.solve(A @ A.T, wrench)
+
+
+def allocate_currents(A: np.ndarray, wrench: np.ndarray, current_limit_a: float):
+    """(currents [A], shortfall [N, N*m], n_saturated) for wrench [f; tau].
+
+    ``A`` is the (6, n) wrench matrix at the instrument's pose. ``shortfall``
+    is ``wrench - A @ currents``: zero (to rounding) unless the wrench is out of
+    reach with every coil within ``current_limit_a``.
+    """
+    n = A.shape[1]
+    currents = minimum_norm_currents(A, wrench)
+    if np.max(np.abs(currents)) <= current_limit_a:
+        return currents, wrench - A @ currents, 0
+    scaled = currents * (current_limit_a / np.max(np.abs(currents)))
+    free = np.ones(n, dtype=bool)
+    pinned = np.zeros(n)
+    while free.sum() >= A.shape[0]:
+        remaining = wrench - A[:, ~free] @ pinned[~free]
+        trial = minimum_norm_currents(A[:, free], remaining)
+        over = np.abs(trial) > current_limit_a
+        if not over.any():
+            pinned[free] = trial
+            break
+        indices = np.flatnonzero(free)[over]
+        pinned[indices] = np.sign(trial[over]) * current_limit_a
+        free[indices] = False
+    # Rounding can leave a coil a hair past its limit; the limit is a hard one.
+    redistributed = np.clip(pinned, -current_limit_a, current_limit_a)
+    shortfall_redistributed = wrench - A @ redistributed
+    shortfall_scaled = wrench - A @ scaled
+    if np.linalg.norm(shortfall_scaled) < np.linalg.norm(shortfall_redistributed):
+        redistributed, shortfall_redistributed = scaled, shortfall_scaled
+    n_saturated = int(np.sum(np.abs(redistributed) >= current_limit_a * (1 - 1e-12)))
+    return redistributed, shortfall_redistributed, n_saturated
+
+
+class CurrentAllocator(LeafSystem):
+    """Coil currents for the commanded wrench at the estimated pose.
+
+    Direct feedthrough with no state: the amplifiers sample the result at the
+    control rate, so the allocation always uses the newest estimate.
+
+    .. pydrake_system::
+
+        name: CurrentAllocator
+        input_ports:
+        - wrench_commanded_W
+        - X_WI_measured
+        output_ports:
+        - coil_currents_commanded
+        - allocation_shortfall_W
+
+    ``allocation_shortfall_W`` is the part [f; tau] (N, N*m) of the commanded
+    wrench that the limited currents cannot produce: exactly ``w - A I``.
+    """
+
+    def __init__(self, *, magnetics, p_WA: np.ndarray, current_limit_a: float):
+        super().__init__()
+        self._magnetics = magnetics
+        self._p_WA = np.asarray(p_WA, dtype=float)
+        self._current_limit_a = float(current_limit_a)
+        n = magnetics.n_coils
+        self._wrench = self.DeclareVectorInputPort("wrench_commanded_W", 6)
+        self._pose = self.DeclareVectorInputPort("X_WI_measured", 7)
+        # Both outputs come from one solve.
+        self._allocation = self.DeclareCacheEntry(
+            "allocation",
+            ValueProducer(allocate=lambda: AbstractValue.Make(np.zeros(n + 6)),
+                          calc=self._calc_allocation),
+            {self.all_input_ports_ticket()})
+        self.DeclareVectorOutputPort(
+            "coil_currents_commanded", n,
+            lambda context, output: output.SetFromVector(
+                self._allocation.Eval(context)[:n]),
+            {self._allocation.ticket()})
+        self.DeclareVectorOutputPort(
+            "allocation_shortfall_W", 6,
+            lambda context, output: output.SetFromVector(
+                self._allocation.Eval(context)[n:]),
+            {self._allocation.ticket()})
+
+    def _calc_allocation(self, context, allocation):
+        pose = self._pose.Eval(context)
+        A = self._magnetics.wrench_matrix_from(
+            pose[4:7] - self._p_WA, rotation_from_quaternion(pose[0:4]))
+        currents, shortfall, _ = allocate_currents(
+            A, self._wrench.Eval(context), self._current_limit_a)
+        allocation.set_value(np.concatenate([currents, shortfall]))

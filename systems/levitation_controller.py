@@ -1,0 +1,207 @@
+"""6-DOF PD levitation control with gravity compensation and a feed-forward wrench.
+
+Wrench vectors in the loop are ordered like the rows of the wrench matrix
+(DESIGN.md section 8): [fx, fy, fz, tx, ty, tz] in W (N, N*m), torque about
+the instrument origin. Pose vectors follow Drake's free-body ordering
+[qw, qx, qy, qz, x, y, z]; spatial velocities [wx, wy, wz, vx, vy, vz] in W.
+Setpoints are [x, y, z, roll, pitch, yaw] followed by their time derivatives
+(m, rad, m/s, rad/s), with Drake's extrinsic X-Y-Z roll-pitch-yaw convention
+and yaw unwrapped, so a 360 deg turn is a ramp.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import List, Optional
+
+import numpy as np
+from pydrake.systems.framework import LeafSystem_
+from pydrake.systems.scalar_conversion import TemplateSystem
+
+GRAVITY_M_S2 = 9.81
+
+
+@dataclass
+class ControllerConfig:
+    """Per-axis PD gains, given as closed-loop natural frequency and damping.
+
+    Axes: x, y, z translation in W, then rotations about the instrument's own
+    x, y, z axes (so the gains follow the instrument's principal inertias).
+    ``kp``/``kd``, when set, override the derived gains: N/m and N*s/m for
+    translation, N*m/rad and N*m*s/rad for rotation.
+    """
+
+    natural_frequency_hz: List[float] = field(default_factory=lambda: [10.0] * 6)
+    damping_ratio: List[float] = field(default_factory=lambda: [0.7] * 6)
+    kp: Optional[List[float]] = None
+    kd: Optional[List[float]] = None
+    lost_grace_s: float = 0.020  # hold gravity compensation through short dropouts
+    blind_landing_s: float = 0.5  # then fade the lift to zero over this time, and stay off
+
+
+def pd_gains(config: ControllerConfig, mass_kg: float, inertia_diag: np.ndarray):
+    """(kp, kd), each (6,), from the config and the instrument's mass properties."""
+    omega = 2 * np.pi * np.asarray(config.natural_frequency_hz, dtype=float)
+    zeta = np.asarray(config.damping_ratio, dtype=float)
+    modal_mass = np.concatenate([[mass_kg] * 3, inertia_diag])
+    kp = modal_mass * omega**2 if config.kp is None else np.asarray(config.kp, float)
+    kd = 2 * zeta * modal_mass * omega if config.kd is None else np.asarray(config.kd, float)
+    return kp, kd
+
+
+def rotation_from_quaternion(q):
+    """R (3x3) from a quaternion [w, x, y, z] (normalized here)."""
+    w, x, y, z = q / np.sqrt(q @ q)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def rotation_from_rpy(rpy):
+    """R = Rz(yaw) Ry(pitch) Rx(roll), Drake's RollPitchYaw convention."""
+    cr, sr = np.cos(rpy[0]), np.sin(rpy[0])
+    cp, sp = np.cos(rpy[1]), np.sin(rpy[1])
+    cy, sy = np.cos(rpy[2]), np.sin(rpy[2])
+    return np.array([
+        [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+        [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+        [-sp, cp * sr, cp * cr],
+    ])
+
+
+def angular_velocity_from_rpy_rates(rpy, rpy_dot):
+    """w_W (rad/s) of R = Rz Ry Rx given roll-pitch-yaw and their rates."""
+    cp, sp = np.cos(rpy[1]), np.sin(rpy[1])
+    cy, sy = np.cos(rpy[2]), np.sin(rpy[2])
+    return np.array([
+        cy * cp * rpy_dot[0] - sy * rpy_dot[1],
+        sy * cp * rpy_dot[0] + cy * rpy_dot[1],
+        -sp * rpy_dot[0] + rpy_dot[2],
+    ])
+
+
+def rotation_error_W(R_WD, R_WI):
+    """sin(angle) * axis of the rotation taking R_WI to R_WD, in W."""
+    R = R_WD @ R_WI.T
+    return 0.5 * np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+
+
+def pd_wrench(setpoint, pose, velocity, kp, kd, mass_kg):
+    """Wrench [f; tau] in W (N, N*m) that tracks ``setpoint`` and carries the weight.
+
+    Translation is PD in W axes; rotation is PD in the instrument's axes so each
+    gain acts on one principal inertia.
+    """
+    p_WD, rpy_WD = setpoint[0:3], setpoint[3:6]
+    v_WD, rpy_dot_WD = setpoint[6:9], setpoint[9:12]
+    R_WI = rotation_from_quaternion(pose[0:4])
+    p_WI = pose[4:7]
+    w_WI, v_WI = velocity[0:3], velocity[3:6]
+    force = kp[0:3] * (p_WD - p_WI) + kd[0:3] * (v_WD - v_WI)
+    force = force + np.array([0.0, 0.0, mass_kg * GRAVITY_M_S2])
+    R_WD = rotation_from_rpy(rpy_WD)
+    w_WD = angular_velocity_from_rpy_rates(rpy_WD, rpy_dot_WD)
+    angle_error_I = R_WI.T @ rotation_error_W(R_WD, R_WI)
+    rate_error_I = R_WI.T @ (w_WD - w_WI)
+    torque = R_WI @ (kp[3:6] * angle_error_I + kd[3:6] * rate_error_I)
+    return np.concatenate([force, torque])
+
+
+def blind_lift_fraction(lost_time_s: float, config: ControllerConfig) -> float:
+    """Fraction of the weight still carried after tracking has been lost this long (s)."""
+    if lost_time_s <= config.lost_grace_s:
+        return 1.0
+    return max(0.0, 1.0 - (lost_time_s - config.lost_grace_s) / config.blind_landing_s)
+
+
+@TemplateSystem.define("LevitationController_")
+def LevitationController_(T):
+
+    class Impl(LeafSystem_[T]):
+        """Levitation controller (MLHI style): PD about a setpoint, gravity
+        compensation, feed-forward wrench, safe force ramp, blind landing.
+
+        The commanded wrench is ``enable * (PD + weight) + feedforward`` while
+        tracking is good. When tracking is lost the measurement is stale, so PD
+        stops: the weight is carried for ``lost_grace_s``, then faded out over
+        ``blind_landing_s`` and the controller latches off (fault), so a lost
+        instrument lands instead of being driven by a stale pose.
+
+        .. pydrake_system::
+
+            name: LevitationController
+            input_ports:
+            - setpoint
+            - X_WI_measured
+            - V_WI_measured
+            - tracking_ok
+            - enable
+            - wrench_feedforward_W
+            output_ports:
+            - wrench_commanded_W
+            - lost_time
+
+        The discrete state (1 kHz) is the time since tracking was lost (s;
+        0 while tracking), which the output reads together with the inputs.
+        """
+
+        def _construct(self, *, config: ControllerConfig, mass_kg: float,
+                       inertia_diag, period_s: float, converter=None):
+            LeafSystem_[T].__init__(self, converter)
+            self._config = config
+            self._mass_kg = float(mass_kg)
+            self._inertia_diag = np.asarray(inertia_diag, dtype=float)
+            self._period_s = float(period_s)
+            self._kp, self._kd = pd_gains(config, mass_kg, self._inertia_diag)
+            self._setpoint = self.DeclareVectorInputPort("setpoint", 12)
+            self._pose = self.DeclareVectorInputPort("X_WI_measured", 7)
+            self._velocity = self.DeclareVectorInputPort("V_WI_measured", 6)
+            self._tracking_ok = self.DeclareVectorInputPort("tracking_ok", 1)
+            self._enable = self.DeclareVectorInputPort("enable", 1)
+            self._feedforward = self.DeclareVectorInputPort("wrench_feedforward_W", 6)
+            self._lost_time = self.DeclareDiscreteState(1)
+            self.DeclarePeriodicDiscreteUpdateEvent(period_s, 0.0, self._update_lost_time)
+            self.DeclareVectorOutputPort("wrench_commanded_W", 6, self._calc_wrench)
+            self.DeclareStateOutputPort("lost_time", self._lost_time)
+
+        def _construct_copy(self, other, converter=None):
+            Impl._construct(self, config=other._config, mass_kg=other._mass_kg,
+                            inertia_diag=other._inertia_diag,
+                            period_s=other._period_s, converter=converter)
+
+        def _update_lost_time(self, context, discrete_state):
+            lost_time = context.get_discrete_state(self._lost_time).CopyToVector()[0]
+            tracking = self._tracking_ok.Eval(context)[0]
+            latched = lost_time > self._config.lost_grace_s
+            if tracking > 0.5 and not latched:
+                lost_time = 0.0 * lost_time
+            else:
+                lost_time = lost_time + self._period_s
+            discrete_state.get_mutable_vector(self._lost_time).SetFromVector([lost_time])
+
+        def _calc_wrench(self, context, output):
+            lost_time = context.get_discrete_state(self._lost_time).CopyToVector()[0]
+            feedforward = self._feedforward.Eval(context)
+            enable = self._enable.Eval(context)[0]
+            if lost_time > 0.0 or self._tracking_ok.Eval(context)[0] < 0.5:
+                fraction = blind_lift_fraction(_value(lost_time), self._config)
+                weight = np.array([0.0, 0.0, enable * fraction * self._mass_kg * GRAVITY_M_S2,
+                                   0.0, 0.0, 0.0])
+                output.SetFromVector(weight if fraction > 0.0 else 0.0 * weight)
+                return
+            wrench = pd_wrench(self._setpoint.Eval(context), self._pose.Eval(context),
+                               self._velocity.Eval(context), self._kp, self._kd,
+                               self._mass_kg)
+            output.SetFromVector(enable * wrench + feedforward)
+
+    return Impl
+
+
+def _value(x) -> float:
+    """The float value of a float or AutoDiffXd scalar."""
+    return float(x.value()) if hasattr(x, "value") else float(x)
+
+
+LevitationController = LevitationController_[None]

@@ -1,0 +1,48 @@
+"""Magnetic actuation (station): true coil currents at the true pose give the true wrench."""
+
+from __future__ import annotations
+
+import numpy as np
+from pydrake.systems.framework import LeafSystem
+
+from maglev_haptics.systems.levitation_controller import rotation_from_quaternion
+
+
+def instrument_generalized_force(magnetics, p_WA, instrument_state, coil_currents):
+    """[tau; f] in W (N*m about I's origin, N) on the instrument's free body.
+
+    ``instrument_state`` is the plant's free-body state [q_WI (wxyz), p_WI, ...];
+    the ordering [tau; f] is that of a quaternion floating joint's generalized
+    forces, so the result feeds the plant's ``applied_generalized_force`` port.
+    """
+    A = magnetics.wrench_matrix_from(instrument_state[4:7] - p_WA,
+                                     rotation_from_quaternion(instrument_state[0:4]))
+    wrench = A @ coil_currents
+    return np.concatenate([wrench[3:6], wrench[0:3]])
+
+
+class MagneticActuation(LeafSystem):
+    """The coils' wrench on the instrument's magnets, from the electromagnetic model.
+
+    .. pydrake_system::
+
+        name: MagneticActuation
+        input_ports:
+        - coil_currents
+        - instrument_state
+        output_ports:
+        - generalized_force
+    """
+
+    def __init__(self, *, magnetics, p_WA: np.ndarray):
+        super().__init__()
+        self._magnetics = magnetics
+        self._p_WA = np.asarray(p_WA, dtype=float)
+        self._currents = self.DeclareVectorInputPort("coil_currents", magnetics.n_coils)
+        self._state = self.DeclareVectorInputPort("instrument_state", 13)
+        self.DeclareVectorOutputPort("generalized_force", 6, self._calc_generalized_force)
+
+    def _calc_generalized_force(self, context, output):
+        output.SetFromVector(instrument_generalized_force(
+            self._magnetics, self._p_WA, self._state.Eval(context),
+            self._currents.Eval(context)))
