@@ -1,0 +1,153 @@
+"""``maglev bench``: real-time factor of each scenario and what one control tick costs.
+
+Three kinds of numbers:
+- each shipped levitation scenario simulated without Meshcat: real-time factor
+  and wall time per simulated 1 ms;
+- each leaf system of the diagram on its own, at a hover operating point: the
+  cost of one update (discrete update plus output evaluation), with inputs fixed
+  to their values in the running diagram and re-fixed every call so nothing is
+  served from the cache;
+- the electromagnetic model (a full 6 x n wrench matrix) and the allocation.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Dict
+
+import numpy as np
+from pydrake.multibody.plant import MultibodyPlant
+from pydrake.systems.framework import DiagramBuilder
+from pydrake.systems.primitives import VectorLogSink
+
+from maglev_haptics.diagrams.application import BuildDiagram
+from maglev_haptics.diagrams.runner import simulate
+from maglev_haptics.diagrams.scenario import SCENARIO_DIR, load_scenario, scenario_names
+from maglev_haptics.diagrams.station import MakeStation
+from maglev_haptics.hardware.device import DeviceConfig
+from maglev_haptics.hardware.magnetics import bench_wrench_matrix, load_magnetics
+from maglev_haptics.systems.current_allocator import allocate_currents
+
+LEVITATE_FILE = SCENARIO_DIR / "levitate.yaml"
+HOVER_TIME_S = 1.5  # operating point for the per-system costs (s into takeoff_hover_land)
+
+
+def _time_per_call_us(function, n: int) -> float:
+    function()
+    start = time.perf_counter()
+    for _ in range(n):
+        function()
+    return 1e6 * (time.perf_counter() - start) / n
+
+
+def leaf_system_costs(built, context, n: int = 300) -> Dict[str, float]:
+    """Microseconds for one update of each leaf system with vector inputs (no loggers)."""
+    costs = {}
+    diagram = built.diagram
+    for system in _leaf_systems(diagram):
+        if isinstance(system, (VectorLogSink, MultibodyPlant)) or system.num_output_ports() == 0 \
+                and system.num_input_ports() == 0:
+            continue
+        sub = system.GetMyContextFromRoot(context)
+        own = system.CreateDefaultContext()
+        own.SetTimeStateAndParametersFrom(sub)
+        inputs = []
+        for i in range(system.num_input_ports()):
+            port = system.get_input_port(i)
+            if port.get_data_type().name != "kVectorValued":
+                break
+            inputs.append((port, port.Eval(sub).copy()))
+        else:
+            def one_update(system=system, own=own, inputs=inputs):
+                for port, value in inputs:
+                    port.FixValue(own, value)
+                for j in range(system.num_output_ports()):
+                    system.get_output_port(j).Eval(own)
+                if own.num_discrete_state_groups() > 0:
+                    system.CalcForcedDiscreteVariableUpdate(own)
+            costs[system.get_name()] = _time_per_call_us(one_update, n)
+    return costs
+
+
+def _leaf_systems(diagram):
+    for system in diagram.GetSystems():
+        if hasattr(system, "GetSystems"):
+            yield from _leaf_systems(system)
+        else:
+            yield system
+
+
+def plant_step_cost_us(scenario, magnetics, n_steps: int = 2000) -> float:
+    """Wall microseconds per simulated plant step, station alone, instrument resting."""
+    builder = DiagramBuilder()
+    station = builder.AddSystem(MakeStation(scenario, magnetics=magnetics))
+    builder.ExportInput(station.GetInputPort("coil_currents_commanded"))
+    diagram = builder.Build()
+    from pydrake.systems.analysis import Simulator
+
+    simulator = Simulator(diagram)
+    diagram.get_input_port(0).FixValue(simulator.get_mutable_context(),
+                                       np.zeros(scenario.device.n_coils))
+    simulator.Initialize()
+    step = scenario.plant_config.time_step
+    start = time.perf_counter()
+    simulator.AdvanceTo(n_steps * step)
+    return 1e6 * (time.perf_counter() - start) / n_steps
+
+
+def allocation_cost_us(config: DeviceConfig, n: int = 2000) -> Dict[str, float]:
+    magnetics = load_magnetics(config)
+    spec = config.instrument_spec()
+    A = magnetics.wrench_matrix_from(np.array([0.0, 0.0, 0.028]), np.eye(3))
+    hover = np.array([0, 0, spec.mass_kg * 9.81, 0, 0, 0])
+    limit = config.amplifier.current_limit_a
+    return {
+        "within_limits_us": _time_per_call_us(lambda: allocate_currents(A, hover, limit), n),
+        "saturating_us": _time_per_call_us(lambda: allocate_currents(A, 40 * hover, limit), n // 4),
+    }
+
+
+def run_benchmarks(duration_s: float = 3.0, progress: bool = True) -> Dict:
+    results: Dict = {"scenarios": {}, "systems_us": {}, "wrench_matrix_us": {}, "allocation": {}}
+    for name in scenario_names(LEVITATE_FILE):
+        scenario = load_scenario(str(LEVITATE_FILE), name)
+        built = BuildDiagram(scenario)
+        sim_s = min(duration_s, built.plan.end_s)
+        _, wall_s = simulate(built, sim_s, progress=progress)
+        results["scenarios"][name] = {
+            "instrument": scenario.device.instrument,
+            "simulated_s": sim_s,
+            "realtime_factor": sim_s / wall_s,
+            "wall_us_per_1ms_tick": 1e6 * wall_s / (sim_s * 1000),
+        }
+    scenario = load_scenario(str(LEVITATE_FILE), "takeoff_hover_land")
+    built = BuildDiagram(scenario)
+    simulator, _ = simulate(built, HOVER_TIME_S, progress=False)
+    results["systems_us"] = leaf_system_costs(built, simulator.get_context())
+    results["systems_us"]["plant_step (station MultibodyPlant + SceneGraph)"] = plant_step_cost_us(
+        scenario, built.magnetics)
+    for kind in ("two_magnet", "four_magnet"):
+        config = DeviceConfig(instrument=kind)
+        results["wrench_matrix_us"][kind] = bench_wrench_matrix(config)
+        results["allocation"][kind] = allocation_cost_us(config)
+    results["report"] = format_report(results)
+    return results
+
+
+def format_report(results: Dict) -> str:
+    lines = ["Levitation scenarios (Meshcat off):",
+             f"  {'scenario':<24}{'instrument':<13}{'sim s':>7}{'RTF':>8}{'us per 1 ms tick':>18}"]
+    for name, r in results["scenarios"].items():
+        lines.append(f"  {name:<24}{r['instrument']:<13}{r['simulated_s']:>7.2f}"
+                     f"{r['realtime_factor']:>8.2f}{r['wall_us_per_1ms_tick']:>18.0f}")
+    lines.append("Per-system cost of one update at hover (us):")
+    for name, us in sorted(results["systems_us"].items(), key=lambda kv: -kv[1]):
+        lines.append(f"  {name:<52}{us:>8.1f}")
+    lines.append("Wrench matrix 6 x 27 (us per call):")
+    for kind, r in results["wrench_matrix_us"].items():
+        lines.append(f"  {kind:<14} mean {r['mean_us']:.1f}  p99 {r['p99_us']:.1f}")
+    lines.append("Allocation (us per call):")
+    for kind, r in results["allocation"].items():
+        lines.append(f"  {kind:<14} within limits {r['within_limits_us']:.1f}  "
+                     f"saturating {r['saturating_us']:.1f}")
+    return "\n".join(lines)

@@ -1,0 +1,118 @@
+"""The ``maglev`` command line (DESIGN.md section 8)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from maglev_haptics.diagrams.scenario import (
+    ScenarioError, load_scenario, resolve_scenario_file, scenario_names, shipped_scenario_files)
+
+
+def _add_scenario_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("scenario", help="a scenario file's path, or the name of a shipped one "
+                        "(" + ", ".join(p.stem for p in shipped_scenario_files()) + ")")
+    parser.add_argument("--name", help="which named scenario in the file (default: the first)")
+    parser.add_argument("--scenario-text", default="{}",
+                        help="YAML layered over the scenario, e.g. "
+                        "'{device: {instrument: four_magnet}}'")
+
+
+def _load(args):
+    scenario = load_scenario(args.scenario, args.name, args.scenario_text)
+    path = resolve_scenario_file(args.scenario)
+    name = args.name or scenario_names(path)[0]
+    return scenario, f"{path.stem}:{name}"
+
+
+def _cmd_run(args) -> int:
+    from maglev_haptics.diagrams.runner import run_scenario
+
+    scenario, label = _load(args)
+    meshcat = not args.no_meshcat
+    realtime = args.realtime if args.realtime is not None else (1.0 if meshcat else 0.0)
+    out = Path(args.out) if args.out else Path("out") / label.replace(":", "-")
+    result = run_scenario(scenario, label=label, out_dir=out, meshcat=meshcat,
+                          realtime_rate=realtime, duration_s=args.duration)
+    printed = {k: v for k, v in result.summary.items() if k != "holds"}
+    print(json.dumps(printed, indent=2))
+    print(f"wrote {out}/log.npz, {out}/summary.json, {out}/levitation.png")
+    if result.meshcat is not None:
+        print(f"Meshcat: {result.meshcat.web_url()} (the run's recording is replayable there)")
+        if sys.stdin.isatty():
+            input("press Enter to close Meshcat and exit ")
+    return 0
+
+
+def _cmd_diagram(args) -> int:
+    import pydot
+
+    from maglev_haptics.diagrams.application import BuildDiagram
+
+    scenario, _ = _load(args)
+    built = BuildDiagram(scenario)
+    graph = pydot.graph_from_dot_data(built.diagram.GetGraphvizString(max_depth=args.depth))[0]
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fmt = out.suffix.lstrip(".") or "svg"
+    graph.write(str(out), format=fmt)
+    print(f"wrote {out}")
+    return 0
+
+
+def _cmd_bench(args) -> int:
+    from maglev_haptics.diagrams.bench import run_benchmarks
+
+    results = run_benchmarks(duration_s=args.duration, progress=not args.json)
+    print(json.dumps(results, indent=2) if args.json else results["report"])
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="maglev", description="Simulate, drive and analyse the co-located maglev haptic display.")
+    commands = parser.add_subparsers(dest="command", required=True)
+
+    run = commands.add_parser("run", help="simulate a scenario; write log.npz, summary.json, plots")
+    _add_scenario_arguments(run)
+    run.add_argument("--duration", type=float, help="simulated seconds (default: the script's length)")
+    run.add_argument("--out", help="output folder (default: out/<file>-<name>)")
+    run.add_argument("--no-meshcat", action="store_true", help="do not start Meshcat")
+    run.add_argument("--realtime", type=float,
+                     help="target real-time rate (default 1 with Meshcat, else 0 = as fast as possible)")
+    run.set_defaults(func=_cmd_run)
+
+    diagram = commands.add_parser("diagram", help="draw the system diagram (pydot + graphviz)")
+    _add_scenario_arguments(diagram)
+    diagram.add_argument("--out", required=True, help="FILE.svg (or .png, .pdf)")
+    diagram.add_argument("--depth", type=int, default=1, help="subsystem levels to expand")
+    diagram.set_defaults(func=_cmd_diagram)
+
+    bench = commands.add_parser("bench", help="real-time factor of each scenario, per-tick costs")
+    bench.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    bench.add_argument("--duration", type=float, default=3.0, help="simulated seconds per scenario")
+    bench.set_defaults(func=_cmd_bench)
+    return parser
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except (ScenarioError, ValueError, FileNotFoundError) as error:
+        print(f"maglev {args.command}: error: {error}", file=sys.stderr)
+        return 2
+    except SystemExit as error:
+        if error.code in (None, 0):
+            raise
+        # Drake's C++ assertions surface in Python as SystemExit.
+        print(f"maglev {args.command}: error: the simulation stopped on an internal check "
+              f"({error}); the scenario's values are likely outside what the model can handle",
+              file=sys.stderr)
+        return 3
+
+
+if __name__ == "__main__":
+    sys.exit(main())

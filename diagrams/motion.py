@@ -1,0 +1,90 @@
+"""The scripted flight: rest, force ramp, waypoints, landing, ramp-down.
+
+Turns a :class:`MotionScript` into C++ trajectories (no Python on the 1 kHz
+path): the setpoint [x, y, z, roll, pitch, yaw] as minimum-jerk moves between
+held poses, and the controller's enable gain as a ramp 0 -> 1 -> 0 (the safe
+force ramp at haptics start and after touchdown).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import List, Tuple
+
+import numpy as np
+from pydrake.trajectories import PiecewisePolynomial
+
+# Hermite samples per second of a minimum-jerk move: the cubic Hermite fit of
+# the quintic then errs by < 1e-7 of the move's amplitude.
+SAMPLES_PER_S = 200
+LANDING_PRESS_M = 0.001  # the landing setpoint ends this far below the rest height
+
+
+@dataclass
+class FlightPlan:
+    setpoint: PiecewisePolynomial  # 6 rows: pose of I in W (m, rad)
+    enable: PiecewisePolynomial  # 1 row: controller gain 0..1
+    holds: List[Tuple[float, float]]  # (start, end) of each waypoint hold (s)
+    landing: Tuple[float, float]  # (start, end) of the descent (s)
+    end_s: float  # when the ramp-down is complete (s)
+
+
+def minimum_jerk(s: np.ndarray):
+    """Blend 0 -> 1 and its derivative for s in [0, 1] (zero rate and acceleration at both ends)."""
+    return 10 * s**3 - 15 * s**4 + 6 * s**5, 30 * s**2 - 60 * s**3 + 30 * s**4
+
+
+def rest_pose(start_xy_yaw, rest_height_m: float) -> np.ndarray:
+    x, y, yaw = start_xy_yaw
+    return np.array([x, y, rest_height_m, 0.0, 0.0, yaw])
+
+
+def flight_plan(motion, rest_height_m: float) -> FlightPlan:
+    """Setpoint and enable trajectories for ``motion`` (a MotionScript)."""
+    times: List[float] = []
+    values: List[np.ndarray] = []
+    rates: List[np.ndarray] = []
+
+    def hold(pose, t_from, t_to):
+        for t in (t_from, t_to):
+            if not times or t > times[-1]:
+                times.append(t)
+                values.append(np.asarray(pose, float))
+                rates.append(np.zeros(6))
+
+    def move(pose_from, pose_to, t_from, duration):
+        n = max(2, int(np.ceil(duration * SAMPLES_PER_S)))
+        for s in np.linspace(0.0, 1.0, n + 1)[1:]:
+            blend, blend_rate = minimum_jerk(s)
+            times.append(t_from + s * duration)
+            values.append(pose_from + blend * (pose_to - pose_from))
+            rates.append(blend_rate / duration * (pose_to - pose_from))
+
+    rest = rest_pose(motion.start_xy_yaw, rest_height_m)
+    t = motion.takeoff_at_s + motion.force_ramp_s
+    hold(rest, 0.0, t)
+    pose = rest
+    holds = []
+    for waypoint in motion.waypoints:
+        target = np.asarray(waypoint.pose, float)
+        move(pose, target, t, waypoint.move_s)
+        t += waypoint.move_s
+        hold(target, t, t + waypoint.hold_s)
+        holds.append((t, t + waypoint.hold_s))
+        t += waypoint.hold_s
+        pose = target
+    touchdown = rest_pose([pose[0], pose[1], pose[5]], rest_height_m - LANDING_PRESS_M)
+    landing = (t, t + motion.landing_s)
+    move(pose, touchdown, t, motion.landing_s)
+    t += motion.landing_s + motion.settle_s
+    ramp_down_end = t + motion.force_ramp_s
+    hold(touchdown, t, ramp_down_end)
+    setpoint = PiecewisePolynomial.CubicHermite(
+        np.array(times), np.array(values).T, np.array(rates).T)
+    ramp_up_start = motion.takeoff_at_s
+    enable = PiecewisePolynomial.FirstOrderHold(
+        [0.0, ramp_up_start, ramp_up_start + motion.force_ramp_s, t, ramp_down_end,
+         ramp_down_end + 1.0],
+        np.array([[0.0, 0.0, 1.0, 1.0, 0.0, 0.0]]))
+    return FlightPlan(setpoint=setpoint, enable=enable, holds=holds, landing=landing,
+                      end_s=ramp_down_end)

@@ -1,0 +1,104 @@
+"""From the loggers to ``log.npz`` arrays, and from those to the run's summary numbers."""
+
+from __future__ import annotations
+
+from typing import Dict
+
+import numpy as np
+from pydrake.common.eigen_geometry import Quaternion
+from pydrake.math import RollPitchYaw
+
+from maglev_haptics.diagrams.motion import FlightPlan
+from maglev_haptics.systems.levitation_controller import rotation_from_quaternion, rotation_from_rpy
+
+HOVER_SETTLE_S = 0.5  # skipped at the start of each hold before hover errors count (s)
+
+
+def rpy_from_quaternions(q: np.ndarray) -> np.ndarray:
+    """(N, 3) roll-pitch-yaw (rad, yaw unwrapped) from (N, 4) [w, x, y, z]."""
+    rpy = np.array([RollPitchYaw(Quaternion(row / np.linalg.norm(row))).vector() for row in q])
+    rpy[:, 2] = np.unwrap(rpy[:, 2])
+    return rpy
+
+
+def log_arrays(loggers, context, coil_resistance_ohm: float) -> Dict[str, np.ndarray]:
+    """The run's log as named arrays; the contract's keys first (DESIGN.md section 8)."""
+    logs = {name: logger.FindLog(context) for name, logger in loggers.items()}
+    data = {name: log.data().T for name, log in logs.items()}
+    t = logs["instrument_state"].sample_times()
+    state = data["instrument_state"]
+    measured = data["X_WI_measured"]
+    feedforward = data["wrench_feedforward_W"]
+    currents = data["coil_currents"]
+    return {
+        "t": t,
+        "p_WI_measured": measured[:, 4:7],
+        "p_WI_true": state[:, 4:7],
+        "rpy_WI_measured": rpy_from_quaternions(measured[:, 0:4]),
+        "rpy_WI_true": rpy_from_quaternions(state[:, 0:4]),
+        "f_user": feedforward[:, 0:3],
+        "tau_user": feedforward[:, 3:6],
+        "coil_currents": currents,
+        "coil_power_w": coil_resistance_ohm * np.sum(currents**2, axis=1),
+        "p_WI_desired": data["setpoint"][:, 0:3],
+        "rpy_WI_desired": data["setpoint"][:, 3:6],
+        "q_WI_true": state[:, 0:4],
+        "V_WI_true": state[:, 7:13],
+        "q_WI_measured": measured[:, 0:4],
+        "V_WI_measured": data["V_WI_measured"],
+        "tracking_ok": data["tracking_ok"][:, 0],
+        "wrench_commanded_W": data["wrench_commanded_W"],
+        "allocation_shortfall_W": data["allocation_shortfall_W"],
+    }
+
+
+def angle_between_deg(q_WI: np.ndarray, rpy_WD: np.ndarray) -> np.ndarray:
+    """Rotation angle (deg) between each measured/true orientation and the setpoint."""
+    angles = []
+    for q, rpy in zip(q_WI, rpy_WD):
+        R = rotation_from_rpy(rpy).T @ rotation_from_quaternion(q)
+        angles.append(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))))
+    return np.array(angles)
+
+
+def summarize(log: Dict[str, np.ndarray], plan: FlightPlan, *, rest_height_m: float) -> Dict:
+    """Hover accuracy per hold, hover currents and power, touchdown speed, limits."""
+    t = log["t"]
+    holds = []
+    for start, end in plan.holds:
+        window = (t >= start + min(HOVER_SETTLE_S, (end - start) / 2)) & (t <= end)
+        if not window.any():
+            continue
+        position_error = log["p_WI_true"][window] - log["p_WI_desired"][window]
+        angle_error = angle_between_deg(log["q_WI_true"][window], log["rpy_WI_desired"][window])
+        estimate_error = log["p_WI_measured"][window] - log["p_WI_true"][window]
+        holds.append({
+            "start_s": float(start), "end_s": float(end),
+            "pose_desired": [*map(float, log["p_WI_desired"][window][0]),
+                             *map(float, log["rpy_WI_desired"][window][0])],
+            "position_error_rms_mm": float(1e3 * np.sqrt(np.mean(np.sum(position_error**2, 1)))),
+            "angle_error_rms_deg": float(np.sqrt(np.mean(angle_error**2))),
+            "estimate_error_rms_mm": float(1e3 * np.sqrt(np.mean(np.sum(estimate_error**2, 1)))),
+            "max_coil_current_a": float(np.max(np.abs(log["coil_currents"][window]))),
+            "mean_power_w": float(np.mean(log["coil_power_w"][window])),
+        })
+    landing_start, _ = plan.landing
+    after = (t >= landing_start) & (log["p_WI_true"][:, 2] <= rest_height_m)
+    touchdown = None
+    if after.any():
+        k = int(np.argmax(after))
+        touchdown = {"time_s": float(t[k]), "speed_m_s": float(np.linalg.norm(log["V_WI_true"][k, 3:6]))}
+    shortfall = np.linalg.norm(log["allocation_shortfall_W"], axis=1)
+    dt = np.diff(t, prepend=t[0])
+    return {
+        "max_coil_current_a": float(np.max(np.abs(log["coil_currents"]))),
+        "max_power_w": float(np.max(log["coil_power_w"])),
+        "holds": holds,
+        "hover_position_error_rms_mm": max((h["position_error_rms_mm"] for h in holds), default=None),
+        "hover_angle_error_rms_deg": max((h["angle_error_rms_deg"] for h in holds), default=None),
+        "hover_max_coil_current_a": holds[0]["max_coil_current_a"] if holds else None,
+        "hover_mean_power_w": holds[0]["mean_power_w"] if holds else None,
+        "touchdown": touchdown,
+        "tracking_lost_s": float(np.sum(dt[log["tracking_ok"] < 0.5])),
+        "allocation_saturated_s": float(np.sum(dt[shortfall > 1e-6])),
+    }

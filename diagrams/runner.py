@@ -1,0 +1,82 @@
+"""Run a scenario: build, simulate (optionally in real time, with Meshcat), write results."""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Dict, Optional
+
+import numpy as np
+from pydrake.geometry import StartMeshcat
+from pydrake.systems.analysis import Simulator
+from tqdm import tqdm
+
+from maglev_haptics.diagrams.application import BuildDiagram
+from maglev_haptics.diagrams.run_metrics import log_arrays, summarize
+from maglev_haptics.diagrams.run_plots import plot_run
+from maglev_haptics.diagrams.scenario import Scenario
+
+PROGRESS_CHUNK_S = 0.25  # simulated seconds between progress-bar updates
+
+
+@dataclass
+class RunResult:
+    summary: Dict  # what summary.json holds
+    log: Dict[str, np.ndarray]  # what log.npz holds
+    meshcat: Optional[object]  # the Meshcat instance, kept alive for the viewer
+
+
+def simulate(built, duration_s: float, *, realtime_rate: float = 0.0,
+             progress: bool = True):
+    """Advance the diagram to ``duration_s``; returns (simulator, wall seconds)."""
+    simulator = Simulator(built.diagram)
+    simulator.set_target_realtime_rate(realtime_rate)
+    simulator.set_publish_every_time_step(False)
+    simulator.Initialize()
+    chunks = np.append(np.arange(PROGRESS_CHUNK_S, duration_s, PROGRESS_CHUNK_S), duration_s)
+    start = time.perf_counter()
+    with tqdm(total=round(duration_s, 3), unit="sim s", disable=not progress,
+              bar_format="{l_bar}{bar}| {n:.2f}/{total:.2f} sim s [{elapsed}]") as bar:
+        for t in chunks:
+            simulator.AdvanceTo(float(t))
+            bar.update(float(t) - bar.n)
+    return simulator, time.perf_counter() - start
+
+
+def run_scenario(scenario: Scenario, *, label: str, out_dir: Optional[Path] = None,
+                 meshcat: bool = False, realtime_rate: float = 0.0,
+                 duration_s: Optional[float] = None, progress: bool = True) -> RunResult:
+    """Simulate ``scenario``; write ``log.npz``, ``summary.json`` and plots to ``out_dir``."""
+    viewer = StartMeshcat() if meshcat else None
+    built = BuildDiagram(scenario, meshcat=viewer)
+    if duration_s is None:
+        duration_s = scenario.duration_s if scenario.duration_s is not None else built.plan.end_s
+    if viewer is not None:
+        viewer.StartRecording()
+    simulator, wall_s = simulate(built, duration_s, realtime_rate=realtime_rate,
+                                 progress=progress)
+    if viewer is not None:
+        viewer.StopRecording()
+        viewer.PublishRecording()
+    log = log_arrays(built.loggers, simulator.get_context(),
+                     scenario.device.coil.resistance_ohm)
+    spec = scenario.device.instrument_spec()
+    summary = {
+        "scenario": label,
+        "instrument": spec.kind,
+        "duration_s": float(duration_s),
+        "wall_time_s": wall_s,
+        "realtime_factor": float(duration_s / wall_s),
+        "control_rate_hz": scenario.control_rate_hz,
+        **summarize(log, built.plan, rest_height_m=spec.rest_height_m),
+    }
+    if out_dir is not None:
+        out_dir = Path(out_dir)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        np.savez_compressed(out_dir / "log.npz", **log)
+        (out_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+        plot_run(log, out_dir, title=label,
+                 current_limit_a=scenario.device.amplifier.current_limit_a)
+    return RunResult(summary=summary, log=log, meshcat=viewer)

@@ -1,0 +1,254 @@
+"""Scenario schema and loading.
+
+A scenario file holds several named scenarios (plus an optional ``Defaults``
+entry that is ignored); each is a :class:`Scenario` in YAML, loaded with
+``pydrake.common.yaml.yaml_load_typed`` over the defaults, so every field can
+be left out. Before loading, the raw YAML is walked against the schema so a
+typo or a wrong type is reported with its full field path; after loading, the
+values are range-checked the same way.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import List, Optional
+
+import yaml
+from pydrake.common.yaml import yaml_load_typed
+from pydrake.multibody.plant import MultibodyPlantConfig
+
+from maglev_haptics.hardware.device import INSTRUMENT_KINDS, DeviceConfig
+from maglev_haptics.systems.levitation_controller import ControllerConfig
+from maglev_haptics.systems.marker_sensor import Occlusion
+from maglev_haptics.systems.pose_estimator import PoseEstimatorConfig
+
+SCENARIO_DIR = Path(__file__).resolve().parent.parent / "scenarios"
+
+
+class ScenarioError(ValueError):
+    """A scenario that cannot be run, with the offending field named."""
+
+
+@dataclass
+class Waypoint:
+    """A pose to move to and hold."""
+
+    pose: List[float] = field(default_factory=lambda: [0.0, 0.0, 0.020, 0.0, 0.0, 0.0])
+    # [x, y, z, roll, pitch, yaw] of I in W (m, rad; yaw unwrapped: 6.283 is a full turn)
+    move_s: float = 1.0  # duration of the minimum-jerk move into this pose (s)
+    hold_s: float = 1.0  # time held at the pose (s)
+
+
+@dataclass
+class MotionScript:
+    """Rest on the glass, ramp the force up, fly the waypoints, land, ramp down."""
+
+    start_xy_yaw: List[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])  # rest place (m, m, rad)
+    takeoff_at_s: float = 0.2  # the safe force ramp starts here (s)
+    force_ramp_s: float = 0.2  # duration of the force ramps at takeoff and after landing (s)
+    waypoints: List[Waypoint] = field(default_factory=lambda: [Waypoint()])
+    landing_s: float = 1.5  # minimum-jerk descent from the last waypoint onto the glass (s)
+    settle_s: float = 0.3  # time on the glass, still levitation-controlled, before ramp-down (s)
+
+
+@dataclass
+class Scenario:
+    device: DeviceConfig = field(default_factory=DeviceConfig)
+    controller: ControllerConfig = field(default_factory=ControllerConfig)
+    estimator: PoseEstimatorConfig = field(default_factory=PoseEstimatorConfig)
+    motion: MotionScript = field(default_factory=MotionScript)
+    occlusions: List[Occlusion] = field(default_factory=list)  # marker null: all (instrument lost)
+    marker_dropout_probability: float = 0.0  # per marker and sample
+    control_rate_hz: float = 1000.0  # controller, allocator, amplifiers (860: synchronous with the tracker)
+    log_rate_hz: float = 1000.0
+    plant_config: MultibodyPlantConfig = field(default_factory=lambda: MultibodyPlantConfig(
+        time_step=1e-3, discrete_contact_approximation="lagged"))
+    duration_s: Optional[float] = None  # None: the motion script's length
+    random_seed: int = 0
+    hardware: str = "sim"  # only the simulated station exists so far
+
+
+def shipped_scenario_files() -> List[Path]:
+    return sorted(SCENARIO_DIR.glob("*.yaml"))
+
+
+def resolve_scenario_file(name_or_path: str) -> Path:
+    """A path, or the stem of a shipped scenario file (``levitate``)."""
+    path = Path(name_or_path)
+    if path.is_file():
+        return path
+    shipped = SCENARIO_DIR / f"{name_or_path}.yaml"
+    if shipped.is_file():
+        return shipped
+    names = ", ".join(p.stem for p in shipped_scenario_files())
+    raise ScenarioError(f"scenario file {name_or_path!r} not found: give a path or one of {names}")
+
+
+def scenario_names(path: Path) -> List[str]:
+    raw = yaml.safe_load(path.read_text()) or {}
+    return [key for key in raw if key != "Defaults"]
+
+
+def load_scenario(name_or_path: str, name: Optional[str] = None,
+                  scenario_text: str = "{}") -> Scenario:
+    """Load one named scenario (default: the file's first) and layer ``scenario_text`` on it."""
+    path = resolve_scenario_file(name_or_path)
+    raw = yaml.safe_load(path.read_text()) or {}
+    names = [key for key in raw if key != "Defaults"]
+    if not names:
+        raise ScenarioError(f"{path}: holds no named scenario")
+    name = names[0] if name is None else name
+    if name not in names:
+        raise ScenarioError(f"{path}: no scenario named {name!r}; it has {', '.join(names)}")
+    label = f"{path.stem}:{name}"
+    check_yaml_against_schema(raw[name] or {}, Scenario, label)
+    overrides = yaml.safe_load(scenario_text) or {}
+    check_yaml_against_schema(overrides, Scenario, f"{label} (overrides)")
+    scenario = yaml_load_typed(schema=Scenario, data=path.read_text(),
+                               child_name=name, defaults=Scenario())
+    scenario = yaml_load_typed(schema=Scenario, data=scenario_text, defaults=scenario)
+    validate_scenario(scenario, label)
+    return scenario
+
+
+def check_yaml_against_schema(value, schema, path: str) -> None:
+    """Raise ScenarioError naming ``path.to.field`` for unknown keys and wrong types."""
+    origin = typing.get_origin(schema)
+    args = typing.get_args(schema)
+    if origin is typing.Union:
+        if value is None and type(None) in args:
+            return
+        options = [a for a in args if a is not type(None)]
+        if len(options) == 1:
+            check_yaml_against_schema(value, options[0], path)
+            return
+        raise ScenarioError(f"{path}: unions need a YAML tag (not used in this schema)")
+    if origin in (list, List):
+        if not isinstance(value, list):
+            raise ScenarioError(f"{path} = {value!r}: must be a list")
+        for i, item in enumerate(value):
+            check_yaml_against_schema(item, args[0], f"{path}[{i}]")
+        return
+    if dataclasses.is_dataclass(schema):
+        if not isinstance(value, dict):
+            raise ScenarioError(f"{path} = {value!r}: must be a mapping of {schema.__name__} fields")
+        hints = typing.get_type_hints(schema)
+        for key, item in value.items():
+            if key not in hints:
+                allowed = ", ".join(f.name for f in dataclasses.fields(schema))
+                raise ScenarioError(f"{path}.{key}: unknown field; {schema.__name__} has {allowed}")
+            check_yaml_against_schema(item, hints[key], f"{path}.{key}")
+        return
+    if schema is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ScenarioError(f"{path} = {value!r}: must be a number")
+    elif schema is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ScenarioError(f"{path} = {value!r}: must be an integer")
+    elif schema is bool:
+        if not isinstance(value, bool):
+            raise ScenarioError(f"{path} = {value!r}: must be true or false")
+    elif schema is str:
+        if not isinstance(value, str):
+            raise ScenarioError(f"{path} = {value!r}: must be a string")
+    # Drake's own config dataclasses check their fields in yaml_load_typed.
+
+
+def _require(ok: bool, path: str, value, allowed: str) -> None:
+    if not ok:
+        raise ScenarioError(f"{path} = {value!r}: {allowed}")
+
+
+def _positive(path: str, value) -> None:
+    _require(isinstance(value, (int, float)) and math.isfinite(value) and value > 0,
+             path, value, "must be a finite number > 0")
+
+
+def _nonnegative(path: str, value) -> None:
+    _require(isinstance(value, (int, float)) and math.isfinite(value) and value >= 0,
+             path, value, "must be a finite number >= 0")
+
+
+def _vector(path: str, value, size: int) -> None:
+    _require(isinstance(value, list) and len(value) == size
+             and all(isinstance(v, (int, float)) and math.isfinite(v) for v in value),
+             path, value, f"must be a list of {size} finite numbers")
+
+
+def validate_scenario(s: Scenario, label: str) -> None:
+    """Range checks; each error names the field, its value and what is allowed."""
+    d = s.device
+    p = f"{label}: device"
+    _require(d.instrument in INSTRUMENT_KINDS, f"{p}.instrument", d.instrument,
+             f"must be one of {', '.join(INSTRUMENT_KINDS)}")
+    if d.instrument_mass_kg is not None:
+        _positive(f"{p}.instrument_mass_kg", d.instrument_mass_kg)
+    if d.magnet is not None:
+        for name in ("diameter_m", "height_m", "remanence_t", "density_kg_m3"):
+            _positive(f"{p}.magnet.{name}", getattr(d.magnet, name))
+    for name in ("outer_diameter_m", "height_m", "resistance_ohm", "inductance_h"):
+        _positive(f"{p}.coil.{name}", getattr(d.coil, name))
+    _nonnegative(f"{p}.coil.inner_diameter_m", d.coil.inner_diameter_m)
+    _require(d.coil.inner_diameter_m < d.coil.outer_diameter_m, f"{p}.coil.inner_diameter_m",
+             d.coil.inner_diameter_m, f"must be < outer_diameter_m ({d.coil.outer_diameter_m})")
+    _require(isinstance(d.coil.turns, int) and d.coil.turns > 0, f"{p}.coil.turns",
+             d.coil.turns, "must be a positive integer")
+    _positive(f"{p}.array.pitch_m", d.array.pitch_m)
+    _positive(f"{p}.array.row_spacing_m", d.array.row_spacing_m)
+    _require(len(d.array.row_counts) > 0 and all(c > 0 for c in d.array.row_counts),
+             f"{p}.array.row_counts", d.array.row_counts, "must be a non-empty list of positive counts")
+    _require(d.array.pitch_m >= d.coil.outer_diameter_m, f"{p}.array.pitch_m", d.array.pitch_m,
+             f"must be >= the coil's outer diameter ({d.coil.outer_diameter_m} m): coils cannot overlap")
+    _positive(f"{p}.amplifier.current_limit_a", d.amplifier.current_limit_a)
+    _positive(f"{p}.amplifier.bandwidth_hz", d.amplifier.bandwidth_hz)
+    _positive(f"{p}.display.thickness_m", d.display.thickness_m)
+    _positive(f"{p}.tracker.rate_hz", d.tracker.rate_hz)
+    _nonnegative(f"{p}.tracker.noise_m", d.tracker.noise_m)
+    _nonnegative(f"{p}.tracker.latency_s", d.tracker.latency_s)
+
+    c = s.controller
+    _vector(f"{label}: controller.natural_frequency_hz", c.natural_frequency_hz, 6)
+    _vector(f"{label}: controller.damping_ratio", c.damping_ratio, 6)
+    for name in ("natural_frequency_hz", "damping_ratio"):
+        for i, v in enumerate(getattr(c, name)):
+            _positive(f"{label}: controller.{name}[{i}]", v)
+    for name in ("kp", "kd"):
+        if getattr(c, name) is not None:
+            _vector(f"{label}: controller.{name}", getattr(c, name), 6)
+            for i, v in enumerate(getattr(c, name)):
+                _nonnegative(f"{label}: controller.{name}[{i}]", v)
+    _nonnegative(f"{label}: controller.lost_grace_s", c.lost_grace_s)
+    _positive(f"{label}: controller.blind_landing_s", c.blind_landing_s)
+
+    m = s.motion
+    _vector(f"{label}: motion.start_xy_yaw", m.start_xy_yaw, 3)
+    _positive(f"{label}: motion.takeoff_at_s", m.takeoff_at_s)
+    for name in ("force_ramp_s", "landing_s"):
+        _positive(f"{label}: motion.{name}", getattr(m, name))
+    _nonnegative(f"{label}: motion.settle_s", m.settle_s)
+    _require(len(m.waypoints) > 0, f"{label}: motion.waypoints", m.waypoints,
+             "must hold at least one pose to hover at")
+    for i, w in enumerate(m.waypoints):
+        _vector(f"{label}: motion.waypoints[{i}].pose", w.pose, 6)
+        _positive(f"{label}: motion.waypoints[{i}].move_s", w.move_s)
+        _nonnegative(f"{label}: motion.waypoints[{i}].hold_s", w.hold_s)
+
+    for i, o in enumerate(s.occlusions):
+        n_markers = len(d.instrument_spec().p_IK_m)
+        _require(o.marker is None or 0 <= o.marker < n_markers, f"{label}: occlusions[{i}].marker",
+                 o.marker, f"must be null (all markers) or a marker index 0..{n_markers - 1}")
+        _require(0 <= o.start_s <= o.end_s, f"{label}: occlusions[{i}]",
+                 (o.start_s, o.end_s), "needs 0 <= start_s <= end_s")
+    _require(0.0 <= s.marker_dropout_probability <= 1.0, f"{label}: marker_dropout_probability",
+             s.marker_dropout_probability, "must be in [0, 1]")
+    _positive(f"{label}: control_rate_hz", s.control_rate_hz)
+    _positive(f"{label}: log_rate_hz", s.log_rate_hz)
+    _positive(f"{label}: plant_config.time_step", s.plant_config.time_step)
+    if s.duration_s is not None:
+        _positive(f"{label}: duration_s", s.duration_s)
+    _require(s.hardware == "sim", f"{label}: hardware", s.hardware,
+             "must be 'sim' (the real-hardware station is not part of this release)")

@@ -1,0 +1,106 @@
+"""The station: what real hardware replaces (DESIGN.md section 1).
+
+``MakeStation`` returns a Diagram named ``station`` with the same ports the
+real hardware drivers will have:
+
+- input ``coil_currents_commanded`` (n_coils, A);
+- outputs ``markers_measured`` (3 * n_markers, m, NaN when hidden),
+  ``coil_currents`` (n_coils, A, what flows), ``instrument_state`` (13, the
+  true free-body state, simulation only), ``query_object`` (for visualizers).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from pydrake.math import RigidTransform, RollPitchYaw
+from pydrake.multibody.parsing import Parser
+from pydrake.multibody.plant import AddMultibodyPlant
+from pydrake.systems.framework import DiagramBuilder
+from pydrake.systems.primitives import LinearSystem, Saturation
+
+from maglev_haptics.diagrams.scenario import Scenario, ScenarioError
+from maglev_haptics.plant_models import PACKAGE_XML
+from maglev_haptics.systems.magnetic_actuation import MagneticActuation
+from maglev_haptics.systems.marker_sensor import MarkerSensor
+
+DISPLAY_MODEL_URL = "package://maglev_haptics/display.sdf"
+DISPLAY_MODEL_THICKNESS_M = 0.010
+
+
+def amplifier_lag_coefficient(bandwidth_hz: float, period_s: float) -> float:
+    """a in i[k+1] = a i[k] + (1 - a) i_cmd[k]: exact sampling of a first-order lag."""
+    return float(np.exp(-2 * np.pi * bandwidth_hz * period_s))
+
+
+def AddAmplifiers(builder: DiagramBuilder, *, spec, n_coils: int, period_s: float):
+    """Current-mode amplifiers: a hard clamp at the current limit, then a sampled lag.
+
+    Returns the Diagram (input ``coil_currents_commanded``, output
+    ``coil_currents``); both parts are Drake C++ systems.
+    """
+    sub = DiagramBuilder()
+    limit = np.full(n_coils, spec.current_limit_a)
+    clamp = sub.AddNamedSystem("current_limit", Saturation(-limit, limit))
+    a = amplifier_lag_coefficient(spec.bandwidth_hz, period_s)
+    lag = sub.AddNamedSystem("current_lag", LinearSystem(
+        A=a * np.eye(n_coils), B=(1 - a) * np.eye(n_coils), C=np.eye(n_coils),
+        D=np.zeros((n_coils, n_coils)), time_period=period_s))
+    sub.Connect(clamp.get_output_port(), lag.get_input_port())
+    sub.ExportInput(clamp.get_input_port(), "coil_currents_commanded")
+    sub.ExportOutput(lag.get_output_port(), "coil_currents")
+    amplifiers = sub.Build()
+    amplifiers.set_name("amplifiers")
+    return builder.AddSystem(amplifiers)
+
+
+def rest_transform(scenario: Scenario) -> RigidTransform:
+    """X_WI of the instrument lying level on the glass at the script's start."""
+    spec = scenario.device.instrument_spec()
+    x, y, yaw = scenario.motion.start_xy_yaw
+    return RigidTransform(RollPitchYaw(0.0, 0.0, yaw), [x, y, spec.rest_height_m])
+
+
+def MakeStation(scenario: Scenario, *, magnetics) -> "Diagram":
+    """The simulated station for ``scenario`` (``hardware: sim``)."""
+    device = scenario.device
+    spec = device.instrument_spec()
+    if abs(device.display.thickness_m - DISPLAY_MODEL_THICKNESS_M) > 1e-9:
+        raise ScenarioError(
+            f"device.display.thickness_m = {device.display.thickness_m}: the shipped display "
+            f"model is {DISPLAY_MODEL_THICKNESS_M} m thick; other values need their own model")
+    builder = DiagramBuilder()
+    plant, scene_graph = AddMultibodyPlant(scenario.plant_config, builder)
+    parser = Parser(plant)
+    parser.package_map().AddPackageXml(str(PACKAGE_XML))
+    instrument = parser.AddModels(url=spec.model_url)[0]
+    parser.AddModels(url=DISPLAY_MODEL_URL)
+    plant.Finalize()
+    body = plant.GetBodyByName("instrument", instrument)
+    if abs(body.default_mass() - spec.mass_kg) > 1e-6:
+        raise ScenarioError(
+            f"device.instrument_mass_kg = {spec.mass_kg}: the model {spec.model_url} has "
+            f"{body.default_mass()} kg; the two must agree")
+    plant.SetDefaultFreeBodyPose(body, rest_transform(scenario))
+
+    control_period_s = 1.0 / scenario.control_rate_hz
+    amplifiers = AddAmplifiers(builder, spec=device.amplifier, n_coils=device.n_coils,
+                               period_s=control_period_s)
+    actuation = builder.AddNamedSystem(
+        "magnetic_actuation", MagneticActuation(magnetics=magnetics, p_WA=device.p_WA))
+    sensor = builder.AddNamedSystem("marker_sensor", MarkerSensor(
+        instrument=spec, tracker=device.tracker, occlusions=scenario.occlusions,
+        seed=scenario.random_seed, dropout_probability=scenario.marker_dropout_probability))
+    state_port = plant.get_state_output_port(instrument)
+    builder.Connect(amplifiers.get_output_port(), actuation.GetInputPort("coil_currents"))
+    builder.Connect(state_port, actuation.GetInputPort("instrument_state"))
+    builder.Connect(actuation.get_output_port(), plant.get_applied_generalized_force_input_port())
+    builder.Connect(state_port, sensor.GetInputPort("instrument_state"))
+
+    builder.ExportInput(amplifiers.get_input_port(), "coil_currents_commanded")
+    builder.ExportOutput(sensor.GetOutputPort("markers_measured"), "markers_measured")
+    builder.ExportOutput(amplifiers.get_output_port(), "coil_currents")
+    builder.ExportOutput(state_port, "instrument_state")
+    builder.ExportOutput(scene_graph.get_query_output_port(), "query_object")
+    station = builder.Build()
+    station.set_name("station")
+    return station

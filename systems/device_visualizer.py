@@ -1,0 +1,92 @@
+"""Meshcat drawing of the device: coils coloured by current, commanded and measured poses."""
+
+from __future__ import annotations
+
+import numpy as np
+from pydrake.geometry import Cylinder, Meshcat, Rgba, Sphere
+from pydrake.math import RigidTransform, RollPitchYaw, RotationMatrix
+from pydrake.systems.framework import LeafSystem
+
+from maglev_haptics.systems.levitation_controller import rotation_from_quaternion
+
+COIL_PATH = "/device/coils"
+SETPOINT_PATH = "/device/setpoint"
+MEASURED_PATH = "/device/measured"
+MARKERS_PATH = "/device/markers_measured"
+
+
+def current_color(current_a: float, limit_a: float) -> list:
+    """Diverging colour: grey at 0 A, red for positive, blue for negative, full at the limit."""
+    level = float(np.clip(abs(current_a) / limit_a, 0.0, 1.0))
+    grey = np.array([0.6, 0.6, 0.6])
+    hot = np.array([0.9, 0.1, 0.05]) if current_a >= 0 else np.array([0.05, 0.25, 0.95])
+    return [*(grey + level * (hot - grey)), 1.0]
+
+
+class DeviceVisualizer(LeafSystem):
+    """Draws what the MultibodyPlant's geometry does not show, at ``period_s``.
+
+    .. pydrake_system::
+
+        name: DeviceVisualizer
+        input_ports:
+        - coil_currents
+        - setpoint
+        - X_WI_measured
+        - markers_measured
+
+    Coils are drawn as cylinders under the display (their tops at z = p_WA z),
+    coloured by current (red +, blue -, saturated at the limit); a triad marks
+    the commanded pose and another the measured one; the measured markers are
+    small spheres.
+    """
+
+    def __init__(self, *, meshcat: Meshcat, device, period_s: float = 1 / 30):
+        super().__init__()
+        self._meshcat = meshcat
+        self._limit_a = device.amplifier.current_limit_a
+        n_markers = len(device.instrument_spec().p_IK_m)
+        self._currents = self.DeclareVectorInputPort("coil_currents", device.n_coils)
+        self._setpoint = self.DeclareVectorInputPort("setpoint", 12)
+        self._pose = self.DeclareVectorInputPort("X_WI_measured", 7)
+        self._markers = self.DeclareVectorInputPort("markers_measured", 3 * n_markers)
+        coil = device.coil
+        p_WC = device.array.coil_positions_A() + device.p_WA
+        for j, p in enumerate(p_WC):
+            path = f"{COIL_PATH}/{j}"
+            meshcat.SetObject(path, Cylinder(coil.outer_diameter_m / 2, coil.height_m),
+                              Rgba(0.6, 0.6, 0.6, 1.0))
+            meshcat.SetTransform(path, RigidTransform(p - [0, 0, coil.height_m / 2]))
+        for path, opacity in ((SETPOINT_PATH, 0.35), (MEASURED_PATH, 1.0)):
+            _add_triad(meshcat, path, length=0.03, radius=0.0012, opacity=opacity)
+        for k in range(n_markers):
+            meshcat.SetObject(f"{MARKERS_PATH}/{k}", Sphere(0.0025), Rgba(0.1, 0.9, 0.2, 1.0))
+        self.DeclarePeriodicPublishEvent(period_s, 0.0, self._draw)
+        self.DeclareForcedPublishEvent(self._draw)
+
+    def _draw(self, context):
+        meshcat = self._meshcat
+        for j, current in enumerate(self._currents.Eval(context)):
+            meshcat.SetProperty(f"{COIL_PATH}/{j}", "color", current_color(current, self._limit_a))
+        setpoint = self._setpoint.Eval(context)
+        meshcat.SetTransform(SETPOINT_PATH, RigidTransform(
+            RollPitchYaw(setpoint[3:6]), setpoint[0:3]))
+        pose = self._pose.Eval(context)
+        meshcat.SetTransform(MEASURED_PATH, RigidTransform(
+            RotationMatrix(rotation_from_quaternion(pose[0:4])), pose[4:7]))
+        markers = self._markers.Eval(context).reshape(-1, 3)
+        for k, p in enumerate(markers):
+            visible = bool(np.all(np.isfinite(p)))
+            meshcat.SetProperty(f"{MARKERS_PATH}/{k}", "visible", visible)
+            if visible:
+                meshcat.SetTransform(f"{MARKERS_PATH}/{k}", RigidTransform(p))
+
+
+def _add_triad(meshcat: Meshcat, path: str, *, length: float, radius: float, opacity: float):
+    """Red, green, blue cylinders along x, y, z of the frame at ``path``."""
+    axes = (("x", RollPitchYaw(0, np.pi / 2, 0), [length / 2, 0, 0], Rgba(1, 0, 0, opacity)),
+            ("y", RollPitchYaw(np.pi / 2, 0, 0), [0, length / 2, 0], Rgba(0, 1, 0, opacity)),
+            ("z", RollPitchYaw(0, 0, 0), [0, 0, length / 2], Rgba(0, 0, 1, opacity)))
+    for name, rpy, offset, color in axes:
+        meshcat.SetObject(f"{path}/{name}", Cylinder(radius, length), color)
+        meshcat.SetTransform(f"{path}/{name}", RigidTransform(rpy, offset))
