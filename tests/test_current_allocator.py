@@ -1,0 +1,78 @@
+"""Current allocation: exact when within limits, never over a limit, shortfall reported."""
+
+import numpy as np
+import pytest
+from pydrake.math import RigidTransform, RollPitchYaw
+
+from maglev_haptics.hardware import DeviceConfig
+from maglev_haptics.hardware.magnetics import load_magnetics
+from maglev_haptics.systems.current_allocator import CurrentAllocator, allocate_currents
+
+LIMIT_A = 4.0
+
+
+@pytest.fixture(scope="module")
+def magnetics():
+    return load_magnetics(DeviceConfig())
+
+
+def hover_matrix(magnetics, p_AI=(0.0, 0.0, 0.028), rpy=(0.0, 0.0, 0.0)):
+    X_AI = RigidTransform(RollPitchYaw(*rpy), list(p_AI))
+    return magnetics.wrench_matrix(X_AI)
+
+
+@pytest.mark.parametrize("p_AI, rpy", [((0, 0, 0.028), (0, 0, 0)),
+                                        ((0.03, -0.02, 0.035), (0.3, -0.2, 1.0)),
+                                        ((-0.05, 0.05, 0.025), (0, 0.5, 3.0))])
+def test_within_limits_the_wrench_is_exact(magnetics, p_AI, rpy):
+    A = hover_matrix(magnetics, p_AI, rpy)
+    wrench = np.array([0.1, -0.2, 1.2, 0.002, -0.001, 0.003])
+    currents, shortfall, n_saturated = allocate_currents(A, wrench, LIMIT_A)
+    assert n_saturated == 0
+    assert np.max(np.abs(currents)) < LIMIT_A
+    np.testing.assert_allclose(A @ currents, wrench, rtol=0, atol=1e-9 * np.linalg.norm(wrench))
+    assert np.linalg.norm(shortfall) <= 1e-9 * np.linalg.norm(wrench)
+    # Minimum norm: the solution is orthogonal to A's null space.
+    null_space = np.linalg.svd(A)[2][6:]
+    assert np.max(np.abs(null_space @ currents)) < 1e-9 * np.linalg.norm(currents)
+
+
+def test_redistribution_reaches_wrenches_the_pseudoinverse_cannot(magnetics):
+    A = hover_matrix(magnetics)
+    unconstrained = np.linalg.pinv(A) @ np.array([0, 0, 1.0, 0, 0, 0])
+    # Scale so the min-norm solution is 20 % over the limit.
+    wrench = np.array([0, 0, 1.0, 0, 0, 0]) * 1.2 * LIMIT_A / np.max(np.abs(unconstrained))
+    currents, shortfall, n_saturated = allocate_currents(A, wrench, LIMIT_A)
+    assert np.max(np.abs(currents)) <= LIMIT_A
+    assert n_saturated > 0
+    assert np.linalg.norm(shortfall) <= 1e-9 * np.linalg.norm(wrench)
+
+
+@pytest.mark.parametrize("scale", [3.0, 10.0, 100.0])
+def test_out_of_reach_never_exceeds_the_limit_and_reports_the_shortfall(magnetics, scale):
+    A = hover_matrix(magnetics)
+    wrench = scale * np.array([0.5, 0.3, 1.5, 0.01, 0.0, 0.02])
+    currents, shortfall, n_saturated = allocate_currents(A, wrench, LIMIT_A)
+    assert np.max(np.abs(currents)) <= LIMIT_A
+    np.testing.assert_allclose(shortfall, wrench - A @ currents, atol=1e-12)
+    if scale >= 10:
+        assert np.linalg.norm(shortfall) > 0.1 * np.linalg.norm(wrench)
+        assert n_saturated > 0
+
+
+def test_system_outputs_currents_and_shortfall(magnetics):
+    device = DeviceConfig()
+    allocator = CurrentAllocator(magnetics=magnetics, p_WA=device.p_WA, current_limit_a=LIMIT_A)
+    context = allocator.CreateDefaultContext()
+    pose = np.array([1.0, 0, 0, 0, 0.0, 0.0, 0.018])
+    wrench = np.array([0, 0, 0.125 * 9.81, 0, 0, 0])
+    allocator.GetInputPort("wrench_commanded_W").FixValue(context, wrench)
+    allocator.GetInputPort("X_WI_measured").FixValue(context, pose)
+    currents = allocator.GetOutputPort("coil_currents_commanded").Eval(context)
+    A = magnetics.wrench_matrix_from(pose[4:7] - device.p_WA, np.eye(3))
+    np.testing.assert_allclose(A @ currents, wrench, atol=1e-9)
+    assert np.linalg.norm(allocator.GetOutputPort("allocation_shortfall_W").Eval(context)) < 1e-9
+    allocator.GetInputPort("wrench_commanded_W").FixValue(context, 100 * wrench)
+    currents = allocator.GetOutputPort("coil_currents_commanded").Eval(context)
+    assert np.max(np.abs(currents)) <= LIMIT_A
+    assert np.linalg.norm(allocator.GetOutputPort("allocation_shortfall_W").Eval(context)) > 1.0

@@ -1,0 +1,125 @@
+"""The levitation controller: PD law, gravity compensation, blind landing, AutoDiff."""
+
+import numpy as np
+import pytest
+from pydrake.autodiffutils import AutoDiffXd
+from pydrake.math import RollPitchYaw, RotationMatrix
+
+from maglev_haptics.systems.levitation_controller import (
+    GRAVITY_M_S2, ControllerConfig, LevitationController, LevitationController_,
+    angular_velocity_from_rpy_rates, pd_gains, pd_wrench, rotation_error_W, rotation_from_rpy)
+
+MASS_KG = 0.125
+INERTIA = np.array([8e-6, 5.6e-5, 6e-5])
+
+
+def make(config=ControllerConfig()):
+    controller = LevitationController(config=config, mass_kg=MASS_KG, inertia_diag=INERTIA,
+                                      period_s=1e-3)
+    context = controller.CreateDefaultContext()
+    return controller, context
+
+
+def fix(controller, context, *, setpoint, pose, velocity=np.zeros(6), ok=1.0, enable=1.0,
+        feedforward=np.zeros(6)):
+    controller.GetInputPort("setpoint").FixValue(context, setpoint)
+    controller.GetInputPort("X_WI_measured").FixValue(context, pose)
+    controller.GetInputPort("V_WI_measured").FixValue(context, velocity)
+    controller.GetInputPort("tracking_ok").FixValue(context, [ok])
+    controller.GetInputPort("enable").FixValue(context, [enable])
+    controller.GetInputPort("wrench_feedforward_W").FixValue(context, feedforward)
+
+
+def pose_vector(rpy, p):
+    q = RollPitchYaw(rpy).ToQuaternion()
+    return np.array([q.w(), q.x(), q.y(), q.z(), *p])
+
+
+def test_rotation_helpers_match_drake():
+    rpy = np.array([0.3, -0.4, 2.5])
+    np.testing.assert_allclose(rotation_from_rpy(rpy), RollPitchYaw(rpy).ToRotationMatrix().matrix(),
+                               atol=1e-14)
+    rates = np.array([0.2, -0.7, 1.1])
+    expected = RollPitchYaw(rpy).CalcAngularVelocityInParentFromRpyDt(rates)
+    np.testing.assert_allclose(angular_velocity_from_rpy_rates(rpy, rates), expected, atol=1e-14)
+    small = RotationMatrix.MakeXRotation(1e-3).matrix()
+    np.testing.assert_allclose(rotation_error_W(small, np.eye(3)), [1e-3, 0, 0], atol=1e-9)
+
+
+def test_at_the_setpoint_it_carries_the_weight_only():
+    controller, context = make()
+    setpoint = np.array([0.01, -0.02, 0.018, 0.1, -0.2, 4.0, *np.zeros(6)])
+    fix(controller, context, setpoint=setpoint, pose=pose_vector(setpoint[3:6], setpoint[0:3]))
+    wrench = controller.GetOutputPort("wrench_commanded_W").Eval(context)
+    np.testing.assert_allclose(wrench, [0, 0, MASS_KG * GRAVITY_M_S2, 0, 0, 0], atol=1e-12)
+
+
+def test_pd_law_per_axis():
+    kp, kd = pd_gains(ControllerConfig(), MASS_KG, INERTIA)
+    omega = 2 * np.pi * 10
+    np.testing.assert_allclose(kp, np.concatenate([[MASS_KG] * 3, INERTIA]) * omega**2)
+    np.testing.assert_allclose(kd, 2 * 0.7 * np.concatenate([[MASS_KG] * 3, INERTIA]) * omega)
+    setpoint = np.zeros(12)
+    velocity = np.array([0, 0, 0.5, 0.01, 0, 0])
+    pose = pose_vector([0, 0, 0.0], [0.001, 0, 0])
+    wrench = pd_wrench(setpoint, pose, velocity, kp, kd, MASS_KG)
+    np.testing.assert_allclose(wrench[0:3], [-kp[0] * 0.001 - kd[0] * 0.01, 0,
+                                             MASS_KG * GRAVITY_M_S2], rtol=1e-12)
+    np.testing.assert_allclose(wrench[3:6], [0, 0, -kd[5] * 0.5], atol=1e-15)
+    # A small roll error about the instrument's x axis is corrected with that axis' gain;
+    # yawed by 90 deg, I's x axis is W's y axis.
+    pose = pose_vector([0.002, 0, np.pi / 2], [0, 0, 0])
+    setpoint[5] = np.pi / 2
+    torque = pd_wrench(setpoint, pose, np.zeros(6), kp, kd, MASS_KG)[3:6]
+    np.testing.assert_allclose(torque, [0, -kp[3] * np.sin(0.002), 0], rtol=1e-6, atol=1e-15)
+
+
+def test_enable_ramp_and_feedforward():
+    controller, context = make()
+    setpoint = np.zeros(12)
+    feedforward = np.array([0.1, 0, 0, 0, 0, 0.001])
+    fix(controller, context, setpoint=setpoint, pose=pose_vector([0, 0, 0], [0, 0, 0]),
+        enable=0.25, feedforward=feedforward)
+    wrench = controller.GetOutputPort("wrench_commanded_W").Eval(context)
+    np.testing.assert_allclose(wrench, [0.1, 0, 0.25 * MASS_KG * GRAVITY_M_S2, 0, 0, 0.001])
+
+
+def test_lost_tracking_holds_weight_then_fades_and_latches_off():
+    config = ControllerConfig(lost_grace_s=0.02, blind_landing_s=0.5)
+    controller, context = make(config)
+    pose = pose_vector([0, 0, 0], [0.01, 0, 0.02])
+    fix(controller, context, setpoint=np.zeros(12), pose=pose, ok=0.0)
+    lift = []
+    for _ in range(600):
+        lift.append(controller.GetOutputPort("wrench_commanded_W").Eval(context)[2])
+        update = controller.EvalUniquePeriodicDiscreteUpdate(context)
+        context.SetDiscreteState(update.get_vector().CopyToVector())
+    weight = MASS_KG * GRAVITY_M_S2
+    np.testing.assert_allclose(lift[:20], weight)  # grace: the weight is carried, no stale PD
+    assert lift[21] < weight and lift[100] == pytest.approx(weight * (1 - 0.08 / 0.5), rel=0.01)
+    assert lift[-1] == 0.0
+    # Tracking returns, but the fault latches: the instrument stays landed.
+    fix(controller, context, setpoint=np.zeros(12), pose=pose, ok=1.0)
+    update = controller.EvalUniquePeriodicDiscreteUpdate(context)
+    context.SetDiscreteState(update.get_vector().CopyToVector())
+    assert np.all(controller.GetOutputPort("wrench_commanded_W").Eval(context) == 0.0)
+
+
+def test_converts_to_autodiff_and_differentiates():
+    controller, _ = make()
+    ad = controller.ToAutoDiffXd()
+    assert isinstance(ad, LevitationController_[AutoDiffXd])
+    context = ad.CreateDefaultContext()
+    from pydrake.autodiffutils import InitializeAutoDiff
+    pose = InitializeAutoDiff(pose_vector([0, 0, 0], [0, 0, 0.018]))[:, 0]
+    ad.GetInputPort("setpoint").FixValue(context, np.array([0, 0, 0.018] + [0] * 9, dtype=float)
+                                         .astype(object) * AutoDiffXd(1.0))
+    ad.GetInputPort("X_WI_measured").FixValue(context, pose)
+    for name, size in (("V_WI_measured", 6), ("wrench_feedforward_W", 6)):
+        ad.GetInputPort(name).FixValue(context, [AutoDiffXd(0.0)] * size)
+    ad.GetInputPort("tracking_ok").FixValue(context, [AutoDiffXd(1.0)])
+    ad.GetInputPort("enable").FixValue(context, [AutoDiffXd(1.0)])
+    wrench = ad.GetOutputPort("wrench_commanded_W").Eval(context)
+    kp, _ = pd_gains(ControllerConfig(), MASS_KG, INERTIA)
+    # d fz / d z = -kp_z (the pose vector is [q; p], so z is entry 6).
+    assert wrench[2].derivatives()[6] == pytest.approx(-kp[2])
