@@ -16,7 +16,7 @@ from pydrake.geometry import Meshcat, MeshcatVisualizer, MeshcatVisualizerParams
 from pydrake.systems.framework import Diagram, DiagramBuilder
 from pydrake.systems.primitives import ConstantVectorSource, LogVectorOutput, TrajectorySource
 
-from maglev_haptics.diagrams.motion import FlightPlan, flight_plan
+from maglev_haptics.diagrams.motion import FlightPlan, check_waypoints_reachable, flight_plan
 from maglev_haptics.diagrams.scenario import Scenario
 from maglev_haptics.diagrams.station import MakeStation
 from maglev_haptics.hardware.magnetics import load_magnetics
@@ -36,10 +36,13 @@ class BuiltDiagram:
     magnetics: object
 
 
-def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None) -> BuiltDiagram:
+def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
+                 label: str = "scenario") -> BuiltDiagram:
+    """The whole diagram for ``scenario``; ``label`` names it in error messages."""
     device = scenario.device
     spec = device.instrument_spec()
     magnetics = load_magnetics(device)
+    check_waypoints_reachable(scenario.motion, device, magnetics, label)
     builder = DiagramBuilder()
     station = builder.AddSystem(MakeStation(scenario, magnetics=magnetics))
 

@@ -14,6 +14,10 @@ from typing import List, Tuple
 import numpy as np
 from pydrake.trajectories import PiecewisePolynomial
 
+from maglev_haptics.diagrams.scenario import ScenarioError
+from maglev_haptics.systems.current_allocator import allocate_currents
+from maglev_haptics.systems.levitation_controller import GRAVITY_M_S2, rotation_from_rpy
+
 # Hermite samples per second of a minimum-jerk move: the cubic Hermite fit of
 # the quintic then errs by < 1e-7 of the move's amplitude.
 SAMPLES_PER_S = 200
@@ -88,3 +92,34 @@ def flight_plan(motion, rest_height_m: float) -> FlightPlan:
         np.array([[0.0, 0.0, 1.0, 1.0, 0.0, 0.0]]))
     return FlightPlan(setpoint=setpoint, enable=enable, holds=holds, landing=landing,
                       end_s=ramp_down_end)
+
+
+def base_clearance_m(pose, spec) -> float:
+    """Height (m) of the lowest corner of the instrument's base above the glass at ``pose``."""
+    a, b, c = spec.body_size_m
+    corners = np.array([[sx * a / 2, sy * b / 2, -c / 2] for sx in (-1, 1) for sy in (-1, 1)])
+    R_WI = rotation_from_rpy(np.asarray(pose[3:6], float))
+    return float(np.min(pose[2] + corners @ R_WI[2]))
+
+
+def check_waypoints_reachable(motion, device, magnetics, label: str) -> None:
+    """Raise ScenarioError for a waypoint inside the glass or not holdable within the limits."""
+    spec = device.instrument_spec()
+    limit = device.amplifier.current_limit_a
+    weight = np.array([0.0, 0.0, spec.mass_kg * GRAVITY_M_S2, 0.0, 0.0, 0.0])
+    for i, waypoint in enumerate(motion.waypoints):
+        pose = np.asarray(waypoint.pose, float)
+        field_name = f"{label}: motion.waypoints[{i}].pose"
+        clearance = base_clearance_m(pose, spec)
+        if clearance < 0:
+            raise ScenarioError(
+                f"{field_name} = {waypoint.pose}: unreachable, the instrument's base would be "
+                f"{-1e3 * clearance:.1f} mm inside the display glass (z must keep it above W's z = 0)")
+        A = magnetics.wrench_matrix_from(pose[0:3] - device.p_WA, rotation_from_rpy(pose[3:6]))
+        _, shortfall, _ = allocate_currents(A, weight, limit)
+        if np.linalg.norm(shortfall) > 1e-3 * weight[2]:
+            unconstrained = np.max(np.abs(np.linalg.pinv(A) @ weight))
+            raise ScenarioError(
+                f"{field_name} = {waypoint.pose}: unreachable, holding the instrument's weight "
+                f"there needs {unconstrained:.2f} A in the busiest coil; the limit "
+                f"(device.amplifier.current_limit_a) is {limit} A")

@@ -50,7 +50,7 @@ def run_scenario(scenario: Scenario, *, label: str, out_dir: Optional[Path] = No
                  duration_s: Optional[float] = None, progress: bool = True) -> RunResult:
     """Simulate ``scenario``; write ``log.npz``, ``summary.json`` and plots to ``out_dir``."""
     viewer = StartMeshcat() if meshcat else None
-    built = BuildDiagram(scenario, meshcat=viewer)
+    built = BuildDiagram(scenario, meshcat=viewer, label=label)
     if duration_s is None:
         duration_s = scenario.duration_s if scenario.duration_s is not None else built.plan.end_s
     if viewer is not None:

@@ -1,0 +1,73 @@
+"""Scenario files: every shipped one loads; bad input names the field, value and what is allowed."""
+
+import pytest
+
+from maglev_haptics.diagrams.cli import main
+from maglev_haptics.diagrams.scenario import (
+    Scenario, ScenarioError, load_scenario, scenario_names, shipped_scenario_files)
+
+
+def write(tmp_path, text):
+    path = tmp_path / "s.yaml"
+    path.write_text(text)
+    return str(path)
+
+
+def test_every_shipped_scenario_loads():
+    files = shipped_scenario_files()
+    assert files
+    for path in files:
+        for name in scenario_names(path):
+            assert isinstance(load_scenario(str(path), name), Scenario)
+
+
+def test_levitate_names_the_required_scenarios():
+    names = scenario_names(shipped_scenario_files()[[p.stem for p in shipped_scenario_files()]
+                                                    .index("levitate")])
+    for required in ("takeoff_hover_land", "four_magnet_tilt", "yaw_turn", "square",
+                     "vertical_sweep"):
+        assert required in names
+    assert load_scenario("levitate", "four_magnet_tilt").device.instrument == "four_magnet"
+
+
+@pytest.mark.parametrize("text, fragment", [
+    ("a: {device: {coil: {tunrs: 3}}}", "a: device.coil.tunrs: unknown field; CoilSpec has"),
+    ("a: {motion: {waypoints: [{pose: [0, 0, 0.02, 0, 0, 0], hold: 1}]}}",
+     "motion.waypoints[0].hold: unknown field"),
+    ("a: {device: {tracker: {rate_hz: fast}}}", "device.tracker.rate_hz = 'fast': must be a number"),
+    ("a: {device: {instrument_mass_kg: -0.1}}", "device.instrument_mass_kg = -0.1: must be a finite number > 0"),
+    ("a: {device: {instrument: three_magnet}}", "device.instrument = 'three_magnet': must be one of"),
+    ("a: {motion: {waypoints: [{pose: [0, 0, 0.02]}]}}", "motion.waypoints[0].pose = [0, 0, 0.02]: must be a list of 6"),
+    ("a: {device: {amplifier: {current_limit_a: 0}}}", "device.amplifier.current_limit_a = 0"),
+    ("a: {controller: {damping_ratio: [0.7, 0.7, 0.7, 0.7, 0.7, .nan]}}", "controller.damping_ratio"),
+    ("a: {occlusions: [{marker: 5, start_s: 1, end_s: 2}]}", "occlusions[0].marker = 5"),
+    ("a: {marker_dropout_probability: 1.5}", "marker_dropout_probability = 1.5: must be in [0, 1]"),
+    ("a: {hardware: real}", "hardware = 'real'"),
+])
+def test_bad_values_name_the_field(tmp_path, text, fragment):
+    with pytest.raises(ScenarioError) as error:
+        load_scenario(write(tmp_path, text), "a")
+    assert fragment in str(error.value)
+
+
+def test_unknown_scenario_name_lists_the_known_ones(tmp_path):
+    with pytest.raises(ScenarioError, match="no scenario named 'b'; it has a"):
+        load_scenario(write(tmp_path, "a: {}"), "b")
+
+
+def test_cli_reports_bad_input_without_a_traceback(tmp_path, capsys):
+    path = write(tmp_path, "a: {device: {coil: {turns: -3}}}")
+    assert main(["run", path, "--no-meshcat"]) == 2
+    assert "device.coil.turns = -3: must be a positive integer" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("pose, fragment", [
+    ([0, 0, 0.002, 0, 0, 0], "inside the display glass"),
+    ([0, 0, 0.15, 0, 0, 0], "needs"),
+])
+def test_unreachable_waypoints_are_refused(tmp_path, pose, fragment):
+    from maglev_haptics.diagrams.application import BuildDiagram
+
+    scenario = load_scenario(write(tmp_path, f"a: {{motion: {{waypoints: [{{pose: {pose}}}]}}}}"), "a")
+    with pytest.raises(ScenarioError, match=r"motion.waypoints\[0\].pose = .*" + fragment):
+        BuildDiagram(scenario, label="a")
