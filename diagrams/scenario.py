@@ -8,8 +8,6 @@ typo or a wrong type is reported with its full field path; after loading, the
 values are range-checked the same way.
 """
 
-from __future__ import annotations
-
 import dataclasses
 import math
 import typing

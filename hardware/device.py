@@ -6,8 +6,6 @@ block. SI units throughout; frames as in DESIGN.md section 3 (W display, A coil
 array, C_j coil j, I instrument).
 """
 
-from __future__ import annotations
-
 import dataclasses
 import math
 from dataclasses import dataclass, field

@@ -9,8 +9,6 @@ Setpoints are [x, y, z, roll, pitch, yaw] followed by their time derivatives
 and yaw unwrapped, so a 360 deg turn is a ramp.
 """
 
-from __future__ import annotations
-
 from dataclasses import dataclass, field
 from typing import List, Optional
 
