@@ -1,0 +1,207 @@
+"""Marker sensor (station): a simulated optical tracker (Optotrak-like).
+
+Each sample publishes the W-frame positions of the instrument's markers with
+per-coordinate Gaussian noise, optional quantization, latency and occlusion.
+Markers are a flat (3 n,) vector [x0 y0 z0 x1 ...] of p_WK in m; a marker the
+tracker does not see is NaN in all three coordinates.
+
+Latency L: the sample published at t_k shows the instrument at t_k - L. The
+tracker rate and L are not commensurate, so instead of a delay line the pose
+L ago is reconstructed from the current state and spatial velocity:
+p_WI <- p_WI - v_WI L and R_WI <- exp(-[w_WI] L) R_WI. This is exact while
+V_WI (w and the velocity of I's origin, in W) is constant and first-order
+otherwise: a linear acceleration a leaves a position error a L^2 / 2
+(1.1 um at 1 m/s^2 and 1.5 ms), an angular acceleration likewise in angle.
+
+Randomness: the noise and dropout of sample k = round(t_k * rate_hz) are a
+pure function of (seed, k), so a run, a re-run and a cloned Context all see the
+same measurements.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Optional, Sequence
+
+import numpy as np
+from pydrake.systems.framework import BasicVector, LeafSystem
+
+from maglev_haptics.hardware.device import InstrumentSpec, TrackerSpec
+from maglev_haptics.systems.pose_estimator import (
+    quaternion_exp, quaternion_multiply, rotation_matrix_from_quaternion,
+)
+
+# Samples per block of pre-drawn random numbers (one generator per block).
+NOISE_BLOCK = 1024
+
+
+@dataclass
+class Occlusion:
+    """A scripted occlusion: ``marker`` (index into p_IK, or None for all
+    markers, i.e. the instrument is lost) is hidden for capture times t with
+    start_s <= t < end_s [s]. Capture time = publication time - latency."""
+
+    marker: Optional[int] = None
+    start_s: float = 0.0
+    end_s: float = math.inf
+
+
+def marker_positions_W(q_WI: np.ndarray, p_IK: np.ndarray) -> np.ndarray:
+    """Marker positions p_WK (n, 3) [m] for the pose vector q_WI
+    [qw qx qy qz x y z] (m) and the model p_IK (n, 3) [m] in I."""
+    return q_WI[4:7] + p_IK @ rotation_matrix_from_quaternion(q_WI[:4]).T
+
+
+def extrapolate_pose(q_WI: np.ndarray, V_WI: np.ndarray, dt_s: float) -> np.ndarray:
+    """Pose vector dt_s [s] later (earlier if negative) at constant V_WI.
+
+    V_WI = [w; v] in W (rad/s; m/s of I's origin). Exact for constant V_WI:
+    R <- exp([w] dt) R, p <- p + v dt.
+    """
+    q = quaternion_multiply(quaternion_exp(V_WI[:3] * dt_s), q_WI[:4])
+    return np.concatenate([q, q_WI[4:7] + V_WI[3:] * dt_s])
+
+
+def quantize(values: np.ndarray, step: float) -> np.ndarray:
+    """Round to the nearest multiple of ``step`` (unchanged when step is 0)."""
+    return np.round(values / step) * step if step > 0 else values
+
+
+class SampleNoise:
+    """Standard normal (n, 3) and uniform (n,) draws for sample index k.
+
+    Draws come in blocks of NOISE_BLOCK samples from numpy's default generator
+    seeded with (seed, block), so they depend on (seed, k) only; the last block
+    is cached because samples are usually consecutive.
+    """
+
+    def __init__(self, seed: int, n_markers: int):
+        self._seed = seed
+        self._n = n_markers
+        self._block = None
+        self._normal = self._uniform = None
+
+    def draw(self, k: int):
+        block, i = divmod(k, NOISE_BLOCK)
+        if block != self._block:
+            # SeedSequence wants non-negative entropy; wrap negative blocks.
+            rng = np.random.default_rng([self._seed, block % 2**64])
+            self._normal = rng.standard_normal((NOISE_BLOCK, self._n, 3))
+            self._uniform = rng.random((NOISE_BLOCK, self._n))
+            self._block = block
+        return self._normal[i], self._uniform[i]
+
+
+def _occlusion_table(occlusions: Sequence[Occlusion], n_markers: int):
+    """(start_s, end_s, hides) arrays: hides[j, K] is True if entry j hides marker K."""
+    start = np.empty(len(occlusions))
+    end = np.empty(len(occlusions))
+    hides = np.zeros((len(occlusions), n_markers), dtype=bool)
+    for j, occlusion in enumerate(occlusions):
+        marker = occlusion.marker
+        if marker is None:
+            hides[j] = True
+        elif isinstance(marker, (int, np.integer)) and 0 <= marker < n_markers:
+            hides[j, marker] = True
+        else:
+            raise ValueError(
+                f"occlusions[{j}].marker = {marker!r}: must be None (all markers) or "
+                f"an integer in [0, {n_markers - 1}]")
+        if math.isnan(occlusion.start_s) or math.isnan(occlusion.end_s) \
+                or occlusion.end_s < occlusion.start_s:
+            raise ValueError(
+                f"occlusions[{j}] = ({occlusion.start_s}, {occlusion.end_s}) s: "
+                "must satisfy start_s <= end_s (end_s may be inf)")
+        start[j], end[j] = occlusion.start_s, occlusion.end_s
+    return start, end, hides
+
+
+def _check_nonnegative(name: str, value: float, unit: str) -> float:
+    if not (math.isfinite(value) and value >= 0):
+        raise ValueError(f"{name} = {value}: must be a finite value >= 0 [{unit}]")
+    return float(value)
+
+
+class MarkerSensor(LeafSystem):
+    """Simulated optical tracker of the instrument's markers.
+
+    .. pydrake_system::
+
+        name: MarkerSensor
+        input_ports:
+        - instrument_state
+        output_ports:
+        - markers_measured
+
+    - ``instrument_state`` (13): the plant's free-body state
+      [qw qx qy qz x y z wx wy wz vx vy vz] (m, rad/s, m/s; velocities in W).
+    - ``markers_measured`` (3 n): p_WK [m] of the n markers, NaN where not seen.
+
+    Updates periodically at ``tracker.rate_hz`` (offset 0) and once at
+    initialization, as a tracker that was already running would; the output is
+    the discrete state, so it holds between samples (NaN before the first).
+
+    Args:
+        instrument: supplies the marker model p_IK [m].
+        tracker: rate_hz [Hz], noise_m (std per coordinate) [m], latency_s [s].
+        occlusions: scripted occlusion intervals.
+        seed: non-negative integer; the only source of randomness.
+        dropout_probability: chance that a marker is missing from a sample,
+            independently per marker and sample, in [0, 1].
+        quantization_m: coordinate resolution [m]; 0 for none.
+    """
+
+    def __init__(self, instrument: InstrumentSpec, tracker: TrackerSpec,
+                 occlusions: Sequence[Occlusion] = (), seed: int = 0, *,
+                 dropout_probability: float = 0.0, quantization_m: float = 0.0):
+        super().__init__()
+        p_IK = instrument.p_IK
+        if p_IK.ndim != 2 or p_IK.shape[1] != 3 or len(p_IK) < 1 \
+                or not np.all(np.isfinite(p_IK)):
+            raise ValueError(
+                f"instrument.p_IK_m has shape {p_IK.shape}: must be finite (n, 3) "
+                "positions [m] with n >= 1")
+        if not (math.isfinite(tracker.rate_hz) and tracker.rate_hz > 0):
+            raise ValueError(f"tracker.rate_hz = {tracker.rate_hz}: must be a finite value > 0 [Hz]")
+        if not (0.0 <= dropout_probability <= 1.0):
+            raise ValueError(
+                f"dropout_probability = {dropout_probability}: must be in [0, 1]")
+        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+            raise ValueError(f"seed = {seed!r}: must be a non-negative integer")
+        self._p_IK = p_IK
+        self._rate_hz = float(tracker.rate_hz)
+        self._noise_m = _check_nonnegative("tracker.noise_m", tracker.noise_m, "m")
+        self._latency_s = _check_nonnegative("tracker.latency_s", tracker.latency_s, "s")
+        self._quantization_m = _check_nonnegative("quantization_m", quantization_m, "m")
+        self._dropout = float(dropout_probability)
+        self._occlusion_start, self._occlusion_end, self._occlusion_hides = \
+            _occlusion_table(list(occlusions), len(p_IK))
+        self._noise = SampleNoise(int(seed), len(p_IK))
+
+        self._state = self.DeclareVectorInputPort("instrument_state", 13)
+        self._markers_index = self.DeclareDiscreteState(
+            BasicVector(np.full(3 * len(p_IK), np.nan)))
+        self.DeclarePeriodicDiscreteUpdateEvent(1.0 / self._rate_hz, 0.0, self._update)
+        self.DeclareInitializationDiscreteUpdateEvent(self._update)
+        self._markers_measured = self.DeclareStateOutputPort(
+            "markers_measured", self._markers_index)
+
+    def measure(self, t: float, instrument_state: np.ndarray) -> np.ndarray:
+        """The (3 n,) sample published at time t [s] for the current state (13,)."""
+        L = self._latency_s
+        q_WI = extrapolate_pose(instrument_state[:7], instrument_state[7:13], -L)
+        p_WK = marker_positions_W(q_WI, self._p_IK)
+        normal, uniform = self._noise.draw(round(t * self._rate_hz))
+        p_WK = quantize(p_WK + self._noise_m * normal, self._quantization_m)
+        hidden = uniform < self._dropout
+        if len(self._occlusion_start):
+            t_capture = t - L
+            active = (self._occlusion_start <= t_capture) & (t_capture < self._occlusion_end)
+            hidden = hidden | self._occlusion_hides[active].any(axis=0)
+        p_WK[hidden] = np.nan
+        return p_WK.ravel()
+
+    def _update(self, context, discrete_state):
+        discrete_state.set_value(
+            self._markers_index, self.measure(context.get_time(), self._state.Eval(context)))
