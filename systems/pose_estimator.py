@@ -18,9 +18,9 @@ triangle of radius 35 mm, 60 mm above I; ``bandwidth_hz`` = 50):
 - fit noise at I's origin: 15.1 um in x and y, 5.8 um in z (22.2 um RMS, 3-D);
   orientation 0.233 mrad about x and y, 0.165 mrad about z (0.369 mrad RMS).
   The x/y position noise is the tilt noise times the 60 mm lever arm.
-- filter: alpha = 0.404, beta = 0.103; closed-loop poles at 50 Hz, damping
+- filter: alpha = 0.403, beta = 0.103; closed-loop poles at 50 Hz, damping
   0.707. Velocity noise = 112 /s times the pose noise: 1.70 mm/s in x and y,
-  0.65 mm/s in z, 26 mrad/s about x and y, 19 mrad/s about z.
+  0.65 mm/s in z, 26.2 mrad/s about x and y, 18.5 mrad/s about z.
 - lag: the velocity estimate is the derivative through a 2nd-order low-pass at
   ``bandwidth_hz``; it trails a velocity ramp by 4.0 ms and lags 14.5 deg at
   10 Hz (gain 0.999). ``alpha_beta_gains`` and ``alpha_beta_noise_gains`` give
@@ -44,10 +44,10 @@ from maglev_haptics.hardware.device import InstrumentSpec, TrackerSpec
 # this fraction of the first (nearly collinear): the roll about their line is
 # then undetermined.
 MIN_SPREAD_RATIO = 1e-3
-# Residual limit floor [m]: with zero tracker noise a perfect fit still leaves
-# round-off (~1e-17 m at metre scale); 1 nm is far above that and far below any
-# tracker's resolution.
-RESIDUAL_FLOOR_M = 1e-9
+# Noise floor for the residual limit [m]: with zero tracker noise a perfect fit
+# still shows ~1e-9 m of residual (round-off of fit_pose's residual formula);
+# 10 nm is above that and far below any tracker's resolution.
+RESIDUAL_FLOOR_M = 1e-8
 _IDENTITY_POSE = np.array([1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
 _CONJUGATE = np.array([1.0, -1.0, -1.0, -1.0])
 _ZERO_VELOCITY = np.zeros(6)
@@ -192,8 +192,9 @@ def fit_pose(model: MarkerModel, p_WK: np.ndarray):
         R_WI -= 2.0 * np.outer(Vt[2], U[:, 2])
         s2 = -s2
     p_WI = c_W - R_WI @ model.c_I
-    # sum |R d_I - d_W|^2 = |d_I|^2 + |d_W|^2 - 2 trace(R H) (cheaper than the
-    # residuals; the cancellation error, ~1e-18 m^2, is far below any limit).
+    # sum |R d_I - d_W|^2 = |d_I|^2 + |d_W|^2 - 2 trace(R H): cheaper than the
+    # residuals, and its cancellation error (~1e-18 m^2, i.e. ~1e-9 m RMS) only
+    # matters far below RESIDUAL_FLOOR_M.
     sum_sq = model.sum_sq_I + float(np.vdot(d_W, d_W)) - 2.0 * (s0 + s1 + s2)
     rms_m = math.sqrt(max(sum_sq, 0.0) / len(model))
     return np.concatenate([quaternion_from_rotation_matrix(R_WI), p_WI]), rms_m

@@ -1,0 +1,387 @@
+"""The pose estimator: rigid fit, noise vs marker geometry, velocity filter, tracking loss."""
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+from pydrake.common.eigen_geometry import Quaternion
+from pydrake.math import RotationMatrix
+from pydrake.systems.analysis import Simulator
+from pydrake.systems.framework import DiagramBuilder, LeafSystem
+from scipy.spatial.transform import Rotation
+
+from maglev_haptics.hardware import TrackerSpec, default_instrument
+from maglev_haptics.systems.marker_sensor import MarkerSensor, Occlusion, marker_positions_W
+from maglev_haptics.systems.pose_estimator import (
+    MarkerModel, PoseEstimator, PoseEstimatorConfig, alpha_beta_gains, alpha_beta_noise_gains,
+    fit_pose, quaternion_exp, quaternion_from_rotation_matrix, quaternion_log,
+    quaternion_multiply)
+
+INSTRUMENT = default_instrument("two_magnet")
+P_IK = INSTRUMENT.p_IK
+RATE_HZ = 860.0
+T = 1 / RATE_HZ
+SIGMA_M = 1e-5
+LEVEL = Rotation.identity()
+TILTED = Rotation.from_euler("ZYX", [200, 45, 0], degrees=True)  # yaw 200 deg, tilt 45 deg
+# Module docstring's noise at hover (level), [wx wy wz (rad/s) vx vy vz (m/s)].
+DOCUMENTED_VELOCITY_NOISE = np.array([26.2e-3, 26.2e-3, 18.5e-3, 1.70e-3, 1.70e-3, 0.65e-3])
+
+
+def pose_vector(rotation: Rotation, p_WI) -> np.ndarray:
+    return np.concatenate([rotation.as_quat(scalar_first=True), p_WI])
+
+
+def rotation_of(x) -> Rotation:
+    return Rotation.from_quat(x[:4], scalar_first=True)
+
+
+def assert_same_pose(X, x, atol=1e-13):
+    """Pose vectors equal up to the quaternion's sign (q and -q are one rotation)."""
+    np.testing.assert_allclose(X[:4] * np.sign(X[:4] @ x[:4]), x[:4], atol=atol)
+    np.testing.assert_allclose(X[4:], x[4:], atol=atol)
+
+
+def rotation_error(x_estimated, x_true) -> np.ndarray:
+    """Rotation vector (rad, in W) from the true to the estimated orientation."""
+    return (rotation_of(x_estimated) * rotation_of(x_true).inv()).as_rotvec()
+
+
+def theoretical_covariance(R_WI: Rotation, p_IK, sigma):
+    """sigma^2 (J^T J)^-1 over [rotation vector in W (rad); p_WI (m)], with J the
+    Jacobian of the stacked marker positions by central differences."""
+    def markers(xi):
+        return ((Rotation.from_rotvec(xi[:3]) * R_WI).apply(p_IK) + xi[3:]).ravel()
+    h = 1e-6
+    J = np.column_stack([(markers(h * e) - markers(-h * e)) / (2 * h) for e in np.eye(6)])
+    return sigma**2 * np.linalg.inv(J.T @ J)
+
+
+def make_estimator(tracker=TrackerSpec(), config=None, instrument=INSTRUMENT):
+    estimator = PoseEstimator(instrument, tracker, config)
+    return estimator, estimator.CreateDefaultContext()
+
+
+def update(estimator, context, markers):
+    """Feed one tracker sample and apply the estimator's periodic update; outputs."""
+    estimator.get_input_port().FixValue(context, markers)
+    context.SetDiscreteState(estimator.EvalUniquePeriodicDiscreteUpdate(context))
+    return (estimator.GetOutputPort("X_WI_measured").Eval(context).copy(),
+            estimator.GetOutputPort("V_WI_measured").Eval(context).copy(),
+            estimator.GetOutputPort("tracking_ok").Eval(context)[0])
+
+
+class ConstantVelocityBody(LeafSystem):
+    """Free-body state (13,) of a body with constant V_WI = [w; v] (W; rad/s, m/s)."""
+
+    def __init__(self, R0: Rotation, p0, w, v):
+        super().__init__()
+        self.R0, self.p0 = R0, np.asarray(p0, float)
+        self.w, self.v = np.asarray(w, float), np.asarray(v, float)
+        self.DeclareVectorOutputPort("instrument_state", 13, self._calc_instrument_state)
+
+    def pose(self, t):
+        return pose_vector(Rotation.from_rotvec(self.w * t) * self.R0, self.p0 + self.v * t)
+
+    def _calc_instrument_state(self, context, output):
+        output.SetFromVector(np.concatenate([self.pose(context.get_time()), self.w, self.v]))
+
+
+def simulate(body, n_samples, tracker=TrackerSpec(), occlusions=(), config=None, seed=0):
+    """body -> sensor -> estimator; outputs recorded half a period after each sample.
+
+    Returns times (N,), markers (N, 3 n), X (N, 7), V (N, 6), ok (N,).
+    """
+    builder = DiagramBuilder()
+    builder.AddSystem(body)
+    sensor = builder.AddSystem(MarkerSensor(INSTRUMENT, tracker, occlusions, seed))
+    estimator = builder.AddSystem(PoseEstimator(INSTRUMENT, tracker, config))
+    builder.Connect(body.get_output_port(), sensor.get_input_port())
+    builder.Connect(sensor.get_output_port(), estimator.get_input_port())
+    diagram = builder.Build()
+    simulator = Simulator(diagram)
+    context = simulator.get_context()
+    sensor_context = sensor.GetMyContextFromRoot(context)
+    estimator_context = estimator.GetMyContextFromRoot(context)
+    records = []
+    for k in range(n_samples):
+        t = (k + 0.5) * T
+        simulator.AdvanceTo(t)
+        records.append((
+            t, sensor.get_output_port().Eval(sensor_context).copy(),
+            estimator.GetOutputPort("X_WI_measured").Eval(estimator_context).copy(),
+            estimator.GetOutputPort("V_WI_measured").Eval(estimator_context).copy(),
+            estimator.GetOutputPort("tracking_ok").Eval(estimator_context)[0]))
+    return [np.array(column) for column in zip(*records)]
+
+
+# --- quaternion helpers and gains ---------------------------------------------
+
+def test_quaternion_helpers_match_drake():
+    rotations = list(Rotation.random(50, random_state=1)) + [
+        Rotation.from_rotvec(math.pi * np.array(axis) / np.linalg.norm(axis))
+        for axis in ([1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 0], [1, -1, 1])]  # every Shepperd branch
+    for rotation in rotations:
+        R = rotation.as_matrix()
+        q = quaternion_from_rotation_matrix(R)
+        q_drake = RotationMatrix(R).ToQuaternion().wxyz()
+        np.testing.assert_allclose(q * np.sign(q @ q_drake), q_drake, atol=1e-14)
+    a, b = Rotation.random(2, random_state=2)
+    qa, qb = a.as_quat(scalar_first=True), b.as_quat(scalar_first=True)
+    product = Quaternion(qa).multiply(Quaternion(qb)).wxyz()
+    np.testing.assert_allclose(quaternion_multiply(qa, qb), product, atol=1e-15)
+    for angle in (0.0, 1e-9, 1e-5, 1e-4, 0.3, 3.0, math.pi - 1e-9):
+        rotvec = angle * np.array([0.6, -0.8, 0.0])
+        q = quaternion_exp(rotvec)
+        np.testing.assert_allclose(q, Rotation.from_rotvec(rotvec).as_quat(scalar_first=True),
+                                   atol=1e-15)
+        np.testing.assert_allclose(quaternion_log(q), rotvec, atol=1e-15)
+        np.testing.assert_allclose(quaternion_log(-q), rotvec, atol=1e-15)  # q ~ -q
+
+
+def test_alpha_beta_gains_put_poles_at_the_bandwidth():
+    alpha, beta = alpha_beta_gains(50.0, T)
+    assert alpha == pytest.approx(0.403, abs=5e-4) and beta == pytest.approx(0.103, abs=5e-4)
+    A = (np.eye(2) - np.array([[alpha], [beta / T]]) @ [[1.0, 0.0]]) @ [[1.0, T], [0.0, 1.0]]
+    s = np.log(np.linalg.eigvals(A).astype(complex)) / T
+    assert np.abs(s) / (2 * math.pi) == pytest.approx([50, 50], rel=1e-3)
+    assert -s.real / np.abs(s) == pytest.approx([1 / math.sqrt(2)] * 2, rel=1e-3)
+    assert alpha_beta_noise_gains(alpha, beta, T)[1] == pytest.approx(112.3, rel=1e-3)
+
+
+# --- the fit ------------------------------------------------------------------
+
+@pytest.mark.parametrize("ypr_deg", [
+    (0, 0, 0), (359, 0, 0), (-170, 0, 45), (200, 45, 0), (45, -45, 30), (90, 0, 180), (0, 90, 0),
+])
+def test_fit_recovers_the_pose_exactly(ypr_deg):
+    rotation = Rotation.from_euler("ZYX", ypr_deg, degrees=True)
+    x = pose_vector(rotation, [0.03, -0.04, 0.05])
+    fitted, rms_m = fit_pose(MarkerModel(P_IK), marker_positions_W(x, P_IK))
+    np.testing.assert_allclose(rotation_of(fitted).as_matrix(), rotation.as_matrix(), atol=1e-13)
+    np.testing.assert_allclose(fitted[4:], x[4:], atol=1e-13)
+    assert rms_m < 1e-8  # round-off of the residual formula, below RESIDUAL_FLOOR_M
+
+
+def test_fit_is_a_proper_rotation_for_random_poses():
+    # Three markers are coplanar, so the mirror image fits equally well: the
+    # reflection guard must always pick the rotation.
+    model = MarkerModel(P_IK)
+    for rotation in Rotation.random(300, random_state=4):
+        x = pose_vector(rotation, [0.0, 0.0, 0.1])
+        fitted, _ = fit_pose(model, marker_positions_W(x, P_IK))
+        assert abs(fitted[:4] @ x[:4]) == pytest.approx(1.0, abs=1e-13)
+        np.testing.assert_allclose(fitted[4:], x[4:], atol=1e-13)
+
+
+def test_system_recovers_the_pose_exactly():
+    estimator, context = make_estimator()
+    assert [estimator.get_output_port(i).get_name() for i in range(3)] == [
+        "X_WI_measured", "V_WI_measured", "tracking_ok"]
+    assert [estimator.get_output_port(i).size() for i in range(3)] == [7, 6, 1]
+    assert estimator.get_input_port().get_name() == "markers_measured"
+    assert estimator.get_input_port().size() == 9
+    assert estimator.GetOutputPort("tracking_ok").Eval(context)[0] == 0.0  # nothing seen yet
+    x = pose_vector(TILTED, [0.02, 0.01, 0.03])
+    X, V, ok = update(estimator, context, marker_positions_W(x, P_IK).ravel())
+    assert ok == 1.0
+    assert_same_pose(X, x)
+    np.testing.assert_array_equal(V, np.zeros(6))
+
+
+def test_four_markers_fit_with_one_hidden():
+    p_IK = [[0.03, 0, 0.06], [-0.03, 0, 0.06], [0, 0.03, 0.05], [0, -0.03, 0.07]]
+    instrument = dataclasses.replace(INSTRUMENT, p_IK_m=p_IK)
+    estimator, context = make_estimator(instrument=instrument)
+    x = pose_vector(TILTED, [0.01, 0.02, 0.03])
+    markers = marker_positions_W(x, np.array(p_IK))
+    markers[2] = np.nan
+    X, _, ok = update(estimator, context, markers.ravel())
+    assert ok == 1.0
+    assert_same_pose(X, x)
+    markers[0] = np.nan  # two left: lost
+    assert update(estimator, context, markers.ravel())[2] == 0.0
+
+
+# --- noise ----------------------------------------------------------------------
+
+def static_noise_run(rotation, n_samples, seed=5):
+    """Noisy samples of a still body through the estimator: (x_true, X (N, 7), V (N, 6))."""
+    x = pose_vector(rotation, [0.01, -0.02, 0.04])
+    tracker = TrackerSpec(noise_m=SIGMA_M, latency_s=0.0)
+    sensor = MarkerSensor(INSTRUMENT, tracker, seed=seed)
+    estimator, context = make_estimator(tracker)
+    state = np.concatenate([x, np.zeros(6)])
+    outputs = [update(estimator, context, sensor.measure(k * T, state)) for k in range(n_samples)]
+    assert all(ok == 1.0 for _, _, ok in outputs)
+    return x, np.array([X for X, _, _ in outputs]), np.array([V for _, V, _ in outputs])
+
+
+@pytest.mark.parametrize("rotation", [LEVEL, TILTED], ids=["level", "tilted"])
+def test_fit_noise_agrees_with_marker_geometry(rotation):
+    x, X, _ = static_noise_run(rotation, 3000)
+    covariance = theoretical_covariance(rotation, P_IK, SIGMA_M)
+    rotation_rms = math.sqrt(np.mean([rotation_error(Xk, x) @ rotation_error(Xk, x) for Xk in X]))
+    position_rms = math.sqrt(np.mean(np.sum((X[:, 4:] - x[4:]) ** 2, axis=1)))
+    # 3000 samples of 3 dof: the RMS is known to ~1 %.
+    assert rotation_rms == pytest.approx(math.sqrt(np.trace(covariance[:3, :3])), rel=0.15)
+    assert position_rms == pytest.approx(math.sqrt(np.trace(covariance[3:, 3:])), rel=0.15)
+    if rotation is LEVEL:  # the module docstring's numbers
+        assert math.sqrt(np.trace(covariance[3:, 3:])) == pytest.approx(22.2e-6, rel=0.01)
+        assert math.sqrt(np.trace(covariance[:3, :3])) == pytest.approx(0.369e-3, rel=0.01)
+
+
+def test_velocity_noise_at_hover_is_as_documented():
+    _, _, V = static_noise_run(LEVEL, 4000, seed=6)
+    V = V[200:]  # past the filter's start
+    covariance = theoretical_covariance(LEVEL, P_IK, SIGMA_M)
+    ratio = alpha_beta_noise_gains(*alpha_beta_gains(50.0, T), T)[1]
+    theory = np.sqrt(np.diag(covariance)) * ratio
+    np.testing.assert_allclose(theory, DOCUMENTED_VELOCITY_NOISE, rtol=0.02)
+    # Filtered samples are correlated (~10 per independent one): ~4 % uncertainty.
+    np.testing.assert_allclose(np.sqrt(np.mean(V**2, axis=0)), theory, rtol=0.15)
+
+
+# --- motion, latency, lag --------------------------------------------------------
+
+MOVING = dict(R0=TILTED, p0=[0.01, -0.02, 0.04], w=[0.4, -0.3, 2 * math.pi], v=[0.05, -0.03, 0.02])
+
+
+def test_velocity_converges_and_yaw_turns_freely():
+    body = ConstantVelocityBody(**MOVING)
+    latency = 1.5e-3
+    tracker = TrackerSpec(noise_m=0.0, latency_s=latency)
+    n = int(1.2 * RATE_HZ)  # more than one full turn of yaw
+    times, _, X, V, ok = simulate(body, n, tracker)
+    assert np.all(ok == 1.0)  # the sensor's initialization event fed the first update
+    # Same-time events are simultaneous: the estimator's update at t_k fits the
+    # sample published at t_(k-1), which shows the body at t_(k-1) - latency.
+    for k in range(1, n, 37):
+        x_then = body.pose((k - 1) * T - latency)
+        assert abs(X[k, :4] @ x_then[:4]) == pytest.approx(1.0, abs=1e-13)
+        np.testing.assert_allclose(X[k, 4:], x_then[4:], atol=1e-13)
+    np.testing.assert_allclose(V[-200:], np.tile(np.concatenate([body.w, body.v]), (200, 1)),
+                               atol=1e-9)
+    # The output quaternion never jumps to -q through the turns.
+    assert np.all(np.sum(X[2:, :4] * X[1:-1, :4], axis=1) > 0.99)
+
+
+def test_offset_processes_each_sample_as_it_arrives():
+    body = ConstantVelocityBody(**MOVING)
+    latency = 1.5e-3
+    tracker = TrackerSpec(noise_m=0.0, latency_s=latency)
+    _, _, X, _, ok = simulate(body, 50, tracker, config=PoseEstimatorConfig(offset_s=1e-5))
+    assert np.all(ok == 1.0)
+    for k in range(50):  # recorded at (k + 0.5) T: the sample of t_k, taken at t_k - latency
+        x_then = body.pose(k * T - latency)
+        assert abs(X[k, :4] @ x_then[:4]) == pytest.approx(1.0, abs=1e-13)
+        np.testing.assert_allclose(X[k, 4:], x_then[4:], atol=1e-13)
+
+
+def test_velocity_with_noise_is_unbiased():
+    body = ConstantVelocityBody(**MOVING)
+    _, _, _, V, ok = simulate(body, 800, TrackerSpec(), seed=9)
+    assert np.all(ok == 1.0)
+    error = V[200:] - np.concatenate([body.w, body.v])
+    # The tilted, turning body's noise differs from hover's but is of the same order.
+    scale = np.repeat([DOCUMENTED_VELOCITY_NOISE[:3].max(), DOCUMENTED_VELOCITY_NOISE[3:].max()], 3)
+    assert np.all(np.abs(error.mean(axis=0)) < 0.3 * scale)
+    assert np.all(np.sqrt(np.mean(error**2, axis=0)) < 2 * scale)
+
+
+# --- loss of tracking -------------------------------------------------------------
+
+def test_occlusion_holds_pose_zeroes_velocity_and_reacquires():
+    body = ConstantVelocityBody(**MOVING)
+    occlusions = [Occlusion(None, 0.20, 0.30), Occlusion(2, 0.50, 0.55)]
+    n = int(0.8 * RATE_HZ)
+    _, markers, X, V, ok = simulate(body, n, TrackerSpec(), occlusions, seed=2)
+    sample_lost = np.isnan(markers).any(axis=1)  # 3 markers: one hidden is lost
+    assert sample_lost.sum() > 120
+    # The estimator's update at t_k reads the sample of t_(k-1) (at t_0 the
+    # sensor's initialization sample, which equals sample 0).
+    lost = np.concatenate([sample_lost[:1], sample_lost[:-1]])
+    np.testing.assert_array_equal(ok, np.where(lost, 0.0, 1.0))
+    assert np.all(np.isfinite(X)) and np.all(np.isfinite(V))
+    V_true = np.concatenate([body.w, body.v])
+    for k in np.flatnonzero(lost[1:] & ~lost[:-1]) + 1:  # first lost update
+        held = X[k - 1]
+        end = k + np.argmax(~lost[k:])  # first update with markers again
+        np.testing.assert_array_equal(X[k:end], np.tile(held, (end - k, 1)))
+        np.testing.assert_array_equal(V[k:end], 0.0)
+        np.testing.assert_array_equal(V[end], 0.0)  # re-acquired: filter restarts at rest
+        x_then = body.pose((end - 1) * T - 1.5e-3)
+        np.testing.assert_allclose(X[end, 4:], x_then[4:], atol=1e-4)
+        np.testing.assert_allclose(V[end + 43], V_true, atol=0.15)  # 50 ms later: converged
+        assert np.all(np.abs(V[end + 43] - V_true) < 5 * DOCUMENTED_VELOCITY_NOISE)
+
+
+def good_then(estimator, context, bad):
+    """Track two good samples (so V is non-zero), feed ``bad``, then a good one again."""
+    x0 = pose_vector(TILTED, [0.01, 0.02, 0.03])
+    x1 = pose_vector(TILTED, [0.0101, 0.02, 0.03])
+    update(estimator, context, marker_positions_W(x0, P_IK).ravel())
+    X_before, V_before, _ = update(estimator, context, marker_positions_W(x1, P_IK).ravel())
+    assert np.any(V_before != 0)
+    X, V, ok = update(estimator, context, bad)
+    assert ok == 0.0
+    np.testing.assert_array_equal(X, X_before)
+    np.testing.assert_array_equal(V, np.zeros(6))
+    x2 = pose_vector(TILTED, [0.02, 0.02, 0.03])
+    X, V, ok = update(estimator, context, marker_positions_W(x2, P_IK).ravel())
+    assert ok == 1.0
+    assert_same_pose(X, x2)
+    np.testing.assert_array_equal(V, np.zeros(6))
+
+
+def _corrupted(change):
+    markers = marker_positions_W(pose_vector(TILTED, [0.0102, 0.02, 0.03]), P_IK).ravel()
+    change(markers)
+    return markers
+
+
+@pytest.mark.parametrize("bad", [
+    np.full(9, np.nan),
+    _corrupted(lambda m: m.__setitem__(4, np.nan)),  # one coordinate: that marker is out, 2 left
+    _corrupted(lambda m: m.__setitem__(4, np.inf)),
+    _corrupted(lambda m: m.__setitem__(0, -np.inf)),
+    _corrupted(lambda m: m.__imul__(1e306)),  # finite, but the fit overflows
+    _corrupted(lambda m: m.__setitem__(8, m[8] + 1e-3)),  # a marker 1 mm off: residual ~50 sigma
+], ids=["all_nan", "partial_nan", "inf", "minus_inf", "huge", "outlier"])
+def test_bad_samples_never_reach_the_outputs(bad):
+    estimator, context = make_estimator()
+    good_then(estimator, context, bad)
+
+
+def test_residual_limit_follows_the_noise():
+    assert make_estimator()[0].residual_limit_m == pytest.approx(20 * SIGMA_M)
+    assert make_estimator(TrackerSpec(noise_m=0.0))[0].residual_limit_m == pytest.approx(2e-7)
+
+
+# --- configuration errors -----------------------------------------------------------
+
+@pytest.mark.parametrize("tracker, config, match", [
+    (TrackerSpec(rate_hz=0.0), None, r"tracker.rate_hz = 0.0: must be .* > 0"),
+    (TrackerSpec(noise_m=-1.0), None, r"tracker.noise_m = -1.0: must be .* >= 0"),
+    (TrackerSpec(), PoseEstimatorConfig(bandwidth_hz=0.0),
+     r"pose_estimator.bandwidth_hz = 0.0: must be in \(0, 430.0\) Hz"),
+    (TrackerSpec(), PoseEstimatorConfig(bandwidth_hz=500.0), r"bandwidth_hz = 500.0"),
+    (TrackerSpec(), PoseEstimatorConfig(max_residual_sigma=-1.0),
+     r"pose_estimator.max_residual_sigma = -1.0: must be > 0"),
+    (TrackerSpec(), PoseEstimatorConfig(offset_s=-1e-5), r"pose_estimator.offset_s = -1e-05"),
+    (TrackerSpec(), PoseEstimatorConfig(offset_s=0.01), r"pose_estimator.offset_s = 0.01"),
+])
+def test_bad_config_is_named(tracker, config, match):
+    with pytest.raises(ValueError, match=match):
+        PoseEstimator(INSTRUMENT, tracker, config)
+
+
+@pytest.mark.parametrize("p_IK, match", [
+    ([[0, 0, 0.06], [0.03, 0, 0.06]], r"instrument.p_IK_m has 2 markers: .* at least 3"),
+    ([[0, 0, 0], [0.01, 0, 0], [0.02, 0, 0]], r"markers are \(nearly\) collinear"),
+    ([[0, 0], [1, 0], [0, 1]], r"instrument.p_IK_m has shape \(3, 2\)"),
+])
+def test_bad_marker_model_is_named(p_IK, match):
+    with pytest.raises(ValueError, match=match):
+        PoseEstimator(dataclasses.replace(INSTRUMENT, p_IK_m=p_IK), TrackerSpec())
