@@ -18,8 +18,6 @@ pure function of (seed, k), so a run, a re-run and a cloned Context all see the
 same measurements.
 """
 
-from __future__ import annotations
-
 import math
 from dataclasses import dataclass
 from typing import Optional, Sequence
@@ -102,7 +100,8 @@ def _occlusion_table(occlusions: Sequence[Occlusion], n_markers: int):
         marker = occlusion.marker
         if marker is None:
             hides[j] = True
-        elif isinstance(marker, (int, np.integer)) and 0 <= marker < n_markers:
+        elif isinstance(marker, (int, np.integer)) and not isinstance(marker, bool) \
+                and 0 <= marker < n_markers:
             hides[j, marker] = True
         else:
             raise ValueError(
@@ -163,7 +162,8 @@ class MarkerSensor(LeafSystem):
                 f"instrument.p_IK_m has shape {p_IK.shape}: must be finite (n, 3) "
                 "positions [m] with n >= 1")
         if not (math.isfinite(tracker.rate_hz) and tracker.rate_hz > 0):
-            raise ValueError(f"tracker.rate_hz = {tracker.rate_hz}: must be a finite value > 0 [Hz]")
+            raise ValueError(
+                f"tracker.rate_hz = {tracker.rate_hz}: must be a finite value > 0 [Hz]")
         if not (0.0 <= dropout_probability <= 1.0):
             raise ValueError(
                 f"dropout_probability = {dropout_probability}: must be in [0, 1]")

@@ -121,7 +121,8 @@ def simulate(body, n_samples, tracker=TrackerSpec(), occlusions=(), config=None,
 def test_quaternion_helpers_match_drake():
     rotations = list(Rotation.random(50, random_state=1)) + [
         Rotation.from_rotvec(math.pi * np.array(axis) / np.linalg.norm(axis))
-        for axis in ([1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 0], [1, -1, 1])]  # every Shepperd branch
+        # Half turns exercise every branch of Shepperd's method.
+        for axis in ([1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 0], [1, -1, 1])]
     for rotation in rotations:
         R = rotation.as_matrix()
         q = quaternion_from_rotation_matrix(R)
@@ -142,6 +143,7 @@ def test_quaternion_helpers_match_drake():
 
 def test_alpha_beta_gains_put_poles_at_the_bandwidth():
     alpha, beta = alpha_beta_gains(50.0, T)
+    assert make_estimator()[0].gains == (alpha, beta)  # the default bandwidth
     assert alpha == pytest.approx(0.403, abs=5e-4) and beta == pytest.approx(0.103, abs=5e-4)
     A = (np.eye(2) - np.array([[alpha], [beta / T]]) @ [[1.0, 0.0]]) @ [[1.0, T], [0.0, 1.0]]
     s = np.log(np.linalg.eigvals(A).astype(complex)) / T
