@@ -91,12 +91,15 @@ class SampleNoise:
         return self._normal[i], self._uniform[i]
 
 
-def _occlusion_table(occlusions: Sequence[Occlusion], n_markers: int):
-    """(start_s, end_s, hides) arrays: hides[j, K] is True if entry j hides marker K."""
+def _occlusion_table(occlusions: Sequence, n_markers: int):
+    """(start_s, end_s, hides) arrays: hides[j, K] is True if entry j hides marker K.
+
+    Entries are Occlusion objects or (marker, start_s, end_s) tuples."""
     start = np.empty(len(occlusions))
     end = np.empty(len(occlusions))
     hides = np.zeros((len(occlusions), n_markers), dtype=bool)
-    for j, occlusion in enumerate(occlusions):
+    for j, item in enumerate(occlusions):
+        occlusion = item if isinstance(item, Occlusion) else Occlusion(*item)
         marker = occlusion.marker
         if marker is None:
             hides[j] = True
@@ -144,7 +147,8 @@ class MarkerSensor(LeafSystem):
     Args:
         instrument: supplies the marker model p_IK [m].
         tracker: rate_hz [Hz], noise_m (std per coordinate) [m], latency_s [s].
-        occlusions: scripted occlusion intervals.
+        occlusions: scripted occlusion intervals: Occlusion objects or
+            (marker, start_s, end_s) tuples.
         seed: non-negative integer; the only source of randomness.
         dropout_probability: chance that a marker is missing from a sample,
             independently per marker and sample, in [0, 1].

@@ -153,9 +153,13 @@ def test_scripted_occlusion_one_marker_and_lost_instrument():
     np.testing.assert_array_equal(hidden[:, 0], in_all)
     np.testing.assert_array_equal(hidden[:, 2], in_all)
     assert in_one.sum() > 80 and in_all.sum() > 80
-    # Through the system too.
+    # Through the system too, and with the intervals given as tuples.
+    as_tuples = MarkerSensor(INSTRUMENT, TrackerSpec(latency_s=latency),
+                             [(1, 0.10, 0.20), (None, 0.50, 0.60)], seed=3)
     t = times[np.argmax(in_all)]
-    assert np.all(np.isnan(sample(sensor, t, x)))
+    assert np.all(np.isnan(sample(as_tuples, t, x)))
+    t = times[np.argmax(in_one)]
+    np.testing.assert_array_equal(sample(as_tuples, t, x), sensor.measure(t, x))
 
 
 def test_random_dropout():
