@@ -156,7 +156,7 @@ class MarkerSensor(LeafSystem):
     """
 
     def __init__(self, instrument: InstrumentSpec, tracker: TrackerSpec,
-                 occlusions: Sequence[Occlusion] = (), seed: int = 0, *,
+                 occlusions: Sequence = (), seed: int = 0, *,
                  dropout_probability: float = 0.0, quantization_m: float = 0.0):
         super().__init__()
         p_IK = instrument.p_IK
