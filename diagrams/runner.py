@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import json
 import time
 from dataclasses import dataclass
@@ -31,6 +32,9 @@ class RunResult:
 def simulate(built, duration_s: float, *, realtime_rate: float = 0.0,
              progress: bool = True):
     """Advance the diagram to ``duration_s``; returns (simulator, wall seconds)."""
+    # The diagram lives as long as the run: keep the collector from scanning it every tick.
+    gc.collect()
+    gc.freeze()
     simulator = Simulator(built.diagram)
     simulator.set_target_realtime_rate(realtime_rate)
     simulator.set_publish_every_time_step(False)
