@@ -4,3 +4,4 @@ from maglev_haptics.hardware.device import (  # noqa: F401
     AmplifierSpec, CoilArraySpec, CoilSpec, DeviceConfig, DisplaySpec,
     InstrumentSpec, MagnetSpec, TrackerSpec, default_instrument,
 )
+from maglev_haptics.hardware.magnetics import MagneticsModel, load_magnetics  # noqa: F401,E402

@@ -1,0 +1,182 @@
+"""Run-time kernel: the (6, n_coils) wrench matrix from the wrench table (numba).
+
+For every (magnet, coil) pair it finds the magnet's table coordinates relative to
+the coil (rho, z, tilt vector w_r, w_t), interpolates the six local components
+with 4-node Lagrange stencils along each axis (one-sided at the axes' ends),
+rotates them from the local (e_r, e_t, e_z) basis to the array frame A and sums
+them into coil j's column about the instrument origin:
+tau_I = tau_M + (p_AM - p_AI) x F. All coil axes are A's +z.
+
+Pairs with rho > rho_max or z > z_max (the table's far edges) contribute nothing;
+lower magnets are read at z_min and tilt components beyond +/-tilt_max at the limit.
+
+``values`` is the table with its last two axes (w_t, component) merged, so that
+the 4 w_t nodes x 6 components of a stencil are 24 contiguous numbers; ``axes``
+stacks the rho, z, w_r and w_t axis descriptors (``WrenchTable.axes``).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+from maglev_haptics.hardware.interpolation import axis_position, lagrange4_weights, stencil_start
+
+# Let LLVM reassociate and fuse the table sums into SIMD multiply-adds (about 2x);
+# unlike full fastmath it keeps IEEE NaN/inf semantics.
+VECTORIZING_MATH = {"contract", "reassoc", "arcp", "nsz"}
+
+POSE_OK = 0
+POSE_NOT_FINITE = 1
+POSE_NOT_ROTATION = 2
+
+
+@numba.njit(cache=True, inline="always")
+def _clamped_position(axis, x):
+    return min(max(axis_position(axis, x), 0.0), axis[5] - 1.0)
+
+
+@numba.njit(cache=True, inline="always")
+def local_wrench(values, axes, rho, z, u_r, u_t, u_z, out, scratch):
+    """Interpolate the six local components into out (6,).
+
+    rho, z [m] locate the magnet centre; (u_r, u_t, u_z) is its unit axis in the
+    local basis; scratch is (24,) work space allocated by the Python caller. Returns False, leaving out
+    untouched, beyond the table's rho or z range.
+    """
+    t_rho = axis_position(axes[0], rho)
+    t_z = axis_position(axes[1], max(z, 1e-9))
+    if t_rho > axes[0, 5] - 1.0 or t_z > axes[1, 5] - 1.0:
+        return False
+    t_z = max(t_z, 0.0)
+    # Tilt vector w = theta * (u_r, u_t) / sin(theta) [rad].
+    sin_theta = math.sqrt(u_r * u_r + u_t * u_t)
+    theta = math.atan2(sin_theta, u_z)
+    scale = theta / sin_theta if sin_theta > 1e-12 else 1.0
+    t_wr = _clamped_position(axes[2], u_r * scale)
+    t_wt = _clamped_position(axes[3], u_t * scale)
+    i_rho = stencil_start(t_rho, axes[0, 5])
+    i_z = stencil_start(t_z, axes[1, 5])
+    i_wr = stencil_start(t_wr, axes[2, 5])
+    i_wt = stencil_start(t_wt, axes[3, 5])
+    w_z = lagrange4_weights(t_z - i_z)
+    w_wr = lagrange4_weights(t_wr - i_wr)
+    first = 6 * i_wt
+    # Sum the contiguous (4 w_t nodes x 6 components) blocks over the other three
+    # axes first, then over w_t. scratch's length (24) is a run-time number to
+    # LLVM, so it vectorizes this loop instead of unrolling it into scalar code
+    # (2x faster). Weight tuples are iterated, not indexed: numba unrolls those.
+    block_len = scratch.shape[0]
+    scratch[:] = 0.0
+    for a, w_a in enumerate(lagrange4_weights(t_rho - i_rho)):
+        for b, w_b in enumerate(w_z):
+            w_ab = w_a * w_b
+            for c, w_c in enumerate(w_wr):
+                w_abc = w_ab * w_c
+                block = values[i_rho + a, i_z + b, i_wr + c, first:first + block_len]
+                for n in range(block_len):
+                    scratch[n] += w_abc * block[n]
+    for k in range(6):
+        out[k] = 0.0
+    for d, w_d in enumerate(lagrange4_weights(t_wt - i_wt)):
+        for k in range(6):
+            out[k] += w_d * scratch[6 * d + k]
+    return True
+
+
+@numba.njit(cache=True, inline="always")
+def pair_wrench_C(values, axes, p_CM, u_C, out, scratch):
+    """Wrench per ampere of one coil on one magnet, C axes, about the magnet centre.
+
+    p_CM [m], u_C unit; out (6,) gets force [N/A] then torque [N m/A]; scratch is
+    (24,) work space. Returns False (out zeroed) when the magnet is beyond the
+    table's rho or z range.
+    """
+    x, y = p_CM[0], p_CM[1]
+    rho = math.sqrt(x * x + y * y)
+    if rho > 0.0:
+        cos_az, sin_az = x / rho, y / rho
+    else:
+        cos_az, sin_az = 1.0, 0.0
+    u_r = u_C[0] * cos_az + u_C[1] * sin_az
+    u_t = -u_C[0] * sin_az + u_C[1] * cos_az
+    if not local_wrench(values, axes, rho, p_CM[2], u_r, u_t, u_C[2], out, scratch):
+        for k in range(6):
+            out[k] = 0.0
+        return False
+    # Local (e_r, e_t, e_z) components to C axes, force then torque.
+    for k in (0, 3):
+        radial, tangential = out[k], out[k + 1]
+        out[k] = radial * cos_az - tangential * sin_az
+        out[k + 1] = radial * sin_az + tangential * cos_az
+    return True
+
+
+@numba.njit(cache=True, fastmath=VECTORIZING_MATH)
+def coil_magnet_kernel(values, axes, p_CM, u_C, scratch):
+    """(6,) wrench per ampere of one coil on one magnet (see ``pair_wrench_C``)."""
+    out = np.empty(6)
+    pair_wrench_C(values, axes, p_CM, u_C, out, scratch)
+    return out
+
+
+@numba.njit(cache=True, fastmath=VECTORIZING_MATH)
+def wrench_matrix_kernel(values, axes, p_ACj, p_IM, p_AI, R_AI, scratch):
+    """(status, (6, n_coils) wrench per ampere on the instrument).
+
+    The matrix is in A axes, torques about I's origin. p_ACj (n_coils, 3) coil
+    top centres [m]; p_IM (n_magnets, 3) magnet centres in I [m]; p_AI (3,) [m]
+    and R_AI (3, 3) the instrument pose; scratch (24,) work space from Python.
+    Every magnet is magnetized along I's +z. status is POSE_OK, POSE_NOT_FINITE or POSE_NOT_ROTATION (then the matrix is
+    zero).
+    """
+    n_coils = p_ACj.shape[0]
+    matrix = np.zeros((6, n_coils))
+    status = _pose_status(p_AI, R_AI)
+    if status != POSE_OK:
+        return status, matrix
+    u_A = np.empty(3)
+    for k in range(3):
+        u_A[k] = R_AI[k, 2]
+    p_CM = np.empty(3)
+    wrench = np.empty(6)
+    for m in range(p_IM.shape[0]):
+        # Magnet centre offset from I's origin, A axes [m].
+        r_IM = R_AI @ p_IM[m]
+        for j in range(n_coils):
+            for k in range(3):
+                p_CM[k] = p_AI[k] + r_IM[k] - p_ACj[j, k]
+            if not pair_wrench_C(values, axes, p_CM, u_A, wrench, scratch):
+                continue
+            fx, fy, fz = wrench[0], wrench[1], wrench[2]
+            matrix[0, j] += fx
+            matrix[1, j] += fy
+            matrix[2, j] += fz
+            matrix[3, j] += wrench[3] + r_IM[1] * fz - r_IM[2] * fy
+            matrix[4, j] += wrench[4] + r_IM[2] * fx - r_IM[0] * fz
+            matrix[5, j] += wrench[5] + r_IM[0] * fy - r_IM[1] * fx
+    return status, matrix
+
+
+@numba.njit(cache=True, inline="always")
+def _pose_status(p_AI, R_AI):
+    for k in range(3):
+        if not math.isfinite(p_AI[k]):
+            return POSE_NOT_FINITE
+        for n in range(3):
+            if not math.isfinite(R_AI[k, n]):
+                return POSE_NOT_FINITE
+    # Orthonormal with determinant +1, to a tolerance loose enough for float32 sources.
+    for a in range(3):
+        for b in range(3):
+            dot = R_AI[0, a] * R_AI[0, b] + R_AI[1, a] * R_AI[1, b] + R_AI[2, a] * R_AI[2, b]
+            if abs(dot - (1.0 if a == b else 0.0)) > 1e-5:
+                return POSE_NOT_ROTATION
+    det = (R_AI[0, 0] * (R_AI[1, 1] * R_AI[2, 2] - R_AI[1, 2] * R_AI[2, 1])
+           - R_AI[0, 1] * (R_AI[1, 0] * R_AI[2, 2] - R_AI[1, 2] * R_AI[2, 0])
+           + R_AI[0, 2] * (R_AI[1, 0] * R_AI[2, 1] - R_AI[1, 1] * R_AI[2, 0]))
+    if det < 0.0:
+        return POSE_NOT_ROTATION
+    return POSE_OK
