@@ -16,7 +16,8 @@ from pydrake.trajectories import PiecewisePolynomial
 
 from maglev_haptics.diagrams.scenario import ScenarioError
 from maglev_haptics.systems.current_allocator import allocate_currents
-from maglev_haptics.systems.levitation_controller import GRAVITY_M_S2, rotation_from_rpy
+from maglev_haptics.systems.levitation_controller import GRAVITY_M_S2
+from maglev_haptics.systems.rotations import rotation_from_rpy
 
 # Hermite samples per second of a minimum-jerk move: the cubic Hermite fit of
 # the quintic then errs by < 1e-7 of the move's amplitude.

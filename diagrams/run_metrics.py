@@ -9,7 +9,7 @@ from pydrake.common.eigen_geometry import Quaternion
 from pydrake.math import RollPitchYaw
 
 from maglev_haptics.diagrams.motion import FlightPlan
-from maglev_haptics.systems.levitation_controller import rotation_from_quaternion, rotation_from_rpy
+from maglev_haptics.systems.rotations import rotation_from_quaternion, rotation_from_rpy
 
 HOVER_SETTLE_S = 0.5  # skipped at the start of each hold before hover errors count (s)
 

@@ -37,7 +37,6 @@ def simulate(built, duration_s: float, *, realtime_rate: float = 0.0,
     gc.freeze()
     simulator = Simulator(built.diagram)
     simulator.set_target_realtime_rate(realtime_rate)
-    simulator.set_publish_every_time_step(False)
     simulator.Initialize()
     chunks = np.append(np.arange(PROGRESS_CHUNK_S, duration_s, PROGRESS_CHUNK_S), duration_s)
     start = time.perf_counter()

@@ -80,7 +80,7 @@ def MakeStation(scenario: Scenario, *, magnetics) -> "Diagram":
         raise ScenarioError(
             f"device.instrument_mass_kg = {spec.mass_kg}: the model {spec.model_url} has "
             f"{body.default_mass()} kg; the two must agree")
-    plant.SetDefaultFreeBodyPose(body, rest_transform(scenario))
+    plant.SetDefaultFloatingBaseBodyPose(body, rest_transform(scenario))
 
     control_period_s = 1.0 / scenario.control_rate_hz
     amplifiers = AddAmplifiers(builder, spec=device.amplifier, n_coils=device.n_coils,

@@ -15,7 +15,7 @@ import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import LeafSystem, ValueProducer
 
-from maglev_haptics.systems.levitation_controller import rotation_from_quaternion
+from maglev_haptics.systems.rotations import rotation_from_quaternion_f64
 
 
 def minimum_norm_currents(A: np.ndarray, wrench: np.ndarray) -> np.ndarray:
@@ -105,7 +105,7 @@ class CurrentAllocator(LeafSystem):
     def _calc_allocation(self, context, allocation):
         pose = self._pose.Eval(context)
         A = self._magnetics.wrench_matrix_from(
-            pose[4:7] - self._p_WA, rotation_from_quaternion(pose[0:4]))
+            pose[4:7] - self._p_WA, rotation_from_quaternion_f64(pose[0:4]))
         currents, shortfall, _ = allocate_currents(
             A, self._wrench.Eval(context), self._current_limit_a)
         allocation.set_value(np.concatenate([currents, shortfall]))

@@ -7,7 +7,7 @@ from pydrake.geometry import Cylinder, Meshcat, Rgba, Sphere
 from pydrake.math import RigidTransform, RollPitchYaw, RotationMatrix
 from pydrake.systems.framework import LeafSystem
 
-from maglev_haptics.systems.levitation_controller import rotation_from_quaternion
+from maglev_haptics.systems.rotations import rotation_from_quaternion
 
 COIL_PATH = "/device/coils"
 SETPOINT_PATH = "/device/setpoint"

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from pydrake.systems.framework import LeafSystem
 
-from maglev_haptics.systems.levitation_controller import rotation_from_quaternion
+from maglev_haptics.systems.rotations import rotation_from_quaternion_f64
 
 
 def instrument_generalized_force(magnetics, p_WA, instrument_state, coil_currents):
@@ -16,7 +16,7 @@ def instrument_generalized_force(magnetics, p_WA, instrument_state, coil_current
     forces, so the result feeds the plant's ``applied_generalized_force`` port.
     """
     A = magnetics.wrench_matrix_from(instrument_state[4:7] - p_WA,
-                                     rotation_from_quaternion(instrument_state[0:4]))
+                                     rotation_from_quaternion_f64(instrument_state[0:4]))
     wrench = A @ coil_currents
     return np.concatenate([wrench[3:6], wrench[0:3]])
 

@@ -6,8 +6,9 @@ from pydrake.autodiffutils import AutoDiffXd
 from pydrake.math import RollPitchYaw, RotationMatrix
 
 from maglev_haptics.systems.levitation_controller import (
-    GRAVITY_M_S2, ControllerConfig, LevitationController, LevitationController_,
-    angular_velocity_from_rpy_rates, pd_gains, pd_wrench, rotation_error_W, rotation_from_rpy)
+    GRAVITY_M_S2, ControllerConfig, LevitationController, LevitationController_, pd_gains, pd_wrench)
+from maglev_haptics.systems.rotations import (
+    angular_velocity_from_rpy_rates, rotation_error_W, rotation_from_rpy)
 
 MASS_KG = 0.125
 INERTIA = np.array([8e-6, 5.6e-5, 6e-5])
