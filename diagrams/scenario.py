@@ -109,8 +109,8 @@ def load_scenario(name_or_path: str, name: Optional[str] = None,
         raise ScenarioError(f"{path}: no scenario named {name!r}; it has {', '.join(names)}")
     label = f"{path.stem}:{name}"
     check_yaml_against_schema(raw[name] or {}, Scenario, label)
-    overrides = yaml.safe_load(scenario_text) or {}
-    check_yaml_against_schema(overrides, Scenario, f"{label} (overrides)")
+    check_yaml_against_schema(yaml.safe_load(scenario_text) or {}, Scenario,
+                              f"{label} (--scenario-text)")
     scenario = yaml_load_typed(schema=Scenario, data=path.read_text(),
                                child_name=name, defaults=Scenario())
     scenario = yaml_load_typed(schema=Scenario, data=scenario_text, defaults=scenario)
@@ -118,8 +118,15 @@ def load_scenario(name_or_path: str, name: Optional[str] = None,
     return scenario
 
 
-def check_yaml_against_schema(value, schema, path: str) -> None:
-    """Raise ScenarioError naming ``path.to.field`` for unknown keys and wrong types."""
+def check_yaml_against_schema(value, schema, label: str) -> None:
+    """Raise ScenarioError naming ``label: path.to.field`` for unknown keys and wrong types."""
+    try:
+        _check_value(value, schema, "")
+    except ScenarioError as error:
+        raise ScenarioError(f"{label}: {error}") from None
+
+
+def _check_value(value, schema, path: str) -> None:
     origin = typing.get_origin(schema)
     args = typing.get_args(schema)
     if origin is typing.Union:
@@ -127,24 +134,26 @@ def check_yaml_against_schema(value, schema, path: str) -> None:
             return
         options = [a for a in args if a is not type(None)]
         if len(options) == 1:
-            check_yaml_against_schema(value, options[0], path)
+            _check_value(value, options[0], path)
             return
         raise ScenarioError(f"{path}: unions need a YAML tag (not used in this schema)")
     if origin in (list, List):
         if not isinstance(value, list):
             raise ScenarioError(f"{path} = {value!r}: must be a list")
         for i, item in enumerate(value):
-            check_yaml_against_schema(item, args[0], f"{path}[{i}]")
+            _check_value(item, args[0], f"{path}[{i}]")
         return
     if dataclasses.is_dataclass(schema):
         if not isinstance(value, dict):
-            raise ScenarioError(f"{path} = {value!r}: must be a mapping of {schema.__name__} fields")
+            raise ScenarioError(f"{path or 'the scenario'} = {value!r}: must be a mapping of "
+                                f"{schema.__name__} fields")
         hints = typing.get_type_hints(schema)
         for key, item in value.items():
+            field_path = f"{path}.{key}" if path else str(key)
             if key not in hints:
                 allowed = ", ".join(f.name for f in dataclasses.fields(schema))
-                raise ScenarioError(f"{path}.{key}: unknown field; {schema.__name__} has {allowed}")
-            check_yaml_against_schema(item, hints[key], f"{path}.{key}")
+                raise ScenarioError(f"{field_path}: unknown field; {schema.__name__} has {allowed}")
+            _check_value(item, hints[key], field_path)
         return
     if schema is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)):

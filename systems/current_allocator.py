@@ -12,6 +12,7 @@ reported.
 from __future__ import annotations
 
 import numpy as np
+from scipy.linalg.lapack import dposv
 from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import LeafSystem, ValueProducer
 
@@ -19,8 +20,16 @@ from maglev_haptics.systems.rotations import rotation_from_quaternion_f64
 
 
 def minimum_norm_currents(A: np.ndarray, wrench: np.ndarray) -> np.ndarray:
-    """I = A^T (A A^T)^-1 w: exact when A (6 x n) has full row rank."""
-    return A.T @ np.linalg.solve(A @ A.T, wrench)
+    """Minimum-norm I with A I = w (least squares where A (6 x n) loses rank).
+
+    Full rank: I = A^T (A A^T)^-1 w by Cholesky. Out of the coils' reach (A
+    near zero, e.g. an instrument lifted far away) the Cholesky fails and the
+    SVD's minimum-norm least-squares answer is used instead.
+    """
+    _, solution, info = dposv(A @ A.T, wrench)
+    if info == 0:
+        return A.T @ solution
+    return np.linalg.lstsq(A, wrench, rcond=1e-10)[0]
 
 
 def allocate_currents(A: np.ndarray, wrench: np.ndarray, current_limit_a: float):

@@ -76,3 +76,11 @@ def test_system_outputs_currents_and_shortfall(magnetics):
     currents = allocator.GetOutputPort("coil_currents_commanded").Eval(context)
     assert np.max(np.abs(currents)) <= LIMIT_A
     assert np.linalg.norm(allocator.GetOutputPort("allocation_shortfall_W").Eval(context)) > 1.0
+
+
+def test_out_of_the_coils_reach_gives_zero_currents_not_an_error(magnetics):
+    A = hover_matrix(magnetics, p_AI=(0.0, 0.0, 0.5))  # half a metre up: beyond the table
+    wrench = np.array([0, 0, 1.2, 0, 0, 0])
+    currents, shortfall, _ = allocate_currents(A, wrench, LIMIT_A)
+    assert np.all(np.isfinite(currents)) and np.max(np.abs(currents)) <= LIMIT_A
+    np.testing.assert_allclose(shortfall, wrench - A @ currents)

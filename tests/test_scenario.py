@@ -37,7 +37,7 @@ def test_levitate_names_the_required_scenarios():
     ("a: {device: {tracker: {rate_hz: fast}}}", "device.tracker.rate_hz = 'fast': must be a number"),
     ("a: {device: {instrument_mass_kg: -0.1}}", "device.instrument_mass_kg = -0.1: must be a finite number > 0"),
     ("a: {device: {instrument: three_magnet}}", "device.instrument = 'three_magnet': must be one of"),
-    ("a: {motion: {waypoints: [{pose: [0, 0, 0.02]}]}}", "motion.waypoints[0].pose = [0, 0, 0.02]: must be a list of 6"),
+    ("a: {motion: {waypoints: [{pose: [0, 0, 0.02]}]}}", "motion.waypoints[0].pose = [0.0, 0.0, 0.02]: must be a list of 6"),
     ("a: {device: {amplifier: {current_limit_a: 0}}}", "device.amplifier.current_limit_a = 0"),
     ("a: {controller: {damping_ratio: [0.7, 0.7, 0.7, 0.7, 0.7, .nan]}}", "controller.damping_ratio"),
     ("a: {occlusions: [{marker: 5, start_s: 1, end_s: 2}]}", "occlusions[0].marker = 5"),
