@@ -27,10 +27,12 @@ from maglev_haptics.hardware.device import CoilSpec, MagnetSpec
 # Cap quadrature (Gauss-Legendre nodes in radius, uniform angles) by the magnet's
 # clearance from the coil (``clearance``): (minimum clearance [m], radial, angular).
 # Each tier is converged to ~1e-4 of the wrench (and of 1 % of its largest value
-# at that height) over its clearance range; the finest serves poses whose caps
-# come within 2 mm of the coil's top face.
-CAP_RULES = ((0.015, 4, 12), (0.005, 6, 16), (0.002, 8, 24), (-np.inf, 12, 48))
-CAP_RADIAL_ORDER, CAP_ANGULAR_ORDER = CAP_RULES[-1][1:]
+# at that height) over its clearance range, down to 2 mm; closer poses (mostly
+# ones with the magnet inside the display or the coil) get the finest tier, and
+# a finer one there changes no interpolated wrench at 15 mm or higher by 1e-5.
+CAP_RULES = ((0.015, 4, 12), (0.005, 6, 16), (-np.inf, 8, 24))
+# ChargeModel's default: converged to ~1e-6 down to 2 mm clearance.
+CAP_RADIAL_ORDER, CAP_ANGULAR_ORDER = 12, 48
 
 
 def disk_quadrature(radius_m: float, radial_order: int, angular_order: int

@@ -23,7 +23,6 @@ x = scale * sinh(s) with s uniform (fine near the coil, coarse far away), read b
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 
 import numba
@@ -37,15 +36,15 @@ from maglev_haptics.hardware.interpolation import (
 MU0 = 4e-7 * np.pi  # vacuum permeability [T m/A]
 
 # Field table extent in the coil frame [m]: far enough out for any cap point of
-# the wrench table (rho <= 160 mm, magnet centre z <= 130 mm), and down to the
+# the wrench table (rho <= 200 mm, magnet centre z <= 130 mm), and down to the
 # coil's bottom so that tilted magnets near the coil never leave it. The field
 # has kinks at the top face over the winding, so the part above the face
 # (z >= 0) and the part below it are separate tables, each interpolated with
 # one-sided stencils at z = 0.
-FIELD_RHO_MAX_M = 0.200
+FIELD_RHO_MAX_M = 0.240
 FIELD_Z_MAX_M = 0.200
 # Stretching scales [m] and step in s: spacing ~0.36 mm at the axis, ~0.15 mm at
-# the top face, ~5 mm (rho) and ~12 mm (z) at 200 mm.
+# the top face, ~7 mm at rho = 240 mm and ~6 mm at z = 200 mm.
 FIELD_RHO_SCALE_M = 0.012
 FIELD_Z_SCALE_M = 0.005
 FIELD_STEP = 0.03
@@ -109,8 +108,22 @@ def field_axes(coil: CoilSpec) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return rho_axis, above_axis, below_axis
 
 
+def coil_field_tables(coil: CoilSpec) -> tuple[np.ndarray, ...]:
+    """(rho_axis, above_axis, above_table, below_axis, below_table).
+
+    ``above_table[i_rho, i_z]`` = (B_rho, B_z) [T/A] at the nodes of
+    ``rho_axis`` x ``above_axis`` (z >= 0), likewise below the top face. Built in
+    about a second; memoized per coil geometry within the process.
+    """
+    return _field_tables(coil.inner_diameter_m, coil.outer_diameter_m, coil.height_m,
+                         coil.turns)
+
+
 @functools.lru_cache(maxsize=4)
-def _field_tables_cached(coil: CoilSpec) -> tuple[np.ndarray, ...]:
+def _field_tables(inner_diameter_m: float, outer_diameter_m: float, height_m: float,
+                  turns: int) -> tuple[np.ndarray, ...]:
+    coil = CoilSpec(inner_diameter_m=inner_diameter_m, outer_diameter_m=outer_diameter_m,
+                    height_m=height_m, turns=turns)
     rho_axis, above_axis, below_axis = field_axes(coil)
     tables = []
     for z_axis in (above_axis, below_axis):
@@ -120,29 +133,6 @@ def _field_tables_cached(coil: CoilSpec) -> tuple[np.ndarray, ...]:
         table.flags.writeable = False
         tables.append(table)
     return (rho_axis, above_axis, tables[0], below_axis, tables[1])
-
-
-def coil_field_tables(coil: CoilSpec) -> tuple[np.ndarray, ...]:
-    """(rho_axis, above_axis, above_table, below_axis, below_table).
-
-    ``above_table[i_rho, i_z]`` = (B_rho, B_z) [T/A] at the nodes of
-    ``rho_axis`` x ``above_axis`` (z >= 0), likewise below the top face. Built in
-    about a second; memoized per coil within the process.
-    """
-    return _field_tables_cached(_frozen_coil(coil))
-
-
-def _frozen_coil(coil: CoilSpec) -> CoilSpec:
-    """A hashable copy of the geometry that sets the field (CoilSpec is mutable)."""
-    return _CoilKey(coil.inner_diameter_m, coil.outer_diameter_m, coil.height_m, coil.turns)
-
-
-@dataclasses.dataclass(frozen=True)
-class _CoilKey:
-    inner_diameter_m: float
-    outer_diameter_m: float
-    height_m: float
-    turns: int
 
 
 @numba.njit(cache=True, inline="always")

@@ -5,9 +5,9 @@ p_CM) acts on the coil's winding current with the Lorentz force
 dF = J x B dV, J = turns * I / winding_area along +phi [A/m^2]. The closed system
 exerts no net force or torque on itself, so the magnet feels F = -sum dF and, about
 its centre c, tau = -sum (r - c) x dF. The winding volume is integrated with
-Gauss-Legendre nodes in radius and height and uniform angles. It shares no code
-with the tabulated model; it costs ~10 ms per pose, so it is for tests and studies,
-not for the loop.
+Gauss-Legendre nodes in radius and height and uniform angles. It shares no
+physics or quadrature with the tabulated model; at ~5 ms per pose it is for tests
+and studies, not for the loop.
 """
 
 from __future__ import annotations
@@ -17,19 +17,11 @@ from magpylib.func import cylinder_field
 from scipy.spatial.transform import Rotation
 
 from maglev_haptics.hardware.device import CoilSpec, MagnetSpec
+from maglev_haptics.hardware.magnetics import check_magnet_pose
 
-DIRECT_ORDER = (10, 20, 64)  # (radial, axial, angular) nodes over the winding; converged to ~1e-6
-
-
-def check_pose(p_CM, u_C) -> tuple[np.ndarray, np.ndarray]:
-    """Validated copies of a magnet pose: position p_CM (3,) [m], unit axis u_C (3,)."""
-    p = np.asarray(p_CM, dtype=float)
-    u = np.asarray(u_C, dtype=float)
-    if p.shape != (3,) or not np.all(np.isfinite(p)):
-        raise ValueError(f"p_CM = {p_CM!r}: must be 3 finite numbers [m]")
-    if u.shape != (3,) or not np.all(np.isfinite(u)) or abs(np.linalg.norm(u) - 1) > 1e-6:
-        raise ValueError(f"u_C = {u_C!r}: must be a unit 3-vector")
-    return p, u
+# (radial, axial, angular) nodes over the winding: converged to ~1e-6 of the
+# wrench for magnets clear of the coil's top face by 1.5 mm or more.
+DIRECT_ORDER = (10, 20, 64)
 
 
 def _axis_rotation(u: np.ndarray) -> Rotation:
@@ -66,7 +58,7 @@ def direct_coil_magnet_wrench(coil: CoilSpec, magnet: MagnetSpec, p_CM, u_C,
     magnetization axis in the coil frame C. ``order`` = (radial, axial, angular)
     quadrature nodes over the winding.
     """
-    p, u = check_pose(p_CM, u_C)
+    p, u = check_magnet_pose(p_CM, u_C)
     points, volumes = winding_quadrature(coil, order)
     field = cylinder_field("B", observers=points,
                            dimensions=(magnet.diameter_m, magnet.height_m),

@@ -10,9 +10,10 @@ tau_I = tau_M + (p_AM - p_AI) x F. All coil axes are A's +z.
 Pairs with rho > rho_max or z > z_max (the table's far edges) contribute nothing;
 lower magnets are read at z_min and tilt components beyond +/-tilt_max at the limit.
 
-``values`` is the table with its last two axes (w_t, component) merged, so that
-the 4 w_t nodes x 6 components of a stencil are 24 contiguous numbers; ``axes``
-stacks the rho, z, w_r and w_t axis descriptors (``WrenchTable.axes``).
+``values`` is the (float32) table with its last two axes (w_t, component) merged,
+so that the 4 w_t nodes x 6 components of a stencil are 24 contiguous numbers;
+sums are accumulated in float64. ``axes`` stacks the rho, z, w_r and w_t axis
+descriptors (``WrenchTable.axes``).
 """
 
 from __future__ import annotations
@@ -112,14 +113,6 @@ def pair_wrench_C(values, axes, p_CM, u_C, out, scratch):
         out[k] = radial * cos_az - tangential * sin_az
         out[k + 1] = radial * sin_az + tangential * cos_az
     return True
-
-
-@numba.njit(cache=True, fastmath=VECTORIZING_MATH)
-def coil_magnet_kernel(values, axes, p_CM, u_C, scratch):
-    """(6,) wrench per ampere of one coil on one magnet (see ``pair_wrench_C``)."""
-    out = np.empty(6)
-    pair_wrench_C(values, axes, p_CM, u_C, out, scratch)
-    return out
 
 
 @numba.njit(cache=True, fastmath=VECTORIZING_MATH)

