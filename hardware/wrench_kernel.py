@@ -44,8 +44,8 @@ def local_wrench(values, axes, rho, z, u_r, u_t, u_z, out, scratch):
     """Interpolate the six local components into out (6,).
 
     rho, z [m] locate the magnet centre; (u_r, u_t, u_z) is its unit axis in the
-    local basis; scratch is (24,) work space allocated by the Python caller. Returns False, leaving out
-    untouched, beyond the table's rho or z range.
+    local basis; scratch is (24,) work space allocated by the Python caller.
+    Returns False, leaving out untouched, beyond the table's rho or z range.
     """
     t_rho = axis_position(axes[0], rho)
     t_z = axis_position(axes[1], max(z, 1e-9))
@@ -122,8 +122,8 @@ def wrench_matrix_kernel(values, axes, p_ACj, p_IM, p_AI, R_AI, scratch):
     The matrix is in A axes, torques about I's origin. p_ACj (n_coils, 3) coil
     top centres [m]; p_IM (n_magnets, 3) magnet centres in I [m]; p_AI (3,) [m]
     and R_AI (3, 3) the instrument pose; scratch (24,) work space from Python.
-    Every magnet is magnetized along I's +z. status is POSE_OK, POSE_NOT_FINITE or POSE_NOT_ROTATION (then the matrix is
-    zero).
+    Every magnet is magnetized along I's +z. status is POSE_OK, POSE_NOT_FINITE
+    or POSE_NOT_ROTATION (then the matrix is zero).
     """
     n_coils = p_ACj.shape[0]
     matrix = np.zeros((6, n_coils))
@@ -134,10 +134,12 @@ def wrench_matrix_kernel(values, axes, p_ACj, p_IM, p_AI, R_AI, scratch):
     for k in range(3):
         u_A[k] = R_AI[k, 2]
     p_CM = np.empty(3)
+    r_IM = np.empty(3)
     wrench = np.empty(6)
     for m in range(p_IM.shape[0]):
         # Magnet centre offset from I's origin, A axes [m].
-        r_IM = R_AI @ p_IM[m]
+        for k in range(3):
+            r_IM[k] = R_AI[k, 0] * p_IM[m, 0] + R_AI[k, 1] * p_IM[m, 1] + R_AI[k, 2] * p_IM[m, 2]
         for j in range(n_coils):
             for k in range(3):
                 p_CM[k] = p_AI[k] + r_IM[k] - p_ACj[j, k]

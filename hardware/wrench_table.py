@@ -192,5 +192,6 @@ def load_wrench_table(coil: CoilSpec, magnet: MagnetSpec, grid: WrenchGrid = Wre
     # Write then rename, so concurrent processes never read a partial file.
     with tempfile.NamedTemporaryFile(dir=path.parent, suffix=".npz", delete=False) as handle:
         np.savez(handle, key=key, values=table.values, axes=table.axes)
+    os.chmod(handle.name, 0o644)  # readable by others sharing the cache, like any cache file
     os.replace(handle.name, path)
     return table
