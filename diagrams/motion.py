@@ -23,6 +23,7 @@ from maglev_haptics.systems.rotations import rotation_from_rpy
 # the quintic then errs by < 1e-7 of the move's amplitude.
 SAMPLES_PER_S = 200
 LANDING_PRESS_M = 0.001  # the landing setpoint ends this far below the rest height
+IDLE_AFTER_S = 0.2  # the script ends this long after the currents are ramped to zero
 
 
 @dataclass
@@ -31,7 +32,7 @@ class FlightPlan:
     enable: PiecewisePolynomial  # 1 row: controller gain 0..1
     holds: List[Tuple[float, float]]  # (start, end) of each waypoint hold (s)
     landing: Tuple[float, float]  # (start, end) of the descent (s)
-    end_s: float  # when the ramp-down is complete (s)
+    end_s: float  # the script's length: ramp-down complete plus IDLE_AFTER_S (s)
 
 
 def minimum_jerk(s: np.ndarray):
@@ -92,7 +93,7 @@ def flight_plan(motion, rest_height_m: float) -> FlightPlan:
          ramp_down_end + 1.0],
         np.array([[0.0, 0.0, 1.0, 1.0, 0.0, 0.0]]))
     return FlightPlan(setpoint=setpoint, enable=enable, holds=holds, landing=landing,
-                      end_s=ramp_down_end)
+                      end_s=ramp_down_end + IDLE_AFTER_S)
 
 
 def base_clearance_m(pose, spec) -> float:
