@@ -74,7 +74,8 @@ class MagneticsModel:
         self.p_IM = np.ascontiguousarray(self.instrument.p_IM)
         self._values = table.kernel_values
         self._axes = np.ascontiguousarray(table.axes)
-        self._scratch = np.empty(24)  # kernel work space (4 tilt nodes x 6 components)
+        # Kernel work space: 4 tilt nodes x 6 components, summed in float32.
+        self._scratch = np.empty(24, dtype=np.float32)
 
     @property
     def n_coils(self) -> int:
