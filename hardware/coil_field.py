@@ -31,7 +31,7 @@ from magpylib.core import magnet_cylinder_axial_Bfield
 
 from maglev_haptics.hardware.device import CoilSpec
 from maglev_haptics.hardware.interpolation import (
-    AXIS_SINH, axis_nodes, axis_position, lagrange4_weights, make_axis, stencil_start)
+    AXIS_SINH, axis_nodes, clamped_position, lagrange4_weights, make_axis, stencil_start)
 
 MU0 = 4e-7 * np.pi  # vacuum permeability [T m/A]
 
@@ -137,10 +137,10 @@ def _field_tables(inner_diameter_m: float, outer_diameter_m: float, height_m: fl
 
 @numba.njit(cache=True, inline="always")
 def _interpolate_table(rho_axis, z_axis, table, rho, z):
-    t_rho = min(max(axis_position(rho_axis, rho), 0.0), rho_axis[5] - 1.0)
-    t_z = min(max(axis_position(z_axis, z), 0.0), z_axis[5] - 1.0)
-    i_rho = stencil_start(t_rho, rho_axis[5])
-    i_z = stencil_start(t_z, z_axis[5])
+    t_rho = clamped_position(rho_axis, rho)
+    t_z = clamped_position(z_axis, z)
+    i_rho = stencil_start(t_rho, rho_axis)
+    i_z = stencil_start(t_z, z_axis)
     wz0, wz1, wz2, wz3 = lagrange4_weights(t_z - i_z)
     b_rho = 0.0
     b_z = 0.0

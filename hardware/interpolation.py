@@ -73,11 +73,23 @@ def axis_position(axis, x):
 
 
 @numba.njit(cache=True, inline="always")
-def stencil_start(t, count):
+def clamped_position(axis, x):
+    """Fractional node index of x on ``axis``, clamped to the axis."""
+    return min(max(axis_position(axis, x), 0.0), axis[_COUNT] - 1.0)
+
+
+@numba.njit(cache=True, inline="always")
+def beyond_end(axis, t):
+    """Whether fractional index t lies past the last node of ``axis``."""
+    return t > axis[_COUNT] - 1.0
+
+
+@numba.njit(cache=True, inline="always")
+def stencil_start(t, axis):
     """First node of the 4-node stencil for fractional index t: centred on the
-    interval holding t, one-sided at the ends of a ``count``-node axis."""
+    interval holding t, one-sided at the ends of ``axis``."""
     start = int(math.floor(t)) - 1
-    return min(max(start, 0), int(count) - 4)
+    return min(max(start, 0), int(axis[_COUNT]) - 4)
 
 
 @numba.njit(cache=True, inline="always")

@@ -23,7 +23,8 @@ import math
 import numba
 import numpy as np
 
-from maglev_haptics.hardware.interpolation import axis_position, lagrange4_weights, stencil_start
+from maglev_haptics.hardware.interpolation import (
+    axis_position, beyond_end, clamped_position, lagrange4_weights, stencil_start)
 
 # Let LLVM reassociate and fuse the table sums into SIMD multiply-adds (about 2x);
 # unlike full fastmath it keeps IEEE NaN/inf semantics.
@@ -32,11 +33,6 @@ VECTORIZING_MATH = {"contract", "reassoc", "arcp", "nsz"}
 POSE_OK = 0
 POSE_NOT_FINITE = 1
 POSE_NOT_ROTATION = 2
-
-
-@numba.njit(cache=True, inline="always")
-def _clamped_position(axis, x):
-    return min(max(axis_position(axis, x), 0.0), axis[5] - 1.0)
 
 
 @numba.njit(cache=True, inline="always")
@@ -49,19 +45,19 @@ def local_wrench(values, axes, rho, z, u_r, u_t, u_z, out, scratch):
     """
     t_rho = axis_position(axes[0], rho)
     t_z = axis_position(axes[1], max(z, 1e-9))
-    if t_rho > axes[0, 5] - 1.0 or t_z > axes[1, 5] - 1.0:
+    if beyond_end(axes[0], t_rho) or beyond_end(axes[1], t_z):
         return False
     t_z = max(t_z, 0.0)
     # Tilt vector w = theta * (u_r, u_t) / sin(theta) [rad].
     sin_theta = math.sqrt(u_r * u_r + u_t * u_t)
     theta = math.atan2(sin_theta, u_z)
     scale = theta / sin_theta if sin_theta > 1e-12 else 1.0
-    t_wr = _clamped_position(axes[2], u_r * scale)
-    t_wt = _clamped_position(axes[3], u_t * scale)
-    i_rho = stencil_start(t_rho, axes[0, 5])
-    i_z = stencil_start(t_z, axes[1, 5])
-    i_wr = stencil_start(t_wr, axes[2, 5])
-    i_wt = stencil_start(t_wt, axes[3, 5])
+    t_wr = clamped_position(axes[2], u_r * scale)
+    t_wt = clamped_position(axes[3], u_t * scale)
+    i_rho = stencil_start(t_rho, axes[0])
+    i_z = stencil_start(t_z, axes[1])
+    i_wr = stencil_start(t_wr, axes[2])
+    i_wt = stencil_start(t_wt, axes[3])
     w_z = lagrange4_weights(t_z - i_z)
     w_wr = lagrange4_weights(t_wr - i_wr)
     first = 6 * i_wt

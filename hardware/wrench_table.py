@@ -79,7 +79,8 @@ class WrenchTable:
     tau_r, tau_t, tau_z [N m/A]) and ``axes`` (4, 6): rho, z, w_r, w_t.
 
     Values are float32 (1e-7 relative, far below the interpolation error): half
-    the memory and cache traffic, 8 % faster run-time kernel than float64.
+    the memory (23 MB) and cache traffic of float64, and float32 SIMD sums in
+    the run-time kernel.
     """
 
     values: np.ndarray
