@@ -79,7 +79,7 @@ class WrenchTable:
     tau_r, tau_t, tau_z [N m/A]) and ``axes`` (4, 6): rho, z, w_r, w_t.
 
     Values are float32 (1e-7 relative, far below the interpolation error): half
-    the memory (23 MB) and cache traffic of float64, and float32 SIMD sums in
+    the memory (25 MB) and cache traffic of float64, and float32 SIMD sums in
     the run-time kernel.
     """
 
