@@ -18,6 +18,7 @@ from maglev_haptics.diagrams.application import BuildDiagram
 from maglev_haptics.diagrams.run_metrics import log_arrays, summarize
 from maglev_haptics.diagrams.run_plots import plot_run
 from maglev_haptics.diagrams.scenario import Scenario
+from maglev_haptics.systems.device_visualizer import aim_camera_at_device
 
 PROGRESS_CHUNK_S = 0.25  # simulated seconds between progress-bar updates
 
@@ -63,6 +64,7 @@ def run_scenario(scenario: Scenario, *, label: str, out_dir: Optional[Path] = No
     if viewer is not None:
         viewer.StopRecording()
         viewer.PublishRecording()
+        aim_camera_at_device(viewer)
     log = log_arrays(built.loggers, simulator.get_context(),
                      scenario.device.coil.resistance_ohm)
     spec = scenario.device.instrument_spec()

@@ -16,8 +16,11 @@ MARKERS_PATH = "/device/markers_measured"
 
 
 def current_color(current_a: float, limit_a: float) -> list:
-    """Diverging colour: grey at 0 A, red for positive, blue for negative, full at the limit."""
-    level = float(np.clip(abs(current_a) / limit_a, 0.0, 1.0))
+    """Diverging colour: grey at 0 A, red for positive, blue for negative, full at the limit.
+
+    The square root makes the ~1-2 A of hovering clearly visible against a 4 A scale.
+    """
+    level = float(np.sqrt(np.clip(abs(current_a) / limit_a, 0.0, 1.0)))
     grey = np.array([0.6, 0.6, 0.6])
     hot = np.array([0.9, 0.1, 0.05]) if current_a >= 0 else np.array([0.05, 0.25, 0.95])
     return [*(grey + level * (hot - grey)), 1.0]
@@ -50,6 +53,7 @@ class DeviceVisualizer(LeafSystem):
         self._setpoint = self.DeclareVectorInputPort("setpoint", 12)
         self._pose = self.DeclareVectorInputPort("X_WI_measured", 7)
         self._markers = self.DeclareVectorInputPort("markers_measured", 3 * n_markers)
+        aim_camera_at_device(meshcat)
         coil = device.coil
         p_WC = device.array.coil_positions_A() + device.p_WA
         for j, p in enumerate(p_WC):
@@ -80,6 +84,16 @@ class DeviceVisualizer(LeafSystem):
             meshcat.SetProperty(f"{MARKERS_PATH}/{k}", "visible", visible)
             if visible:
                 meshcat.SetTransform(f"{MARKERS_PATH}/{k}", RigidTransform(p))
+
+
+def aim_camera_at_device(meshcat: Meshcat) -> None:
+    """Look at the ~0.5 m device from the user's side; hide the metre-scale grid and axes.
+
+    Publishing a recording resets the view, so runners call this again after it.
+    """
+    meshcat.SetCameraPose(camera_in_world=[0.16, -0.30, 0.20], target_in_world=[0.0, 0.0, 0.0])
+    meshcat.SetProperty("/Axes", "visible", False)
+    meshcat.SetProperty("/Grid", "visible", False)
 
 
 def _add_triad(meshcat: Meshcat, path: str, *, length: float, radius: float, opacity: float):
