@@ -26,9 +26,8 @@ import numpy as np
 from pydrake.systems.framework import BasicVector, LeafSystem
 
 from maglev_haptics.hardware.device import InstrumentSpec, TrackerSpec
-from maglev_haptics.systems.pose_estimator import (
-    quaternion_exp, quaternion_multiply, rotation_matrix_from_quaternion,
-)
+from maglev_haptics.systems.rotations import (
+    quaternion_exp, quaternion_multiply, rotation_from_quaternion_f64)
 
 # Samples per block of pre-drawn random numbers (one generator per block).
 NOISE_BLOCK = 1024
@@ -48,7 +47,7 @@ class Occlusion:
 def marker_positions_W(q_WI: np.ndarray, p_IK: np.ndarray) -> np.ndarray:
     """Marker positions p_WK (n, 3) [m] for the pose vector q_WI
     [qw qx qy qz x y z] (m) and the model p_IK (n, 3) [m] in I."""
-    return q_WI[4:7] + p_IK @ rotation_matrix_from_quaternion(q_WI[:4]).T
+    return q_WI[4:7] + p_IK @ rotation_from_quaternion_f64(q_WI[:4]).T
 
 
 def extrapolate_pose(q_WI: np.ndarray, V_WI: np.ndarray, dt_s: float) -> np.ndarray:

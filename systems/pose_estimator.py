@@ -37,6 +37,8 @@ from scipy.linalg.lapack import dgesvd
 from pydrake.systems.framework import BasicVector, LeafSystem
 
 from maglev_haptics.hardware.device import InstrumentSpec, TrackerSpec
+from maglev_haptics.systems.rotations import (
+    quaternion_multiply_tuple, quaternion_conjugate_tuple, quaternion_exp_tuple, quaternion_log_tuple, quaternion_from_rotation_matrix)
 
 # A fit is refused when the visible markers' second principal spread is below
 # this fraction of the first (nearly collinear): the roll about their line is
@@ -65,89 +67,6 @@ class PoseEstimatorConfig:
     # tracker period earlier. A small positive offset (e.g. 1e-5) processes
     # each sample as it arrives, but gives the diagram a second periodic timing.
     offset_s: float = 0.0
-
-
-# --- quaternions [w, x, y, z] (Hamilton, Drake's order) ---------------------
-# The _q* functions work on tuples of Python floats: for 4-vectors that is
-# several times faster than numpy, and the filter runs at the tracker rate.
-
-def _qmul(a, b):
-    aw, ax, ay, az = a
-    bw, bx, by, bz = b
-    return (aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw)
-
-
-def _qconj(q):
-    return (q[0], -q[1], -q[2], -q[3])
-
-
-def _qexp(x, y, z):
-    angle = math.sqrt(x * x + y * y + z * z)
-    # sin(angle / 2) / angle; its Taylor series below 1e-4 rad is exact in double.
-    scale = math.sin(angle / 2) / angle if angle > 1e-4 else 0.5 - angle * angle / 48
-    return (math.cos(angle / 2), scale * x, scale * y, scale * z)
-
-
-def _qlog(w, x, y, z):
-    if w < 0:
-        w, x, y, z = -w, -x, -y, -z
-    s = math.sqrt(x * x + y * y + z * z)
-    # angle / sin(angle / 2), with its limit 2 / w as s -> 0.
-    scale = 2.0 * math.atan2(s, w) / s if s > 1e-12 else 2.0 / w
-    return (scale * x, scale * y, scale * z)
-
-
-def quaternion_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton product a * b, so R(a * b) = R(a) R(b)."""
-    return np.array(_qmul(a.tolist(), b.tolist()))
-
-
-def quaternion_exp(rotvec: np.ndarray) -> np.ndarray:
-    """Unit quaternion of the rotation vector ``rotvec`` (axis * angle, rad)."""
-    return np.array(_qexp(*rotvec.tolist()))
-
-
-def quaternion_log(q: np.ndarray) -> np.ndarray:
-    """Rotation vector (rad, angle in [0, pi]) of the unit quaternion ``q``.
-
-    q and -q give the same result: the shorter of the two rotations is taken.
-    """
-    return np.array(_qlog(*q.tolist()))
-
-
-def rotation_matrix_from_quaternion(q: np.ndarray) -> np.ndarray:
-    """R (3x3) of the quaternion [w, x, y, z]; need not be exactly unit."""
-    w, x, y, z = q.tolist()
-    s = 2.0 / (w * w + x * x + y * y + z * z)
-    return np.array([
-        [1 - s * (y * y + z * z), s * (x * y - w * z), s * (x * z + w * y)],
-        [s * (x * y + w * z), 1 - s * (x * x + z * z), s * (y * z - w * x)],
-        [s * (x * z - w * y), s * (y * z + w * x), 1 - s * (x * x + y * y)],
-    ])
-
-
-def quaternion_from_rotation_matrix(R: np.ndarray) -> np.ndarray:
-    """Unit quaternion [w, x, y, z] of the rotation matrix R (Shepperd's method,
-    pivoting on the largest of w, x, y, z for accuracy at any angle)."""
-    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = R.tolist()
-    trace = r00 + r11 + r22
-    if trace >= max(r00, r11, r22):
-        s = 2.0 * math.sqrt(1.0 + trace)
-        q = (0.25 * s, (r21 - r12) / s, (r02 - r20) / s, (r10 - r01) / s)
-    elif r00 >= r11 and r00 >= r22:
-        s = 2.0 * math.sqrt(1.0 + r00 - r11 - r22)
-        q = ((r21 - r12) / s, 0.25 * s, (r01 + r10) / s, (r02 + r20) / s)
-    elif r11 >= r22:
-        s = 2.0 * math.sqrt(1.0 + r11 - r00 - r22)
-        q = ((r02 - r20) / s, (r01 + r10) / s, 0.25 * s, (r12 + r21) / s)
-    else:
-        s = 2.0 * math.sqrt(1.0 + r22 - r00 - r11)
-        q = ((r10 - r01) / s, (r02 + r20) / s, (r12 + r21) / s, 0.25 * s)
-    q = np.array(q)
-    return q / math.sqrt(q @ q)
 
 
 # --- rigid fit ---------------------------------------------------------------
@@ -297,12 +216,12 @@ def filter_update(x_hat: np.ndarray, V: np.ndarray, x_meas: np.ndarray,
     qw, qx, qy, qz, px, py, pz = x_hat.tolist()
     mw, mx, my, mz, mpx, mpy, mpz = x_meas.tolist()
     # Predict at constant V, then the innovation [rotation vector; position].
-    q_pred = _qmul(_qexp(wx * T, wy * T, wz * T), (qw, qx, qy, qz))
+    q_pred = quaternion_multiply_tuple(quaternion_exp_tuple(wx * T, wy * T, wz * T), (qw, qx, qy, qz))
     p_pred = (px + vx * T, py + vy * T, pz + vz * T)
-    innovation = _qlog(*_qmul((mw, mx, my, mz), _qconj(q_pred))) + (
+    innovation = quaternion_log_tuple(*quaternion_multiply_tuple((mw, mx, my, mz), quaternion_conjugate_tuple(q_pred))) + (
         mpx - p_pred[0], mpy - p_pred[1], mpz - p_pred[2])
     rx, ry, rz, ex, ey, ez = innovation
-    nw, nx, ny, nz = _qmul(_qexp(alpha * rx, alpha * ry, alpha * rz), q_pred)
+    nw, nx, ny, nz = quaternion_multiply_tuple(quaternion_exp_tuple(alpha * rx, alpha * ry, alpha * rz), q_pred)
     norm = math.sqrt(nw * nw + nx * nx + ny * ny + nz * nz)
     x_new = np.array([nw / norm, nx / norm, ny / norm, nz / norm,
                       p_pred[0] + alpha * ex, p_pred[1] + alpha * ey, p_pred[2] + alpha * ez])

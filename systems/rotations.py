@@ -1,9 +1,12 @@
-"""Rotation helpers shared by the loop's systems, written once for any scalar type.
+"""Rotation helpers shared by the loop's systems.
 
-Each works on float and AutoDiffXd arrays alike (the controller converts to
-AutoDiffXd for linearization); ``*_f64`` twins are the same source compiled by
-numba for the float-only systems on the 1 kHz path.
+The matrix helpers work on float and AutoDiffXd arrays alike (the controller
+converts to AutoDiffXd for linearization); ``*_f64`` is the same source compiled
+by numba for the float-only systems on the 1 kHz path. The quaternion algebra
+below them is float only, on tuples where speed matters (the tracker-rate filter).
 """
+
+import math
 
 import numba
 import numpy as np
@@ -49,3 +52,75 @@ def rotation_error_W(R_WD, R_WI):
 
 
 rotation_from_quaternion_f64 = numba.njit(cache=True)(rotation_from_quaternion)
+
+
+# --- quaternions [w, x, y, z] (Hamilton, Drake's order) ---------------------
+# The *_tuple functions work on tuples of Python floats: for 4-vectors that is
+# several times faster than numpy, and the filter runs at the tracker rate.
+
+def quaternion_multiply_tuple(a, b):
+    aw, ax, ay, az = a
+    bw, bx, by, bz = b
+    return (aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw)
+
+
+def quaternion_conjugate_tuple(q):
+    return (q[0], -q[1], -q[2], -q[3])
+
+
+def quaternion_exp_tuple(x, y, z):
+    angle = math.sqrt(x * x + y * y + z * z)
+    # sin(angle / 2) / angle; its Taylor series below 1e-4 rad is exact in double.
+    scale = math.sin(angle / 2) / angle if angle > 1e-4 else 0.5 - angle * angle / 48
+    return (math.cos(angle / 2), scale * x, scale * y, scale * z)
+
+
+def quaternion_log_tuple(w, x, y, z):
+    if w < 0:
+        w, x, y, z = -w, -x, -y, -z
+    s = math.sqrt(x * x + y * y + z * z)
+    # angle / sin(angle / 2), with its limit 2 / w as s -> 0.
+    scale = 2.0 * math.atan2(s, w) / s if s > 1e-12 else 2.0 / w
+    return (scale * x, scale * y, scale * z)
+
+
+def quaternion_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton product a * b, so R(a * b) = R(a) R(b)."""
+    return np.array(quaternion_multiply_tuple(a.tolist(), b.tolist()))
+
+
+def quaternion_exp(rotvec: np.ndarray) -> np.ndarray:
+    """Unit quaternion of the rotation vector ``rotvec`` (axis * angle, rad)."""
+    return np.array(quaternion_exp_tuple(*rotvec.tolist()))
+
+
+def quaternion_log(q: np.ndarray) -> np.ndarray:
+    """Rotation vector (rad, angle in [0, pi]) of the unit quaternion ``q``.
+
+    q and -q give the same result: the shorter of the two rotations is taken.
+    """
+    return np.array(quaternion_log_tuple(*q.tolist()))
+
+
+def quaternion_from_rotation_matrix(R: np.ndarray) -> np.ndarray:
+    """Unit quaternion [w, x, y, z] of the rotation matrix R (Shepperd's method,
+    pivoting on the largest of w, x, y, z for accuracy at any angle)."""
+    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = R.tolist()
+    trace = r00 + r11 + r22
+    if trace >= max(r00, r11, r22):
+        s = 2.0 * math.sqrt(1.0 + trace)
+        q = (0.25 * s, (r21 - r12) / s, (r02 - r20) / s, (r10 - r01) / s)
+    elif r00 >= r11 and r00 >= r22:
+        s = 2.0 * math.sqrt(1.0 + r00 - r11 - r22)
+        q = ((r21 - r12) / s, 0.25 * s, (r01 + r10) / s, (r02 + r20) / s)
+    elif r11 >= r22:
+        s = 2.0 * math.sqrt(1.0 + r11 - r00 - r22)
+        q = ((r02 - r20) / s, (r01 + r10) / s, 0.25 * s, (r12 + r21) / s)
+    else:
+        s = 2.0 * math.sqrt(1.0 + r22 - r00 - r11)
+        q = ((r10 - r01) / s, (r02 + r20) / s, (r12 + r21) / s, 0.25 * s)
+    q = np.array(q)
+    return q / math.sqrt(q @ q)

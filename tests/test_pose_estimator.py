@@ -15,8 +15,9 @@ from maglev_haptics.hardware import TrackerSpec, default_instrument
 from maglev_haptics.systems.marker_sensor import MarkerSensor, Occlusion, marker_positions_W
 from maglev_haptics.systems.pose_estimator import (
     MarkerModel, PoseEstimator, PoseEstimatorConfig, alpha_beta_gains, alpha_beta_noise_gains,
-    fit_pose, quaternion_exp, quaternion_from_rotation_matrix, quaternion_log,
-    quaternion_multiply)
+    fit_pose)
+from maglev_haptics.systems.rotations import (
+    quaternion_exp, quaternion_from_rotation_matrix, quaternion_log, quaternion_multiply)
 
 INSTRUMENT = default_instrument("two_magnet")
 P_IK = INSTRUMENT.p_IK
