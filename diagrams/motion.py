@@ -120,6 +120,11 @@ def check_waypoints_reachable(motion, device, magnetics, label: str) -> None:
         A = magnetics.wrench_matrix_from(pose[0:3] - device.p_WA, rotation_from_rpy(pose[3:6]))
         _, shortfall, _ = allocate_currents(A, weight, limit)
         if np.linalg.norm(shortfall) > 1e-3 * weight[2]:
+            if np.linalg.matrix_rank(A) < 6:
+                raise ScenarioError(
+                    f"{field_name} = {waypoint.pose}: unreachable, the magnets are out of the "
+                    f"coils' reach there (the electromagnetic model ends "
+                    f"{1e3 * magnetics.cutoffs()['z_max_m']:.0f} mm above the coil tops)")
             unconstrained = np.max(np.abs(np.linalg.pinv(A) @ weight))
             raise ScenarioError(
                 f"{field_name} = {waypoint.pose}: unreachable, holding the instrument's weight "
