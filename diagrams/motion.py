@@ -24,6 +24,7 @@ from maglev_haptics.systems.rotations import rotation_from_rpy
 SAMPLES_PER_S = 200
 LANDING_PRESS_M = 0.001  # the landing setpoint ends this far below the rest height
 IDLE_AFTER_S = 0.2  # the script ends this long after the currents are ramped to zero
+HOLD_MARGIN = 1.2  # a waypoint must be holdable with this multiple of the weight
 
 
 @dataclass
@@ -105,10 +106,14 @@ def base_clearance_m(pose, spec) -> float:
 
 
 def check_waypoints_reachable(motion, device, magnetics, label: str) -> None:
-    """Raise ScenarioError for a waypoint inside the glass or not holdable within the limits."""
+    """Raise ScenarioError for a waypoint inside the glass or not holdable within the limits.
+
+    Holdable means the coils can carry HOLD_MARGIN times the weight without any
+    exceeding its limit, so control keeps some authority at every waypoint.
+    """
     spec = device.instrument_spec()
     limit = device.amplifier.current_limit_a
-    weight = np.array([0.0, 0.0, spec.mass_kg * GRAVITY_M_S2, 0.0, 0.0, 0.0])
+    lift = np.array([0.0, 0.0, HOLD_MARGIN * spec.mass_kg * GRAVITY_M_S2, 0.0, 0.0, 0.0])
     for i, waypoint in enumerate(motion.waypoints):
         pose = np.asarray(waypoint.pose, float)
         field_name = f"{label}: motion.waypoints[{i}].pose"
@@ -118,15 +123,17 @@ def check_waypoints_reachable(motion, device, magnetics, label: str) -> None:
                 f"{field_name} = {waypoint.pose}: unreachable, the instrument's base would be "
                 f"{-1e3 * clearance:.1f} mm inside the display glass (z must keep it above W's z = 0)")
         A = magnetics.wrench_matrix_from(pose[0:3] - device.p_WA, rotation_from_rpy(pose[3:6]))
-        _, shortfall, _ = allocate_currents(A, weight, limit)
-        if np.linalg.norm(shortfall) > 1e-3 * weight[2]:
-            if np.linalg.matrix_rank(A) < 6:
-                raise ScenarioError(
-                    f"{field_name} = {waypoint.pose}: unreachable, the magnets are out of the "
-                    f"coils' reach there (the electromagnetic model ends "
-                    f"{1e3 * magnetics.cutoffs()['z_max_m']:.0f} mm above the coil tops)")
-            unconstrained = np.max(np.abs(np.linalg.pinv(A) @ weight))
+        if np.linalg.matrix_rank(A) < 6:
             raise ScenarioError(
-                f"{field_name} = {waypoint.pose}: unreachable, holding the instrument's weight "
-                f"there needs {unconstrained:.2f} A in the busiest coil; the limit "
-                f"(device.amplifier.current_limit_a) is {limit} A")
+                f"{field_name} = {waypoint.pose}: unreachable, the magnets are out of the "
+                f"coils' reach there (the electromagnetic model ends "
+                f"{1e3 * magnetics.cutoffs()['z_max_m']:.0f} mm above the coil tops)")
+        _, shortfall, _ = allocate_currents(A, lift, limit)
+        if np.linalg.norm(shortfall) > 1e-6 * lift[2]:
+            minimum_power = np.max(np.abs(np.linalg.pinv(A) @ lift))
+            raise ScenarioError(
+                f"{field_name} = {waypoint.pose}: unreachable, carrying {HOLD_MARGIN} x the "
+                f"instrument's weight there takes {minimum_power:.2f} A in the busiest coil at "
+                f"minimum power, and even spread over all coils it falls "
+                f"{np.linalg.norm(shortfall):.2f} N short within the "
+                f"{limit} A limit (device.amplifier.current_limit_a)")

@@ -63,7 +63,7 @@ def test_cli_reports_bad_input_without_a_traceback(tmp_path, capsys):
 
 @pytest.mark.parametrize("pose, fragment", [
     ([0, 0, 0.002, 0, 0, 0], "inside the display glass"),
-    ([0, 0, 0.05, 0, 0, 0], r"needs [0-9.]+ A in the busiest coil; the limit"),
+    ([0, 0, 0.06, 0, 0, 0], r"takes [0-9.]+ A in the busiest coil .* falls [0-9.]+ N short"),
     ([0, 0, 0.15, 0, 0, 0], "out of the coils' reach"),
 ])
 def test_unreachable_waypoints_are_refused(tmp_path, pose, fragment):
