@@ -1,4 +1,4 @@
-"""Stretched table axes and 4-point Lagrange interpolation weights (numba).
+"""Stretched table axes and 4- and 3-point Lagrange interpolation weights (numba).
 
 An axis is a float64 array ``[kind, origin, scale, s_min, step, n]``: node i sits
 at the position x whose stretched coordinate s(x) equals s_min + i * step, with
@@ -93,9 +93,25 @@ def stencil_start(t, axis):
 
 
 @numba.njit(cache=True, inline="always")
+def nearest_stencil_start(t, axis):
+    """First node of the 3-node stencil for fractional index t: centred on the
+    node nearest t, one-sided at the ends of ``axis``."""
+    start = int(math.floor(t + 0.5)) - 1
+    return min(max(start, 0), int(axis[_COUNT]) - 3)
+
+
+@numba.njit(cache=True, inline="always")
 def lagrange4_weights(u):
     """Cubic Lagrange weights of nodes 0..3 at local position u (nodes at 0..3)."""
     return (-(u - 1.0) * (u - 2.0) * (u - 3.0) / 6.0,
             u * (u - 2.0) * (u - 3.0) / 2.0,
             -u * (u - 1.0) * (u - 3.0) / 2.0,
             u * (u - 1.0) * (u - 2.0) / 6.0)
+
+
+@numba.njit(cache=True, inline="always")
+def lagrange3_weights(u):
+    """Quadratic Lagrange weights of nodes 0..2 at local position u (nodes at 0..2)."""
+    return ((u - 1.0) * (u - 2.0) / 2.0,
+            -u * (u - 2.0),
+            u * (u - 1.0) / 2.0)

@@ -74,8 +74,8 @@ class MagneticsModel:
         self.p_IM = np.ascontiguousarray(self.instrument.p_IM)
         self._values = table.kernel_values
         self._axes = np.ascontiguousarray(table.axes)
-        # Kernel work space: 4 tilt nodes x 6 components, summed in float32.
-        self._scratch = np.empty(24, dtype=np.float32)
+        # Kernel work space: 3 tilt nodes x 6 components, summed in float32.
+        self._scratch = np.empty(18, dtype=np.float32)
 
     @property
     def n_coils(self) -> int:
@@ -141,7 +141,7 @@ def load_magnetics(config: DeviceConfig, grid: WrenchGrid = WrenchGrid()) -> Mag
     """The electromagnetic model for ``config``: coil array, coils and instrument.
 
     The first call for a coil and magnet geometry builds the wrench table
-    (~10 s, with a progress bar) unless it is in the disk cache
+    (10-20 s, with a progress bar) unless it is in the disk cache
     ($MAGLEV_CACHE_DIR, default ~/.cache/maglev_haptics); later calls in the
     process share it.
     """
