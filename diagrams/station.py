@@ -60,6 +60,15 @@ def rest_transform(scenario: Scenario) -> RigidTransform:
     return RigidTransform(RollPitchYaw(0.0, 0.0, yaw), [x, y, spec.rest_height_m])
 
 
+def add_station_models(plant, scenario: Scenario):
+    """Add the instrument and the display to ``plant``; returns the instrument's model instance."""
+    parser = Parser(plant)
+    parser.package_map().AddPackageXml(str(PACKAGE_XML))
+    instrument = parser.AddModels(url=scenario.device.instrument_spec().model_url)[0]
+    parser.AddModels(url=DISPLAY_MODEL_URL)
+    return instrument
+
+
 def MakeStation(scenario: Scenario, *, magnetics) -> "Diagram":
     """The simulated station for ``scenario`` (``hardware: sim``)."""
     device = scenario.device
@@ -70,10 +79,7 @@ def MakeStation(scenario: Scenario, *, magnetics) -> "Diagram":
             f"model is {DISPLAY_MODEL_THICKNESS_M} m thick; other values need their own model")
     builder = DiagramBuilder()
     plant, scene_graph = AddMultibodyPlant(scenario.plant_config, builder)
-    parser = Parser(plant)
-    parser.package_map().AddPackageXml(str(PACKAGE_XML))
-    instrument = parser.AddModels(url=spec.model_url)[0]
-    parser.AddModels(url=DISPLAY_MODEL_URL)
+    instrument = add_station_models(plant, scenario)
     plant.Finalize()
     body = plant.GetBodyByName("instrument", instrument)
     if abs(body.default_mass() - spec.mass_kg) > 1e-6:
