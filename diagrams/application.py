@@ -2,7 +2,7 @@
 
 ``BuildDiagram(scenario)`` adds the station, the pose estimator, the scripted
 setpoint and enable ramps, the levitation controller, the current allocator,
-a haptic feed-forward wrench input (zero until a scene drives it), loggers at
+a haptic feed-forward wrench input (zero until a scene drives it), a logger at
 ``log_rate_hz`` and, when given a Meshcat, the visualizers.
 """
 
@@ -14,7 +14,8 @@ from typing import Dict, Optional
 import numpy as np
 from pydrake.geometry import Meshcat, MeshcatVisualizer, MeshcatVisualizerParams, Role
 from pydrake.systems.framework import Diagram, DiagramBuilder
-from pydrake.systems.primitives import ConstantVectorSource, LogVectorOutput, TrajectorySource
+from pydrake.systems.primitives import (
+    ConstantVectorSource, LogVectorOutput, Multiplexer, TrajectorySource)
 
 from maglev_haptics.diagrams.motion import FlightPlan, check_waypoints_reachable, flight_plan
 from maglev_haptics.diagrams.scenario import Scenario
@@ -32,7 +33,8 @@ MESHCAT_PERIOD_S = 1 / 30
 class BuiltDiagram:
     diagram: Diagram
     plan: FlightPlan
-    loggers: Dict[str, object]  # name -> VectorLogSink
+    logger: object  # one VectorLogSink of all logged signals, stacked
+    log_layout: Dict[str, slice]  # name -> its rows in the logger's data
     magnetics: object
 
 
@@ -75,7 +77,6 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
     builder.Connect(allocator.GetOutputPort("coil_currents_commanded"),
                     station.GetInputPort("coil_currents_commanded"))
 
-    log_period_s = 1.0 / scenario.log_rate_hz
     logged_ports = {
         "instrument_state": station.GetOutputPort("instrument_state"),
         "X_WI_measured": estimator.GetOutputPort("X_WI_measured"),
@@ -87,10 +88,16 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
         "wrench_feedforward_W": feedforward.get_output_port(),
         "allocation_shortfall_W": allocator.GetOutputPort("allocation_shortfall_W"),
     }
-    loggers = {name: LogVectorOutput(port, builder, log_period_s)
-               for name, port in logged_ports.items()}
-    for name, logger in loggers.items():
-        logger.set_name(f"log_{name}")
+    # One logger of the stacked signals: a publish event a tick instead of nine.
+    sizes = [port.size() for port in logged_ports.values()]
+    stack = builder.AddNamedSystem("log_stack", Multiplexer(sizes))
+    for i, port in enumerate(logged_ports.values()):
+        builder.Connect(port, stack.get_input_port(i))
+    logger = LogVectorOutput(stack.get_output_port(), builder, 1.0 / scenario.log_rate_hz)
+    logger.set_name("logger")
+    ends = np.cumsum(sizes)
+    log_layout = {name: slice(end - size, end)
+                  for name, size, end in zip(logged_ports, sizes, ends)}
 
     if meshcat is not None:
         MeshcatVisualizer.AddToBuilder(
@@ -107,4 +114,5 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
                         visualizer.GetInputPort("markers_measured"))
     diagram = builder.Build()
     diagram.set_name("maglev_haptics")
-    return BuiltDiagram(diagram=diagram, plan=plan, loggers=loggers, magnetics=magnetics)
+    return BuiltDiagram(diagram=diagram, plan=plan, logger=logger, log_layout=log_layout,
+                        magnetics=magnetics)

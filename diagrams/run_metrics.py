@@ -1,4 +1,4 @@
-"""From the loggers to ``log.npz`` arrays, and from those to the run's summary numbers."""
+"""From the logger to ``log.npz`` arrays, and from those to the run's summary numbers."""
 
 from __future__ import annotations
 
@@ -21,11 +21,11 @@ def rpy_from_quaternions(q: np.ndarray) -> np.ndarray:
     return rpy
 
 
-def log_arrays(loggers, context, coil_resistance_ohm: float) -> Dict[str, np.ndarray]:
+def log_arrays(logger, log_layout, context, coil_resistance_ohm: float) -> Dict[str, np.ndarray]:
     """The run's log as named arrays; the contract's keys first (DESIGN.md section 8)."""
-    logs = {name: logger.FindLog(context) for name, logger in loggers.items()}
-    data = {name: log.data().T for name, log in logs.items()}
-    t = logs["instrument_state"].sample_times()
+    log = logger.FindLog(context)
+    data = {name: log.data()[rows].T for name, rows in log_layout.items()}
+    t = log.sample_times()
     state = data["instrument_state"]
     measured = data["X_WI_measured"]
     feedforward = data["wrench_feedforward_W"]

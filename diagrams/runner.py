@@ -65,7 +65,7 @@ def run_scenario(scenario: Scenario, *, label: str, out_dir: Optional[Path] = No
         viewer.StopRecording()
         viewer.PublishRecording()
         aim_camera_at_device(viewer)
-    log = log_arrays(built.loggers, simulator.get_context(),
+    log = log_arrays(built.logger, built.log_layout, simulator.get_context(),
                      scenario.device.coil.resistance_ohm)
     spec = scenario.device.instrument_spec()
     summary = {

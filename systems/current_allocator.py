@@ -94,12 +94,18 @@ class CurrentAllocator(LeafSystem):
         n = magnetics.n_coils
         self._wrench = self.DeclareVectorInputPort("wrench_commanded_W", 6)
         self._pose = self.DeclareVectorInputPort("X_WI_measured", 7)
-        # Both outputs come from one solve.
+        # The matrix depends on the estimate alone, which changes at the tracker
+        # rate; the solve (both outputs) also on the wrench, which changes every tick.
+        self._matrix = self.DeclareCacheEntry(
+            "wrench_matrix",
+            ValueProducer(allocate=lambda: AbstractValue.Make(np.zeros((6, n))),
+                          calc=self._calc_matrix),
+            {self._pose.ticket()})
         self._allocation = self.DeclareCacheEntry(
             "allocation",
             ValueProducer(allocate=lambda: AbstractValue.Make(np.zeros(n + 6)),
                           calc=self._calc_allocation),
-            {self.all_input_ports_ticket()})
+            {self._matrix.ticket(), self._wrench.ticket()})
         self.DeclareVectorOutputPort(
             "coil_currents_commanded", n,
             lambda context, output: output.SetFromVector(
@@ -111,10 +117,12 @@ class CurrentAllocator(LeafSystem):
                 self._allocation.Eval(context)[n:]),
             {self._allocation.ticket()})
 
-    def _calc_allocation(self, context, allocation):
+    def _calc_matrix(self, context, matrix):
         pose = self._pose.Eval(context)
-        A = self._magnetics.wrench_matrix_from(
-            pose[4:7] - self._p_WA, rotation_from_quaternion_f64(pose[0:4]))
+        matrix.set_value(self._magnetics.wrench_matrix_from(
+            pose[4:7] - self._p_WA, rotation_from_quaternion_f64(pose[0:4])))
+
+    def _calc_allocation(self, context, allocation):
         currents, shortfall, _ = allocate_currents(
-            A, self._wrench.Eval(context), self._current_limit_a)
+            self._matrix.Eval(context), self._wrench.Eval(context), self._current_limit_a)
         allocation.set_value(np.concatenate([currents, shortfall]))
