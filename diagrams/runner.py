@@ -41,11 +41,14 @@ def simulate(built, duration_s: float, *, realtime_rate: float = 0.0,
     simulator.Initialize()
     chunks = np.append(np.arange(PROGRESS_CHUNK_S, duration_s, PROGRESS_CHUNK_S), duration_s)
     start = time.perf_counter()
-    with tqdm(total=round(duration_s, 3), unit="sim s", disable=not progress,
-              bar_format="{l_bar}{bar}| {n:.2f}/{total:.2f} sim s [{elapsed}]") as bar:
-        for t in chunks:
-            simulator.AdvanceTo(float(t))
-            bar.update(float(t) - bar.n)
+    try:
+        with tqdm(total=round(duration_s, 3), unit="sim s", disable=not progress,
+                  bar_format="{l_bar}{bar}| {n:.2f}/{total:.2f} sim s [{elapsed}]") as bar:
+            for t in chunks:
+                simulator.AdvanceTo(float(t))
+                bar.update(float(t) - bar.n)
+    finally:
+        gc.unfreeze()  # later runs in this process must be able to collect this one
     return simulator, time.perf_counter() - start
 
 
