@@ -3,7 +3,8 @@
 The matrix helpers work on float and AutoDiffXd arrays alike (the controller
 converts to AutoDiffXd for linearization); ``*_f64`` is the same source compiled
 by numba for the float-only systems on the 1 kHz path. The quaternion algebra
-below them is float only, on tuples where speed matters (the tracker-rate filter).
+below them is float only, on tuples where speed matters, with ``*_f64`` twins
+for the numba-compiled tracker-rate cores (marker sensor, pose estimator).
 """
 
 import math
@@ -55,8 +56,9 @@ rotation_from_quaternion_f64 = numba.njit(cache=True)(rotation_from_quaternion)
 
 
 # --- quaternions [w, x, y, z] (Hamilton, Drake's order) ---------------------
-# The *_tuple functions work on tuples of Python floats: for 4-vectors that is
-# several times faster than numpy, and the filter runs at the tracker rate.
+# The *_tuple functions work on tuples of floats: for 4-vectors that is several
+# times faster than numpy in Python, and numba compiles the same source (the
+# *_f64 twins below) for the tracker-rate cores of the sensor and the estimator.
 
 def quaternion_multiply_tuple(a, b):
     aw, ax, ay, az = a
@@ -108,19 +110,28 @@ def quaternion_log(q: np.ndarray) -> np.ndarray:
 def quaternion_from_rotation_matrix(R: np.ndarray) -> np.ndarray:
     """Unit quaternion [w, x, y, z] of the rotation matrix R (Shepperd's method,
     pivoting on the largest of w, x, y, z for accuracy at any angle)."""
-    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = R.tolist()
+    r00, r01, r02 = R[0, 0], R[0, 1], R[0, 2]
+    r10, r11, r12 = R[1, 0], R[1, 1], R[1, 2]
+    r20, r21, r22 = R[2, 0], R[2, 1], R[2, 2]
     trace = r00 + r11 + r22
     if trace >= max(r00, r11, r22):
         s = 2.0 * math.sqrt(1.0 + trace)
-        q = (0.25 * s, (r21 - r12) / s, (r02 - r20) / s, (r10 - r01) / s)
+        w, x, y, z = 0.25 * s, (r21 - r12) / s, (r02 - r20) / s, (r10 - r01) / s
     elif r00 >= r11 and r00 >= r22:
         s = 2.0 * math.sqrt(1.0 + r00 - r11 - r22)
-        q = ((r21 - r12) / s, 0.25 * s, (r01 + r10) / s, (r02 + r20) / s)
+        w, x, y, z = (r21 - r12) / s, 0.25 * s, (r01 + r10) / s, (r02 + r20) / s
     elif r11 >= r22:
         s = 2.0 * math.sqrt(1.0 + r11 - r00 - r22)
-        q = ((r02 - r20) / s, (r01 + r10) / s, 0.25 * s, (r12 + r21) / s)
+        w, x, y, z = (r02 - r20) / s, (r01 + r10) / s, 0.25 * s, (r12 + r21) / s
     else:
         s = 2.0 * math.sqrt(1.0 + r22 - r00 - r11)
-        q = ((r10 - r01) / s, (r02 + r20) / s, (r12 + r21) / s, 0.25 * s)
-    q = np.array(q)
-    return q / math.sqrt(q @ q)
+        w, x, y, z = (r10 - r01) / s, (r02 + r20) / s, (r12 + r21) / s, 0.25 * s
+    norm = math.sqrt(w * w + x * x + y * y + z * z)
+    return np.array([w / norm, x / norm, y / norm, z / norm])
+
+
+quaternion_multiply_tuple_f64 = numba.njit(cache=True)(quaternion_multiply_tuple)
+quaternion_conjugate_tuple_f64 = numba.njit(cache=True)(quaternion_conjugate_tuple)
+quaternion_exp_tuple_f64 = numba.njit(cache=True)(quaternion_exp_tuple)
+quaternion_log_tuple_f64 = numba.njit(cache=True)(quaternion_log_tuple)
+quaternion_from_rotation_matrix_f64 = numba.njit(cache=True)(quaternion_from_rotation_matrix)

@@ -123,6 +123,13 @@ def test_noise_statistics_and_reproducibility():
     assert not np.allclose(other.measure(1234 / RATE_HZ, x), errors[1234] + exact)
 
 
+def test_measure_takes_a_strided_state():
+    sensor = MarkerSensor(INSTRUMENT, TrackerSpec(), seed=1)
+    x = constant_velocity_state(0.1)
+    strided = np.repeat(x, 2)[::2]  # a non-contiguous view of the same values
+    np.testing.assert_array_equal(sensor.measure(0.1, strided), sensor.measure(0.1, x))
+
+
 def test_quantization():
     step = 1e-4
     sensor = MarkerSensor(INSTRUMENT, TrackerSpec(latency_s=0.0), quantization_m=step)

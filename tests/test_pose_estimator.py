@@ -15,9 +15,12 @@ from maglev_haptics.hardware import TrackerSpec, default_instrument
 from maglev_haptics.systems.marker_sensor import MarkerSensor, Occlusion, marker_positions_W
 from maglev_haptics.systems.pose_estimator import (
     MarkerModel, PoseEstimator, PoseEstimatorConfig, alpha_beta_gains, alpha_beta_noise_gains,
-    fit_pose)
+    fit_pose, measured_pose)
 from maglev_haptics.systems.rotations import (
-    quaternion_exp, quaternion_from_rotation_matrix, quaternion_log, quaternion_multiply)
+    quaternion_exp, quaternion_exp_tuple, quaternion_exp_tuple_f64, quaternion_from_rotation_matrix,
+    quaternion_from_rotation_matrix_f64, quaternion_log, quaternion_log_tuple,
+    quaternion_log_tuple_f64, quaternion_multiply, quaternion_multiply_tuple,
+    quaternion_multiply_tuple_f64)
 
 INSTRUMENT = default_instrument("two_magnet")
 P_IK = INSTRUMENT.p_IK
@@ -143,6 +146,18 @@ def test_quaternion_helpers_match_drake():
         np.testing.assert_allclose(quaternion_log(-q), rotvec, atol=1e-15)  # q ~ -q
 
 
+def test_compiled_quaternion_twins_match_python():
+    for rotation in Rotation.random(20, random_state=3):
+        R = rotation.as_matrix()
+        np.testing.assert_array_equal(quaternion_from_rotation_matrix_f64(R),
+                                      quaternion_from_rotation_matrix(R))
+        q = tuple(rotation.as_quat(scalar_first=True))
+        v = tuple(rotation.as_rotvec())
+        assert quaternion_multiply_tuple_f64(q, q) == quaternion_multiply_tuple(q, q)
+        assert quaternion_exp_tuple_f64(*v) == quaternion_exp_tuple(*v)
+        assert quaternion_log_tuple_f64(*q) == quaternion_log_tuple(*q)
+
+
 def test_alpha_beta_gains_put_poles_at_the_bandwidth():
     alpha, beta = alpha_beta_gains(50.0, T)
     assert make_estimator()[0].gains == (alpha, beta)  # the default bandwidth
@@ -177,6 +192,16 @@ def test_fit_is_a_proper_rotation_for_random_poses():
         fitted, _ = fit_pose(model, marker_positions_W(x, P_IK))
         assert abs(fitted[:4] @ x[:4]) == pytest.approx(1.0, abs=1e-13)
         np.testing.assert_allclose(fitted[4:], x[4:], atol=1e-13)
+
+
+def test_collinear_measured_markers_are_refused():
+    model = MarkerModel(P_IK)
+    on_a_line = np.outer([0.0, 1.0, 2.5], [0.01, 0.02, -0.01]) + [0.0, 0.0, 0.1]  # [m]
+    assert fit_pose(model, on_a_line)[1] == math.inf
+    assert measured_pose(on_a_line.ravel(), model, 1.0) is None
+    good = marker_positions_W(pose_vector(TILTED, [0.0, 0.0, 0.1]), P_IK)
+    assert_same_pose(measured_pose(good.ravel(), model, 1e-8),
+                     pose_vector(TILTED, [0.0, 0.0, 0.1]))
 
 
 def test_system_recovers_the_pose_exactly():
