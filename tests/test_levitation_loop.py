@@ -63,7 +63,6 @@ def test_full_yaw_turn_tracked():
     assert result.summary["holds"][-1]["angle_error_rms_deg"] < 0.1
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize("name", ["square", "vertical_sweep"])
 def test_motion_range_reached(name):
     _, result = run(name)
