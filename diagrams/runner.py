@@ -42,7 +42,7 @@ def simulate(built, duration_s: float, *, realtime_rate: float = 0.0,
     chunks = np.append(np.arange(PROGRESS_CHUNK_S, duration_s, PROGRESS_CHUNK_S), duration_s)
     start = time.perf_counter()
     try:
-        with tqdm(total=round(duration_s, 3), unit="sim s", disable=not progress,
+        with tqdm(total=float(duration_s), unit="sim s", disable=not progress,
                   bar_format="{l_bar}{bar}| {n:.2f}/{total:.2f} sim s [{elapsed}]") as bar:
             for t in chunks:
                 simulator.AdvanceTo(float(t))
