@@ -15,7 +15,7 @@ import numpy as np
 from pydrake.math import RigidTransform, RollPitchYaw
 from pydrake.multibody.parsing import Parser
 from pydrake.multibody.plant import AddMultibodyPlant
-from pydrake.systems.framework import DiagramBuilder
+from pydrake.systems.framework import Diagram, DiagramBuilder
 from pydrake.systems.primitives import LinearSystem, Saturation
 
 from maglev_haptics.diagrams.scenario import Scenario, ScenarioError
@@ -69,7 +69,7 @@ def add_station_models(plant, scenario: Scenario):
     return instrument
 
 
-def MakeStation(scenario: Scenario, *, magnetics) -> "Diagram":
+def MakeStation(scenario: Scenario, *, magnetics) -> Diagram:
     """The simulated station for ``scenario`` (``hardware: sim``)."""
     device = scenario.device
     spec = device.instrument_spec()
