@@ -89,6 +89,7 @@ def summarize(log: Dict[str, np.ndarray], plan: FlightPlan, *, rest_height_m: fl
         k = int(np.argmax(after))
         touchdown = {"time_s": float(t[k]), "speed_m_s": float(np.linalg.norm(log["V_WI_true"][k, 3:6]))}
     shortfall = np.linalg.norm(log["allocation_shortfall_W"], axis=1)
+    tracked_before = np.cumsum(log["tracking_ok"] > 0.5) > 0
     dt = np.diff(t, prepend=t[0])
     return {
         "max_coil_current_a": float(np.max(np.abs(log["coil_currents"]))),
@@ -99,6 +100,7 @@ def summarize(log: Dict[str, np.ndarray], plan: FlightPlan, *, rest_height_m: fl
         "hover_max_coil_current_a": holds[0]["max_coil_current_a"] if holds else None,
         "hover_mean_power_w": holds[0]["mean_power_w"] if holds else None,
         "touchdown": touchdown,
-        "tracking_lost_s": float(np.sum(dt[log["tracking_ok"] < 0.5])),
+        # Counted from the first estimate on: the log's t = 0 sample precedes it.
+        "tracking_lost_s": float(np.sum(dt[tracked_before & (log["tracking_ok"] < 0.5)])),
         "allocation_saturated_s": float(np.sum(dt[shortfall > 1e-6])),
     }
