@@ -1,0 +1,238 @@
+"""The virtual coupling: spring-damper law, momentum balance, potential, ramp, clamp, AutoDiff."""
+
+import numpy as np
+import pytest
+from pydrake.autodiffutils import AutoDiffXd, InitializeAutoDiff
+from pydrake.common.eigen_geometry import Quaternion
+from pydrake.math import RigidTransform, RollPitchYaw, RotationMatrix
+
+from maglev_haptics.systems.haptic_coupling import (
+    _FLOAT64, CouplingConfig, HapticCoupling, HapticCoupling_, clamp_scale, coupling_gains,
+    coupling_wrenches, spring_potential)
+from maglev_haptics.systems.rotations import quaternion_exp
+
+PERIOD_S = 1e-3
+# Distinct per-axis gains so a mixed-up axis shows.
+GAINS = CouplingConfig(translational_stiffness=[300.0, 400.0, 500.0],
+                       translational_damping=[3.0, 4.0, 5.0],
+                       rotational_stiffness=[0.1, 0.2, 0.3],
+                       rotational_damping=[1e-3, 2e-3, 3e-3],
+                       ramp_s=0.0, max_force_n=1e3, max_torque_nm=1e3)
+X_IT_OFFSET = RigidTransform(RollPitchYaw(0.2, -0.1, 0.5), [0.01, -0.02, 0.05])  # a tool tip
+
+
+def pose_vector(X: RigidTransform):
+    q = X.rotation().ToQuaternion()
+    return np.array([q.w(), q.x(), q.y(), q.z(), *X.translation()])
+
+
+def random_pose(rng, scale_m=0.05):
+    return RigidTransform(RollPitchYaw(rng.uniform(-np.pi, np.pi, 3)), rng.normal(0, scale_m, 3))
+
+
+def make(config=GAINS, X_IT=RigidTransform()):
+    coupling = HapticCoupling(config=config, period_s=PERIOD_S, X_IT=X_IT)
+    return coupling, coupling.CreateDefaultContext()
+
+
+def fix(coupling, context, *, X_WI, X_WT, V_WI=np.zeros(6), V_WT=np.zeros(6), enable=1.0,
+        ramp=1.0):
+    coupling.GetInputPort("X_WI_measured").FixValue(context, pose_vector(X_WI))
+    coupling.GetInputPort("V_WI_measured").FixValue(context, V_WI)
+    coupling.GetInputPort("X_WT").FixValue(context, pose_vector(X_WT))
+    coupling.GetInputPort("V_WT").FixValue(context, V_WT)
+    coupling.GetInputPort("haptics_enable").FixValue(context, [enable])
+    context.SetDiscreteState([ramp])
+
+
+def outputs(coupling, context):
+    return (coupling.GetOutputPort("wrench_on_tool_W").Eval(context),
+            coupling.GetOutputPort("wrench_feedforward_W").Eval(context),
+            coupling.GetOutputPort("coupling_clamped").Eval(context)[0])
+
+
+def test_zero_wrench_when_aligned_and_at_rest():
+    rng = np.random.default_rng(0)
+    for X_IT in (RigidTransform(), X_IT_OFFSET):
+        coupling, context = make(X_IT=X_IT)
+        X_WI = random_pose(rng)
+        fix(coupling, context, X_WI=X_WI, X_WT=X_WI @ X_IT)
+        on_tool, feedforward, clamped = outputs(coupling, context)
+        np.testing.assert_allclose(on_tool, 0.0, atol=1e-14)
+        np.testing.assert_allclose(feedforward, 0.0, atol=1e-14)
+        assert clamped == 0.0
+
+
+def test_spring_law_per_axis():
+    k, _ = coupling_gains(GAINS)
+    coupling, context = make()
+    # Yawed by 90 deg, so the instrument's x axis is W's y: rotational gains follow I.
+    X_WI = RigidTransform(RollPitchYaw(0, 0, np.pi / 2), [0.01, 0.02, 0.03])
+    for axis in range(3):
+        offset = np.zeros(3)
+        offset[axis] = 0.002
+        fix(coupling, context, X_WI=X_WI,
+            X_WT=RigidTransform(X_WI.rotation(), X_WI.translation() + offset))
+        expected = np.zeros(6)
+        expected[axis] = -k[axis] * 0.002
+        np.testing.assert_allclose(outputs(coupling, context)[0], expected, atol=1e-15)
+        # The tool turned by 0.6 rad about I's axis: torque -k sin(angle) about that axis,
+        # exact at a large angle.
+        axis_I = np.eye(3)[axis]
+        R_WT = X_WI.rotation() @ RotationMatrix(RollPitchYaw(0.6 * axis_I))
+        fix(coupling, context, X_WI=X_WI, X_WT=RigidTransform(R_WT, X_WI.translation()))
+        torque = outputs(coupling, context)[0][3:6]
+        np.testing.assert_allclose(torque, -k[3 + axis] * np.sin(0.6) *
+                                   (X_WI.rotation().matrix() @ axis_I), atol=1e-15)
+
+
+def test_damping_per_axis():
+    _, b = coupling_gains(GAINS)
+    coupling, context = make()
+    X_WI = RigidTransform(RollPitchYaw(0, 0, np.pi / 2), [0.0, 0.0, 0.03])
+    R_WI = X_WI.rotation().matrix()
+    for axis in range(3):
+        v = np.zeros(3)
+        v[axis] = 0.1
+        w_I = 0.5 * np.eye(3)[axis]
+        fix(coupling, context, X_WI=X_WI, X_WT=X_WI, V_WT=np.concatenate([R_WI @ w_I, v]))
+        on_tool = outputs(coupling, context)[0]
+        np.testing.assert_allclose(on_tool[0:3], -b[0:3] * v, atol=1e-15)
+        np.testing.assert_allclose(on_tool[3:6], -b[3 + axis] * (R_WI @ w_I), atol=1e-15)
+
+
+def test_equal_and_opposite_with_zero_net_moment():
+    rng = np.random.default_rng(1)
+    coupling, context = make(X_IT=X_IT_OFFSET)
+    for _ in range(5):
+        X_WI = random_pose(rng)
+        X_WT = X_WI @ X_IT_OFFSET @ RigidTransform(RollPitchYaw(rng.normal(0, 0.2, 3)),
+                                                    rng.normal(0, 0.01, 3))
+        fix(coupling, context, X_WI=X_WI, X_WT=X_WT, V_WI=rng.normal(0, 0.1, 6),
+            V_WT=rng.normal(0, 0.1, 6))
+        on_tool, on_instrument, _ = outputs(coupling, context)
+        np.testing.assert_allclose(on_instrument[0:3], -on_tool[0:3], atol=1e-15)
+        p_WO = rng.normal(0, 0.1, 3)  # any common point
+        moment_O = (on_tool[3:6] + np.cross(X_WT.translation() - p_WO, on_tool[0:3])
+                    + on_instrument[3:6] + np.cross(X_WI.translation() - p_WO, on_instrument[0:3]))
+        np.testing.assert_allclose(moment_O, 0.0, atol=1e-15)
+
+
+def rotated_moved(X, dphi_W, dp_W):
+    """X turned by the rotation vector dphi_W (rad, in W) about its origin and moved by dp_W (m)."""
+    R = RotationMatrix(Quaternion(quaternion_exp(np.asarray(dphi_W))))
+    return RigidTransform(R @ X.rotation(), X.translation() + dp_W)
+
+
+def test_potential_decreases_along_the_spring_wrench():
+    """Finite differences: dU = -(f . dp + tau . dphi) for a small motion of the tool,
+    with different gains per axis, large deflections and an offset tool."""
+    rng = np.random.default_rng(2)
+    k, b = coupling_gains(GAINS)
+    R_IT, p_IT = X_IT_OFFSET.rotation().matrix(), X_IT_OFFSET.translation()
+    h = 1e-6  # finite-difference step (rad, m)
+    for _ in range(5):
+        X_WI = random_pose(rng)
+        X_WT = X_WI @ X_IT_OFFSET @ RigidTransform(RollPitchYaw(rng.normal(0, 0.7, 3)),
+                                                    rng.normal(0, 0.01, 3))
+        on_tool, _ = coupling_wrenches(pose_vector(X_WI), np.zeros(6), pose_vector(X_WT),
+                                       np.zeros(6), R_IT, p_IT, k, b)
+
+        def energy(X):
+            return spring_potential(pose_vector(X_WI), pose_vector(X), R_IT, p_IT, k)
+
+        for _ in range(4):
+            d = rng.normal(size=6)  # [dp; dphi], ordered like the wrench
+            dU = (energy(rotated_moved(X_WT, h * d[3:6], h * d[0:3]))
+                  - energy(rotated_moved(X_WT, -h * d[3:6], -h * d[0:3]))) / (2 * h)
+            assert dU == pytest.approx(-(on_tool @ d), rel=1e-6, abs=1e-9)
+        step = 1e-4 * on_tool / np.linalg.norm(on_tool)
+        assert energy(rotated_moved(X_WT, step[3:6], step[0:3])) < energy(X_WT)
+
+
+def test_ramp_from_enable():
+    config = CouplingConfig(ramp_s=0.01)
+    k, _ = coupling_gains(config)
+    coupling, context = make(config)
+    X_WI = RigidTransform([0, 0, 0.03])
+    fix(coupling, context, X_WI=X_WI, X_WT=RigidTransform([0.001, 0, 0.03]), ramp=0.0)
+    forces = []
+    for _ in range(15):
+        forces.append(outputs(coupling, context)[1][0])
+        context.SetDiscreteState(
+            coupling.EvalUniquePeriodicDiscreteUpdate(context).get_vector().CopyToVector())
+    # Feed-forward (on the instrument) pulls it toward the tool: +x, ramping in over 10 periods.
+    expected = k[0] * 0.001 * np.minimum(np.arange(15) / 10, 1.0)
+    np.testing.assert_allclose(forces, expected, rtol=1e-12, atol=1e-15)
+    # Disabling cuts the wrench at once; the next enable ramps again from zero.
+    coupling.GetInputPort("haptics_enable").FixValue(context, [0.0])
+    assert np.all(outputs(coupling, context)[1] == 0.0)
+    context.SetDiscreteState(
+        coupling.EvalUniquePeriodicDiscreteUpdate(context).get_vector().CopyToVector())
+    coupling.GetInputPort("haptics_enable").FixValue(context, [1.0])
+    assert np.all(outputs(coupling, context)[1] == 0.0)
+
+
+def test_clamp_preserves_direction_and_limits():
+    config = CouplingConfig(ramp_s=0.0, max_force_n=4.0, max_torque_nm=0.08)
+    coupling, context = make(config)
+    rng = np.random.default_rng(3)
+    for _ in range(10):
+        X_WI = random_pose(rng)
+        X_WT = X_WI @ RigidTransform(RollPitchYaw(rng.normal(0, 1.0, 3)),
+                                     rng.normal(0, 0.02, 3))
+        fix(coupling, context, X_WI=X_WI, X_WT=X_WT, V_WT=rng.normal(0, 0.5, 6))
+        on_tool, feedforward, clamped = outputs(coupling, context)
+        assert np.linalg.norm(feedforward[0:3]) <= 4.0 * (1 + 1e-12)
+        assert np.linalg.norm(feedforward[3:6]) <= 0.08 * (1 + 1e-12)
+        unclamped = coupling_wrenches(
+            pose_vector(X_WI), np.zeros(6), pose_vector(X_WT),
+            coupling.GetInputPort("V_WT").Eval(context), np.eye(3), np.zeros(3),
+            *coupling_gains(config))
+        scale = clamp_scale(unclamped[1], 4.0, 0.08)
+        assert clamped == (1.0 if scale < 1.0 else 0.0)
+        # One factor for all six components of both wrenches: direction kept.
+        np.testing.assert_allclose(feedforward, scale * unclamped[1], rtol=1e-12, atol=1e-15)
+        np.testing.assert_allclose(on_tool, scale * unclamped[0], rtol=1e-12, atol=1e-15)
+    assert clamp_scale(np.array([3.0, 0, 0, 0, 0, 0.01]), 4.0, 0.08) == 1.0
+    assert clamp_scale(np.array([0, 8.0, 0, 0, 0.02, 0]), 4.0, 0.08) == 0.5
+    assert clamp_scale(np.array([0, 1.0, 0, 0, 0.16, 0]), 4.0, 0.08) == 0.5
+
+
+def test_converts_to_autodiff_with_the_stiffness_as_derivative():
+    coupling, _ = make(CouplingConfig(ramp_s=0.0))
+    k, _ = coupling_gains(CouplingConfig())
+    ad = coupling.ToAutoDiffXd()
+    assert isinstance(ad, HapticCoupling_[AutoDiffXd])
+    context = ad.CreateDefaultContext()
+    # One derivative per entry of [X_WI; X_WT].
+    poses = InitializeAutoDiff(np.concatenate([pose_vector(RigidTransform([0.0, 0.0, 0.03])),
+                                               pose_vector(RigidTransform([0.001, 0.0, 0.03]))]))
+    ad.GetInputPort("X_WI_measured").FixValue(context, poses[0:7, 0])
+    ad.GetInputPort("X_WT").FixValue(context, poses[7:14, 0])
+    for name in ("V_WI_measured", "V_WT"):
+        ad.GetInputPort(name).FixValue(context, [AutoDiffXd(0.0)] * 6)
+    ad.GetInputPort("haptics_enable").FixValue(context, [AutoDiffXd(1.0)])
+    context.SetDiscreteState(
+        ad.EvalUniquePeriodicDiscreteUpdate(context).get_vector().CopyToVector())
+    # A pose vector is [q; p]: x_WI is derivative 4, x_WT derivative 11.
+    f_tool = ad.GetOutputPort("wrench_on_tool_W").Eval(context)[0]
+    assert f_tool.value() == pytest.approx(-k[0] * 0.001)
+    assert f_tool.derivatives()[11] == pytest.approx(-k[0])  # d f_x / d x_WT
+    assert f_tool.derivatives()[4] == pytest.approx(k[0])
+    f_instrument = ad.GetOutputPort("wrench_feedforward_W").Eval(context)[0]
+    assert f_instrument.derivatives()[4] == pytest.approx(-k[0])  # d f_x / d x_WI
+
+
+def test_numba_twin_equals_the_python_function():
+    rng = np.random.default_rng(4)
+    k, b = coupling_gains(GAINS)
+    R_IT, p_IT = X_IT_OFFSET.rotation().matrix(), X_IT_OFFSET.translation()
+    for _ in range(5):
+        args = (pose_vector(random_pose(rng)), rng.normal(0, 0.1, 6),
+                pose_vector(random_pose(rng)), rng.normal(0, 0.1, 6), R_IT, p_IT, k, b)
+        for python, compiled in zip(coupling_wrenches(*args), _FLOAT64.coupling_wrenches(*args)):
+            np.testing.assert_allclose(compiled, python, rtol=1e-12, atol=1e-15)
+        wrench = rng.normal(0, 3, 6)
+        assert _FLOAT64.clamp_scale(wrench, 4.0, 0.08) == pytest.approx(
+            clamp_scale(wrench, 4.0, 0.08), rel=1e-15)
