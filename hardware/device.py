@@ -183,6 +183,31 @@ class TrackerSpec:
 
 
 @dataclass
+class ThermalSpec:
+    """Thermal behaviour of one coil of the array (all coils alike, each its own
+    first-order RC to ambient; see ``thermal.py``). Assumptions, not from the paper.
+    """
+
+    ambient_temperature_c: float = 25.0  # air under the display [deg C]
+    # Class-B (130 C) insulation less a margin for the hot spot inside the winding [deg C].
+    max_winding_temperature_c: float = 100.0
+    # Effective coil-to-ambient resistance [K/W]: epoxy-potted coils on an
+    # aluminium base plate with a fan blowing through the array; the gaps of
+    # the close packing expose little side surface, so this is the
+    # plausible-but-good end (~50 W/(m^2 K) over ~4e-3 m^2 in parallel with
+    # ~5 K/W of conduction into the plate). With it the continuous current
+    # limit is ~1.9 A, and sustained extra force reaches ~4 N only near the
+    # display, the paper's "about 4 N, limited by coil heating".
+    thermal_resistance_k_per_w: float = 2.5
+    # Copper share of the winding cross-section; 0.65 is what 1000 turns at
+    # 6.5 ohm imply for the 25/10/30 mm winding (0.43 mm wire).
+    copper_fill_factor: float = 0.65
+    heat_capacity_j_per_k: Optional[float] = None  # None: copper mass x its specific heat [J/K]
+    resistance_reference_temperature_c: float = 20.0  # where CoilSpec.resistance_ohm holds [deg C]
+    resistance_temperature_coefficient_per_k: float = 0.00393  # copper [1/K]
+
+
+@dataclass
 class DeviceConfig:
     """The whole device. ``DeviceConfig(instrument="four_magnet")`` picks the 4-magnet one.
 
@@ -199,6 +224,7 @@ class DeviceConfig:
     amplifier: AmplifierSpec = field(default_factory=AmplifierSpec)
     display: DisplaySpec = field(default_factory=DisplaySpec)
     tracker: TrackerSpec = field(default_factory=TrackerSpec)
+    thermal: ThermalSpec = field(default_factory=ThermalSpec)
 
     def instrument_spec(self) -> InstrumentSpec:
         spec = default_instrument(self.instrument)

@@ -1,0 +1,174 @@
+"""The coils' thermal model: one first-order RC to ambient per coil.
+
+Each coil's winding is one lumped heat capacity C [J/K] connected to ambient
+through a thermal resistance R_th [K/W] and heated by I^2 R(T), with copper's
+resistance rising linearly with temperature,
+R(T) = R_ref (1 + alpha (T - T_ref)). Writing theta = T - T_amb [K], for a
+constant current I [A]
+
+    C dtheta/dt = P_amb + k theta - theta / R_th,
+    P_amb = I^2 R(T_amb) [W],  k = I^2 R_ref alpha [W/K],
+
+which is linear in theta: it relaxes with rate lambda = (1/R_th - k) / C [1/s]
+towards theta_ss = P_amb / (1/R_th - k) [K]. For lambda <= 0 (about 4 A with
+the defaults) no steady state exists: the winding runs away. Every function
+below uses this closed form, so the sampled update is exact when the current
+is held over the sample period (the amplifiers hold it between ticks).
+Coils are thermally independent: R_th is the effective value of a coil among
+equally loaded neighbours.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from maglev_haptics.hardware.device import CoilSpec, DeviceConfig, ThermalSpec
+
+COPPER_DENSITY_KG_M3 = 8960.0
+COPPER_SPECIFIC_HEAT_J_PER_KG_K = 385.0
+
+
+@dataclass(frozen=True)
+class CoilThermal:
+    """The parameters of one coil's thermal RC, derived from a DeviceConfig."""
+
+    heat_capacity_j_per_k: float  # C [J/K]
+    thermal_resistance_k_per_w: float  # R_th to ambient [K/W]
+    resistance_ref_ohm: float  # winding resistance at the reference temperature [ohm]
+    reference_temperature_c: float  # [deg C]
+    alpha_per_k: float  # resistance temperature coefficient [1/K]
+    ambient_c: float  # [deg C]
+    max_c: float  # largest allowed winding temperature [deg C]
+
+    @property
+    def time_constant_s(self) -> float:
+        """R_th C [s]: the cooling time constant (and heating's at small currents)."""
+        return self.heat_capacity_j_per_k * self.thermal_resistance_k_per_w
+
+
+def winding_volume_m3(coil: CoilSpec) -> float:
+    """Volume of the annular winding [m^3]."""
+    return math.pi / 4 * (coil.outer_diameter_m**2 - coil.inner_diameter_m**2) * coil.height_m
+
+
+def coil_heat_capacity_j_per_k(coil: CoilSpec, thermal: ThermalSpec) -> float:
+    """C [J/K]: the override if set, else the winding's copper mass times copper's
+    specific heat (bobbin and potting ignored, which errs on the hot side)."""
+    if thermal.heat_capacity_j_per_k is not None:
+        return float(thermal.heat_capacity_j_per_k)
+    copper_mass_kg = winding_volume_m3(coil) * thermal.copper_fill_factor * COPPER_DENSITY_KG_M3
+    return copper_mass_kg * COPPER_SPECIFIC_HEAT_J_PER_KG_K
+
+
+def coil_thermal(config: DeviceConfig) -> CoilThermal:
+    """The thermal RC of one coil of ``config``; ValueError names a bad field."""
+    coil, thermal = config.coil, config.thermal
+    checks = {
+        "thermal.thermal_resistance_k_per_w": thermal.thermal_resistance_k_per_w,
+        "thermal.copper_fill_factor": thermal.copper_fill_factor,
+        "thermal.resistance_temperature_coefficient_per_k":
+            thermal.resistance_temperature_coefficient_per_k,
+        "coil.resistance_ohm": coil.resistance_ohm,
+    }
+    if thermal.heat_capacity_j_per_k is not None:
+        checks["thermal.heat_capacity_j_per_k"] = thermal.heat_capacity_j_per_k
+    for name, value in checks.items():
+        if not (math.isfinite(value) and value > 0):
+            raise ValueError(f"device.{name} = {value!r}: must be a positive number")
+    if not thermal.max_winding_temperature_c > thermal.ambient_temperature_c:
+        raise ValueError(
+            f"device.thermal.max_winding_temperature_c = {thermal.max_winding_temperature_c!r}: "
+            f"must exceed ambient_temperature_c = {thermal.ambient_temperature_c!r}")
+    result = CoilThermal(
+        heat_capacity_j_per_k=coil_heat_capacity_j_per_k(coil, thermal),
+        thermal_resistance_k_per_w=float(thermal.thermal_resistance_k_per_w),
+        resistance_ref_ohm=float(coil.resistance_ohm),
+        reference_temperature_c=float(thermal.resistance_reference_temperature_c),
+        alpha_per_k=float(thermal.resistance_temperature_coefficient_per_k),
+        ambient_c=float(thermal.ambient_temperature_c),
+        max_c=float(thermal.max_winding_temperature_c))
+    if not winding_resistance_ohm(result, result.max_c) > 0:
+        raise ValueError("device.thermal: the winding resistance at max_winding_temperature_c "
+                         "must be positive")
+    return result
+
+
+def winding_resistance_ohm(model: CoilThermal, temperature_c):
+    """R(T) [ohm] at winding temperature T [deg C] (array in, array out)."""
+    excess_k = np.asarray(temperature_c, dtype=float) - model.reference_temperature_c
+    return model.resistance_ref_ohm * (1 + model.alpha_per_k * excess_k)
+
+
+def _rate_and_drive(model: CoilThermal, current_a):
+    """(lambda [1/s], P_amb / C [K/s]) of the linear ODE for a held current [A]."""
+    squared = np.square(np.asarray(current_a, dtype=float))
+    c = model.heat_capacity_j_per_k
+    rate = (1 / model.thermal_resistance_k_per_w
+            - squared * model.resistance_ref_ohm * model.alpha_per_k) / c
+    return rate, squared * winding_resistance_ohm(model, model.ambient_c) / c
+
+
+def steady_state_temperature_c(model: CoilThermal, current_a):
+    """Winding temperature [deg C] a constant current [A] settles at; inf where it runs away."""
+    rate, drive = _rate_and_drive(model, current_a)
+    with np.errstate(divide="ignore"):
+        rise = np.where(rate > 0, drive / np.where(rate > 0, rate, 1.0), np.inf)
+    return model.ambient_c + rise
+
+
+def continuous_current_limit_a(model: CoilThermal) -> float:
+    """I_cont [A]: the largest constant current whose steady state is T_max.
+
+    At steady state I^2 R(T_max) = (T_max - T_amb) / R_th, exactly.
+    """
+    heat_w = (model.max_c - model.ambient_c) / model.thermal_resistance_k_per_w
+    return math.sqrt(heat_w / float(winding_resistance_ohm(model, model.max_c)))
+
+
+def _phi(x):
+    """expm1(x) / x, continuous through x = 0."""
+    x = np.asarray(x, dtype=float)
+    small = np.abs(x) < 1e-8
+    return np.where(small, 1 + x / 2, np.expm1(x) / np.where(small, 1.0, x))
+
+
+def temperature_after_c(model: CoilThermal, temperature_c, current_a, duration_s):
+    """Winding temperature [deg C] after ``duration_s`` [s] at a held current [A].
+
+    The exact solution of the ODE above; with ``duration_s`` the sample period
+    it is the exact discrete update T[k+1] = f(T[k], I[k]) for currents held
+    over each period. Arrays broadcast (e.g. 27 coils at once).
+    """
+    rate, drive = _rate_and_drive(model, current_a)
+    rise = np.asarray(temperature_c, dtype=float) - model.ambient_c
+    t = np.asarray(duration_s, dtype=float)
+    # theta(t) = theta0 e^{-lambda t} + drive (1 - e^{-lambda t}) / lambda
+    decay = np.exp(-rate * t)
+    return model.ambient_c + rise * decay + drive * t * _phi(-rate * t)
+
+
+def time_to_temperature_s(model: CoilThermal, temperature_c, current_a, target_c=None):
+    """Time [s] from ``temperature_c`` [deg C] to ``target_c`` [deg C] (default
+    T_max) at a held current [A]: 0 if already there, inf if never reached."""
+    target = model.max_c if target_c is None else target_c
+    rate, drive = _rate_and_drive(model, current_a)
+    rise0 = np.asarray(temperature_c, dtype=float) - model.ambient_c
+    rise1 = np.asarray(target, dtype=float) - model.ambient_c
+    rate, drive, rise0, rise1 = np.broadcast_arrays(rate, drive, rise0, rise1)
+    # theta(t) - theta_ss = (theta0 - theta_ss) e^{-lambda t}, so
+    # t = ln((theta0 - theta_ss) / (theta1 - theta_ss)) / lambda; written with
+    # drive and log1p it stays finite as lambda -> 0 (where it tends to the
+    # linear-heating time (theta1 - theta0) / drive).
+    gap = rise1 - rise0
+    growth = drive - rate * rise1  # C dtheta/dt at the target, / C [K/s]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x = rate * gap / growth
+        ratio = np.where(np.abs(x) < 1e-8, 1 - x / 2, np.log1p(x) / np.where(x == 0, 1.0, x))
+        time = gap / growth * ratio
+    # Reached only if the winding heats all the way: at the target (growth)
+    # and at the start (1 + x > 0, as the rate is linear in theta).
+    time = np.where((growth > 0) & (1 + x > 0), time, np.inf)
+    return np.where(gap <= 0, 0.0, time)[()]
