@@ -32,7 +32,7 @@ class FlightPlan:
     setpoint: PiecewisePolynomial  # 6 rows: pose of I in W (m, rad)
     enable: PiecewisePolynomial  # 1 row: controller gain 0..1
     holds: List[Tuple[float, float]]  # (start, end) of each waypoint hold (s)
-    landing: Tuple[float, float]  # (start, end) of the descent (s)
+    landing: Tuple[float, float]  # (start, end) of the descent, after any levelling out (s)
     end_s: float  # the script's length: ramp-down complete plus IDLE_AFTER_S (s)
 
 
@@ -80,6 +80,12 @@ def flight_plan(motion, rest_height_m: float) -> FlightPlan:
         holds.append((t, t + waypoint.hold_s))
         t += waypoint.hold_s
         pose = target
+    if np.any(pose[3:5] != 0.0):
+        # Level out before descending, so no edge of the base meets the glass first.
+        level = np.array([*pose[0:3], 0.0, 0.0, pose[5]])
+        move(pose, level, t, motion.landing_s)
+        t += motion.landing_s
+        pose = level
     touchdown = rest_pose([pose[0], pose[1], pose[5]], rest_height_m - LANDING_PRESS_M)
     landing = (t, t + motion.landing_s)
     move(pose, touchdown, t, motion.landing_s)

@@ -9,6 +9,9 @@ from pydrake.common.eigen_geometry import Quaternion
 from pydrake.math import RollPitchYaw
 
 from maglev_haptics.diagrams.motion import FlightPlan
+from maglev_haptics.hardware.thermal import (
+    coil_thermal, continuous_current_limit_a, steady_state_temperature_c, temperature_after_c,
+    winding_resistance_ohm)
 from maglev_haptics.systems.rotations import rotation_from_quaternion, rotation_from_rpy
 
 HOVER_SETTLE_S = 0.5  # skipped at the start of each hold before hover errors count (s)
@@ -21,15 +24,31 @@ def rpy_from_quaternions(q: np.ndarray) -> np.ndarray:
     return rpy
 
 
-def log_arrays(logger, log_layout, context, coil_resistance_ohm: float) -> Dict[str, np.ndarray]:
+def coil_temperatures_c(t: np.ndarray, currents: np.ndarray, thermal) -> np.ndarray:
+    """(N, n_coils) winding temperatures [deg C] from ambient at t[0], currents held per sample.
+
+    Exact for the thermal RC (currents are held between control ticks); the
+    thermal state does not feed back into the loop yet.
+    """
+    temperatures = np.empty_like(currents)
+    temperatures[0] = thermal.ambient_c
+    for k in range(1, len(t)):
+        temperatures[k] = temperature_after_c(thermal, temperatures[k - 1], currents[k - 1],
+                                              t[k] - t[k - 1])
+    return temperatures
+
+
+def log_arrays(logger, log_layout, context, device) -> Dict[str, np.ndarray]:
     """The run's log as named arrays; the contract's keys first (DESIGN.md section 8)."""
     log = logger.FindLog(context)
     data = {name: log.data()[rows].T for name, rows in log_layout.items()}
+    thermal = coil_thermal(device)
     t = log.sample_times()
     state = data["instrument_state"]
     measured = data["X_WI_measured"]
     feedforward = data["wrench_feedforward_W"]
     currents = data["coil_currents"]
+    temperatures = coil_temperatures_c(t, currents, thermal)
     return {
         "t": t,
         "p_WI_measured": measured[:, 4:7],
@@ -39,7 +58,8 @@ def log_arrays(logger, log_layout, context, coil_resistance_ohm: float) -> Dict[
         "f_user": feedforward[:, 0:3],
         "tau_user": feedforward[:, 3:6],
         "coil_currents": currents,
-        "coil_power_w": coil_resistance_ohm * np.sum(currents**2, axis=1),
+        "coil_power_w": np.sum(winding_resistance_ohm(thermal, temperatures) * currents**2, axis=1),
+        "coil_temperature_c": temperatures,
         "p_WI_desired": data["setpoint"][:, 0:3],
         "rpy_WI_desired": data["setpoint"][:, 3:6],
         "q_WI_true": state[:, 0:4],
@@ -61,8 +81,9 @@ def angle_between_deg(q_WI: np.ndarray, rpy_WD: np.ndarray) -> np.ndarray:
     return np.array(angles)
 
 
-def summarize(log: Dict[str, np.ndarray], plan: FlightPlan, *, rest_height_m: float) -> Dict:
-    """Hover accuracy per hold, hover currents and power, touchdown speed, limits."""
+def summarize(log: Dict[str, np.ndarray], plan: FlightPlan, *, rest_height_m: float,
+              thermal) -> Dict:
+    """Hover accuracy per hold, hover currents, power and heating, touchdown speed, limits."""
     t = log["t"]
     holds = []
     for start, end in plan.holds:
@@ -81,6 +102,9 @@ def summarize(log: Dict[str, np.ndarray], plan: FlightPlan, *, rest_height_m: fl
             "estimate_error_rms_mm": float(1e3 * np.sqrt(np.mean(np.sum(estimate_error**2, 1)))),
             "max_coil_current_a": float(np.max(np.abs(log["coil_currents"][window]))),
             "mean_power_w": float(np.mean(log["coil_power_w"][window])),
+            # Where the busiest coil would settle if the hold lasted (the time constant is ~1 min).
+            "busiest_coil_steady_temperature_c": float(np.max(steady_state_temperature_c(
+                thermal, np.sqrt(np.mean(log["coil_currents"][window] ** 2, axis=0))))),
         })
     landing_start, _ = plan.landing
     after = (t >= landing_start) & (log["p_WI_true"][:, 2] <= rest_height_m)
@@ -94,11 +118,15 @@ def summarize(log: Dict[str, np.ndarray], plan: FlightPlan, *, rest_height_m: fl
     return {
         "max_coil_current_a": float(np.max(np.abs(log["coil_currents"]))),
         "max_power_w": float(np.max(log["coil_power_w"])),
+        "max_coil_temperature_c": float(np.max(log["coil_temperature_c"])),
+        "continuous_current_limit_a": continuous_current_limit_a(thermal),
         "holds": holds,
         "hover_position_error_rms_mm": max((h["position_error_rms_mm"] for h in holds), default=None),
         "hover_angle_error_rms_deg": max((h["angle_error_rms_deg"] for h in holds), default=None),
         "hover_max_coil_current_a": holds[0]["max_coil_current_a"] if holds else None,
         "hover_mean_power_w": holds[0]["mean_power_w"] if holds else None,
+        "hover_busiest_coil_steady_temperature_c":
+            holds[0]["busiest_coil_steady_temperature_c"] if holds else None,
         "touchdown": touchdown,
         # Counted from the first estimate on: the log's t = 0 sample precedes it.
         "tracking_lost_s": float(np.sum(dt[tracked_before & (log["tracking_ok"] < 0.5)])),

@@ -1,4 +1,4 @@
-"""The plots a person reads after a run: pose, orientation, coil currents, power."""
+"""The plots a person reads after a run: pose, orientation, coil currents, power and heat."""
 
 from __future__ import annotations
 
@@ -49,6 +49,9 @@ def plot_run(log: Dict[str, np.ndarray], out_dir: Path, *, title: str,
         ax.fill_between(t, 0, log["coil_power_w"].max(), where=lost, color="orange", alpha=0.3,
                         label="tracking lost")
     ax.legend(fontsize=8, loc="upper left")
+    hottest = ax.twinx()
+    hottest.plot(t, log["coil_temperature_c"].max(axis=1), color="tab:red", lw=1)
+    hottest.set_ylabel("hottest coil [deg C]", color="tab:red")
     ax.set_xlabel("time [s]")
     for ax in axes:
         ax.grid(alpha=0.3)

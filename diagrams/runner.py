@@ -18,6 +18,7 @@ from maglev_haptics.diagrams.application import BuildDiagram
 from maglev_haptics.diagrams.run_metrics import log_arrays, summarize
 from maglev_haptics.diagrams.run_plots import plot_run
 from maglev_haptics.diagrams.scenario import Scenario
+from maglev_haptics.hardware.thermal import coil_thermal
 from maglev_haptics.systems.device_visualizer import aim_camera_at_device
 
 PROGRESS_CHUNK_S = 0.25  # simulated seconds between progress-bar updates
@@ -68,8 +69,7 @@ def run_scenario(scenario: Scenario, *, label: str, out_dir: Optional[Path] = No
         viewer.StopRecording()
         viewer.PublishRecording()
         aim_camera_at_device(viewer)
-    log = log_arrays(built.logger, built.log_layout, simulator.get_context(),
-                     scenario.device.coil.resistance_ohm)
+    log = log_arrays(built.logger, built.log_layout, simulator.get_context(), scenario.device)
     spec = scenario.device.instrument_spec()
     summary = {
         "scenario": label,
@@ -78,7 +78,8 @@ def run_scenario(scenario: Scenario, *, label: str, out_dir: Optional[Path] = No
         "wall_time_s": wall_s,
         "realtime_factor": float(duration_s / wall_s),
         "control_rate_hz": scenario.control_rate_hz,
-        **summarize(log, built.plan, rest_height_m=spec.rest_height_m),
+        **summarize(log, built.plan, rest_height_m=spec.rest_height_m,
+                    thermal=coil_thermal(scenario.device)),
     }
     if out_dir is not None:
         out_dir = Path(out_dir)

@@ -49,7 +49,7 @@ class MotionScript:
     takeoff_at_s: float = 0.2  # the safe force ramp starts here (s)
     force_ramp_s: float = 0.2  # duration of the force ramps at takeoff and after landing (s)
     waypoints: List[Waypoint] = field(default_factory=lambda: [Waypoint()])
-    landing_s: float = 1.5  # minimum-jerk descent from the last waypoint onto the glass (s)
+    landing_s: float = 1.5  # minimum-jerk descent onto the glass, after levelling out as long if tilted (s)
     settle_s: float = 0.3  # time on the glass, still levitation-controlled, before ramp-down (s)
 
 

@@ -51,6 +51,14 @@ def test_four_magnet_fig3_pose_held():
     assert tilted["position_error_rms_mm"] < 0.05
     assert tilted["angle_error_rms_deg"] < 0.1
     assert result.summary["max_coil_current_a"] <= LIMIT_A
+    # It levels out before descending: level whenever it is below the hover height.
+    log = result.log
+    low = (log["t"] > tilted["end_s"]) & (log["p_WI_true"][:, 2] < 0.019)
+    assert low.any() and np.max(np.abs(np.degrees(log["rpy_WI_true"][low, 0:2]))) < 0.5
+    # Held that long, the busiest coil of this minimum-norm allocation would exceed
+    # the 100 C winding limit (~109 C); the 9 s run itself warms it by ~10 K.
+    assert tilted["busiest_coil_steady_temperature_c"] > 100.0
+    assert 25.0 < result.summary["max_coil_temperature_c"] < 50.0
 
 
 def test_full_yaw_turn_tracked():
@@ -112,8 +120,10 @@ def test_cli_run_writes_log_summary_and_plot(tmp_path):
                        ("f_user", 3), ("tau_user", 3), ("coil_currents", 27)):
         assert log[key].shape == (n, width), key
     summary = json.loads((out / "summary.json").read_text())
-    for key in ("realtime_factor", "duration_s", "max_coil_current_a", "scenario"):
+    for key in ("realtime_factor", "duration_s", "max_coil_current_a", "scenario",
+                "max_coil_temperature_c", "continuous_current_limit_a"):
         assert key in summary
+    assert log["coil_temperature_c"].shape == (n, 27)
     assert summary["scenario"] == "levitate:takeoff_hover_land"
     assert (out / "levitation.png").stat().st_size > 10_000
 
