@@ -81,6 +81,11 @@ def angle_between_deg(q_WI: np.ndarray, rpy_WD: np.ndarray) -> np.ndarray:
     return np.array(angles)
 
 
+def _finite_or_none(value):
+    """JSON has no infinity: a float, or None where ``value`` is not finite."""
+    return float(value) if np.isfinite(value) else None
+
+
 def summarize(log: Dict[str, np.ndarray], plan: FlightPlan, *, rest_height_m: float,
               thermal) -> Dict:
     """Hover accuracy per hold, hover currents, power and heating, touchdown speed, limits."""
@@ -102,8 +107,9 @@ def summarize(log: Dict[str, np.ndarray], plan: FlightPlan, *, rest_height_m: fl
             "estimate_error_rms_mm": float(1e3 * np.sqrt(np.mean(np.sum(estimate_error**2, 1)))),
             "max_coil_current_a": float(np.max(np.abs(log["coil_currents"][window]))),
             "mean_power_w": float(np.mean(log["coil_power_w"][window])),
-            # Where the busiest coil would settle if the hold lasted (the time constant is ~1 min).
-            "busiest_coil_steady_temperature_c": float(np.max(steady_state_temperature_c(
+            # Where the busiest coil would settle if the hold lasted (the time constant is
+            # ~1 min); None where it never settles (thermal runaway: I^2 dR/dT beats cooling).
+            "busiest_coil_steady_temperature_c": _finite_or_none(np.max(steady_state_temperature_c(
                 thermal, np.sqrt(np.mean(log["coil_currents"][window] ** 2, axis=0))))),
         })
     landing_start, _ = plan.landing
