@@ -1,1 +1,1 @@
-
+"""Offline studies of the haptic loop (linearization, stability, passivity): to come."""

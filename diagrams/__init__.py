@@ -1,1 +1,1 @@
-
+"""Scenario schema, diagram builders, runner, benchmarks and the maglev CLI."""

@@ -1,1 +1,1 @@
-
+"""LeafSystems of the station and the application, one concern per module."""
