@@ -30,6 +30,8 @@ def _load(args):
 def _cmd_run(args) -> int:
     from maglev_haptics.diagrams.runner import run_scenario
 
+    if args.duration is not None and not args.duration > 0:
+        raise ScenarioError(f"--duration = {args.duration}: must be > 0 simulated seconds")
     scenario, label = _load(args)
     meshcat = not args.no_meshcat
     realtime = args.realtime if args.realtime is not None else (1.0 if meshcat else 0.0)
@@ -92,7 +94,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     bench = commands.add_parser("bench", help="real-time factor of each scenario, per-tick costs")
     bench.add_argument("--json", action="store_true", help="print JSON instead of a table")
-    bench.add_argument("--duration", type=float, default=3.0, help="simulated seconds per scenario")
+    bench.add_argument("--duration", type=float,
+                       help="simulated seconds per scenario (default: each whole script)")
     bench.set_defaults(func=_cmd_bench)
     return parser
 
@@ -101,7 +104,7 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except (ScenarioError, ValueError, FileNotFoundError) as error:
+    except (ScenarioError, ValueError, OSError) as error:
         print(f"maglev {args.command}: error: {error}", file=sys.stderr)
         return 2
     except SystemExit as error:

@@ -25,6 +25,7 @@ SAMPLES_PER_S = 200
 LANDING_PRESS_M = 0.001  # the landing setpoint ends this far below the rest height
 IDLE_AFTER_S = 0.2  # the script ends this long after the currents are ramped to zero
 HOLD_MARGIN = 1.2  # a waypoint must be holdable with this multiple of the weight
+MAX_TILT_DEG = 45.0  # the tilt range over which the wrench table is checked against magpylib
 
 
 @dataclass
@@ -32,7 +33,6 @@ class FlightPlan:
     setpoint: PiecewisePolynomial  # 6 rows: pose of I in W (m, rad)
     enable: PiecewisePolynomial  # 1 row: controller gain 0..1
     holds: List[Tuple[float, float]]  # (start, end) of each waypoint hold (s)
-    landing: Tuple[float, float]  # (start, end) of the descent, after any levelling out (s)
     end_s: float  # the script's length: ramp-down complete plus IDLE_AFTER_S (s)
 
 
@@ -87,7 +87,6 @@ def flight_plan(motion, rest_height_m: float) -> FlightPlan:
         t += motion.landing_s
         pose = level
     touchdown = rest_pose([pose[0], pose[1], pose[5]], rest_height_m - LANDING_PRESS_M)
-    landing = (t, t + motion.landing_s)
     move(pose, touchdown, t, motion.landing_s)
     t += motion.landing_s + motion.settle_s
     ramp_down_end = t + motion.force_ramp_s
@@ -99,7 +98,7 @@ def flight_plan(motion, rest_height_m: float) -> FlightPlan:
         [0.0, ramp_up_start, ramp_up_start + motion.force_ramp_s, t, ramp_down_end,
          ramp_down_end + 1.0],
         np.array([[0.0, 0.0, 1.0, 1.0, 0.0, 0.0]]))
-    return FlightPlan(setpoint=setpoint, enable=enable, holds=holds, landing=landing,
+    return FlightPlan(setpoint=setpoint, enable=enable, holds=holds,
                       end_s=ramp_down_end + IDLE_AFTER_S)
 
 
@@ -123,6 +122,11 @@ def check_waypoints_reachable(motion, device, magnetics, label: str) -> None:
     for i, waypoint in enumerate(motion.waypoints):
         pose = np.asarray(waypoint.pose, float)
         field_name = f"{label}: motion.waypoints[{i}].pose"
+        tilt_deg = np.degrees(np.arccos(np.clip(rotation_from_rpy(pose[3:6])[2, 2], -1, 1)))
+        if tilt_deg > MAX_TILT_DEG:
+            raise ScenarioError(
+                f"{field_name} = {waypoint.pose}: tilt {tilt_deg:.1f} deg is beyond the "
+                f"{MAX_TILT_DEG:.0f} deg the electromagnetic model is validated for")
         clearance = base_clearance_m(pose, spec)
         if clearance < 0:
             raise ScenarioError(
@@ -130,10 +134,12 @@ def check_waypoints_reachable(motion, device, magnetics, label: str) -> None:
                 f"{-1e3 * clearance:.1f} mm inside the display glass (z must keep it above W's z = 0)")
         A = magnetics.wrench_matrix_from(pose[0:3] - device.p_WA, rotation_from_rpy(pose[3:6]))
         if np.linalg.matrix_rank(A) < 6:
+            cutoffs = magnetics.cutoffs()
             raise ScenarioError(
                 f"{field_name} = {waypoint.pose}: unreachable, the magnets are out of the "
-                f"coils' reach there (the electromagnetic model ends "
-                f"{1e3 * magnetics.cutoffs()['z_max_m']:.0f} mm above the coil tops)")
+                f"coils' reach there (the electromagnetic model covers magnets within "
+                f"{1e3 * cutoffs['rho_max_m']:.0f} mm of a coil's axis and "
+                f"{1e3 * cutoffs['z_max_m']:.0f} mm above its top)")
         _, shortfall, _ = allocate_currents(A, lift, limit)
         if np.linalg.norm(shortfall) > 1e-6 * lift[2]:
             minimum_power = np.max(np.abs(np.linalg.pinv(A) @ lift))

@@ -81,6 +81,29 @@ def angle_between_deg(q_WI: np.ndarray, rpy_WD: np.ndarray) -> np.ndarray:
     return np.array(angles)
 
 
+AIRBORNE_M = 1e-3  # above the rest height by this much counts as flying (m)
+
+
+def first_touchdown(log: Dict[str, np.ndarray], rest_height_m: float):
+    """Time, speed and tilt when the instrument first comes back down onto the glass.
+
+    Any return counts, scripted or not: a lost instrument's drop is reported the
+    same way as a landing. None if it never flew or never came back.
+    """
+    z = log["p_WI_true"][:, 2]
+    airborne = z > rest_height_m + AIRBORNE_M
+    if not airborne.any():
+        return None
+    down = (np.arange(len(z)) > np.argmax(airborne)) & (z <= rest_height_m)
+    if not down.any():
+        return None
+    k = int(np.argmax(down))
+    R_WI = rotation_from_quaternion(log["q_WI_true"][k])
+    return {"time_s": float(log["t"][k]),
+            "speed_m_s": float(np.linalg.norm(log["V_WI_true"][k, 3:6])),
+            "tilt_deg": float(np.degrees(np.arccos(np.clip(R_WI[2, 2], -1.0, 1.0))))}
+
+
 def _finite_or_none(value):
     """JSON has no infinity: a float, or None where ``value`` is not finite."""
     return float(value) if np.isfinite(value) else None
@@ -112,12 +135,7 @@ def summarize(log: Dict[str, np.ndarray], plan: FlightPlan, *, rest_height_m: fl
             "busiest_coil_steady_temperature_c": _finite_or_none(np.max(steady_state_temperature_c(
                 thermal, np.sqrt(np.mean(log["coil_currents"][window] ** 2, axis=0))))),
         })
-    landing_start, _ = plan.landing
-    after = (t >= landing_start) & (log["p_WI_true"][:, 2] <= rest_height_m)
-    touchdown = None
-    if after.any():
-        k = int(np.argmax(after))
-        touchdown = {"time_s": float(t[k]), "speed_m_s": float(np.linalg.norm(log["V_WI_true"][k, 3:6]))}
+    touchdown = first_touchdown(log, rest_height_m)
     shortfall = np.linalg.norm(log["allocation_shortfall_W"], axis=1)
     tracked_before = np.cumsum(log["tracking_ok"] > 0.5) > 0
     dt = np.diff(t, prepend=t[0])

@@ -91,16 +91,28 @@ def resolve_scenario_file(name_or_path: str) -> Path:
     raise ScenarioError(f"scenario file {name_or_path!r} not found: give a path or one of {names}")
 
 
+def _parse_yaml(text: str, source: str) -> dict:
+    """The YAML mapping in ``text``; a ScenarioError naming ``source`` if it is not one."""
+    try:
+        raw = yaml.safe_load(text)
+    except yaml.YAMLError as error:
+        raise ScenarioError(f"{source}: not valid YAML: {error}") from None
+    if raw is None:
+        return {}
+    if not isinstance(raw, dict):
+        raise ScenarioError(f"{source}: must be a YAML mapping, not {type(raw).__name__}")
+    return raw
+
+
 def scenario_names(path: Path) -> List[str]:
-    raw = yaml.safe_load(path.read_text()) or {}
-    return [key for key in raw if key != "Defaults"]
+    return [key for key in _parse_yaml(path.read_text(), str(path)) if key != "Defaults"]
 
 
 def load_scenario(name_or_path: str, name: Optional[str] = None,
                   scenario_text: str = "{}") -> Scenario:
     """Load one named scenario (default: the file's first) and layer ``scenario_text`` on it."""
     path = resolve_scenario_file(name_or_path)
-    raw = yaml.safe_load(path.read_text()) or {}
+    raw = _parse_yaml(path.read_text(), str(path))
     names = [key for key in raw if key != "Defaults"]
     if not names:
         raise ScenarioError(f"{path}: holds no named scenario")
@@ -109,7 +121,7 @@ def load_scenario(name_or_path: str, name: Optional[str] = None,
         raise ScenarioError(f"{path}: no scenario named {name!r}; it has {', '.join(names)}")
     label = f"{path.stem}:{name}"
     check_yaml_against_schema(raw[name] or {}, Scenario, label)
-    check_yaml_against_schema(yaml.safe_load(scenario_text) or {}, Scenario,
+    check_yaml_against_schema(_parse_yaml(scenario_text, "--scenario-text"), Scenario,
                               f"{label} (--scenario-text)")
     scenario = yaml_load_typed(schema=Scenario, data=path.read_text(),
                                child_name=name, defaults=Scenario())
@@ -234,7 +246,6 @@ def validate_scenario(s: Scenario, label: str) -> None:
             for i, v in enumerate(getattr(c, name)):
                 _nonnegative(f"{label}: controller.{name}[{i}]", v)
     _nonnegative(f"{label}: controller.lost_grace_s", c.lost_grace_s)
-    _positive(f"{label}: controller.blind_landing_s", c.blind_landing_s)
 
     m = s.motion
     _vector(f"{label}: motion.start_xy_yaw", m.start_xy_yaw, 3)

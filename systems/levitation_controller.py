@@ -38,8 +38,7 @@ class ControllerConfig:
     damping_ratio: List[float] = field(default_factory=lambda: [0.7] * 6)
     kp: Optional[List[float]] = None
     kd: Optional[List[float]] = None
-    lost_grace_s: float = 0.020  # hold gravity compensation through short dropouts
-    blind_landing_s: float = 0.5  # then fade the lift to zero over this time, and stay off
+    lost_grace_s: float = 0.020  # hold gravity compensation through short dropouts, then cut the lift
 
 
 def pd_gains(config: ControllerConfig, mass_kg: float, inertia_diag: np.ndarray):
@@ -78,11 +77,15 @@ _FLOAT64 = float64_twins(rotation_from_quaternion, rotation_from_rpy,
                          angular_velocity_from_rpy_rates, rotation_error_W, pd_wrench)
 
 
-def blind_lift_fraction(lost_time_s: float, config: ControllerConfig) -> float:
-    """Fraction of the weight still carried after tracking has been lost this long (s)."""
-    if lost_time_s <= config.lost_grace_s:
-        return 1.0
-    return max(0.0, 1.0 - (lost_time_s - config.lost_grace_s) / config.blind_landing_s)
+def carries_weight_while_lost(lost_time_s: float, config: ControllerConfig) -> bool:
+    """Whether the weight is still carried after tracking has been lost this long (s).
+
+    A levitated magnet is unstable without feedback (Earnshaw): any lift held on
+    a stale pose rolls the instrument over within a few hundred ms. So the lift
+    is carried only through short dropouts; after that the coils go dead and the
+    instrument, under gravity alone, drops level onto the glass.
+    """
+    return lost_time_s <= config.lost_grace_s
 
 
 # float and AutoDiffXd only: the blind-landing branch needs a value to compare,
@@ -96,9 +99,10 @@ def LevitationController_(T):
 
         The commanded wrench is ``enable * (PD + weight) + feedforward`` while
         tracking is good. When tracking is lost the measurement is stale, so PD
-        stops: the weight is carried for ``lost_grace_s``, then faded out over
-        ``blind_landing_s`` and the controller latches off (fault), so a lost
-        instrument lands instead of being driven by a stale pose.
+        stops: the weight is carried for ``lost_grace_s`` (short dropouts are
+        ridden through), then every current is cut and the controller latches
+        off (fault), so a lost instrument drops level onto the glass instead of
+        being rolled over by lift on a stale pose.
 
         .. pydrake_system::
 
@@ -158,10 +162,10 @@ def LevitationController_(T):
             feedforward = self._feedforward.Eval(context)
             enable = self._enable.Eval(context)[0]
             if lost_time > 0.0 or self._tracking_ok.Eval(context)[0] < 0.5:
-                fraction = blind_lift_fraction(_value(lost_time), self._config)
-                weight = np.array([0.0, 0.0, enable * fraction * self._mass_kg * GRAVITY_M_S2,
+                weight = np.array([0.0, 0.0, enable * self._mass_kg * GRAVITY_M_S2,
                                    0.0, 0.0, 0.0])
-                output.SetFromVector(weight if fraction > 0.0 else 0.0 * weight)
+                carried = carries_weight_while_lost(_value(lost_time), self._config)
+                output.SetFromVector(weight if carried else 0.0 * weight)
                 return
             wrench = self._pd_wrench(self._setpoint.Eval(context), self._pose.Eval(context),
                                      self._velocity.Eval(context), self._kp, self._kd,

@@ -85,20 +85,19 @@ def test_enable_ramp_and_feedforward():
     np.testing.assert_allclose(wrench, [0.1, 0, 0.25 * MASS_KG * GRAVITY_M_S2, 0, 0, 0.001])
 
 
-def test_lost_tracking_holds_weight_then_fades_and_latches_off():
-    config = ControllerConfig(lost_grace_s=0.02, blind_landing_s=0.5)
+def test_lost_tracking_holds_weight_briefly_then_cuts_and_latches_off():
+    config = ControllerConfig(lost_grace_s=0.02)
     controller, context = make(config)
     pose = pose_vector([0, 0, 0], [0.01, 0, 0.02])
     fix(controller, context, setpoint=np.zeros(12), pose=pose, ok=0.0)
     lift = []
-    for _ in range(600):
+    for _ in range(100):
         lift.append(controller.GetOutputPort("wrench_commanded_W").Eval(context)[2])
         update = controller.EvalUniquePeriodicDiscreteUpdate(context)
         context.SetDiscreteState(update.get_vector().CopyToVector())
     weight = MASS_KG * GRAVITY_M_S2
     np.testing.assert_allclose(lift[:20], weight)  # grace: the weight is carried, no stale PD
-    assert lift[21] < weight and lift[100] == pytest.approx(weight * (1 - 0.08 / 0.5), rel=0.01)
-    assert lift[-1] == 0.0
+    assert np.all(np.asarray(lift[21:]) == 0.0)  # then the coils go dead
     # Tracking returns, but the fault latches: the instrument stays landed.
     fix(controller, context, setpoint=np.zeros(12), pose=pose, ok=1.0)
     update = controller.EvalUniquePeriodicDiscreteUpdate(context)

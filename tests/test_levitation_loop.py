@@ -88,16 +88,26 @@ def test_every_shipped_scenario_runs_briefly(path, name):
     assert np.all(np.isfinite(result.log["coil_currents"]))
 
 
-def test_lost_instrument_lands_without_exceeding_limits():
-    occluded = "{occlusions: [{start_s: 2.0, end_s: 99.0}]}"
-    scenario, result = run("takeoff_hover_land", occluded, duration_s=3.5)
-    log = result.log
+@pytest.mark.parametrize("name, hover_z", [("takeoff_hover_land", 0.018),
+                                           ("vertical_sweep", 0.035)])
+def test_lost_instrument_drops_level_onto_the_glass(name, hover_z):
+    lost_at = 2.0 if name == "takeoff_hover_land" else 5.8  # hovering at hover_z then
+    scenario, result = run(name, f"{{occlusions: [{{start_s: {lost_at}, end_s: 99.0}}]}}",
+                           duration_s=lost_at + 1.0)
+    log, summary = result.log, result.summary
     rest_z = scenario.device.instrument_spec().rest_height_m
-    after = log["t"] > 2.0 + scenario.controller.lost_grace_s + scenario.controller.blind_landing_s + 0.3
+    assert log["p_WI_true"][log["t"] < lost_at][-1, 2] == pytest.approx(hover_z, abs=2e-4)
+    cut = log["t"] > lost_at + scenario.controller.lost_grace_s + 0.01
     assert log["tracking_ok"][-1] == 0.0
-    assert np.max(np.abs(log["coil_currents"][after])) < 1e-3  # currents off
-    assert log["p_WI_true"][-1, 2] < rest_z + 5e-4  # on the glass
+    assert np.max(np.abs(log["coil_currents"][cut])) < 1e-3  # the coils go dead
     assert np.max(np.abs(log["coil_currents"])) <= LIMIT_A
+    # It drops level, lands where it was, and rests on its pads, not in the glass.
+    touchdown = summary["touchdown"]
+    assert touchdown["time_s"] > lost_at and touchdown["tilt_deg"] < 2.0
+    free_fall_speed = np.sqrt(2 * 9.81 * (hover_z - rest_z))
+    assert touchdown["speed_m_s"] < 1.1 * free_fall_speed
+    assert log["p_WI_true"][-1, 2] == pytest.approx(rest_z, abs=5e-4)
+    assert np.max(np.abs(np.degrees(log["rpy_WI_true"][-200:, 0:2]))) < 2.0
     assert np.all(np.isfinite(log["coil_currents"]))
 
 

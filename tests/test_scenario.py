@@ -65,6 +65,8 @@ def test_cli_reports_bad_input_without_a_traceback(tmp_path, capsys):
     ([0, 0, 0.002, 0, 0, 0], "inside the display glass"),
     ([0, 0, 0.06, 0, 0, 0], r"takes [0-9.]+ A in the busiest coil .* falls [0-9.]+ N short"),
     ([0, 0, 0.15, 0, 0, 0], "out of the coils' reach"),
+    ([0.3, 0, 0.018, 0, 0, 0], "out of the coils' reach"),
+    ([0, 0, 0.03, 1.4, 0, 0], "tilt 80.2 deg is beyond the 45 deg"),
 ])
 def test_unreachable_waypoints_are_refused(tmp_path, pose, fragment):
     from maglev_haptics.diagrams.application import BuildDiagram
@@ -72,3 +74,21 @@ def test_unreachable_waypoints_are_refused(tmp_path, pose, fragment):
     scenario = load_scenario(write(tmp_path, f"a: {{motion: {{waypoints: [{{pose: {pose}}}]}}}}"), "a")
     with pytest.raises(ScenarioError, match=r"motion.waypoints\[0\].pose = .*" + fragment):
         BuildDiagram(scenario, label="a")
+
+
+@pytest.mark.parametrize("argv, fragment", [
+    (["--duration", "-1"], "--duration = -1.0: must be > 0"),
+    (["--scenario-text", "{device: {instrument: four_magnet"], "--scenario-text: not valid YAML"),
+    (["--scenario-text", "[1, 2]"], "--scenario-text: must be a YAML mapping"),
+])
+def test_cli_bad_arguments_are_one_line_errors(capsys, argv, fragment):
+    assert main(["run", "levitate", "--no-meshcat", *argv]) == 2
+    assert fragment in capsys.readouterr().err
+
+
+def test_cli_out_that_is_a_file_is_a_one_line_error(tmp_path, capsys):
+    existing = tmp_path / "file"
+    existing.write_text("x")
+    assert main(["run", "levitate", "--no-meshcat", "--duration", "0.05",
+                 "--out", str(existing)]) == 2
+    assert "error:" in capsys.readouterr().err
