@@ -18,10 +18,9 @@ HOVER_SETTLE_S = 0.5  # skipped at the start of each hold before hover errors co
 
 
 def rpy_from_quaternions(q: np.ndarray) -> np.ndarray:
-    """(N, 3) roll-pitch-yaw (rad, yaw unwrapped) from (N, 4) [w, x, y, z]."""
+    """(N, 3) roll-pitch-yaw (rad, each unwrapped over time) from (N, 4) [w, x, y, z]."""
     rpy = np.array([RollPitchYaw(Quaternion(row / np.linalg.norm(row))).vector() for row in q])
-    rpy[:, 2] = np.unwrap(rpy[:, 2])
-    return rpy
+    return np.unwrap(rpy, axis=0)
 
 
 def coil_temperatures_c(t: np.ndarray, currents: np.ndarray, thermal) -> np.ndarray:

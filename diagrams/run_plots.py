@@ -1,6 +1,4 @@
-"""The plots a person reads after a run: pose, orientation, coil currents, power and heat."""
-
-from __future__ import annotations
+"""The plots a person reads after a run: pose, tracking error, coil currents, power and heat."""
 
 from pathlib import Path
 from typing import Dict
@@ -11,53 +9,87 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from maglev_haptics.diagrams.run_metrics import angle_between_deg  # noqa: E402
+
+AXIS_COLORS = ("tab:red", "tab:green", "tab:blue")
+
+
+def _legend_outside(ax) -> None:
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.07, 1.0), borderaxespad=0.0)
+
 
 def plot_run(log: Dict[str, np.ndarray], out_dir: Path, *, title: str,
              current_limit_a: float) -> Path:
-    """Write ``levitation.png`` (four stacked panels sharing time) and return its path."""
+    """Write ``levitation.png`` (five stacked panels sharing time) and return its path."""
     t = log["t"]
-    fig, axes = plt.subplots(4, 1, figsize=(11, 12), sharex=True)
-    colors = ("tab:red", "tab:green", "tab:blue")
+    # Before the first estimate the measured pose is a placeholder, not a measurement.
+    measured = np.cumsum(log["tracking_ok"] > 0.5) > 0
+    fig, axes = plt.subplots(5, 1, figsize=(12.5, 14), sharex=True)
+
     ax = axes[0]
     for i, axis in enumerate("xyz"):
-        ax.plot(t, 1e3 * log["p_WI_desired"][:, i], color=colors[i], lw=1, ls="--",
+        ax.plot(t, 1e3 * log["p_WI_desired"][:, i], color=AXIS_COLORS[i], lw=1, ls="--",
                 label=f"{axis} commanded")
-        ax.plot(t, 1e3 * log["p_WI_true"][:, i], color=colors[i], lw=1.2, label=f"{axis} true")
-        ax.plot(t, 1e3 * log["p_WI_measured"][:, i], color="k", lw=0.5, alpha=0.5,
-                label="measured" if i == 0 else None)
+        ax.plot(t, 1e3 * log["p_WI_true"][:, i], color=AXIS_COLORS[i], lw=1.2, label=f"{axis} true")
+        ax.plot(t[measured], 1e3 * log["p_WI_measured"][measured, i], color="k", lw=0.5,
+                alpha=0.5, label="measured" if i == 0 else None)
     ax.set_ylabel("position of I in W [mm]")
-    ax.legend(ncol=4, fontsize=8, loc="upper left")
+    _legend_outside(ax)
+
     ax = axes[1]
     for i, axis in enumerate(("roll", "pitch", "yaw")):
-        ax.plot(t, np.degrees(log["rpy_WI_desired"][:, i]), color=colors[i], lw=1, ls="--",
+        ax.plot(t, np.degrees(log["rpy_WI_desired"][:, i]), color=AXIS_COLORS[i], lw=1, ls="--",
                 label=f"{axis} commanded")
-        ax.plot(t, np.degrees(log["rpy_WI_true"][:, i]), color=colors[i], lw=1.2,
+        ax.plot(t, np.degrees(log["rpy_WI_true"][:, i]), color=AXIS_COLORS[i], lw=1.2,
                 label=f"{axis} true")
     ax.set_ylabel("orientation [deg]")
-    ax.legend(ncol=3, fontsize=8, loc="upper left")
+    _legend_outside(ax)
+
     ax = axes[2]
+    error_mm = 1e3 * (log["p_WI_true"] - log["p_WI_desired"])
+    for i, axis in enumerate("xyz"):
+        ax.plot(t, error_mm[:, i], color=AXIS_COLORS[i], lw=0.6, label=f"{axis} error")
+    # Scale to the flight, not to resting or the scripted press into the glass.
+    z_desired = log["p_WI_desired"][:, 2]
+    flying = z_desired > z_desired.min() + 2e-3
+    span = max(np.percentile(np.abs(error_mm[flying] if flying.any() else error_mm), 99), 1e-3)
+    ax.set_ylim(-1.5 * span, 1.5 * span)
+    ax.set_ylabel("true - commanded [mm]")
+    angle_deg = angle_between_deg(log["q_WI_true"], log["rpy_WI_desired"])
+    angle = ax.twinx()
+    angle.plot(t, angle_deg, color="k", lw=0.6)
+    angle.set_ylim(0, 3 * max(np.percentile(angle_deg, 98), 1e-3))
+    angle.set_ylabel("angle error [deg] (black)")
+    _legend_outside(ax)
+
+    ax = axes[3]
     currents = log["coil_currents"]
-    ax.plot(t, currents, lw=0.7)
+    busiest = int(np.argmax(np.max(np.abs(currents), axis=0)))
+    ax.plot(t, currents, lw=0.6, color="0.6")
+    ax.plot(t, currents[:, busiest], lw=1.0, color="tab:purple", label=f"busiest: coil {busiest}")
     for sign in (-1, 1):
         ax.axhline(sign * current_limit_a, color="k", ls=":", lw=1)
     ax.set_ylabel(f"coil currents [A]\n({currents.shape[1]} coils, limit dotted)")
-    ax = axes[3]
+    _legend_outside(ax)
+
+    ax = axes[4]
     ax.plot(t, log["coil_power_w"], color="tab:purple", lw=1, label="coil power")
-    ax.set_ylabel("power [W]")
-    lost = log["tracking_ok"] < 0.5
+    lost = measured & (log["tracking_ok"] < 0.5)
     if lost.any():
         ax.fill_between(t, 0, log["coil_power_w"].max(), where=lost, color="orange", alpha=0.3,
                         label="tracking lost")
-    ax.legend(fontsize=8, loc="upper left")
+    ax.set_ylabel("power [W]")
     hottest = ax.twinx()
     hottest.plot(t, log["coil_temperature_c"].max(axis=1), color="tab:red", lw=1)
-    hottest.set_ylabel("hottest coil [deg C]", color="tab:red")
+    hottest.set_ylabel("hottest coil [deg C] (red)", color="tab:red")
+    _legend_outside(ax)
     ax.set_xlabel("time [s]")
+
     for ax in axes:
         ax.grid(alpha=0.3)
     fig.suptitle(title)
     fig.tight_layout()
     path = Path(out_dir) / "levitation.png"
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=100)
     plt.close(fig)
     return path
