@@ -137,7 +137,7 @@ def run_benchmarks(duration_s: Optional[float] = None, progress: bool = True) ->
         built = BuildDiagram(scenario)
         simulate(built, 0.05, progress=False)  # loads the compiled kernels, off the clock
         sim_s = built.plan.end_s if duration_s is None else min(duration_s, built.plan.end_s)
-        _, wall_s = simulate(built, sim_s, progress=progress)
+        _, wall_s = simulate(built, sim_s, progress=progress, label=name)
         results["scenarios"][name] = {
             "instrument": scenario.device.instrument,
             "simulated_s": sim_s,

@@ -32,7 +32,7 @@ class RunResult:
 
 
 def simulate(built, duration_s: float, *, realtime_rate: float = 0.0,
-             progress: bool = True):
+             progress: bool = True, label: str = ""):
     """Advance the diagram to ``duration_s``; returns (simulator, wall seconds)."""
     # The diagram lives as long as the run: keep the collector from scanning it every tick.
     gc.collect()
@@ -43,7 +43,7 @@ def simulate(built, duration_s: float, *, realtime_rate: float = 0.0,
     chunks = np.append(np.arange(PROGRESS_CHUNK_S, duration_s, PROGRESS_CHUNK_S), duration_s)
     start = time.perf_counter()
     try:
-        with tqdm(total=float(duration_s), unit="sim s", disable=not progress,
+        with tqdm(total=float(duration_s), unit="sim s", disable=not progress, desc=label,
                   bar_format="{l_bar}{bar}| {n:.2f}/{total:.2f} sim s [{elapsed}]") as bar:
             for t in chunks:
                 simulator.AdvanceTo(float(t))
@@ -64,7 +64,7 @@ def run_scenario(scenario: Scenario, *, label: str, out_dir: Optional[Path] = No
     if viewer is not None:
         viewer.StartRecording()
     simulator, wall_s = simulate(built, duration_s, realtime_rate=realtime_rate,
-                                 progress=progress)
+                                 progress=progress, label=label)
     if viewer is not None:
         viewer.StopRecording()
         viewer.PublishRecording()
