@@ -11,7 +11,11 @@ as_root() { if [ "$(id -u)" = 0 ]; then "$@"; else sudo "$@"; fi; }
 apt_updated=0
 apt_install() {  # install Debian packages that are missing
   local missing=()
-  for pkg in "$@"; do dpkg -s "$pkg" >/dev/null 2>&1 || missing+=("$pkg"); done
+  for pkg in "$@"; do
+    # Removed packages keep a dpkg entry ("deinstall ok config-files"): check the status.
+    dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed" \
+      || missing+=("$pkg")
+  done
   [ ${#missing[@]} -eq 0 ] && return 0
   [ $apt_updated = 1 ] || { as_root apt-get update -qq; apt_updated=1; }
   DEBIAN_FRONTEND=noninteractive as_root apt-get install -y -qq "${missing[@]}" >/dev/null
