@@ -16,7 +16,7 @@ from scipy.linalg.lapack import dposv
 from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import LeafSystem, ValueProducer
 
-from maglev_haptics.systems.rotations import rotation_from_quaternion_f64
+from maglev_haptics.systems.magnetic_actuation import wrench_matrix_at
 
 
 def minimum_norm_currents(A: np.ndarray, wrench: np.ndarray) -> np.ndarray:
@@ -118,9 +118,7 @@ class CurrentAllocator(LeafSystem):
             {self._allocation.ticket()})
 
     def _calc_matrix(self, context, matrix):
-        pose = self._pose.Eval(context)
-        matrix.set_value(self._magnetics.wrench_matrix_from(
-            pose[4:7] - self._p_WA, rotation_from_quaternion_f64(pose[0:4])))
+        matrix.set_value(wrench_matrix_at(self._magnetics, self._p_WA, self._pose.Eval(context)))
 
     def _calc_allocation(self, context, allocation):
         currents, shortfall, _ = allocate_currents(

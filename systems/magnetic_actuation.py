@@ -8,6 +8,15 @@ from pydrake.systems.framework import LeafSystem
 from maglev_haptics.systems.rotations import rotation_from_quaternion_f64
 
 
+def wrench_matrix_at(magnetics, p_WA, q_WI):
+    """(6, n_coils) wrench matrix for the pose vector q_WI = [qw qx qy qz x y z] in W.
+
+    The model works in the coil-array frame A, whose axes are W's and whose
+    origin is p_WA [m] in W.
+    """
+    return magnetics.wrench_matrix_from(q_WI[4:7] - p_WA, rotation_from_quaternion_f64(q_WI[0:4]))
+
+
 def instrument_generalized_force(magnetics, p_WA, instrument_state, coil_currents):
     """[tau; f] in W (N*m about I's origin, N) on the instrument's free body.
 
@@ -15,9 +24,7 @@ def instrument_generalized_force(magnetics, p_WA, instrument_state, coil_current
     the ordering [tau; f] is that of a quaternion floating joint's generalized
     forces, so the result feeds the plant's ``applied_generalized_force`` port.
     """
-    A = magnetics.wrench_matrix_from(instrument_state[4:7] - p_WA,
-                                     rotation_from_quaternion_f64(instrument_state[0:4]))
-    wrench = A @ coil_currents
+    wrench = wrench_matrix_at(magnetics, p_WA, instrument_state[0:7]) @ coil_currents
     return np.concatenate([wrench[3:6], wrench[0:3]])
 
 
