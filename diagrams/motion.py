@@ -15,6 +15,7 @@ import numpy as np
 from pydrake.trajectories import PiecewisePolynomial
 
 from maglev_haptics.diagrams.scenario import ScenarioError
+from maglev_haptics.systems.blends import minimum_jerk
 from maglev_haptics.systems.current_allocator import allocate_currents
 from maglev_haptics.systems.levitation_controller import GRAVITY_M_S2
 from maglev_haptics.systems.rotations import rotation_from_rpy
@@ -34,11 +35,6 @@ class FlightPlan:
     enable: PiecewisePolynomial  # 1 row: controller gain 0..1
     holds: List[Tuple[float, float]]  # (start, end) of each waypoint hold (s)
     end_s: float  # the script's length: ramp-down complete plus IDLE_AFTER_S (s)
-
-
-def minimum_jerk(s: np.ndarray):
-    """Blend 0 -> 1 and its derivative for s in [0, 1] (zero rate and acceleration at both ends)."""
-    return 10 * s**3 - 15 * s**4 + 6 * s**5, 30 * s**2 - 60 * s**3 + 30 * s**4
 
 
 def rest_pose(start_xy_yaw, rest_height_m: float) -> np.ndarray:

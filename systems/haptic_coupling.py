@@ -37,7 +37,7 @@ is pulled toward the tool, i.e. feels what holds the tool back.
 """
 
 from dataclasses import dataclass, field
-from typing import List
+from typing import List, Optional
 
 import numpy as np
 from pydrake.autodiffutils import AutoDiffXd
@@ -64,9 +64,14 @@ class CouplingConfig:
     velocity noise makes only 8.5 mN of force, a sixth of the 0.05 N free-motion
     budget. Rotational gains are the translational ones times (25 mm)^2:
     0.25 N*m/rad (1 N*mm per 4 mrad) and 3.1e-3 N*m*s/rad (0.08 N*mm from the
-    26 mrad/s rotational velocity noise). The limits are the paper's ~4 N, and
-    4 N at the 20 mm magnet offset; the device's thermal and current limits
-    should set them once they are computed.
+    26 mrad/s rotational velocity noise). The wrench limits, when null, are
+    what the coils can add on top of the weight at the pose where haptics
+    starts, the smallest over the axis directions
+    (``hardware.limits.device_limits``), with every coil within
+    ``device_limit``: "peak" (the amplifiers' current limit: what the device
+    can deliver at any instant; the paper's "higher momentary peak forces") or
+    "thermal" (the coils' continuous current: what it can sustain
+    indefinitely). The diagram builder fills them in.
     """
 
     # x, y, z in W
@@ -78,8 +83,9 @@ class CouplingConfig:
     rotational_damping: List[float] = field(
         default_factory=lambda: [5.0 * _GAIN_LENGTH_M**2] * 3)  # N*m*s/rad
     ramp_s: float = 0.5  # the wrench fades in linearly over this time after enable (s)
-    max_force_n: float = 4.0  # |f| limit (N)
-    max_torque_nm: float = 0.08  # |tau| limit (N*m)
+    max_force_n: Optional[float] = None  # |f| limit (N); null: the device's thermal limit
+    max_torque_nm: Optional[float] = None  # |tau| limit (N*m); null: likewise
+    device_limit: str = "peak"  # "peak" or "thermal": the coil current the null limits assume
 
 
 def coupling_gains(config: CouplingConfig):
@@ -200,6 +206,10 @@ def HapticCoupling_(T):
         def _construct(self, *, config: CouplingConfig, period_s: float,
                        X_IT: RigidTransform = RigidTransform(), converter=None):
             LeafSystem_[T].__init__(self, converter)
+            for name in ("max_force_n", "max_torque_nm"):
+                if getattr(config, name) is None:
+                    raise ValueError(f"CouplingConfig.{name} is None: give a limit, or let "
+                                     "the diagram builder derive it from the device")
             self._config = config
             self._period_s = float(period_s)
             self._X_IT = RigidTransform(X_IT)

@@ -97,8 +97,11 @@ def LevitationController_(T):
         """Levitation controller (MLHI style): PD about a setpoint, gravity
         compensation, feed-forward wrench, safe force ramp, blind landing.
 
-        The commanded wrench is ``enable * (PD + weight) + feedforward`` while
-        tracking is good. When tracking is lost the measurement is stale, so PD
+        The commanded wrench is ``enable * (pd_gain * PD + weight) +
+        feedforward`` while tracking is good: ``pd_gain`` 0 leaves the
+        instrument to the hand and the feed-forward (haptic mode).
+        ``wrench_rendered_W`` is what acts on the hand: the commanded wrench
+        less the weight it carries. When tracking is lost the measurement is stale, so PD
         stops: the weight is carried for ``lost_grace_s`` (short dropouts are
         ridden through), then every current is cut and the controller latches
         off (fault), so a lost instrument drops level onto the glass instead of
@@ -113,9 +116,11 @@ def LevitationController_(T):
             - V_WI_measured
             - tracking_ok
             - enable
+            - pd_gain
             - wrench_feedforward_W
             output_ports:
             - wrench_commanded_W
+            - wrench_rendered_W
             - lost_time
 
         The discrete state (1 kHz) is the time since tracking was lost (s;
@@ -136,10 +141,12 @@ def LevitationController_(T):
             self._velocity = self.DeclareVectorInputPort("V_WI_measured", 6)
             self._tracking_ok = self.DeclareVectorInputPort("tracking_ok", 1)
             self._enable = self.DeclareVectorInputPort("enable", 1)
+            self._pd_gain = self.DeclareVectorInputPort("pd_gain", 1)
             self._feedforward = self.DeclareVectorInputPort("wrench_feedforward_W", 6)
             self._lost_time = self.DeclareDiscreteState(1)
             self.DeclarePeriodicDiscreteUpdateEvent(period_s, 0.0, self._update_lost_time)
             self.DeclareVectorOutputPort("wrench_commanded_W", 6, self._calc_wrench)
+            self.DeclareVectorOutputPort("wrench_rendered_W", 6, self._calc_rendered)
             self.DeclareStateOutputPort("lost_time", self._lost_time)
 
         def _construct_copy(self, other, converter=None):
@@ -157,20 +164,33 @@ def LevitationController_(T):
                 lost_time = lost_time + self._period_s
             discrete_state.get_mutable_vector(self._lost_time).SetFromVector([lost_time])
 
+        def _weight_carried(self, context):
+            """The weight compensation in the commanded wrench, [f; tau] (N, N*m)."""
+            enable = self._enable.Eval(context)[0]
+            weight = np.array([0.0, 0.0, enable * self._mass_kg * GRAVITY_M_S2, 0.0, 0.0, 0.0])
+            lost_time = context.get_discrete_state(self._lost_time).CopyToVector()[0]
+            if not carries_weight_while_lost(_value(lost_time), self._config):
+                return 0.0 * weight
+            return weight
+
         def _calc_wrench(self, context, output):
             lost_time = context.get_discrete_state(self._lost_time).CopyToVector()[0]
-            feedforward = self._feedforward.Eval(context)
-            enable = self._enable.Eval(context)[0]
+            weight = self._weight_carried(context)
             if lost_time > 0.0 or self._tracking_ok.Eval(context)[0] < 0.5:
-                weight = np.array([0.0, 0.0, enable * self._mass_kg * GRAVITY_M_S2,
-                                   0.0, 0.0, 0.0])
-                carried = carries_weight_while_lost(_value(lost_time), self._config)
-                output.SetFromVector(weight if carried else 0.0 * weight)
+                output.SetFromVector(weight)
                 return
-            wrench = self._pd_wrench(self._setpoint.Eval(context), self._pose.Eval(context),
-                                     self._velocity.Eval(context), self._kp, self._kd,
-                                     self._mass_kg)
-            output.SetFromVector(enable * wrench + feedforward)
+            pd = self._pd_wrench(self._setpoint.Eval(context), self._pose.Eval(context),
+                                 self._velocity.Eval(context), self._kp, self._kd,
+                                 self._mass_kg)
+            enable = self._enable.Eval(context)[0]
+            pd_gain = self._pd_gain.Eval(context)[0]
+            # pd already carries the weight; only its PD part fades with pd_gain.
+            output.SetFromVector(enable * pd_gain * pd + (1.0 - pd_gain) * weight
+                                 + self._feedforward.Eval(context))
+
+        def _calc_rendered(self, context, output):
+            commanded = self.GetOutputPort("wrench_commanded_W").Eval(context)
+            output.SetFromVector(commanded - self._weight_carried(context))
 
     return Impl
 

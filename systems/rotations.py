@@ -52,6 +52,13 @@ def rotation_error_W(R_WD, R_WI):
     return 0.5 * np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
 
 
+def rpy_from_rotation(R):
+    """[roll, pitch, yaw] (rad) of R = Rz(yaw) Ry(pitch) Rx(roll), float only."""
+    return np.array([math.atan2(R[2, 1], R[2, 2]),
+                     math.atan2(-R[2, 0], math.hypot(R[2, 1], R[2, 2])),
+                     math.atan2(R[1, 0], R[0, 0])])
+
+
 rotation_from_quaternion_f64 = numba.njit(cache=True)(rotation_from_quaternion)
 
 

@@ -151,7 +151,7 @@ def test_potential_decreases_along_the_spring_wrench():
 
 
 def test_ramp_from_enable():
-    config = CouplingConfig(ramp_s=0.01)
+    config = CouplingConfig(ramp_s=0.01, max_force_n=4.0, max_torque_nm=0.08)
     k, _ = coupling_gains(config)
     coupling, context = make(config)
     X_WI = RigidTransform([0, 0, 0.03])
@@ -200,7 +200,7 @@ def test_clamp_preserves_direction_and_limits():
 
 
 def test_converts_to_autodiff_with_the_stiffness_as_derivative():
-    coupling, _ = make(CouplingConfig(ramp_s=0.0))
+    coupling, _ = make(CouplingConfig(ramp_s=0.0, max_force_n=4.0, max_torque_nm=0.08))
     k, _ = coupling_gains(CouplingConfig())
     ad = coupling.ToAutoDiffXd()
     assert isinstance(ad, HapticCoupling_[AutoDiffXd])

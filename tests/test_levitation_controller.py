@@ -22,12 +22,13 @@ def make(config=ControllerConfig()):
 
 
 def fix(controller, context, *, setpoint, pose, velocity=np.zeros(6), ok=1.0, enable=1.0,
-        feedforward=np.zeros(6)):
+        feedforward=np.zeros(6), pd_gain=1.0):
     controller.GetInputPort("setpoint").FixValue(context, setpoint)
     controller.GetInputPort("X_WI_measured").FixValue(context, pose)
     controller.GetInputPort("V_WI_measured").FixValue(context, velocity)
     controller.GetInputPort("tracking_ok").FixValue(context, [ok])
     controller.GetInputPort("enable").FixValue(context, [enable])
+    controller.GetInputPort("pd_gain").FixValue(context, [pd_gain])
     controller.GetInputPort("wrench_feedforward_W").FixValue(context, feedforward)
 
 
@@ -119,7 +120,28 @@ def test_converts_to_autodiff_and_differentiates():
         ad.GetInputPort(name).FixValue(context, [AutoDiffXd(0.0)] * size)
     ad.GetInputPort("tracking_ok").FixValue(context, [AutoDiffXd(1.0)])
     ad.GetInputPort("enable").FixValue(context, [AutoDiffXd(1.0)])
+    ad.GetInputPort("pd_gain").FixValue(context, [AutoDiffXd(1.0)])
     wrench = ad.GetOutputPort("wrench_commanded_W").Eval(context)
     kp, _ = pd_gains(ControllerConfig(), MASS_KG, INERTIA)
     # d fz / d z = -kp_z (the pose vector is [q; p], so z is entry 6).
     assert wrench[2].derivatives()[6] == pytest.approx(-kp[2])
+
+
+def test_haptic_mode_renders_only_the_feedforward_beyond_the_weight():
+    controller, context = make()
+    feedforward = np.array([0.3, -0.2, 0.1, 0.01, 0.0, -0.02])
+    # Far from the setpoint and moving: with pd_gain 0 none of that matters.
+    fix(controller, context, setpoint=np.array([0.0, 0.0, 0.018] + [0.0] * 9),
+        pose=pose_vector([0.2, 0, 0], [0.01, 0.0, 0.03]), velocity=np.full(6, 0.1),
+        feedforward=feedforward, pd_gain=0.0)
+    commanded = controller.GetOutputPort("wrench_commanded_W").Eval(context)
+    weight = np.array([0, 0, MASS_KG * 9.81, 0, 0, 0])
+    np.testing.assert_allclose(commanded, weight + feedforward, atol=1e-12)
+    np.testing.assert_allclose(controller.GetOutputPort("wrench_rendered_W").Eval(context),
+                               feedforward, atol=1e-12)
+    # Half way through the handover the PD part is halved.
+    fix(controller, context, setpoint=np.array([0.0, 0.0, 0.018] + [0.0] * 9),
+        pose=pose_vector([0, 0, 0], [0.0, 0.0, 0.017]), pd_gain=0.5)
+    kp, _ = pd_gains(ControllerConfig(), MASS_KG, INERTIA)
+    rendered = controller.GetOutputPort("wrench_rendered_W").Eval(context)
+    assert rendered[2] == pytest.approx(0.5 * kp[2] * 0.001)

@@ -1,0 +1,235 @@
+"""Mode logic of the haptic device (MLHI style): levitate, haptic, landing.
+
+- **levitate**: the levitation controller's PD tracks the scripted setpoint
+  (takeoff, hover, landing of the motion script).
+- **haptic**: entered when haptics is requested and the handle is gripped (it
+  engages only in the user's hand). The PD fades out over ``handover_s`` while
+  the coupling's force ramps in, so the hand takes over from position control;
+  then the device renders only the weight compensation plus the coupling.
+- leaving haptic mode:
+  - the request drops: back to levitate. The setpoint starts at the pose where
+    haptics ended and blends into the script over ``handover_s``, so disabling
+    never yanks the instrument;
+  - the handle is let go (for longer than ``release_debounce_s``) while the
+    tool touches the scene (within ``contact_memory_s``): the scene holds it
+    (a peg let go in its hole stays up between the virtual walls);
+  - let go with the tool free: **landing**. Haptics is disabled and the PD lands
+    the instrument level on the glass below where it was let go. Once it has
+    settled, the force ramps to zero. Gravity compensation alone would leave a
+    released instrument drifting in mid-air.
+
+Setpoints are [x, y, z, roll, pitch, yaw] of I in W then their rates (m, rad,
+m/s, rad/s), as the controller's input.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+from pydrake.autodiffutils import AutoDiffXd
+from pydrake.systems.framework import LeafSystem_
+from pydrake.systems.scalar_conversion import TemplateSystem
+
+from maglev_haptics.systems.blends import clipped_minimum_jerk
+from maglev_haptics.systems.rotations import rotation_from_quaternion, rpy_from_rotation
+
+LEVITATE, HAPTIC, LANDING = 0, 1, 2
+MODE_NAMES = ("levitate", "haptic", "landing")
+LANDING_PRESS_M = 0.001  # the landing setpoint ends this far below the rest height (m)
+
+# The discrete state vector's layout.
+_MODE, _SINCE, _POSE, _OFFSET, _PD, _ENABLE, _RELEASED, _SINCE_CONTACT = (
+    0, 1, slice(2, 8), slice(8, 14), 14, 15, 16, 17)
+STATE_SIZE = 18
+
+
+@dataclass
+class SupervisorConfig:
+    """Timing of the mode changes."""
+
+    handover_s: float = 0.5  # PD fade-out at haptics start, and the blend back to the script (s)
+    release_debounce_s: float = 0.05  # a let-go shorter than this is ignored (s)
+    contact_memory_s: float = 0.1  # the tool counts as touching this long after its last contact (s)
+    landing_s: float = 1.5  # minimum-jerk descent to the glass after a free let-go (s)
+    settle_s: float = 0.3  # held on the glass after landing, before the force ramps down (s)
+    force_ramp_s: float = 0.2  # the ramp-down of the force after landing (s)
+
+
+def initial_supervisor_state() -> np.ndarray:
+    state = np.zeros(STATE_SIZE)
+    state[_MODE] = LEVITATE
+    state[_PD] = 1.0
+    state[_ENABLE] = 1.0
+    state[_SINCE_CONTACT] = np.inf
+    return state
+
+
+def measured_pose6(X_WI, reference_yaw: float) -> np.ndarray:
+    """[x, y, z, roll, pitch, yaw] of a [q; p] pose, yaw unwrapped to within pi of
+    ``reference_yaw`` (rad) so a blend from it to the script turns the short way."""
+    rpy = rpy_from_rotation(rotation_from_quaternion(np.asarray(X_WI[0:4], float)))
+    rpy[2] = reference_yaw + (rpy[2] - reference_yaw + np.pi) % (2 * np.pi) - np.pi
+    return np.concatenate((np.asarray(X_WI[4:7], float), rpy))
+
+
+def supervisor_step(state: np.ndarray, t: float, period_s: float, scripted_pose6: np.ndarray,
+                    X_WI, tracking_ok: bool, request: bool, gripped: bool, in_contact: bool,
+                    config: SupervisorConfig) -> np.ndarray:
+    """The supervisor's state one period (s) after ``state`` at time ``t`` (s)."""
+    new = state.copy()
+    mode = int(state[_MODE])
+    new[_SINCE_CONTACT] = 0.0 if in_contact else state[_SINCE_CONTACT] + period_s
+    new[_RELEASED] = state[_RELEASED] + period_s if (mode == HAPTIC and not gripped) else 0.0
+
+    def enter(next_mode):
+        new[_MODE] = next_mode
+        new[_SINCE] = t
+        new[_POSE] = measured_pose6(X_WI, scripted_pose6[5])
+        new[_OFFSET] = new[_POSE] - scripted_pose6 if next_mode == LEVITATE else 0.0
+        new[_RELEASED] = 0.0
+
+    if mode != HAPTIC and request and gripped and tracking_ok:
+        enter(HAPTIC)
+    elif mode == HAPTIC and not request:
+        enter(LEVITATE)
+    elif (mode == HAPTIC and new[_RELEASED] > config.release_debounce_s
+          and state[_RELEASED] <= config.release_debounce_s
+          and new[_SINCE_CONTACT] > config.contact_memory_s):
+        enter(LANDING)
+
+    step = period_s / config.handover_s if config.handover_s > 0 else 1.0
+    mode = int(new[_MODE])
+    if mode == HAPTIC:
+        new[_PD] = max(0.0, state[_PD] - step)
+    elif mode == LANDING:
+        new[_PD] = 1.0
+    else:
+        new[_PD] = min(1.0, state[_PD] + step)
+    landed = mode == LANDING and t - new[_SINCE] > config.landing_s + config.settle_s
+    ramp = period_s / config.force_ramp_s if config.force_ramp_s > 0 else 1.0
+    new[_ENABLE] = (max(0.0, state[_ENABLE] - ramp) if landed
+                    else min(1.0, state[_ENABLE] + ramp))
+    return new
+
+
+def supervisor_setpoint(state: np.ndarray, t: float, scripted, rest_height_m: float,
+                        config: SupervisorConfig):
+    """The controller's setpoint (12,) in ``state`` at time ``t`` (s), given the
+    scripted setpoint (12,); blends are float, the script passes through as it is."""
+    mode = int(state[_MODE])
+    elapsed = t - state[_SINCE]
+    if mode == LANDING:
+        start = state[_POSE]
+        target = np.array([start[0], start[1], rest_height_m - LANDING_PRESS_M,
+                           0.0, 0.0, start[5]])
+        blend, rate = clipped_minimum_jerk(elapsed, config.landing_s)
+        return np.concatenate((start + blend * (target - start), rate * (target - start)))
+    if mode == LEVITATE and elapsed < config.handover_s:
+        # The offset at entry fades out, so the setpoint meets the script smoothly.
+        blend, rate = clipped_minimum_jerk(elapsed, config.handover_s)
+        offset = state[_OFFSET]
+        return np.concatenate((scripted[0:6] + (1.0 - blend) * offset,
+                               scripted[6:12] - rate * offset))
+    return scripted
+
+
+@TemplateSystem.define("HapticSupervisor_", T_list=[float, AutoDiffXd])
+def HapticSupervisor_(T):
+
+    class Impl(LeafSystem_[T]):
+        """The device's mode logic (see the module docstring).
+
+        .. pydrake_system::
+
+            name: HapticSupervisor
+            input_ports:
+            - scripted_setpoint
+            - scripted_enable
+            - X_WI_measured
+            - tracking_ok
+            - haptics_request
+            - handle_gripped
+            - tool_in_contact
+            output_ports:
+            - setpoint
+            - enable
+            - pd_gain
+            - haptics_enable
+            - mode
+
+        The discrete state (updated every ``period_s``) holds the mode, the
+        time and measured pose of the last mode change, the PD and force
+        gains and the release and contact timers; the mode logic runs on
+        values, so under AutoDiffXd the state carries no derivatives and
+        the scripted setpoint passes through with its own.
+        """
+
+        def _construct(self, *, config: SupervisorConfig, period_s: float,
+                       rest_height_m: float, converter=None):
+            LeafSystem_[T].__init__(self, converter)
+            self._config = config
+            self._period_s = float(period_s)
+            self._rest_height_m = float(rest_height_m)
+            self._scripted = self.DeclareVectorInputPort("scripted_setpoint", 12)
+            self._scripted_enable = self.DeclareVectorInputPort("scripted_enable", 1)
+            self._X_WI = self.DeclareVectorInputPort("X_WI_measured", 7)
+            self._tracking_ok = self.DeclareVectorInputPort("tracking_ok", 1)
+            self._request = self.DeclareVectorInputPort("haptics_request", 1)
+            self._gripped = self.DeclareVectorInputPort("handle_gripped", 1)
+            self._in_contact = self.DeclareVectorInputPort("tool_in_contact", 1)
+            self._state = self.DeclareDiscreteState(initial_supervisor_state())
+            self.DeclarePeriodicDiscreteUpdateEvent(period_s, 0.0, self._update)
+            self.DeclareVectorOutputPort("setpoint", 12, self._calc_setpoint)
+            self.DeclareVectorOutputPort("enable", 1, self._calc_enable)
+            self.DeclareVectorOutputPort("pd_gain", 1, self._calc_pd_gain)
+            self.DeclareVectorOutputPort("haptics_enable", 1, self._calc_haptics_enable)
+            self.DeclareVectorOutputPort("mode", 1, self._calc_mode)
+
+        def _construct_copy(self, other, converter=None):
+            Impl._construct(self, config=other._config, period_s=other._period_s,
+                            rest_height_m=other._rest_height_m, converter=converter)
+
+        def _values(self, context) -> np.ndarray:
+            return np.array([_value(x) for x in
+                             context.get_discrete_state(self._state).CopyToVector()])
+
+        def _update(self, context, discrete_state):
+            new = supervisor_step(
+                self._values(context), _value(context.get_time()), self._period_s,
+                np.array([_value(x) for x in self._scripted.Eval(context)[0:6]]),
+                [_value(x) for x in self._X_WI.Eval(context)],
+                _value(self._tracking_ok.Eval(context)[0]) > 0.5,
+                _value(self._request.Eval(context)[0]) > 0.5,
+                _value(self._gripped.Eval(context)[0]) > 0.5,
+                _value(self._in_contact.Eval(context)[0]) > 0.5, self._config)
+            discrete_state.get_mutable_vector(self._state).SetFromVector(
+                new if T is float else np.array([T(x) for x in new]))
+
+        def _calc_setpoint(self, context, output):
+            scripted = self._scripted.Eval(context)
+            setpoint = supervisor_setpoint(self._values(context), _value(context.get_time()),
+                                           scripted, self._rest_height_m, self._config)
+            output.SetFromVector(setpoint if setpoint is scripted or T is float
+                                 else np.array([T(x) for x in setpoint]))
+
+        def _calc_enable(self, context, output):
+            gain = self._values(context)[_ENABLE]
+            output.SetFromVector(gain * self._scripted_enable.Eval(context))
+
+        def _calc_pd_gain(self, context, output):
+            output.SetFromVector([T(self._values(context)[_PD])])
+
+        def _calc_haptics_enable(self, context, output):
+            output.SetFromVector([T(1.0 if self._values(context)[_MODE] == HAPTIC else 0.0)])
+
+        def _calc_mode(self, context, output):
+            output.SetFromVector([T(self._values(context)[_MODE])])
+
+    return Impl
+
+
+def _value(x) -> float:
+    """The float value of a float or AutoDiffXd scalar."""
+    return float(x.value()) if hasattr(x, "value") else float(x)
+
+
+HapticSupervisor = HapticSupervisor_[None]

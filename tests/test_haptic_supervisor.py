@@ -1,0 +1,128 @@
+"""The device's mode logic: engage in the hand, hand back on disable, land a free let-go."""
+
+import numpy as np
+import pytest
+from pydrake.autodiffutils import AutoDiffXd
+from pydrake.math import RollPitchYaw
+
+from maglev_haptics.systems.haptic_supervisor import (
+    HAPTIC, LANDING, LANDING_PRESS_M, LEVITATE, HapticSupervisor, HapticSupervisor_,
+    SupervisorConfig, initial_supervisor_state, measured_pose6, supervisor_setpoint,
+    supervisor_step)
+
+PERIOD_S = 1e-3
+REST_M = 0.007
+CONFIG = SupervisorConfig()
+HOVER = np.array([0.01, -0.02, 0.025, 0.0, 0.0, 0.3])
+
+
+def pose_vector(xyz, rpy):
+    q = RollPitchYaw(rpy).ToQuaternion()
+    return np.array([q.w(), q.x(), q.y(), q.z(), *xyz])
+
+
+def run(state, t0, n, *, X_WI, request, gripped, in_contact, tracking_ok=True):
+    for k in range(n):
+        state = supervisor_step(state, t0 + k * PERIOD_S, PERIOD_S, HOVER, X_WI, tracking_ok,
+                                request, gripped, in_contact, CONFIG)
+    return state, t0 + n * PERIOD_S
+
+
+def test_measured_pose_unwraps_yaw_near_the_reference():
+    pose = measured_pose6(pose_vector([0.01, 0.02, 0.03], [0.1, -0.2, 3.0]), 2 * np.pi + 3.0)
+    np.testing.assert_allclose(pose, [0.01, 0.02, 0.03, 0.1, -0.2, 2 * np.pi + 3.0], atol=1e-12)
+
+
+def test_engages_only_when_requested_and_gripped_and_hands_over_smoothly():
+    X_WI = pose_vector(HOVER[0:3], HOVER[3:6])
+    state = initial_supervisor_state()
+    state, t = run(state, 0.0, 100, X_WI=X_WI, request=True, gripped=False, in_contact=False)
+    assert state[0] == LEVITATE
+    state, t = run(state, 0.0, 100, X_WI=X_WI, request=False, gripped=True, in_contact=False)
+    assert state[0] == LEVITATE
+    state, t = run(state, t, 1, X_WI=X_WI, request=True, gripped=True, in_contact=False)
+    assert state[0] == HAPTIC
+    # The PD fades out over the handover, linearly.
+    state, t = run(state, t, int(CONFIG.handover_s / PERIOD_S / 2), X_WI=X_WI, request=True,
+                   gripped=True, in_contact=False)
+    assert state[14] == pytest.approx(0.5, abs=0.01)
+    state, t = run(state, t, int(CONFIG.handover_s / PERIOD_S), X_WI=X_WI, request=True,
+                   gripped=True, in_contact=False)
+    assert state[14] == 0.0
+    # In haptic mode the script passes through untouched.
+    scripted = np.arange(12.0)
+    assert supervisor_setpoint(state, t, scripted, REST_M, CONFIG) is scripted
+
+
+def test_disable_blends_back_from_where_haptics_ended():
+    X_WI_away = pose_vector([0.03, 0.0, 0.02], [0.0, 0.1, 0.3])
+    state = initial_supervisor_state()
+    state, t = run(state, 0.0, 10, X_WI=X_WI_away, request=True, gripped=True, in_contact=False)
+    state, t = run(state, t, 1, X_WI=X_WI_away, request=False, gripped=True, in_contact=False)
+    assert state[0] == LEVITATE
+    scripted = np.concatenate((HOVER, np.zeros(6)))
+    t = state[1]  # the switch
+    start = supervisor_setpoint(state, t, scripted, REST_M, CONFIG)
+    np.testing.assert_allclose(start[0:6], [0.03, 0.0, 0.02, 0.0, 0.1, 0.3], atol=1e-8)
+    np.testing.assert_allclose(start[6:12], 0.0, atol=1e-9)
+    end = supervisor_setpoint(state, t + CONFIG.handover_s, scripted, REST_M, CONFIG)
+    np.testing.assert_allclose(end, scripted, atol=1e-12)
+    middle = supervisor_setpoint(state, t + CONFIG.handover_s / 2, scripted, REST_M, CONFIG)
+    assert middle[0] == pytest.approx((0.03 + HOVER[0]) / 2)
+    assert middle[6] < 0.0  # moving back toward the script's x
+
+
+def test_free_let_go_lands_level_and_then_ramps_the_force_down():
+    X_WI = pose_vector([0.02, 0.01, 0.03], [0.05, 0.0, 0.3])
+    state = initial_supervisor_state()
+    state, t = run(state, 0.0, 10, X_WI=X_WI, request=True, gripped=True, in_contact=False)
+    # A let-go shorter than the debounce is ridden through.
+    state, t = run(state, t, int(CONFIG.release_debounce_s / PERIOD_S) - 5, X_WI=X_WI,
+                   request=True, gripped=False, in_contact=False)
+    assert state[0] == HAPTIC
+    state, t = run(state, t, 1, X_WI=X_WI, request=True, gripped=True, in_contact=False)
+    state, t = run(state, t, int(CONFIG.release_debounce_s / PERIOD_S) + 5, X_WI=X_WI,
+                   request=True, gripped=False, in_contact=False)
+    assert state[0] == LANDING
+    assert state[14] == 1.0
+    landing_start = state[1]
+    scripted = np.concatenate((HOVER, np.zeros(6)))
+    done = supervisor_setpoint(state, landing_start + CONFIG.landing_s, scripted, REST_M, CONFIG)
+    np.testing.assert_allclose(done[0:6], [0.02, 0.01, REST_M - LANDING_PRESS_M, 0, 0, 0.3],
+                               atol=1e-9)
+    state, t = run(state, t, int((CONFIG.landing_s + CONFIG.settle_s + CONFIG.force_ramp_s)
+                                 / PERIOD_S) + 10,
+                   X_WI=X_WI, request=True, gripped=False, in_contact=False)
+    assert state[15] == 0.0
+
+
+def test_let_go_while_touching_the_scene_stays_haptic():
+    X_WI = pose_vector(HOVER[0:3], HOVER[3:6])
+    state = initial_supervisor_state()
+    state, t = run(state, 0.0, 10, X_WI=X_WI, request=True, gripped=True, in_contact=True)
+    # Contact ends just after the let-go (the push relaxes): still within contact memory.
+    state, t = run(state, t, 20, X_WI=X_WI, request=True, gripped=False, in_contact=True)
+    state, t = run(state, t, 2000, X_WI=X_WI, request=True, gripped=False, in_contact=False)
+    assert state[0] == HAPTIC
+
+
+def test_system_ports_and_autodiff_conversion():
+    supervisor = HapticSupervisor(config=CONFIG, period_s=PERIOD_S, rest_height_m=REST_M)
+    ad = supervisor.ToAutoDiffXd()
+    assert isinstance(ad, HapticSupervisor_[AutoDiffXd])
+    for system in (supervisor, ad):
+        context = system.CreateDefaultContext()
+        scalar = (lambda v: v) if system is supervisor else AutoDiffXd
+        values = {"scripted_setpoint": np.arange(12.0), "scripted_enable": [0.5],
+                  "X_WI_measured": pose_vector(HOVER[0:3], HOVER[3:6]), "tracking_ok": [1.0],
+                  "haptics_request": [1.0], "handle_gripped": [1.0], "tool_in_contact": [0.0]}
+        for name, value in values.items():
+            system.GetInputPort(name).FixValue(context, [scalar(float(v)) for v in value])
+        state = system.EvalUniquePeriodicDiscreteUpdate(context)
+        context.SetDiscreteState(state.get_vector().CopyToVector())
+        mode = system.GetOutputPort("mode").Eval(context)[0]
+        enable = system.GetOutputPort("enable").Eval(context)[0]
+        as_float = (lambda v: v) if system is supervisor else (lambda v: v.value())
+        assert as_float(mode) == HAPTIC
+        assert as_float(enable) == 0.5
+        assert as_float(system.GetOutputPort("haptics_enable").Eval(context)[0]) == 1.0
