@@ -190,11 +190,11 @@ def explicit_step_spectral_radius(config: HandImpedanceConfig, instrument_mass_k
                            .CopyToFullMatrix3())
     hand_mass = np.concatenate(([config.mass_kg] * 3, hand_inertia))
     instrument_mass = np.concatenate(([instrument_mass_kg] * 3, instrument_inertia_diag))
+    chain = np.array([[1.0, -1.0], [-1.0, 1.0]])  # a spring-damper between the two bodies
     radius = 0.0
     for j in range(6):
         empty = _step_map(np.array([hand_mass[j]]), np.array([[k_arm[j]]]),
                           np.array([[b_arm[j]]]), time_step_s)
-        chain = np.array([[1.0, -1.0], [-1.0, 1.0]])
         gripped = _step_map(np.array([hand_mass[j], instrument_mass[j]]),
                             np.diag([k_arm[j], 0.0]) + k_grip[j] * chain,
                             np.diag([b_arm[j], 0.0]) + b_grip[j] * chain, time_step_s)

@@ -18,12 +18,12 @@ from pydrake.systems.framework import LeafSystem
 # (name, SI units per slider unit, min, max, step) of the slider of each target
 # coordinate; a range is widened to include the start pose.
 SLIDERS = (
-    ("Hand x (mm)", 1e-3, -150.0, 150.0, 0.5),
-    ("Hand y (mm)", 1e-3, -100.0, 100.0, 0.5),
-    ("Hand z (mm)", 1e-3, 0.0, 150.0, 0.5),
-    ("Hand roll (deg)", math.pi / 180, -60.0, 60.0, 0.5),
-    ("Hand pitch (deg)", math.pi / 180, -60.0, 60.0, 0.5),
-    ("Hand yaw (deg)", math.pi / 180, -180.0, 180.0, 0.5),
+    ("Hand x (mm)", 1e-3, -150.0, 150.0, 0.1),
+    ("Hand y (mm)", 1e-3, -100.0, 100.0, 0.1),
+    ("Hand z (mm)", 1e-3, 0.0, 150.0, 0.1),
+    ("Hand roll (deg)", math.pi / 180, -60.0, 60.0, 0.1),
+    ("Hand pitch (deg)", math.pi / 180, -60.0, 60.0, 0.1),
+    ("Hand yaw (deg)", math.pi / 180, -180.0, 180.0, 0.1),
 )
 GRIP_BUTTON = "Grip / release"
 GRIP_KEY = "KeyG"
@@ -40,7 +40,7 @@ def critically_damped_response(value, rate, goal, omega, elapsed_s):
 
 def grip_from_clicks(clicks: float, grip_at_start: bool) -> float:
     """1.0 while gripping: each click of the button toggles the grip."""
-    return 1.0 if grip_at_start != (int(round(clicks)) % 2 == 1) else 0.0
+    return 1.0 if grip_at_start != (int(clicks) % 2 == 1) else 0.0
 
 
 class MeshcatHandInput(LeafSystem):
