@@ -1,0 +1,487 @@
+"""The virtual scene: a tool coupled to the instrument, and rigid objects it touches.
+
+``AddScene`` adds the scene's own discrete MultibodyPlant ("scene_plant") and
+SceneGraph ("scene_graph"): the physical world (instrument, display glass) lives
+in the station's plant, so virtual and real bodies never collide.
+
+Three scenes, picked by the config's type:
+
+- ``PegInHole``: a square peg (the tool) and a static block with a rectangular
+  hole, on a table;
+- ``HangingBall``: a small anchor sphere (the tool) with a ball hung from it by a
+  ``LinearSpringDamper``, over a table;
+- ``PaddleBall``: a paddle (the tool) and a ball dropped onto it, over a table.
+
+The tool is a free body driven only by an explicit external wrench (the virtual
+coupling's ``wrench_on_tool_W``, [fx, fy, fz, tx, ty, tz] in W, N and N*m about
+the tool's origin); its gravity is off, because the user should not feel the
+virtual tool's weight. The balls keep gravity. Frame T is the tool body's frame:
+origin at the tool's centre, axes parallel to I's when relaxed; X_IT is the
+translation ``tool_offset_m``.
+
+Explicit coupling stability: the coupling's wrench is computed from the tool's
+sampled state and held for one step h, so each tool needs k h^2 / m < 1 and
+b h / m < 2 per axis. With the coupling's 400 N/m, 5 N*s/m and 0.25 N*m/rad,
+3.1e-3 N*m*s/rad at h = 1 ms that means m >~ 10 g and every principal moment of
+inertia >~ 5e-6 kg*m^2 (b h / I = 0.62). Small tools have smaller solid-body
+moments, so each tool's moments are raised to ``min_inertia_kg_m2``: added
+virtual inertia (the user feels it through the coupling as a 36 Hz rotational
+resonance at 0.25 N*m/rad).
+
+Contact is hydroelastic ("hydroelastic_with_fallback", the "lagged" discrete
+approximation, which uses the Hunt-Crossley dissipation; "sap" ignores it and
+measured 10-70 % slower). The block, the table and the balls are compliant
+(the block's boxes and the table's have Drake's coarse 40-44 tetrahedron box
+meshes; a sphere's mesh follows ``resolution_hint_m``), the tools are rigid:
+rigid-compliant box contact makes ~43 contact polygons where compliant-compliant
+makes ~51, and a scene step costs ~6 us per polygon (measured: free ~15 us; ball
+on the paddle ~170 us; peg pressed on the hole's floor ~250 us; peg on floor and
+wall ~290 us). Both boxes compliant worked as well, but slower.
+
+Models are generated SDFormat text, so every size and contact property comes
+from the scenario; nothing is read from files.
+"""
+
+import math
+from dataclasses import dataclass, field
+from typing import List, NamedTuple, Optional, Sequence, Union
+
+import numpy as np
+from pydrake.geometry import SceneGraph
+from pydrake.math import RigidTransform
+from pydrake.multibody.parsing import Parser
+from pydrake.multibody.plant import AddMultibodyPlant, MultibodyPlant, MultibodyPlantConfig
+from pydrake.multibody.tree import LinearSpringDamper, RigidBody
+from pydrake.systems.framework import DiagramBuilder, InputPort, OutputPort
+from pydrake.systems.primitives import Demultiplexer, MatrixGain
+
+from maglev_haptics.systems.tool_contact import ToolContactSensor
+
+GRAVITY_M_S2 = 9.81  # magnitude of the scene plant's default gravity (m/s^2)
+
+
+@dataclass
+class ContactProperties:
+    """Hydroelastic contact properties shared by every collision geometry of a scene."""
+
+    hydroelastic_modulus_pa: float = 1.0e6  # pressure at the deepest point of a compliant body (Pa)
+    hunt_crossley_dissipation_s_per_m: float = 5.0  # (s/m); impacts barely bounce
+    friction: float = 0.15  # Coulomb coefficient, static = dynamic (-)
+    # Edge length of a sphere's mesh (m): 5 mm gives a 10 mm ball 128 tetrahedra
+    # (faces ~0.6 mm inside the sphere); 10 mm, 32 (~2 mm inside, ~40 us a step less).
+    resolution_hint_m: float = 0.005
+
+
+@dataclass
+class PegInHole:
+    """A square peg to insert into a rectangular hole in a static block on a table.
+
+    The hole is 2 mm wider than the peg in y (1 mm clearance a side) and 29 mm in x,
+    so the peg can be slid along x inside the hole against the walls.
+    """
+
+    # x, y, length (m)
+    peg_size_m: List[float] = field(default_factory=lambda: [0.025, 0.025, 0.040])
+    peg_mass_kg: float = 0.020  # (kg); >= 10 g for the explicit coupling
+    min_inertia_kg_m2: float = 5e-6  # floor of the peg's principal moments (kg*m^2)
+    # Position of the peg's centre (the tool body's origin) in I (m): the peg hangs below I.
+    tool_offset_m: List[float] = field(default_factory=lambda: [0.0, 0.0, -0.025])
+    # x, y, depth (m)
+    hole_size_m: List[float] = field(default_factory=lambda: [0.054, 0.027, 0.010])
+    # Centre of the hole's opening in the block's top surface, in W (m); the block's
+    # outer box is centred on it in x and y.
+    hole_center_m: List[float] = field(default_factory=lambda: [0.0, 0.0, -0.015])
+    # outer x, y, z (m)
+    block_size_m: List[float] = field(default_factory=lambda: [0.12, 0.08, 0.03])
+    table_z_m: Optional[float] = None  # top of the table in W (m); None: the block's bottom
+    contact: ContactProperties = field(default_factory=ContactProperties)
+
+
+@dataclass
+class HangingBall:
+    """A ball hung from the tool (a small anchor sphere) by a linear spring-damper.
+
+    The spring joins the anchor's centre to the ball's centre. With the defaults the
+    ball hangs rest length + m g / k = 30 + 9.8 = 39.8 mm below the anchor, bobs at
+    5 Hz (damping ratio 0.08) and swings as a 2.5 Hz pendulum.
+    """
+
+    anchor_radius_m: float = 0.008  # (m)
+    anchor_mass_kg: float = 0.020  # (kg); >= 10 g for the explicit coupling
+    min_inertia_kg_m2: float = 5e-6  # floor of the anchor's principal moments (kg*m^2)
+    # The anchor's centre in I (m): at I's origin the spring exerts no torque on the user.
+    tool_offset_m: List[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+    ball_radius_m: float = 0.010  # (m)
+    ball_mass_kg: float = 0.010  # (kg)
+    spring_stiffness_n_per_m: float = 10.0  # (N/m)
+    spring_damping_n_s_per_m: float = 0.05  # (N*s/m)
+    spring_rest_length_m: float = 0.030  # (m)
+    table_z_m: Optional[float] = -0.040  # top of the table in W (m); None: no table
+    contact: ContactProperties = field(default_factory=ContactProperties)
+
+
+@dataclass
+class PaddleBall:
+    """A light ball dropped from rest onto the paddle (the tool); it bounces.
+
+    The 1 ms implicit contact step damps short impacts by itself, so the ball is
+    soft (1e5 Pa; it sinks ~3 mm into the paddle at 1 m/s) with little Hunt-Crossley
+    dissipation: dropped 5 cm, it rebounds at ~0.5 of its speed from the table and
+    ~0.37 from the paddle held by the coupling (the paddle recoils). At 1e6 Pa
+    those are ~0.3 and ~0.2.
+    """
+
+    paddle_size_m: List[float] = field(default_factory=lambda: [0.08, 0.05, 0.006])  # x, y, z (m)
+    paddle_mass_kg: float = 0.030  # (kg); >= 10 g for the explicit coupling
+    min_inertia_kg_m2: float = 5e-6  # floor of the paddle's principal moments (kg*m^2)
+    # Position of the paddle's centre (the tool body's origin) in I (m): below I.
+    tool_offset_m: List[float] = field(default_factory=lambda: [0.0, 0.0, -0.030])
+    ball_radius_m: float = 0.010  # (m)
+    ball_mass_kg: float = 0.005  # (kg)
+    # The ball's centre in W at t = 0, at rest (m).
+    ball_start_m: List[float] = field(default_factory=lambda: [0.0, 0.0, 0.050])
+    table_z_m: Optional[float] = -0.040  # top of the table in W (m); None: no table
+    contact: ContactProperties = field(default_factory=lambda: ContactProperties(
+        hydroelastic_modulus_pa=1.0e5, hunt_crossley_dissipation_s_per_m=0.1))
+
+
+SceneConfig = Union[PegInHole, HangingBall, PaddleBall]
+
+
+@dataclass
+class SceneParts:
+    """What ``AddScene`` added. Port shapes: wrenches [fx, fy, fz, tx, ty, tz] in W
+    (N, N*m, about the tool's origin); ``X_WT`` [qw, qx, qy, qz, x, y, z] (m);
+    ``V_WT`` [wx, wy, wz, vx, vy, vz] in W (rad/s, m/s)."""
+
+    plant: MultibodyPlant
+    scene_graph: SceneGraph
+    tool_body: RigidBody
+    X_IT: RigidTransform  # the tool's frame T in the instrument frame I
+    ball_body: Optional[RigidBody]  # None for PegInHole
+    wrench_on_tool_input: InputPort  # the coupling's wrench on the tool
+    X_WT_output: OutputPort
+    V_WT_output: OutputPort
+    contact_wrench_output: OutputPort  # total contact wrench on the tool
+    in_contact_output: OutputPort  # 1.0 while anything touches the tool
+    tool_contact: ToolContactSensor
+
+
+TABLE_SIZE_M = (0.40, 0.30, 0.010)  # x, y, z of the table's box (m)
+
+# Visual colours, RGBA.
+PEG_RGBA = (0.20, 0.45, 0.85, 1.0)
+PADDLE_RGBA = (0.90, 0.50, 0.10, 1.0)
+ANCHOR_RGBA = (0.30, 0.30, 0.35, 1.0)
+BALL_RGBA = (0.85, 0.15, 0.15, 1.0)
+BLOCK_RGBA = (0.80, 0.65, 0.40, 1.0)
+HOLE_FLOOR_RGBA = (0.45, 0.32, 0.18, 1.0)
+TABLE_RGBA = (0.35, 0.55, 0.40, 1.0)
+
+
+# --- numeric core ---------------------------------------------------------------------
+
+def box_inertia(mass_kg: float, size_m: Sequence[float]) -> np.ndarray:
+    """Principal moments (3,) (kg*m^2) about its centre of a solid box of ``size_m``
+    (x, y, z; m)."""
+    x2, y2, z2 = np.square(np.asarray(size_m, dtype=float))
+    return mass_kg / 12.0 * np.array([y2 + z2, x2 + z2, x2 + y2])
+
+
+def sphere_inertia(mass_kg: float, radius_m: float) -> np.ndarray:
+    """Principal moments (3,) (kg*m^2) of a solid sphere about its centre."""
+    return np.full(3, 0.4 * mass_kg * radius_m**2)
+
+
+def hole_block_boxes(block_size_m, hole_size_m, hole_center_m):
+    """The block with a hole as five boxes [(name, centre in W (3,), size (3,))] (m):
+    a floor under the whole block, then the walls left and right of the hole (full
+    depth in y) and in front of and behind it (between those)."""
+    bx, by, bz = block_size_m
+    hx, hy, depth = hole_size_m
+    cx, cy, top = hole_center_m
+    floor = bz - depth
+    wall_z = top - depth / 2
+    side_x = (bx - hx) / 2
+    side_y = (by - hy) / 2
+    x_wall = (hx + side_x) / 2  # wall centres' distance from the hole's centre (m)
+    y_wall = (hy + side_y) / 2
+    boxes = [
+        ("floor", [cx, cy, top - depth - floor / 2], [bx, by, floor]),
+        ("wall_left", [cx - x_wall, cy, wall_z], [side_x, by, depth]),
+        ("wall_right", [cx + x_wall, cy, wall_z], [side_x, by, depth]),
+        ("wall_front", [cx, cy - y_wall, wall_z], [hx, side_y, depth]),
+        ("wall_back", [cx, cy + y_wall, wall_z], [hx, side_y, depth]),
+    ]
+    return [(name, np.array(centre), np.array(size)) for name, centre, size in boxes]
+
+
+def block_bottom_z(scene: PegInHole) -> float:
+    """z of the block's underside in W (m)."""
+    return scene.hole_center_m[2] - scene.block_size_m[2]
+
+
+def hanging_drop_m(scene: HangingBall) -> float:
+    """Static distance (m) of the ball's centre below the anchor's: rest length + m g / k."""
+    return (scene.spring_rest_length_m
+            + scene.ball_mass_kg * GRAVITY_M_S2 / scene.spring_stiffness_n_per_m)
+
+
+def wrench_to_generalized_force(velocity_start: int, num_velocities: int) -> np.ndarray:
+    """(num_velocities, 6) matrix mapping [f; tau] in W to the plant's generalized
+    forces: a quaternion free body's velocities are [w_WB; v_WB] in W, so the
+    conjugate forces are [tau; f] at ``velocity_start``."""
+    D = np.zeros((num_velocities, 6))
+    D[velocity_start:velocity_start + 3, 3:6] = np.eye(3)
+    D[velocity_start + 3:velocity_start + 6, 0:3] = np.eye(3)
+    return D
+
+
+# --- validation -----------------------------------------------------------------------
+
+def _require(ok: bool, path: str, value, allowed: str) -> None:
+    if not ok:
+        raise ValueError(f"{path} = {value!r}: {allowed}")
+
+
+def _finite(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _positive(path: str, value) -> None:
+    _require(_finite(value) and value > 0, path, value, "must be a finite number > 0")
+
+
+def _nonnegative(path: str, value) -> None:
+    _require(_finite(value) and value >= 0, path, value, "must be a finite number >= 0")
+
+
+def _vector(path: str, value, positive: bool = False) -> None:
+    _require(isinstance(value, (list, tuple)) and len(value) == 3 and all(map(_finite, value))
+             and (not positive or all(v > 0 for v in value)), path, value,
+             f"must be a list of 3 finite numbers{' > 0' if positive else ''}")
+
+
+def _validate_contact(c: ContactProperties, path: str) -> None:
+    _positive(f"{path}.hydroelastic_modulus_pa", c.hydroelastic_modulus_pa)
+    _nonnegative(f"{path}.hunt_crossley_dissipation_s_per_m", c.hunt_crossley_dissipation_s_per_m)
+    _nonnegative(f"{path}.friction", c.friction)
+    _positive(f"{path}.resolution_hint_m", c.resolution_hint_m)
+
+
+def validate_scene(scene: SceneConfig, label: str = "scene") -> None:
+    """Range checks; a ValueError names ``label.field``, its value and what is allowed."""
+    _require(isinstance(scene, (PegInHole, HangingBall, PaddleBall)), label, scene,
+             "must be a PegInHole, HangingBall or PaddleBall")
+    _nonnegative(f"{label}.min_inertia_kg_m2", scene.min_inertia_kg_m2)
+    _vector(f"{label}.tool_offset_m", scene.tool_offset_m)
+    if scene.table_z_m is not None:
+        _require(_finite(scene.table_z_m), f"{label}.table_z_m", scene.table_z_m,
+                 "must be a finite number or null")
+    _validate_contact(scene.contact, f"{label}.contact")
+    if isinstance(scene, PegInHole):
+        _vector(f"{label}.peg_size_m", scene.peg_size_m, positive=True)
+        _positive(f"{label}.peg_mass_kg", scene.peg_mass_kg)
+        _vector(f"{label}.hole_size_m", scene.hole_size_m, positive=True)
+        _vector(f"{label}.hole_center_m", scene.hole_center_m)
+        _vector(f"{label}.block_size_m", scene.block_size_m, positive=True)
+        for i, axis in enumerate("xy"):
+            _require(scene.peg_size_m[i] < scene.hole_size_m[i], f"{label}.peg_size_m[{i}]",
+                     scene.peg_size_m[i], f"the peg must be narrower than the hole in {axis} "
+                     f"(hole_size_m[{i}] = {scene.hole_size_m[i]})")
+            _require(scene.hole_size_m[i] < scene.block_size_m[i], f"{label}.hole_size_m[{i}]",
+                     scene.hole_size_m[i], f"the hole must be narrower than the block in {axis} "
+                     f"(block_size_m[{i}] = {scene.block_size_m[i]})")
+        _require(scene.hole_size_m[2] < scene.block_size_m[2], f"{label}.hole_size_m[2]",
+                 scene.hole_size_m[2], f"the hole must be shallower than the block "
+                 f"(block_size_m[2] = {scene.block_size_m[2]})")
+        if scene.table_z_m is not None:
+            _require(scene.table_z_m <= block_bottom_z(scene) + 1e-12, f"{label}.table_z_m",
+                     scene.table_z_m, f"the table must be at or below the block's bottom "
+                     f"({block_bottom_z(scene)} m)")
+    elif isinstance(scene, HangingBall):
+        _positive(f"{label}.anchor_radius_m", scene.anchor_radius_m)
+        _positive(f"{label}.anchor_mass_kg", scene.anchor_mass_kg)
+        _positive(f"{label}.ball_radius_m", scene.ball_radius_m)
+        _positive(f"{label}.ball_mass_kg", scene.ball_mass_kg)
+        _positive(f"{label}.spring_stiffness_n_per_m", scene.spring_stiffness_n_per_m)
+        _nonnegative(f"{label}.spring_damping_n_s_per_m", scene.spring_damping_n_s_per_m)
+        _positive(f"{label}.spring_rest_length_m", scene.spring_rest_length_m)
+        gap = scene.anchor_radius_m + scene.ball_radius_m
+        _require(hanging_drop_m(scene) > gap, f"{label}.spring_rest_length_m",
+                 scene.spring_rest_length_m, f"the ball must hang clear of the anchor: rest "
+                 f"length + m g / k = {hanging_drop_m(scene):.4g} m must exceed "
+                 f"anchor_radius_m + ball_radius_m = {gap:.4g} m")
+    else:
+        _vector(f"{label}.paddle_size_m", scene.paddle_size_m, positive=True)
+        _positive(f"{label}.paddle_mass_kg", scene.paddle_mass_kg)
+        _positive(f"{label}.ball_radius_m", scene.ball_radius_m)
+        _positive(f"{label}.ball_mass_kg", scene.ball_mass_kg)
+        _vector(f"{label}.ball_start_m", scene.ball_start_m)
+
+
+# --- SDFormat -------------------------------------------------------------------------
+
+class Part(NamedTuple):
+    """One visual + collision shape of a link: ``geometry`` is SDFormat
+    <geometry> content, ``p_LP`` its centre in the link frame (m)."""
+
+    name: str
+    geometry: str
+    p_LP: Sequence[float]
+    rgba: Sequence[float]
+
+
+def box_geometry(size_m) -> str:
+    return "<box><size>{:.9g} {:.9g} {:.9g}</size></box>".format(*size_m)
+
+
+def sphere_geometry(radius_m: float) -> str:
+    return f"<sphere><radius>{radius_m:.9g}</radius></sphere>"
+
+
+def proximity_properties_sdf(contact: ContactProperties, compliant: bool = True) -> str:
+    """A hydroelastic <drake:proximity_properties> block, compliant or rigid."""
+    kind = ("<drake:compliant_hydroelastic/><drake:hydroelastic_modulus>"
+            f"{contact.hydroelastic_modulus_pa:.9g}</drake:hydroelastic_modulus>"
+            if compliant else "<drake:rigid_hydroelastic/>")
+    return (
+        f"<drake:proximity_properties>{kind}"
+        f"<drake:mesh_resolution_hint>{contact.resolution_hint_m:.9g}</drake:mesh_resolution_hint>"
+        "<drake:hunt_crossley_dissipation>"
+        f"{contact.hunt_crossley_dissipation_s_per_m:.9g}</drake:hunt_crossley_dissipation>"
+        f"<drake:mu_static>{contact.friction:.9g}</drake:mu_static>"
+        f"<drake:mu_dynamic>{contact.friction:.9g}</drake:mu_dynamic>"
+        "</drake:proximity_properties>")
+
+
+def model_sdf(name: str, parts: Sequence[Part], contact: ContactProperties, *,
+              compliant: bool = True, mass_kg: Optional[float] = None, inertia_kg_m2=None) -> str:
+    """An SDFormat model with one link "body" holding ``parts``. Static (welded to
+    the world) when ``mass_kg`` is None, else a free body with that mass and the
+    principal moments ``inertia_kg_m2`` (3,) about its origin."""
+    elements = []
+    if mass_kg is None:
+        elements.append("<static>true</static>")
+    link = []
+    if mass_kg is not None:
+        ixx, iyy, izz = inertia_kg_m2
+        link.append(
+            f"<inertial><mass>{mass_kg:.9g}</mass><inertia><ixx>{ixx:.9g}</ixx>"
+            f"<iyy>{iyy:.9g}</iyy><izz>{izz:.9g}</izz><ixy>0</ixy><ixz>0</ixz><iyz>0</iyz>"
+            "</inertia></inertial>")
+    properties = proximity_properties_sdf(contact, compliant)
+    for part in parts:
+        pose = "<pose>{:.9g} {:.9g} {:.9g} 0 0 0</pose>".format(*part.p_LP)
+        link.append(
+            f'<visual name="{part.name}">{pose}<geometry>{part.geometry}</geometry>'
+            "<material><diffuse>{:.3g} {:.3g} {:.3g} {:.3g}</diffuse></material></visual>"
+            .format(*part.rgba))
+        link.append(f'<collision name="{part.name}">{pose}<geometry>{part.geometry}</geometry>'
+                    f"{properties}</collision>")
+    elements.append('<link name="body">' + "".join(link) + "</link>")
+    return ('<?xml version="1.0"?><sdf version="1.9" xmlns:drake="http://drake.mit.edu">'
+            f'<model name="{name}">' + "".join(elements) + "</model></sdf>")
+
+
+def tool_sdf(scene: SceneConfig) -> str:
+    """The tool's model "tool": its link's origin is the tool's centre, frame T."""
+    if isinstance(scene, PegInHole):
+        mass, solid = scene.peg_mass_kg, box_inertia(scene.peg_mass_kg, scene.peg_size_m)
+        part = Part("peg", box_geometry(scene.peg_size_m), (0, 0, 0), PEG_RGBA)
+    elif isinstance(scene, HangingBall):
+        mass = scene.anchor_mass_kg
+        solid = sphere_inertia(mass, scene.anchor_radius_m)
+        part = Part("anchor", sphere_geometry(scene.anchor_radius_m), (0, 0, 0), ANCHOR_RGBA)
+    else:
+        mass, solid = scene.paddle_mass_kg, box_inertia(scene.paddle_mass_kg, scene.paddle_size_m)
+        part = Part("paddle", box_geometry(scene.paddle_size_m), (0, 0, 0), PADDLE_RGBA)
+    inertia = np.maximum(solid, scene.min_inertia_kg_m2)
+    return model_sdf("tool", [part], scene.contact, compliant=False, mass_kg=mass,
+                     inertia_kg_m2=inertia)
+
+
+def ball_sdf(radius_m: float, mass_kg: float, contact: ContactProperties) -> str:
+    part = Part("ball", sphere_geometry(radius_m), (0, 0, 0), BALL_RGBA)
+    return model_sdf("ball", [part], contact, mass_kg=mass_kg,
+                     inertia_kg_m2=sphere_inertia(mass_kg, radius_m))
+
+
+def block_sdf(scene: PegInHole) -> str:
+    """The static block "block": five boxes on one body, placed in W."""
+    parts = [Part(name, box_geometry(size), centre,
+                  HOLE_FLOOR_RGBA if name == "floor" else BLOCK_RGBA)
+             for name, centre, size in hole_block_boxes(scene.block_size_m, scene.hole_size_m,
+                                                        scene.hole_center_m)]
+    return model_sdf("block", parts, scene.contact)
+
+
+def table_sdf(top_z_m: float, contact: ContactProperties) -> str:
+    """The static table "table": a large thin box with its top at ``top_z_m`` in W."""
+    part = Part("table", box_geometry(TABLE_SIZE_M), (0.0, 0.0, top_z_m - TABLE_SIZE_M[2] / 2),
+                TABLE_RGBA)
+    return model_sdf("table", [part], contact)
+
+
+# --- builder --------------------------------------------------------------------------
+
+def AddScene(builder: DiagramBuilder, *, scene: SceneConfig, time_step_s: float,
+             X_WI_start: RigidTransform) -> SceneParts:
+    """Add the scene's plant and scene graph, its models and its ports to ``builder``.
+
+    The tool starts at X_WI_start * X_IT; the hanging ball at its static hanging
+    point below the anchor; the paddle's ball at ``ball_start_m``; all at rest.
+    """
+    validate_scene(scene)
+    _positive("time_step_s", time_step_s)
+    config = MultibodyPlantConfig(time_step=time_step_s, discrete_contact_approximation="lagged",
+                                  contact_model="hydroelastic_with_fallback")
+    plant, scene_graph = AddMultibodyPlant(config, builder)
+    plant.set_name("scene_plant")
+    scene_graph.set_name("scene_graph")
+    parser = Parser(plant)
+    tool = parser.AddModelsFromString(tool_sdf(scene), "sdf")[0]
+    plant.set_gravity_enabled(tool, False)
+    ball = None
+    if isinstance(scene, PegInHole):
+        parser.AddModelsFromString(block_sdf(scene), "sdf")
+    else:
+        ball = parser.AddModelsFromString(
+            ball_sdf(scene.ball_radius_m, scene.ball_mass_kg, scene.contact), "sdf")[0]
+    table_z = block_bottom_z(scene) if isinstance(scene, PegInHole) and scene.table_z_m is None \
+        else scene.table_z_m
+    if table_z is not None:
+        parser.AddModelsFromString(table_sdf(table_z, scene.contact), "sdf")
+    tool_body = plant.GetBodyByName("body", tool)
+    ball_body = None if ball is None else plant.GetBodyByName("body", ball)
+    if isinstance(scene, HangingBall):
+        plant.AddForceElement(LinearSpringDamper(
+            tool_body, np.zeros(3), ball_body, np.zeros(3), scene.spring_rest_length_m,
+            scene.spring_stiffness_n_per_m, scene.spring_damping_n_s_per_m))
+    plant.Finalize()
+
+    X_IT = RigidTransform(np.asarray(scene.tool_offset_m, dtype=float))
+    X_WT = X_WI_start @ X_IT
+    plant.SetDefaultFloatingBaseBodyPose(tool_body, X_WT)
+    if isinstance(scene, HangingBall):
+        p_WB = X_WT.translation() - [0.0, 0.0, hanging_drop_m(scene)]
+        plant.SetDefaultFloatingBaseBodyPose(ball_body, RigidTransform(p_WB))
+    elif isinstance(scene, PaddleBall):
+        plant.SetDefaultFloatingBaseBodyPose(ball_body, RigidTransform(
+            np.asarray(scene.ball_start_m, dtype=float)))
+
+    gain = builder.AddNamedSystem("scene_wrench_to_generalized_force", MatrixGain(
+        wrench_to_generalized_force(tool_body.floating_velocities_start_in_v(),
+                                    plant.num_velocities())))
+    builder.Connect(gain.get_output_port(), plant.get_applied_generalized_force_input_port())
+    split = builder.AddNamedSystem("scene_tool_state", Demultiplexer([7, 6]))
+    builder.Connect(plant.get_state_output_port(tool), split.get_input_port())
+    sensor = builder.AddNamedSystem("tool_contact", ToolContactSensor(plant, tool_body))
+    builder.Connect(plant.get_contact_results_output_port(), sensor.GetInputPort("contact_results"))
+    builder.Connect(split.get_output_port(0), sensor.GetInputPort("X_WT"))
+    return SceneParts(
+        plant=plant, scene_graph=scene_graph, tool_body=tool_body, X_IT=X_IT, ball_body=ball_body,
+        wrench_on_tool_input=gain.get_input_port(), X_WT_output=split.get_output_port(0),
+        V_WT_output=split.get_output_port(1),
+        contact_wrench_output=sensor.GetOutputPort("wrench_on_tool_W"),
+        in_contact_output=sensor.GetOutputPort("in_contact"), tool_contact=sensor)

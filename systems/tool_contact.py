@@ -1,0 +1,107 @@
+"""Contact sensing on the scene's tool: the total contact wrench and a contact flag.
+
+Each contact on the tool contributes a force f (N) applied at a point C and a
+couple tau (N*m) about C, in W: for hydroelastic contact the spatial force at
+the contact surface's centroid (``HydroelasticContactInfo.F_Ac_W`` is on the
+body of geometry M, so its negative is on the body of geometry N); for point
+contact the force at the contact point (``contact_force`` is on body B, its
+negative on body A) with no couple. The sensor moves each to the tool body's
+origin To and sums: tau_To = tau + (p_WC - p_WTo) x f.
+"""
+
+import numpy as np
+from pydrake.common.value import AbstractValue
+from pydrake.multibody.plant import ContactResults
+from pydrake.systems.framework import LeafSystem, ValueProducer
+
+
+def wrench_about_point(forces_W, torques_W, p_WC, p_WO) -> np.ndarray:
+    """[f; tau] (6,) in W (N, N*m): the sum of forces (n, 3) applied at points p_WC
+    (n, 3) (m) with couples torques_W (n, 3) about those points, moved to p_WO (m)."""
+    forces_W = np.reshape(forces_W, (-1, 3))
+    if forces_W.shape[0] == 0:
+        return np.zeros(6)
+    torques_W = np.reshape(torques_W, (-1, 3))
+    arms = np.reshape(p_WC, (-1, 3)) - p_WO
+    return np.concatenate((forces_W.sum(axis=0),
+                           (torques_W + np.cross(arms, forces_W)).sum(axis=0)))
+
+
+class ToolContactSensor(LeafSystem):
+    """The scene plant's contact wrench on the tool body.
+
+    .. pydrake_system::
+
+        name: ToolContactSensor
+        input_ports:
+        - contact_results
+        - X_WT
+        output_ports:
+        - wrench_on_tool_W
+        - in_contact
+
+    ``contact_results`` is the scene plant's ContactResults; ``X_WT`` the tool
+    body's pose [qw, qx, qy, qz, x, y, z] (m), of which only the origin p_WTo is
+    used. ``wrench_on_tool_W`` is [fx, fy, fz, tx, ty, tz] in W (N, N*m): the total
+    contact force on the tool and its moment about the tool body's origin.
+    ``in_contact`` is 1.0 while any contact (hydroelastic or point) touches the
+    tool, else 0.0.
+    """
+
+    def __init__(self, plant, tool_body):
+        LeafSystem.__init__(self)
+        self._tool_index = tool_body.index()
+        self._tool_geometries = frozenset(plant.GetCollisionGeometriesForBody(tool_body))
+        self._contact_results = self.DeclareAbstractInputPort(
+            "contact_results", AbstractValue.Make(ContactResults()))
+        self._X_WT = self.DeclareVectorInputPort("X_WT", 7)
+        # Both outputs come from one pass over the contact results.
+        self._cache = self.DeclareCacheEntry(
+            description="contact wrench and flag",
+            value_producer=ValueProducer(allocate=AbstractValue.Make(()).Clone,
+                                         calc=self._calc_cache),
+            prerequisites_of_calc={self.all_input_ports_ticket()})
+        self.DeclareVectorOutputPort("wrench_on_tool_W", 6, self._calc_wrench_on_tool_W)
+        self.DeclareVectorOutputPort("in_contact", 1, self._calc_in_contact)
+
+    def _contacts(self, context):
+        """(forces (n, 3), couples (n, 3), points (n, 3)) on the tool, in W."""
+        results = self._contact_results.Eval(context)
+        forces, torques, points = [], [], []
+        for i in range(results.num_hydroelastic_contacts()):
+            info = results.hydroelastic_contact_info(i)
+            surface = info.contact_surface()
+            if surface.id_M() in self._tool_geometries:
+                sign = 1.0
+            elif surface.id_N() in self._tool_geometries:
+                sign = -1.0
+            else:
+                continue
+            F = info.F_Ac_W()
+            forces.append(sign * F.translational())
+            torques.append(sign * F.rotational())
+            points.append(surface.centroid())
+        for i in range(results.num_point_pair_contacts()):
+            info = results.point_pair_contact_info(i)
+            if info.bodyB_index() == self._tool_index:
+                sign = 1.0
+            elif info.bodyA_index() == self._tool_index:
+                sign = -1.0
+            else:
+                continue
+            forces.append(sign * info.contact_force())
+            torques.append(np.zeros(3))
+            points.append(info.contact_point())
+        return forces, torques, points
+
+    def _calc_cache(self, context, value):
+        """(wrench [f; tau] about the tool's origin in W, 1.0 if in contact else 0.0)."""
+        forces, torques, points = self._contacts(context)
+        wrench = wrench_about_point(forces, torques, points, self._X_WT.Eval(context)[4:7])
+        value.set_value((wrench, 1.0 if forces else 0.0))
+
+    def _calc_wrench_on_tool_W(self, context, output):
+        output.SetFromVector(self._cache.Eval(context)[0])
+
+    def _calc_in_contact(self, context, output):
+        output.SetFromVector([self._cache.Eval(context)[1]])
