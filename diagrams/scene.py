@@ -221,10 +221,88 @@ def block_bottom_z(scene: PegInHole) -> float:
     return scene.hole_center_m[2] - scene.block_size_m[2]
 
 
+def table_top_z(scene: SceneConfig) -> Optional[float]:
+    """z of the table's top in W (m), None without a table."""
+    if isinstance(scene, PegInHole) and scene.table_z_m is None:
+        return block_bottom_z(scene)
+    return scene.table_z_m
+
+
 def hanging_drop_m(scene: HangingBall) -> float:
     """Static distance (m) of the ball's centre below the anchor's: rest length + m g / k."""
     return (scene.spring_rest_length_m
             + scene.ball_mass_kg * GRAVITY_M_S2 / scene.spring_stiffness_n_per_m)
+
+
+def box_overlaps_box(X_WA: RigidTransform, size_A, X_WB: RigidTransform, size_B) -> bool:
+    """Whether two solid boxes (full sizes in m, centred on their frames) interpenetrate:
+    the separating-axis test over both boxes' face normals and their edges' cross
+    products. Boxes that only touch do not overlap."""
+    R_A, R_B = X_WA.rotation().matrix(), X_WB.rotation().matrix()
+    half_A, half_B = np.asarray(size_A) / 2, np.asarray(size_B) / 2
+    p_AB_W = X_WB.translation() - X_WA.translation()
+    axes = [R_A[:, i] for i in range(3)] + [R_B[:, j] for j in range(3)]
+    axes += [np.cross(R_A[:, i], R_B[:, j]) for i in range(3) for j in range(3)]
+    for axis in axes:
+        norm = np.linalg.norm(axis)
+        if norm < 1e-9:  # parallel edges: their face normals already cover this
+            continue
+        u = axis / norm
+        reach = half_A @ np.abs(R_A.T @ u) + half_B @ np.abs(R_B.T @ u)
+        if abs(p_AB_W @ u) >= reach:
+            return False
+    return True
+
+
+def sphere_overlaps_box(p_WS, radius_m: float, X_WB: RigidTransform, size_B) -> bool:
+    """Whether a solid sphere (centre p_WS, m) and a solid box (full size, m) interpenetrate."""
+    p_BS = X_WB.inverse() @ np.asarray(p_WS, dtype=float)
+    half = np.asarray(size_B) / 2
+    return float(np.linalg.norm(p_BS - np.clip(p_BS, -half, half))) < radius_m
+
+
+class Solid(NamedTuple):
+    """A box of full extents ``size_m`` or, with ``radius_m``, a sphere, centred at X_WS (m)."""
+
+    name: str
+    X_WS: RigidTransform
+    size_m: Optional[Sequence[float]] = None
+    radius_m: Optional[float] = None
+
+
+def solid_overlaps_box(solid: Solid, box: Solid) -> bool:
+    if solid.radius_m is None:
+        return box_overlaps_box(solid.X_WS, solid.size_m, box.X_WS, box.size_m)
+    return sphere_overlaps_box(solid.X_WS.translation(), solid.radius_m, box.X_WS, box.size_m)
+
+
+def start_overlap(scene: SceneConfig, X_WT: RigidTransform) -> Optional[str]:
+    """What the tool at X_WT or the ball at its start would start inside, or None."""
+    boxes = []
+    if isinstance(scene, PegInHole):
+        boxes = [Solid(f"the block's {name.replace('_', ' ')}", RigidTransform(centre), size)
+                 for name, centre, size in hole_block_boxes(
+                     scene.block_size_m, scene.hole_size_m, scene.hole_center_m)]
+        moving = [Solid("peg", X_WT, scene.peg_size_m)]
+    elif isinstance(scene, HangingBall):
+        p_WB = X_WT.translation() - [0.0, 0.0, hanging_drop_m(scene)]
+        moving = [Solid("anchor", X_WT, radius_m=scene.anchor_radius_m),
+                  Solid("ball", RigidTransform(p_WB), radius_m=scene.ball_radius_m)]
+    else:
+        ball = Solid("ball", RigidTransform(np.asarray(scene.ball_start_m, dtype=float)),
+                     radius_m=scene.ball_radius_m)
+        if solid_overlaps_box(ball, Solid("the paddle", X_WT, scene.paddle_size_m)):
+            return "the ball starts inside the paddle"
+        moving = [Solid("paddle", X_WT, scene.paddle_size_m), ball]
+    table_z = table_top_z(scene)
+    if table_z is not None:
+        boxes.append(Solid("the table", RigidTransform([0.0, 0.0, table_z - TABLE_SIZE_M[2] / 2]),
+                           TABLE_SIZE_M))
+    for solid in moving:
+        for box in boxes:
+            if solid_overlaps_box(solid, box):
+                return f"the {solid.name} starts inside {box.name}"
+    return None
 
 
 def wrench_to_generalized_force(velocity_start: int, num_velocities: int) -> np.ndarray:
@@ -434,6 +512,13 @@ def AddScene(builder: DiagramBuilder, *, scene: SceneConfig, time_step_s: float,
     """
     validate_scene(scene)
     _positive("time_step_s", time_step_s)
+    X_IT = RigidTransform(np.asarray(scene.tool_offset_m, dtype=float))
+    X_WT = X_WI_start @ X_IT
+    overlap = start_overlap(scene, X_WT)
+    if overlap is not None:
+        raise ValueError(
+            f"X_WI_start (p_WI = {np.round(X_WI_start.translation(), 6).tolist()} m): {overlap}; "
+            "start the instrument where the tool and the ball are clear of the scene")
     config = MultibodyPlantConfig(time_step=time_step_s, discrete_contact_approximation="lagged",
                                   contact_model="hydroelastic_with_fallback")
     plant, scene_graph = AddMultibodyPlant(config, builder)
@@ -448,8 +533,7 @@ def AddScene(builder: DiagramBuilder, *, scene: SceneConfig, time_step_s: float,
     else:
         ball = parser.AddModelsFromString(
             ball_sdf(scene.ball_radius_m, scene.ball_mass_kg, scene.contact), "sdf")[0]
-    table_z = block_bottom_z(scene) if isinstance(scene, PegInHole) and scene.table_z_m is None \
-        else scene.table_z_m
+    table_z = table_top_z(scene)
     if table_z is not None:
         parser.AddModelsFromString(table_sdf(table_z, scene.contact), "sdf")
     tool_body = plant.GetBodyByName("body", tool)
@@ -459,9 +543,6 @@ def AddScene(builder: DiagramBuilder, *, scene: SceneConfig, time_step_s: float,
             tool_body, np.zeros(3), ball_body, np.zeros(3), scene.spring_rest_length_m,
             scene.spring_stiffness_n_per_m, scene.spring_damping_n_s_per_m))
     plant.Finalize()
-
-    X_IT = RigidTransform(np.asarray(scene.tool_offset_m, dtype=float))
-    X_WT = X_WI_start @ X_IT
     plant.SetDefaultFloatingBaseBodyPose(tool_body, X_WT)
     if isinstance(scene, HangingBall):
         p_WB = X_WT.translation() - [0.0, 0.0, hanging_drop_m(scene)]
@@ -470,13 +551,13 @@ def AddScene(builder: DiagramBuilder, *, scene: SceneConfig, time_step_s: float,
         plant.SetDefaultFloatingBaseBodyPose(ball_body, RigidTransform(
             np.asarray(scene.ball_start_m, dtype=float)))
 
-    gain = builder.AddNamedSystem("scene_wrench_to_generalized_force", MatrixGain(
+    gain = builder.AddNamedSystem("scene_tool_wrench", MatrixGain(
         wrench_to_generalized_force(tool_body.floating_velocities_start_in_v(),
                                     plant.num_velocities())))
     builder.Connect(gain.get_output_port(), plant.get_applied_generalized_force_input_port())
     split = builder.AddNamedSystem("scene_tool_state", Demultiplexer([7, 6]))
     builder.Connect(plant.get_state_output_port(tool), split.get_input_port())
-    sensor = builder.AddNamedSystem("tool_contact", ToolContactSensor(plant, tool_body))
+    sensor = builder.AddNamedSystem("scene_tool_contact", ToolContactSensor(plant, tool_body))
     builder.Connect(plant.get_contact_results_output_port(), sensor.GetInputPort("contact_results"))
     builder.Connect(split.get_output_port(0), sensor.GetInputPort("X_WT"))
     return SceneParts(

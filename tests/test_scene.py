@@ -17,8 +17,8 @@ from pydrake.systems.primitives import Adder, ConstantVectorSource, Demultiplexe
 
 from maglev_haptics.diagrams.scene import (
     GRAVITY_M_S2, AddScene, ContactProperties, HangingBall, PaddleBall, PegInHole, SceneConfig,
-    block_bottom_z, box_inertia, hanging_drop_m, hole_block_boxes, validate_scene,
-    wrench_to_generalized_force)
+    block_bottom_z, box_inertia, box_overlaps_box, hanging_drop_m, hole_block_boxes,
+    sphere_overlaps_box, start_overlap, validate_scene, wrench_to_generalized_force)
 from maglev_haptics.systems.haptic_coupling import CouplingConfig, HapticCoupling
 from maglev_haptics.systems.tool_contact import ToolContactSensor, wrench_about_point
 
@@ -185,7 +185,7 @@ def test_every_visual_has_its_own_colour():
 
 
 def test_default_poses_and_ports():
-    X_WI = RigidTransform(RollPitchYaw(0.1, -0.2, 0.3), [0.01, 0.02, 0.03])
+    X_WI = RigidTransform(RollPitchYaw(0.1, -0.2, 0.3), [0.01, 0.02, 0.06])
     for scene in (PegInHole(), HangingBall(), PaddleBall()):
         builder, parts = build(scene, X_WI)
         assert parts.wrench_on_tool_input.size() == 6
@@ -438,6 +438,43 @@ def test_bad_config_names_the_field(scene, field_name):
         validate_scene(scene)
     with pytest.raises(ValueError, match="scene."):
         build(scene)
+
+
+def test_box_overlap_separating_axes():
+    size = [0.02, 0.02, 0.02]
+    X_WA = RigidTransform()
+    # Face to face: apart, touching, overlapping.
+    assert not box_overlaps_box(X_WA, size, RigidTransform([0.021, 0, 0]), size)
+    assert not box_overlaps_box(X_WA, size, RigidTransform([0.020, 0, 0]), size)
+    assert box_overlaps_box(X_WA, size, RigidTransform([0.019, 0, 0]), size)
+    # Turned 45 deg about z, the corner reaches 0.01 * sqrt(2) = 14.1 mm.
+    turned = RollPitchYaw(0, 0, np.pi / 4)
+    assert box_overlaps_box(X_WA, size, RigidTransform(turned, [0.024, 0, 0]), size)
+    assert not box_overlaps_box(X_WA, size, RigidTransform(turned, [0.0242, 0, 0]), size)
+    assert sphere_overlaps_box([0.0, 0.0, 0.019], 0.01, X_WA, size)
+    # Beyond the corner: inside the box grown by the radius, but 10.4 mm from the corner.
+    assert not sphere_overlaps_box([0.016, 0.016, 0.016], 0.01, X_WA, size)
+    assert sphere_overlaps_box([0.015, 0.015, 0.015], 0.01, X_WA, size)
+
+
+@pytest.mark.parametrize("scene, X_WI, what", [
+    (PegInHole(), RigidTransform([0.0, 0.0, 0.007]), "the peg starts inside the block's floor"),
+    (PegInHole(), RigidTransform([0.0, 0.0, 0.021]), None),
+    (PegInHole(), RigidTransform([0.03, 0.0, 0.025]), "the peg starts inside the block's wall"),
+    (PegInHole(), RigidTransform([0.15, 0.0, 0.0]), "the peg starts inside the table"),
+    (HangingBall(), RigidTransform([0.0, 0.0, 0.005]), "the ball starts inside the table"),
+    (PaddleBall(), RigidTransform([0.0, 0.0, 0.075]), "the ball starts inside the paddle"),
+    (PaddleBall(), RigidTransform([0.0, 0.0, -0.008]), "the paddle starts inside the table"),
+])
+def test_start_inside_the_scene_is_refused(scene, X_WI, what):
+    found = start_overlap(scene, X_WI @ RigidTransform(scene.tool_offset_m))
+    if what is None:
+        assert found is None
+        build(scene, X_WI)
+    else:
+        assert (found or "").startswith(what)
+        with pytest.raises(ValueError, match=r"^X_WI_start \(p_WI = .*\): " + what):
+            build(scene, X_WI)
 
 
 def test_bad_time_step_is_refused():
