@@ -28,15 +28,17 @@ moments, so each tool's moments are raised to ``min_inertia_kg_m2``: added
 virtual inertia (the user feels it through the coupling as a 36 Hz rotational
 resonance at 0.25 N*m/rad).
 
-Contact is hydroelastic ("hydroelastic_with_fallback", the "lagged" discrete
-approximation, which uses the Hunt-Crossley dissipation; "sap" ignores it and
-measured 10-70 % slower). The block, the table and the balls are compliant
-(the block's boxes and the table's have Drake's coarse 40-44 tetrahedron box
-meshes; a sphere's mesh follows ``resolution_hint_m``), the tools are rigid:
-rigid-compliant box contact makes ~43 contact polygons where compliant-compliant
-makes ~51, and a scene step costs ~6 us per polygon (measured: free ~15 us; ball
-on the paddle ~170 us; peg pressed on the hole's floor ~250 us; peg on floor and
-wall ~290 us). Both boxes compliant worked as well, but slower.
+Contact is hydroelastic ("hydroelastic_with_fallback", polygon surfaces, the
+"lagged" discrete approximation, which uses the Hunt-Crossley dissipation; "sap"
+costs about the same but ignores it, "similar" was no faster, triangle surfaces
+cost a third more). The block, the table and the balls are compliant (boxes get
+Drake's coarse 40-44 tetrahedron meshes; a sphere's mesh follows
+``resolution_hint_m``); the tools are rigid: against the compliant block a rigid
+peg makes ~43 contact polygons, a compliant one ~51 (both work; the rigid one
+costs ~15 % less). Measured cost of one scene plant step on the 2-core reference
+machine: ~15 us free; in contact ~110 us plus ~3-4 us per contact polygon: the
+ball on the table ~130 us, on the paddle ~170 us, the peg pressed on the hole's
+floor or sliding on it ~250 us, on the floor and against a wall ~290 us.
 
 Models are generated SDFormat text, so every size and contact property comes
 from the scenario; nothing is read from files.

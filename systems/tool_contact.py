@@ -7,24 +7,34 @@ body of geometry M, so its negative is on the body of geometry N); for point
 contact the force at the contact point (``contact_force`` is on body B, its
 negative on body A) with no couple. The sensor moves each to the tool body's
 origin To and sums: tau_To = tau + (p_WC - p_WTo) x f.
+
+Cost: ~20 us an evaluation in contact, mostly the pybind calls that read the
+contact results; the sum is compiled by numba.
 """
 
+import numba
 import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.multibody.plant import ContactResults
 from pydrake.systems.framework import LeafSystem, ValueProducer
 
 
-def wrench_about_point(forces_W, torques_W, p_WC, p_WO) -> np.ndarray:
+@numba.njit(cache=True)
+def wrench_about_point(forces_W, torques_W, p_WC, p_WO):
     """[f; tau] (6,) in W (N, N*m): the sum of forces (n, 3) applied at points p_WC
-    (n, 3) (m) with couples torques_W (n, 3) about those points, moved to p_WO (m)."""
-    forces_W = np.reshape(forces_W, (-1, 3))
-    if forces_W.shape[0] == 0:
-        return np.zeros(6)
-    torques_W = np.reshape(torques_W, (-1, 3))
-    arms = np.reshape(p_WC, (-1, 3)) - p_WO
-    return np.concatenate((forces_W.sum(axis=0),
-                           (torques_W + np.cross(arms, forces_W)).sum(axis=0)))
+    (n, 3) (m) with couples torques_W (n, 3) about those points, moved to p_WO (3,) (m).
+    (Compiled: numpy's cross product alone costs ~20 us a call.)"""
+    wrench = np.zeros(6)
+    for i in range(forces_W.shape[0]):
+        fx, fy, fz = forces_W[i, 0], forces_W[i, 1], forces_W[i, 2]
+        ax, ay, az = p_WC[i, 0] - p_WO[0], p_WC[i, 1] - p_WO[1], p_WC[i, 2] - p_WO[2]
+        wrench[0] += fx
+        wrench[1] += fy
+        wrench[2] += fz
+        wrench[3] += torques_W[i, 0] + ay * fz - az * fy
+        wrench[4] += torques_W[i, 1] + az * fx - ax * fz
+        wrench[5] += torques_W[i, 2] + ax * fy - ay * fx
+    return wrench
 
 
 class ToolContactSensor(LeafSystem):
@@ -65,7 +75,7 @@ class ToolContactSensor(LeafSystem):
         self.DeclareVectorOutputPort("in_contact", 1, self._calc_in_contact)
 
     def _contacts(self, context):
-        """(forces (n, 3), couples (n, 3), points (n, 3)) on the tool, in W."""
+        """Lists of the forces, couples and their points (each (3,), in W) on the tool."""
         results = self._contact_results.Eval(context)
         forces, torques, points = [], [], []
         for i in range(results.num_hydroelastic_contacts()):
@@ -96,9 +106,10 @@ class ToolContactSensor(LeafSystem):
 
     def _calc_cache(self, context, value):
         """(wrench [f; tau] about the tool's origin in W, 1.0 if in contact else 0.0)."""
-        forces, torques, points = self._contacts(context)
+        forces, torques, points = (np.array(rows, dtype=float).reshape(-1, 3)
+                                   for rows in self._contacts(context))
         wrench = wrench_about_point(forces, torques, points, self._X_WT.Eval(context)[4:7])
-        value.set_value((wrench, 1.0 if forces else 0.0))
+        value.set_value((wrench, 1.0 if len(forces) else 0.0))
 
     def _calc_wrench_on_tool_W(self, context, output):
         output.SetFromVector(self._cache.Eval(context)[0])

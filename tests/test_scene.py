@@ -92,7 +92,8 @@ def test_wrench_about_point_moves_forces_and_couples_to_the_origin():
     wrench = wrench_about_point(forces, couples, points, p_WO)
     # (0.01, 0, 0) x (0, 0, 2) = (0, -0.02, 0); (0, 0, 0.02) x (1, 0, 0) = (0, 0.02, 0)
     np.testing.assert_allclose(wrench, [1.0, 0.0, 2.0, 0.0, 0.0, 0.1], atol=1e-15)
-    np.testing.assert_array_equal(wrench_about_point([], [], [], p_WO), np.zeros(6))
+    none = np.zeros((0, 3))
+    np.testing.assert_array_equal(wrench_about_point(none, none, none, p_WO), np.zeros(6))
 
 
 def test_wrench_maps_to_the_free_body_generalized_forces():
