@@ -506,11 +506,15 @@ def table_sdf(top_z_m: float, contact: ContactProperties) -> str:
 # --- builder --------------------------------------------------------------------------
 
 def AddScene(builder: DiagramBuilder, *, scene: SceneConfig, time_step_s: float,
-             X_WI_start: RigidTransform) -> SceneParts:
+             X_WI_start: RigidTransform, use_sampled_output_ports: bool = True) -> SceneParts:
     """Add the scene's plant and scene graph, its models and its ports to ``builder``.
 
     The tool starts at X_WI_start * X_IT; the hanging ball at its static hanging
     point below the anchor; the paddle's ball at ``ball_start_m``; all at rest.
+    A ValueError names a bad config field, or X_WI_start if it would start the
+    tool or the ball inside the scene. ``use_sampled_output_ports=False`` (for
+    linearization, DESIGN.md section 6) makes the plant's outputs, the contact
+    wrench among them, functions of the current state instead of the last step's.
     """
     validate_scene(scene)
     _positive("time_step_s", time_step_s)
@@ -522,7 +526,8 @@ def AddScene(builder: DiagramBuilder, *, scene: SceneConfig, time_step_s: float,
             f"X_WI_start (p_WI = {np.round(X_WI_start.translation(), 6).tolist()} m): {overlap}; "
             "start the instrument where the tool and the ball are clear of the scene")
     config = MultibodyPlantConfig(time_step=time_step_s, discrete_contact_approximation="lagged",
-                                  contact_model="hydroelastic_with_fallback")
+                                  contact_model="hydroelastic_with_fallback",
+                                  use_sampled_output_ports=use_sampled_output_ports)
     plant, scene_graph = AddMultibodyPlant(config, builder)
     plant.set_name("scene_plant")
     scene_graph.set_name("scene_graph")

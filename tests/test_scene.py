@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import pytest
+from pydrake.autodiffutils import AutoDiffXd, InitializeAutoDiff
 from pydrake.common.yaml import yaml_load_typed
 from pydrake.geometry import Box, Role, TriangleSurfaceMesh, VolumeMesh
 from pydrake.math import RigidTransform, RollPitchYaw
@@ -255,6 +256,33 @@ def test_the_wrench_input_pushes_and_turns_the_tool_in_W():
     moments = np.diag(parts.tool_body.default_rotational_inertia().CopyToFullMatrix3())
     np.testing.assert_allclose(V_WT[3:6], wrench[0:3] / scene.paddle_mass_kg * 0.02, rtol=1e-9)
     np.testing.assert_allclose(V_WT[0:3], wrench[3:6] / moments * 0.02, rtol=1e-3)
+
+
+def test_scene_converts_to_autodiff_for_linearization():
+    builder = DiagramBuilder()
+    parts = AddScene(builder, scene=PegInHole(), time_step_s=STEP_S,
+                     X_WI_start=peg_in_hole_at(0.0, -0.024), use_sampled_output_ports=False)
+    builder.ExportInput(parts.wrench_on_tool_input, "wrench_on_tool_W")
+    builder.ExportOutput(parts.contact_wrench_output, "contact_wrench")
+    diagram = builder.Build()
+    simulator = Simulator(diagram)
+    context = simulator.get_mutable_context()
+    push = [0.0, 0.0, -2.0, 0.0, 0.0, 0.0]
+    diagram.GetInputPort("wrench_on_tool_W").FixValue(context, push)
+    simulator.AdvanceTo(0.1)
+    x = parts.plant.GetPositionsAndVelocities(parts.plant.GetMyContextFromRoot(context))
+
+    diagram_ad = diagram.ToAutoDiffXd()
+    context_ad = diagram_ad.CreateDefaultContext()
+    diagram_ad.GetInputPort("wrench_on_tool_W").FixValue(context_ad, [AutoDiffXd(f) for f in push])
+    plant_ad = diagram_ad.GetSubsystemByName("scene_plant")
+    plant_ad.SetPositionsAndVelocities(plant_ad.GetMyMutableContextFromRoot(context_ad),
+                                       InitializeAutoDiff(x))
+    wrench = diagram_ad.GetOutputPort("contact_wrench").Eval(context_ad)
+    np.testing.assert_allclose([w.value() for w in wrench],
+                               diagram.GetOutputPort("contact_wrench").Eval(context), atol=1e-9)
+    assert wrench[2].value() == pytest.approx(2.0, rel=0.02)
+    assert wrench[2].derivatives()[6] < -1e3  # d f_z / d z: deeper pushes back harder (N/m)
 
 
 # --- contact sensing ------------------------------------------------------------------------
