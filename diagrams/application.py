@@ -2,8 +2,9 @@
 
 ``BuildDiagram(scenario)`` adds the station, the pose estimator, the scripted
 setpoint and enable ramps, the levitation controller, the current allocator,
-a haptic feed-forward wrench input (zero until a scene drives it), a logger at
-``log_rate_hz`` and, when given a Meshcat, the visualizers.
+with haptics the scene, coupling and supervisor (``diagrams/haptics.py``),
+with a hand its commands, a logger at ``log_rate_hz`` and, when given a
+Meshcat, the visualizers.
 """
 
 from __future__ import annotations
@@ -13,10 +14,12 @@ from typing import Dict, Optional
 
 import numpy as np
 from pydrake.geometry import Meshcat, MeshcatVisualizer, MeshcatVisualizerParams, Role
+from pydrake.multibody.meshcat import ContactVisualizer, ContactVisualizerParams
 from pydrake.systems.framework import Diagram, DiagramBuilder
 from pydrake.systems.primitives import (
-    ConstantVectorSource, LogVectorOutput, Multiplexer, TrajectorySource)
+    ConstantVectorSource, LogVectorOutput, Multiplexer, TrajectorySource, ZeroOrderHold)
 
+from maglev_haptics.diagrams.haptics import AddHandCommands, AddHaptics
 from maglev_haptics.diagrams.motion import FlightPlan, check_waypoints_reachable, flight_plan
 from maglev_haptics.diagrams.scenario import Scenario
 from maglev_haptics.diagrams.station import MakeStation
@@ -36,6 +39,8 @@ class BuiltDiagram:
     logger: object  # one VectorLogSink of all logged signals, stacked
     log_layout: Dict[str, slice]  # name -> its rows in the logger's data
     magnetics: object
+    haptics: Optional[object] = None  # diagrams.haptics.HapticParts
+    meshcat_hand: Optional[object] = None  # the MeshcatHandInput whose controls to delete
 
 
 def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
@@ -54,7 +59,6 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
     setpoint = builder.AddNamedSystem(
         "setpoint", TrajectorySource(plan.setpoint, output_derivative_order=1))
     enable = builder.AddNamedSystem("enable_ramp", TrajectorySource(plan.enable))
-    feedforward = builder.AddNamedSystem("haptic_feedforward", ConstantVectorSource(np.zeros(6)))
     controller = builder.AddNamedSystem("levitation_controller", LevitationController(
         config=scenario.controller, mass_kg=spec.mass_kg,
         inertia_diag=np.diag(spec.inertia_about_I()),
@@ -67,9 +71,28 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
                     estimator.GetInputPort("markers_measured"))
     for name in ("X_WI_measured", "V_WI_measured", "tracking_ok"):
         builder.Connect(estimator.GetOutputPort(name), controller.GetInputPort(name))
-    builder.Connect(setpoint.get_output_port(), controller.GetInputPort("setpoint"))
-    builder.Connect(enable.get_output_port(), controller.GetInputPort("enable"))
-    builder.Connect(feedforward.get_output_port(), controller.GetInputPort("wrench_feedforward_W"))
+    haptics = None
+    if scenario.haptics is None:
+        builder.Connect(setpoint.get_output_port(), controller.GetInputPort("setpoint"))
+        builder.Connect(enable.get_output_port(), controller.GetInputPort("enable"))
+        pd_gain = builder.AddNamedSystem("pd_gain", ConstantVectorSource([1.0]))
+        builder.Connect(pd_gain.get_output_port(), controller.GetInputPort("pd_gain"))
+        feedforward = builder.AddNamedSystem("haptic_feedforward",
+                                             ConstantVectorSource(np.zeros(6)))
+        builder.Connect(feedforward.get_output_port(),
+                        controller.GetInputPort("wrench_feedforward_W"))
+    else:
+        haptics = AddHaptics(builder, scenario=scenario, magnetics=magnetics, station=station,
+                             estimator=estimator, controller=controller,
+                             scripted_setpoint=setpoint.get_output_port(),
+                             scripted_enable=enable.get_output_port())
+    # The setpoint the controller tracks: the script's, or the supervisor's with haptics.
+    controller_setpoint = (setpoint.get_output_port() if haptics is None
+                           else haptics.supervisor.GetOutputPort("setpoint"))
+    meshcat_hand = None
+    if scenario.hand is not None:
+        meshcat_hand = AddHandCommands(builder, scenario=scenario, station=station,
+                                       meshcat=meshcat)
     builder.Connect(controller.GetOutputPort("wrench_commanded_W"),
                     allocator.GetInputPort("wrench_commanded_W"))
     builder.Connect(estimator.GetOutputPort("X_WI_measured"),
@@ -82,18 +105,35 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
         "X_WI_measured": estimator.GetOutputPort("X_WI_measured"),
         "V_WI_measured": estimator.GetOutputPort("V_WI_measured"),
         "tracking_ok": estimator.GetOutputPort("tracking_ok"),
-        "setpoint": setpoint.get_output_port(),
+        "setpoint": controller_setpoint,
         "coil_currents": station.GetOutputPort("coil_currents"),
         "wrench_commanded_W": controller.GetOutputPort("wrench_commanded_W"),
-        "wrench_feedforward_W": feedforward.get_output_port(),
+        "wrench_rendered_W": controller.GetOutputPort("wrench_rendered_W"),
         "allocation_shortfall_W": allocator.GetOutputPort("allocation_shortfall_W"),
     }
+    if scenario.hand is not None:
+        logged_ports["handle_gripped"] = station.GetOutputPort("handle_gripped")
+        logged_ports["hand_state"] = station.GetOutputPort("hand_state")
+        logged_ports["hand_wrench_on_instrument_W"] = station.GetOutputPort(
+            "hand_wrench_on_instrument_W")
+    if haptics is not None:
+        logged_ports["X_WT"] = haptics.scene.X_WT_output
+        logged_ports["tool_contact_wrench_W"] = haptics.scene.contact_wrench_output
+        logged_ports["tool_in_contact"] = haptics.scene.in_contact_output
+        logged_ports["haptic_mode"] = haptics.supervisor.GetOutputPort("mode")
+        logged_ports["coupling_clamped"] = haptics.coupling.GetOutputPort("coupling_clamped")
     # One logger of the stacked signals: a publish event a tick instead of nine.
     sizes = [port.size() for port in logged_ports.values()]
     stack = builder.AddNamedSystem("log_stack", Multiplexer(sizes))
     for i, port in enumerate(logged_ports.values()):
         builder.Connect(port, stack.get_input_port(i))
-    logger = LogVectorOutput(stack.get_output_port(), builder, 1.0 / scenario.log_rate_hz)
+    # Sampled by a hold in the same discrete update as the loop (so from the same
+    # cached values), not by the logger's publish after the update, which would
+    # recompute every logged Python output a second time each tick.
+    log_period_s = 1.0 / scenario.log_rate_hz
+    sample = builder.AddNamedSystem("log_sample", ZeroOrderHold(log_period_s, int(sum(sizes))))
+    builder.Connect(stack.get_output_port(), sample.get_input_port())
+    logger = LogVectorOutput(sample.get_output_port(), builder, log_period_s)
     logger.set_name("logger")
     ends = np.cumsum(sizes)
     log_layout = {name: slice(end - size, end)
@@ -107,12 +147,23 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
             meshcat=meshcat, device=device, period_s=MESHCAT_PERIOD_S))
         builder.Connect(station.GetOutputPort("coil_currents"),
                         visualizer.GetInputPort("coil_currents"))
-        builder.Connect(setpoint.get_output_port(), visualizer.GetInputPort("setpoint"))
+        builder.Connect(controller_setpoint, visualizer.GetInputPort("setpoint"))
         builder.Connect(estimator.GetOutputPort("X_WI_measured"),
                         visualizer.GetInputPort("X_WI_measured"))
         builder.Connect(station.GetOutputPort("markers_measured"),
                         visualizer.GetInputPort("markers_measured"))
+        builder.Connect(controller.GetOutputPort("wrench_rendered_W"),
+                        visualizer.GetInputPort("wrench_rendered_W"))
+        if haptics is not None:
+            MeshcatVisualizer.AddToBuilder(
+                builder, haptics.scene.scene_graph.get_query_output_port(), meshcat,
+                MeshcatVisualizerParams(publish_period=MESHCAT_PERIOD_S,
+                                        role=Role.kIllustration, prefix="scene"))
+            ContactVisualizer.AddToBuilder(
+                builder, haptics.scene.plant, meshcat,
+                ContactVisualizerParams(publish_period=MESHCAT_PERIOD_S, prefix="contact",
+                                        newtons_per_meter=20.0, newton_meters_per_meter=1.0))
     diagram = builder.Build()
     diagram.set_name("maglev_haptics")
     return BuiltDiagram(diagram=diagram, plan=plan, logger=logger, log_layout=log_layout,
-                        magnetics=magnetics)
+                        magnetics=magnetics, haptics=haptics, meshcat_hand=meshcat_hand)

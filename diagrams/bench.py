@@ -98,7 +98,7 @@ def plant_step_cost_us(scenario, *, hovering: bool, n_steps: int = 1000) -> floa
     """
     builder = DiagramBuilder()
     plant, _ = AddMultibodyPlant(scenario.plant_config, builder)
-    instrument = add_station_models(plant, scenario)
+    instrument, _ = add_station_models(plant, scenario)
     plant.Finalize()
     spec = scenario.device.instrument_spec()
     X_WI = rest_transform(scenario)

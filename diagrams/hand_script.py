@@ -15,6 +15,7 @@ from typing import List
 import numpy as np
 from pydrake.trajectories import PiecewisePolynomial
 
+from maglev_haptics.systems.blends import SAMPLES_PER_S, minimum_jerk
 from maglev_haptics.systems.hand import HandImpedanceConfig
 
 # The plans end with this long a hold of their last value, so each has a segment
@@ -72,8 +73,6 @@ def hand_plan(script: ScriptedHand, start_pose):
     12-vector [pose; rates]). ``grip`` has 1 row, 1.0 while gripping, a zero-order
     hold stepping at the event times (later events win at equal times).
     """
-    # motion imports the scenario module, which imports this one: import on use.
-    from maglev_haptics.diagrams.motion import SAMPLES_PER_S, minimum_jerk
 
     pose = np.asarray(start_pose, dtype=float)
     times, values, rates = [0.0], [pose], [np.zeros(6)]

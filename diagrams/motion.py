@@ -15,14 +15,11 @@ import numpy as np
 from pydrake.trajectories import PiecewisePolynomial
 
 from maglev_haptics.diagrams.scenario import ScenarioError
-from maglev_haptics.systems.blends import minimum_jerk
+from maglev_haptics.systems.blends import SAMPLES_PER_S, minimum_jerk
 from maglev_haptics.systems.current_allocator import allocate_currents
 from maglev_haptics.systems.levitation_controller import GRAVITY_M_S2
 from maglev_haptics.systems.rotations import rotation_from_rpy
 
-# Hermite samples per second of a minimum-jerk move: the cubic Hermite fit of
-# the quintic then errs by < 1e-7 of the move's amplitude.
-SAMPLES_PER_S = 200
 LANDING_PRESS_M = 0.001  # the landing setpoint ends this far below the rest height
 IDLE_AFTER_S = 0.2  # the script ends this long after the currents are ramped to zero
 HOLD_MARGIN = 1.2  # a waypoint must be holdable with this multiple of the weight

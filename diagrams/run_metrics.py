@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Dict
+from typing import Dict, Optional
 
 import numpy as np
 from pydrake.common.eigen_geometry import Quaternion
@@ -45,7 +45,7 @@ def log_arrays(logger, log_layout, context, device) -> Dict[str, np.ndarray]:
     t = log.sample_times()
     state = data["instrument_state"]
     measured = data["X_WI_measured"]
-    feedforward = data["wrench_feedforward_W"]
+    rendered = data["wrench_rendered_W"]
     currents = data["coil_currents"]
     temperatures = coil_temperatures_c(t, currents, thermal)
     return {
@@ -54,8 +54,10 @@ def log_arrays(logger, log_layout, context, device) -> Dict[str, np.ndarray]:
         "p_WI_true": state[:, 4:7],
         "rpy_WI_measured": rpy_from_quaternions(measured[:, 0:4]),
         "rpy_WI_true": rpy_from_quaternions(state[:, 0:4]),
-        "f_user": feedforward[:, 0:3],
-        "tau_user": feedforward[:, 3:6],
+        # Everything the device applies beyond carrying the weight: the haptic
+        # rendering (and, while levitating, the PD's effort).
+        "f_user": rendered[:, 0:3],
+        "tau_user": rendered[:, 3:6],
         "coil_currents": currents,
         "coil_power_w": np.sum(winding_resistance_ohm(thermal, temperatures) * currents**2, axis=1),
         "coil_temperature_c": temperatures,
@@ -68,7 +70,25 @@ def log_arrays(logger, log_layout, context, device) -> Dict[str, np.ndarray]:
         "tracking_ok": data["tracking_ok"][:, 0],
         "wrench_commanded_W": data["wrench_commanded_W"],
         "allocation_shortfall_W": data["allocation_shortfall_W"],
+        **_optional_arrays(data),
     }
+
+
+def _optional_arrays(data) -> Dict[str, np.ndarray]:
+    """The hand's and the scene's logs, where the scenario has them."""
+    arrays = {}
+    if "handle_gripped" in data:
+        arrays["handle_gripped"] = data["handle_gripped"][:, 0]
+        arrays["p_WH_true"] = data["hand_state"][:, 4:7]
+        arrays["hand_wrench_on_instrument_W"] = data["hand_wrench_on_instrument_W"]
+    if "X_WT" in data:
+        arrays["p_WT"] = data["X_WT"][:, 4:7]
+        arrays["q_WT"] = data["X_WT"][:, 0:4]
+        arrays["tool_contact_wrench_W"] = data["tool_contact_wrench_W"]
+        arrays["tool_in_contact"] = data["tool_in_contact"][:, 0]
+        arrays["haptic_mode"] = data["haptic_mode"][:, 0]
+        arrays["coupling_clamped"] = data["coupling_clamped"][:, 0]
+    return arrays
 
 
 def angle_between_deg(q_WI: np.ndarray, rpy_WD: np.ndarray) -> np.ndarray:
@@ -109,11 +129,19 @@ def _finite_or_none(value):
 
 
 def summarize(log: Dict[str, np.ndarray], plan: FlightPlan, *, rest_height_m: float,
-              thermal) -> Dict:
-    """Hover accuracy per hold, hover currents, power and heating, touchdown speed, limits."""
+              thermal, holds_before_s: Optional[float] = None) -> Dict:
+    """Hover accuracy per hold, hover currents, power and heating, touchdown speed, limits.
+
+    Holds count up to ``holds_before_s`` (s; when haptics starts, the hand moves
+    the instrument and hover accuracy no longer means anything).
+    """
     t = log["t"]
     holds = []
     for start, end in plan.holds:
+        if holds_before_s is not None:
+            end = min(end, holds_before_s)
+            if end <= start:
+                continue
         window = (t >= start + min(HOVER_SETTLE_S, (end - start) / 2)) & (t <= end)
         if not window.any():
             continue

@@ -93,3 +93,41 @@ def plot_run(log: Dict[str, np.ndarray], out_dir: Path, *, title: str,
     fig.savefig(path, dpi=100)
     plt.close(fig)
     return path
+
+
+def plot_haptics(log: Dict[str, np.ndarray], out_dir: Path, *, title: str) -> Path:
+    """Write ``haptics.png`` in the layout of the paper's Fig. 9 and 10: x, y, z
+    position of the instrument (mm, measured) and x, y, z force rendered on the
+    user (N) against time, one axis a row; plus the torque on the user (N*mm)."""
+    t = log["t"]
+    measured = np.cumsum(log["tracking_ok"] > 0.5) > 0
+    fig, axes = plt.subplots(7, 1, figsize=(10, 15), sharex=True)
+    engaged = log["haptic_mode"] == 1
+    contact = log["tool_in_contact"] > 0.5
+    for i, axis in enumerate("xyz"):
+        ax = axes[i]
+        ax.plot(t[measured], 1e3 * log["p_WI_measured"][measured, i], color=AXIS_COLORS[i], lw=1)
+        ax.set_ylabel(f"{axis} position [mm]")
+        ax = axes[3 + i]
+        ax.plot(t, log["f_user"][:, i], color=AXIS_COLORS[i], lw=0.8)
+        ax.set_ylabel(f"{axis} force [N]")
+    ax = axes[6]
+    for i, axis in enumerate("xyz"):
+        ax.plot(t, 1e3 * log["tau_user"][:, i], color=AXIS_COLORS[i], lw=0.8, label=f"about {axis}")
+    ax.set_ylabel("torque [N mm]")
+    _legend_outside(ax)
+    ax.set_xlabel("time [s]")
+    for ax in axes:
+        ax.grid(alpha=0.3)
+        # Shade where the tool touches the scene, and mark the haptic phase.
+        ax.fill_between(t, 0, 1, where=contact, transform=ax.get_xaxis_transform(),
+                        color="tab:orange", alpha=0.12, lw=0)
+        ax.fill_between(t, 0, 0.03, where=engaged, transform=ax.get_xaxis_transform(),
+                        color="tab:purple", alpha=0.5, lw=0)
+    fig.suptitle(f"{title}: position and force rendered on the user\n"
+                 "(orange: tool in contact; purple strip: haptics engaged)")
+    fig.tight_layout()
+    path = Path(out_dir) / "haptics.png"
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path

@@ -15,8 +15,9 @@ from pydrake.systems.analysis import Simulator
 from tqdm import tqdm
 
 from maglev_haptics.diagrams.application import BuildDiagram
+from maglev_haptics.diagrams.haptic_metrics import haptic_summary
 from maglev_haptics.diagrams.run_metrics import log_arrays, summarize
-from maglev_haptics.diagrams.run_plots import plot_run
+from maglev_haptics.diagrams.run_plots import plot_haptics, plot_run
 from maglev_haptics.diagrams.scenario import Scenario
 from maglev_haptics.hardware.thermal import coil_thermal
 from maglev_haptics.systems.device_visualizer import aim_camera_at_device
@@ -61,11 +62,17 @@ def run_scenario(scenario: Scenario, *, label: str, out_dir: Optional[Path] = No
     built = BuildDiagram(scenario, meshcat=viewer, label=label)
     if duration_s is None:
         duration_s = scenario.duration_s if scenario.duration_s is not None else built.plan.end_s
-    if viewer is not None:
+    # An interactive run is watched live; a recording would only grow.
+    record = viewer is not None and built.meshcat_hand is None
+    if record:
         viewer.StartRecording()
-    simulator, wall_s = simulate(built, duration_s, realtime_rate=realtime_rate,
-                                 progress=progress, label=label)
-    if viewer is not None:
+    try:
+        simulator, wall_s = simulate(built, duration_s, realtime_rate=realtime_rate,
+                                     progress=progress, label=label)
+    finally:
+        if built.meshcat_hand is not None:
+            built.meshcat_hand.Delete()
+    if record:
         viewer.StopRecording()
         viewer.PublishRecording()
         aim_camera_at_device(viewer)
@@ -79,8 +86,16 @@ def run_scenario(scenario: Scenario, *, label: str, out_dir: Optional[Path] = No
         "realtime_factor": float(duration_s / wall_s),
         "control_rate_hz": scenario.control_rate_hz,
         **summarize(log, built.plan, rest_height_m=spec.rest_height_m,
-                    thermal=coil_thermal(scenario.device)),
+                    thermal=coil_thermal(scenario.device),
+                    holds_before_s=(scenario.haptics.enable_at_s
+                                    if scenario.haptics is not None else None)),
+        **haptic_summary(log, scenario, rest_height_m=spec.rest_height_m),
     }
+    if built.haptics is not None:
+        config = built.haptics.coupling_config
+        summary["coupling_limits"] = {"max_force_n": config.max_force_n,
+                                      "max_torque_nm": config.max_torque_nm,
+                                      "device_limit": config.device_limit}
     if out_dir is not None:
         out_dir = Path(out_dir)
         out_dir.mkdir(parents=True, exist_ok=True)
@@ -88,4 +103,6 @@ def run_scenario(scenario: Scenario, *, label: str, out_dir: Optional[Path] = No
         (out_dir / "summary.json").write_text(json.dumps(summary, indent=2))
         plot_run(log, out_dir, title=label,
                  current_limit_a=scenario.device.amplifier.current_limit_a)
+        if scenario.haptics is not None:
+            plot_haptics(log, out_dir, title=label)
     return RunResult(summary=summary, log=log, meshcat=viewer)

@@ -13,13 +13,17 @@ import math
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import List, Optional
+from typing import List, Optional, Union
 
 import yaml
 from pydrake.common.yaml import yaml_load_typed
 from pydrake.multibody.plant import MultibodyPlantConfig
 
+from maglev_haptics.diagrams.hand_script import MeshcatHand, ScriptedHand, validate_hand
+from maglev_haptics.diagrams.scene import HangingBall, PaddleBall, PegInHole
 from maglev_haptics.hardware.device import INSTRUMENT_KINDS, DeviceConfig
+from maglev_haptics.systems.haptic_coupling import CouplingConfig
+from maglev_haptics.systems.haptic_supervisor import SupervisorConfig
 from maglev_haptics.systems.levitation_controller import ControllerConfig
 from maglev_haptics.systems.marker_sensor import Occlusion
 from maglev_haptics.systems.pose_estimator import PoseEstimatorConfig
@@ -54,6 +58,21 @@ class MotionScript:
 
 
 @dataclass
+class Haptics:
+    """The virtual scene, the coupling that lets the user feel it, and when it is on.
+
+    Haptics is requested from ``enable_at_s`` and engages once the handle is
+    gripped; it is requested until ``disable_at_s`` (null: to the end).
+    """
+
+    scene: Union[PegInHole, HangingBall, PaddleBall] = field(default_factory=PegInHole)
+    coupling: CouplingConfig = field(default_factory=CouplingConfig)
+    supervisor: SupervisorConfig = field(default_factory=SupervisorConfig)
+    enable_at_s: float = 2.0  # (s)
+    disable_at_s: Optional[float] = None  # (s)
+
+
+@dataclass
 class Scenario:
     device: DeviceConfig = field(default_factory=DeviceConfig)
     controller: ControllerConfig = field(default_factory=ControllerConfig)
@@ -67,9 +86,16 @@ class Scenario:
     control_rate_hz: float = 1000.0  # controller, allocator, amplifiers (860: synchronous with the tracker)
     log_rate_hz: float = 1000.0
     # The station's plant: the instrument and the glass, point contact (~15 us a step
-    # in flight, ~75 us resting on the glass).
+    # in flight, ~75 us resting on the glass). Unsampled output ports: the plant then
+    # steps in the same discrete update as the loop instead of an unrestricted update
+    # before it, so the loop's cached values are computed once a tick (and the
+    # plant linearizes, DESIGN.md section 6).
     plant_config: MultibodyPlantConfig = field(default_factory=lambda: MultibodyPlantConfig(
-        time_step=1e-3, discrete_contact_approximation="lagged"))
+        time_step=1e-3, discrete_contact_approximation="lagged",
+        use_sampled_output_ports=False))
+    # The simulated user's hand (station), scripted or driven from Meshcat; null: none.
+    hand: Optional[Union[ScriptedHand, MeshcatHand]] = None
+    haptics: Optional[Haptics] = None  # null: levitation only
     duration_s: Optional[float] = None  # None: the motion script's length
     random_seed: int = 0
     hardware: str = "sim"  # only the simulated station exists so far
@@ -91,10 +117,32 @@ def resolve_scenario_file(name_or_path: str) -> Path:
     raise ScenarioError(f"scenario file {name_or_path!r} not found: give a path or one of {names}")
 
 
+class _TaggedMapping(dict):
+    """A YAML mapping written with a tag (``!ScriptedHand {...}``): a Union's choice."""
+
+    def __init__(self, tag: str, mapping: dict):
+        super().__init__(mapping)
+        self.tag = tag
+
+
+class _TagLoader(yaml.SafeLoader):
+    """SafeLoader that keeps ``!Tag`` mappings as _TaggedMapping (for the schema walk)."""
+
+
+def _construct_tagged(loader, tag_suffix, node):
+    if not isinstance(node, yaml.MappingNode):
+        raise yaml.constructor.ConstructorError(
+            None, None, f"the tag !{tag_suffix} must mark a mapping", node.start_mark)
+    return _TaggedMapping(tag_suffix, loader.construct_mapping(node, deep=True))
+
+
+_TagLoader.add_multi_constructor("!", _construct_tagged)
+
+
 def _parse_yaml(text: str, source: str) -> dict:
     """The YAML mapping in ``text``; a ScenarioError naming ``source`` if it is not one."""
     try:
-        raw = yaml.safe_load(text)
+        raw = yaml.load(text, Loader=_TagLoader)
     except yaml.YAMLError as error:
         raise ScenarioError(f"{source}: not valid YAML: {error}") from None
     if raw is None:
@@ -148,7 +196,17 @@ def _check_value(value, schema, path: str) -> None:
         if len(options) == 1:
             _check_value(value, options[0], path)
             return
-        raise ScenarioError(f"{path}: unions need a YAML tag (not used in this schema)")
+        names = {option.__name__: option for option in options}
+        tags = ", ".join(f"!{name}" for name in names)
+        tag = getattr(value, "tag", None)
+        if tag is None:
+            # Untagged: yaml_load_typed keeps the current choice (the default's).
+            raise ScenarioError(f"{path}: needs a tag to choose its kind, one of {tags} "
+                                f"(e.g. {path.rsplit('.', 1)[-1]}: !{options[0].__name__} {{}})")
+        if tag not in names:
+            raise ScenarioError(f"{path}: unknown kind !{tag}; allowed: {tags}")
+        _check_value(dict(value), names[tag], path)
+        return
     if origin in (list, List):
         if not isinstance(value, list):
             raise ScenarioError(f"{path} = {value!r}: must be a list")
@@ -273,5 +331,10 @@ def validate_scenario(s: Scenario, label: str) -> None:
     _positive(f"{label}: plant_config.time_step", s.plant_config.time_step)
     if s.duration_s is not None:
         _positive(f"{label}: duration_s", s.duration_s)
+    if s.hand is not None:
+        try:
+            validate_hand(s.hand, label)
+        except ValueError as error:
+            raise ScenarioError(str(error)) from None
     _require(s.hardware == "sim", f"{label}: hardware", s.hardware,
              "must be 'sim' (the real-hardware station is not part of this release)")

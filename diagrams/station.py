@@ -7,6 +7,14 @@ real hardware drivers will have:
 - outputs ``markers_measured`` (3 * n_markers, m, NaN when hidden),
   ``coil_currents`` (n_coils, A, what flows), ``instrument_state`` (13, the
   true free-body state, simulation only), ``query_object`` (for visualizers).
+
+With a hand in the scenario (the simulated user), also:
+
+- inputs ``hand_target`` (12: pose [x, y, z, roll, pitch, yaw] of the hand in W
+  and its rates, m, rad, m/s, rad/s) and ``hand_grip`` (1: > 0.5 grips);
+- outputs ``handle_gripped`` (1: the handle's grip sensor), ``hand_state`` (13)
+  and ``hand_wrench_on_instrument_W`` (6: [f; tau] in W about I's origin, N,
+  N*m; simulation only).
 """
 
 from __future__ import annotations
@@ -16,10 +24,11 @@ from pydrake.math import RigidTransform, RollPitchYaw
 from pydrake.multibody.parsing import Parser
 from pydrake.multibody.plant import AddMultibodyPlant
 from pydrake.systems.framework import Diagram, DiagramBuilder
-from pydrake.systems.primitives import LinearSystem, Saturation
+from pydrake.systems.primitives import LinearSystem, MatrixGain, Saturation
 
 from maglev_haptics.diagrams.scenario import Scenario, ScenarioError
 from maglev_haptics.plant_models import PACKAGE_XML
+from maglev_haptics.systems.hand import HAND_MODEL_URL, SimulatedHand
 from maglev_haptics.systems.magnetic_actuation import MagneticActuation
 from maglev_haptics.systems.marker_sensor import MarkerSensor
 
@@ -61,12 +70,29 @@ def rest_transform(scenario: Scenario) -> RigidTransform:
 
 
 def add_station_models(plant, scenario: Scenario):
-    """Add the instrument and the display to ``plant``; returns the instrument's model instance."""
+    """Add the instrument, the display and (when the scenario has one) the user's
+    hand to ``plant``; returns the model instances (instrument, hand or None)."""
     parser = Parser(plant)
     parser.package_map().AddPackageXml(str(PACKAGE_XML))
     instrument = parser.AddModels(url=scenario.device.instrument_spec().model_url)[0]
     parser.AddModels(url=DISPLAY_MODEL_URL)
-    return instrument
+    hand = parser.AddModels(url=HAND_MODEL_URL)[0] if scenario.hand is not None else None
+    return instrument, hand
+
+
+def generalized_force_placement(plant, body) -> np.ndarray:
+    """(nv, 6) matrix that puts a free body's generalized force [tau; f] into the
+    plant's generalized force vector."""
+    placement = np.zeros((plant.num_velocities(), 6))
+    start = body.floating_velocities_start_in_v()
+    placement[start:start + 6, :] = np.eye(6)
+    return placement
+
+
+def hand_start_pose(scenario: Scenario) -> np.ndarray:
+    """[x, y, z, roll, pitch, yaw] where the hand waits: the hover pose it grips at,
+    the motion script's first waypoint."""
+    return np.asarray(scenario.motion.waypoints[0].pose, float)
 
 
 def MakeStation(scenario: Scenario, *, magnetics) -> Diagram:
@@ -79,7 +105,7 @@ def MakeStation(scenario: Scenario, *, magnetics) -> Diagram:
             f"model is {DISPLAY_MODEL_THICKNESS_M} m thick; other values need their own model")
     builder = DiagramBuilder()
     plant, scene_graph = AddMultibodyPlant(scenario.plant_config, builder)
-    instrument = add_station_models(plant, scenario)
+    instrument, hand = add_station_models(plant, scenario)
     plant.Finalize()
     body = plant.GetBodyByName("instrument", instrument)
     if abs(body.default_mass() - spec.mass_kg) > 1e-6:
@@ -87,6 +113,10 @@ def MakeStation(scenario: Scenario, *, magnetics) -> Diagram:
             f"device.instrument_mass_kg = {spec.mass_kg}: the model {spec.model_url} has "
             f"{body.default_mass()} kg; the two must agree")
     plant.SetDefaultFloatingBaseBodyPose(body, rest_transform(scenario))
+    if hand is not None:
+        x, y, z, roll, pitch, yaw = hand_start_pose(scenario)
+        plant.SetDefaultFloatingBaseBodyPose(plant.GetBodyByName("hand", hand), RigidTransform(
+            RollPitchYaw(roll, pitch, yaw), [x, y, z]))
 
     control_period_s = 1.0 / scenario.control_rate_hz
     amplifiers = AddAmplifiers(builder, spec=device.amplifier, n_coils=device.n_coils,
@@ -99,7 +129,11 @@ def MakeStation(scenario: Scenario, *, magnetics) -> Diagram:
     state_port = plant.get_state_output_port(instrument)
     builder.Connect(amplifiers.get_output_port(), actuation.GetInputPort("coil_currents"))
     builder.Connect(state_port, actuation.GetInputPort("instrument_state"))
-    builder.Connect(actuation.get_output_port(), plant.get_applied_generalized_force_input_port())
+    placement = builder.AddNamedSystem(
+        "actuation_placement", MatrixGain(generalized_force_placement(plant, body)))
+    builder.Connect(actuation.get_output_port(), placement.get_input_port())
+    builder.Connect(placement.get_output_port(),
+                    plant.get_applied_generalized_force_input_port())
     builder.Connect(state_port, sensor.GetInputPort("instrument_state"))
 
     builder.ExportInput(amplifiers.get_input_port(), "coil_currents_commanded")
@@ -107,6 +141,31 @@ def MakeStation(scenario: Scenario, *, magnetics) -> Diagram:
     builder.ExportOutput(amplifiers.get_output_port(), "coil_currents")
     builder.ExportOutput(state_port, "instrument_state")
     builder.ExportOutput(scene_graph.get_query_output_port(), "query_object")
+    if hand is not None:
+        _add_hand(builder, scenario, plant, hand, body, control_period_s)
     station = builder.Build()
     station.set_name("station")
     return station
+
+
+def _add_hand(builder, scenario: Scenario, plant, hand, instrument_body, period_s: float):
+    """The simulated user's hand: its impedance forces and grip, and its ports."""
+    hand_body = plant.GetBodyByName("hand", hand)
+    if abs(hand_body.default_mass() - scenario.hand.impedance.mass_kg) > 1e-9:
+        raise ScenarioError(
+            f"hand.impedance.mass_kg = {scenario.hand.impedance.mass_kg}: the hand model "
+            f"{HAND_MODEL_URL} has {hand_body.default_mass()} kg; the two must agree")
+    simulated_hand = builder.AddNamedSystem("hand", SimulatedHand(
+        config=scenario.hand.impedance, period_s=period_s, hand_body_index=hand_body.index(),
+        instrument_body_index=instrument_body.index()))
+    builder.Connect(plant.get_state_output_port(hand), simulated_hand.GetInputPort("hand_state"))
+    builder.Connect(plant.get_state_output_port(instrument_body.model_instance()),
+                    simulated_hand.GetInputPort("instrument_state"))
+    builder.Connect(simulated_hand.GetOutputPort("spatial_forces"),
+                    plant.get_applied_spatial_force_input_port())
+    builder.ExportInput(simulated_hand.GetInputPort("hand_target"), "hand_target")
+    builder.ExportInput(simulated_hand.GetInputPort("grip"), "hand_grip")
+    builder.ExportOutput(simulated_hand.GetOutputPort("handle_gripped"), "handle_gripped")
+    builder.ExportOutput(plant.get_state_output_port(hand), "hand_state")
+    builder.ExportOutput(simulated_hand.GetOutputPort("wrench_on_instrument_W"),
+                         "hand_wrench_on_instrument_W")

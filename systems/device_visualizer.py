@@ -1,4 +1,5 @@
-"""Meshcat drawing of the device: coils coloured by current, commanded and measured poses."""
+"""Meshcat drawing of the device: coils coloured by current, commanded and measured
+poses, and the force rendered on the user's hand."""
 
 from __future__ import annotations
 
@@ -13,6 +14,9 @@ COIL_PATH = "/device/coils"
 SETPOINT_PATH = "/device/setpoint"
 MEASURED_PATH = "/device/measured"
 MARKERS_PATH = "/device/markers_measured"
+FORCE_PATH = "/device/rendered_force"
+FORCE_SCALE_M_PER_N = 0.02  # arrow length per newton of rendered force (m/N)
+FORCE_SHOWN_N = 0.005  # smaller rendered forces are not drawn (N)
 
 
 def current_color(current_a: float, limit_a: float) -> list:
@@ -37,11 +41,13 @@ class DeviceVisualizer(LeafSystem):
         - setpoint
         - X_WI_measured
         - markers_measured
+        - wrench_rendered_W
 
     Coils are drawn as cylinders under the display (their tops at z = p_WA z),
     coloured by current (red +, blue -, saturated at the limit); a triad marks
     the commanded pose and another the measured one; the measured markers are
-    small spheres.
+    small spheres; an orange rod from the measured instrument origin shows the
+    force rendered on the user's hand (FORCE_SCALE_M_PER_N).
     """
 
     def __init__(self, *, meshcat: Meshcat, device, period_s: float = 1 / 30):
@@ -53,6 +59,8 @@ class DeviceVisualizer(LeafSystem):
         self._setpoint = self.DeclareVectorInputPort("setpoint", 12)
         self._pose = self.DeclareVectorInputPort("X_WI_measured", 7)
         self._markers = self.DeclareVectorInputPort("markers_measured", 3 * n_markers)
+        self._rendered = self.DeclareVectorInputPort("wrench_rendered_W", 6)
+        meshcat.SetObject(FORCE_PATH, Cylinder(0.0015, 1.0), Rgba(1.0, 0.55, 0.0, 1.0))
         aim_camera_at_device(meshcat)
         coil = device.coil
         p_WC = device.array.coil_positions_A() + device.p_WA
@@ -78,12 +86,28 @@ class DeviceVisualizer(LeafSystem):
         pose = self._pose.Eval(context)
         meshcat.SetTransform(MEASURED_PATH, RigidTransform(
             RotationMatrix(rotation_from_quaternion(pose[0:4])), pose[4:7]))
+        meshcat.SetTransform(FORCE_PATH, force_rod_transform(
+            pose[4:7], self._rendered.Eval(context)[0:3]))
         markers = self._markers.Eval(context).reshape(-1, 3)
         for k, p in enumerate(markers):
             visible = bool(np.all(np.isfinite(p)))
             meshcat.SetProperty(f"{MARKERS_PATH}/{k}", "visible", visible)
             if visible:
                 meshcat.SetTransform(f"{MARKERS_PATH}/{k}", RigidTransform(p))
+
+
+def force_rod_transform(p_WI, f_W) -> np.ndarray:
+    """4x4 transform that stretches a unit cylinder along z into a rod from p_WI (m)
+    along f_W (N), FORCE_SCALE_M_PER_N long per newton (zero size when tiny)."""
+    length = FORCE_SCALE_M_PER_N * float(np.linalg.norm(f_W))
+    if length < FORCE_SCALE_M_PER_N * FORCE_SHOWN_N:
+        return np.diag([0.0, 0.0, 0.0, 1.0])
+    z = np.asarray(f_W, float) / np.linalg.norm(f_W)
+    R = RotationMatrix.MakeFromOneVector(z, 2).matrix()
+    X = np.eye(4)
+    X[0:3, 0:3] = R @ np.diag([1.0, 1.0, length])
+    X[0:3, 3] = np.asarray(p_WI, float) + z * length / 2
+    return X
 
 
 def aim_camera_at_device(meshcat: Meshcat) -> None:

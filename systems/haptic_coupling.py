@@ -82,7 +82,7 @@ class CouplingConfig:
         default_factory=lambda: [400.0 * _GAIN_LENGTH_M**2] * 3)  # N*m/rad
     rotational_damping: List[float] = field(
         default_factory=lambda: [5.0 * _GAIN_LENGTH_M**2] * 3)  # N*m*s/rad
-    ramp_s: float = 0.5  # the wrench fades in linearly over this time after enable (s)
+    ramp_s: float = 0.5  # the user's wrench fades in linearly over this time after enable (s)
     max_force_n: Optional[float] = None  # |f| limit (N); null: the device's thermal limit
     max_torque_nm: Optional[float] = None  # |tau| limit (N*m); null: likewise
     device_limit: str = "peak"  # "peak" or "thermal": the coil current the null limits assume
@@ -145,13 +145,13 @@ def clamp_scale(wrench, max_force_n, max_torque_nm):
 
 def limited_wrenches(X_WI, V_WI, X_WT, V_WT, R_IT, p_IT, k, b, fraction, max_force_n,
                      max_torque_nm):
-    """``coupling_wrenches`` times the ramp ``fraction`` (0..1), then both scaled by the
-    one factor that brings the instrument's wrench within the limits (N, N*m), so the
-    tool is never driven by a wrench the user does not feel; returns
-    (on tool, on instrument, factor)."""
+    """``coupling_wrenches`` both scaled by the one factor that brings the
+    instrument's wrench within the limits (N, N*m), so the tool is never driven
+    harder than the device could render; the instrument's then times the ramp
+    ``fraction`` (0..1). Returns (on tool, on instrument, factor)."""
     on_tool, on_instrument = coupling_wrenches(X_WI, V_WI, X_WT, V_WT, R_IT, p_IT, k, b)
-    scale = clamp_scale(fraction * on_instrument, max_force_n, max_torque_nm)
-    return fraction * scale * on_tool, fraction * scale * on_instrument, scale
+    scale = clamp_scale(on_instrument, max_force_n, max_torque_nm)
+    return scale * on_tool, fraction * scale * on_instrument, scale
 
 
 def ramp_step(fraction, enable, period_s, ramp_s):
@@ -191,16 +191,18 @@ def HapticCoupling_(T):
             - wrench_feedforward_W
             - coupling_clamped
 
-        ``wrench_on_tool_W`` drives the tool (about its origin);
-        ``wrench_feedforward_W`` is its opposite on the instrument (about the
-        instrument's origin), for the levitation controller's feed-forward input.
-        Both are the coupling wrench times the ramp fraction, then scaled
-        together by one factor so the instrument's wrench is within the limits
-        (the tool is never driven by a wrench the user does not feel);
-        ``coupling_clamped`` is 1 when that factor is below 1. The discrete
-        state (updated every period_s) is the ramp fraction 0..1: it grows by
-        period / ramp_s each period while ``haptics_enable`` > 0.5 and resets to
-        0 otherwise; the outputs are zero while disabled.
+        ``wrench_on_tool_W`` drives the tool (about its origin): the tool
+        always follows the instrument, so the virtual tool is where the hand
+        is whether or not haptics is on. ``wrench_feedforward_W`` is its
+        opposite on the instrument (about the instrument's origin), for the
+        levitation controller's feed-forward input, times the ramp fraction:
+        what the user feels. Both are scaled by one factor so the instrument's
+        full wrench is within the limits (the tool is never driven harder than
+        the device could render); ``coupling_clamped`` is 1 when that factor
+        is below 1. The discrete state (updated every period_s) is the ramp
+        fraction 0..1: it grows by period / ramp_s each period while
+        ``haptics_enable`` > 0.5 and resets to 0 otherwise, so the user feels
+        nothing while disabled.
         """
 
         def _construct(self, *, config: CouplingConfig, period_s: float,

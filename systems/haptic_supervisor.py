@@ -178,25 +178,35 @@ def HapticSupervisor_(T):
             self._in_contact = self.DeclareVectorInputPort("tool_in_contact", 1)
             self._state = self.DeclareDiscreteState(initial_supervisor_state())
             self.DeclarePeriodicDiscreteUpdateEvent(period_s, 0.0, self._update)
-            self.DeclareVectorOutputPort("setpoint", 12, self._calc_setpoint)
-            self.DeclareVectorOutputPort("enable", 1, self._calc_enable)
-            self.DeclareVectorOutputPort("pd_gain", 1, self._calc_pd_gain)
-            self.DeclareVectorOutputPort("haptics_enable", 1, self._calc_haptics_enable)
-            self.DeclareVectorOutputPort("mode", 1, self._calc_mode)
+            # Outputs read the state and at most the script: none feeds through the
+            # measurements, so the loop through the scene has no algebraic loop.
+            state = {self.xd_ticket()}
+            self.DeclareVectorOutputPort(
+                "setpoint", 12, self._calc_setpoint,
+                state | {self.time_ticket(), self._scripted.ticket()})
+            self.DeclareVectorOutputPort("enable", 1, self._calc_enable,
+                                         state | {self._scripted_enable.ticket()})
+            self.DeclareVectorOutputPort("pd_gain", 1, self._calc_pd_gain, state)
+            self.DeclareVectorOutputPort("haptics_enable", 1, self._calc_haptics_enable, state)
+            self.DeclareVectorOutputPort("mode", 1, self._calc_mode, state)
 
         def _construct_copy(self, other, converter=None):
             Impl._construct(self, config=other._config, period_s=other._period_s,
                             rest_height_m=other._rest_height_m, converter=converter)
 
         def _values(self, context) -> np.ndarray:
-            return np.array([_value(x) for x in
-                             context.get_discrete_state(self._state).CopyToVector()])
+            state = context.get_discrete_state(self._state).CopyToVector()
+            return state if T is float else np.array([_value(x) for x in state])
 
         def _update(self, context, discrete_state):
+            scripted = self._scripted.Eval(context)[0:6]
+            X_WI = self._X_WI.Eval(context)
+            if T is not float:
+                scripted = np.array([_value(x) for x in scripted])
+                X_WI = np.array([_value(x) for x in X_WI])
             new = supervisor_step(
                 self._values(context), _value(context.get_time()), self._period_s,
-                np.array([_value(x) for x in self._scripted.Eval(context)[0:6]]),
-                [_value(x) for x in self._X_WI.Eval(context)],
+                scripted, X_WI,
                 _value(self._tracking_ok.Eval(context)[0]) > 0.5,
                 _value(self._request.Eval(context)[0]) > 0.5,
                 _value(self._gripped.Eval(context)[0]) > 0.5,

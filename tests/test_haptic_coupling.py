@@ -164,9 +164,11 @@ def test_ramp_from_enable():
     # Feed-forward (on the instrument) pulls it toward the tool: +x, ramping in over 10 periods.
     expected = k[0] * 0.001 * np.minimum(np.arange(15) / 10, 1.0)
     np.testing.assert_allclose(forces, expected, rtol=1e-12, atol=1e-15)
-    # Disabling cuts the wrench at once; the next enable ramps again from zero.
+    # Disabling cuts the user's wrench at once; the next enable ramps again from zero.
+    # The tool keeps following the instrument throughout.
     coupling.GetInputPort("haptics_enable").FixValue(context, [0.0])
     assert np.all(outputs(coupling, context)[1] == 0.0)
+    assert outputs(coupling, context)[0][0] == pytest.approx(-k[0] * 0.001)
     context.SetDiscreteState(
         coupling.EvalUniquePeriodicDiscreteUpdate(context).get_vector().CopyToVector())
     coupling.GetInputPort("haptics_enable").FixValue(context, [1.0])

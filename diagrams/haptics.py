@@ -1,0 +1,149 @@
+"""The haptic half of the application: scene, coupling, supervisor; and the user's commands.
+
+``AddHaptics`` puts the virtual scene (its own MultibodyPlant and SceneGraph,
+so the virtual world never touches the physical instrument or the glass, and
+so the scene can use hydroelastic contact while the station uses point
+contact), the virtual coupling between the measured instrument and the scene's
+tool, the tool's contact sensor and the mode supervisor into the diagram, and
+connects them to the levitation controller. The scene plant steps at the
+control period, so once the coupling engages, physics advances in lock-step
+with the device's control tick; until then (and after haptics is disabled) the
+scene evolves on its own, with the tool free.
+
+``AddHandCommands`` feeds the simulated hand's target and grip from its script
+or from Meshcat's controls.
+"""
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+from pydrake.geometry import Meshcat
+from pydrake.math import RigidTransform, RollPitchYaw
+from pydrake.systems.primitives import TrajectorySource
+from pydrake.trajectories import PiecewisePolynomial
+
+from maglev_haptics.diagrams.hand_script import MeshcatHand, hand_plan
+from maglev_haptics.diagrams.scenario import Scenario
+from maglev_haptics.diagrams.scene import AddScene
+from maglev_haptics.diagrams.station import hand_start_pose
+from maglev_haptics.hardware.limits import device_limits
+from maglev_haptics.systems.haptic_coupling import CouplingConfig, HapticCoupling
+from maglev_haptics.systems.haptic_supervisor import HapticSupervisor
+from maglev_haptics.systems.meshcat_hand import MeshcatHandInput
+from maglev_haptics.systems.rotations import rotation_from_rpy
+
+
+@dataclass
+class HapticParts:
+    scene: object  # diagrams.scene.SceneParts
+    coupling: object
+    supervisor: object
+    coupling_config: CouplingConfig  # with the device-derived limits filled in
+
+
+def haptic_start_pose(scenario: Scenario) -> np.ndarray:
+    """[x, y, z, roll, pitch, yaw] (m, rad) where haptics starts: the hover pose
+    of the motion script's first waypoint, where the hand grips the instrument."""
+    return hand_start_pose(scenario)
+
+
+def coupling_with_device_limits(scenario: Scenario, magnetics) -> CouplingConfig:
+    """The scenario's coupling config with null wrench limits replaced by what the
+    coils can add to the weight at the haptic start pose within ``device_limit``."""
+    config = scenario.haptics.coupling
+    if config.max_force_n is not None and config.max_torque_nm is not None:
+        return config
+    device = scenario.device
+    pose = haptic_start_pose(scenario)
+    limits = device_limits(device, pose[0:3] - device.p_WA, rotation_from_rpy(pose[3:6]),
+                           limit=config.device_limit, magnetics=magnetics,
+                           workspace=(np.zeros(3), np.zeros(3)))
+    return dataclasses.replace(
+        config,
+        max_force_n=limits.max_force_n if config.max_force_n is None else config.max_force_n,
+        max_torque_nm=(limits.max_torque_nm if config.max_torque_nm is None
+                       else config.max_torque_nm))
+
+
+def haptics_request(scenario: Scenario) -> PiecewisePolynomial:
+    """1 while haptics is requested, 0 otherwise (zero-order hold)."""
+    haptics = scenario.haptics
+    end = haptics.disable_at_s if haptics.disable_at_s is not None else np.inf
+    times = [0.0, haptics.enable_at_s]
+    values = [0.0, 1.0]
+    if np.isfinite(end):
+        times.append(end)
+        values.append(0.0)
+    times.append(times[-1] + 1.0)
+    values.append(values[-1])
+    return PiecewisePolynomial.ZeroOrderHold(times, np.array([values]))
+
+
+def AddHaptics(builder, *, scenario: Scenario, magnetics, station, estimator, controller,
+               scripted_setpoint, scripted_enable) -> HapticParts:
+    """Scene, coupling, contact sensor and supervisor, wired to the controller."""
+    haptics = scenario.haptics
+    period_s = 1.0 / scenario.control_rate_hz
+    x, y, z, roll, pitch, yaw = haptic_start_pose(scenario)
+    scene = AddScene(builder, scene=haptics.scene, time_step_s=period_s, use_sampled_output_ports=False,
+                     X_WI_start=RigidTransform(RollPitchYaw(roll, pitch, yaw), [x, y, z]))
+    config = coupling_with_device_limits(scenario, magnetics)
+    coupling = builder.AddNamedSystem("haptic_coupling", HapticCoupling(
+        config=config, period_s=period_s, X_IT=scene.X_IT))
+    supervisor = builder.AddNamedSystem("haptic_supervisor", HapticSupervisor(
+        config=haptics.supervisor, period_s=period_s,
+        rest_height_m=scenario.device.instrument_spec().rest_height_m))
+    request = builder.AddNamedSystem("haptics_request", TrajectorySource(
+        haptics_request(scenario)))
+
+    for name in ("X_WI_measured", "V_WI_measured"):
+        builder.Connect(estimator.GetOutputPort(name), coupling.GetInputPort(name))
+    builder.Connect(scene.X_WT_output, coupling.GetInputPort("X_WT"))
+    builder.Connect(scene.V_WT_output, coupling.GetInputPort("V_WT"))
+    builder.Connect(coupling.GetOutputPort("wrench_on_tool_W"), scene.wrench_on_tool_input)
+
+    builder.Connect(scripted_setpoint, supervisor.GetInputPort("scripted_setpoint"))
+    builder.Connect(scripted_enable, supervisor.GetInputPort("scripted_enable"))
+    for name in ("X_WI_measured", "tracking_ok"):
+        builder.Connect(estimator.GetOutputPort(name), supervisor.GetInputPort(name))
+    builder.Connect(request.get_output_port(), supervisor.GetInputPort("haptics_request"))
+    builder.Connect(station.GetOutputPort("handle_gripped"),
+                    supervisor.GetInputPort("handle_gripped"))
+    builder.Connect(scene.in_contact_output, supervisor.GetInputPort("tool_in_contact"))
+    builder.Connect(supervisor.GetOutputPort("haptics_enable"),
+                    coupling.GetInputPort("haptics_enable"))
+
+    for name in ("setpoint", "enable", "pd_gain"):
+        builder.Connect(supervisor.GetOutputPort(name), controller.GetInputPort(name))
+    builder.Connect(coupling.GetOutputPort("wrench_feedforward_W"),
+                    controller.GetInputPort("wrench_feedforward_W"))
+    return HapticParts(scene=scene, coupling=coupling, supervisor=supervisor,
+                       coupling_config=config)
+
+
+def AddHandCommands(builder, *, scenario: Scenario, station, meshcat: Optional[Meshcat]):
+    """The hand's target and grip: from its script, or from Meshcat's controls.
+
+    Returns the MeshcatHandInput (whose controls the caller deletes after the
+    run), or None for a scripted hand.
+    """
+    hand = scenario.hand
+    start = hand_start_pose(scenario)
+    if isinstance(hand, MeshcatHand):
+        if meshcat is None:
+            raise ValueError("hand: !MeshcatHand needs Meshcat (drop --no-meshcat)")
+        commands = builder.AddNamedSystem("meshcat_hand", MeshcatHandInput(
+            meshcat, start_pose=start, filter_time_constant_s=hand.filter_time_constant_s,
+            period_s=1.0 / hand.input_rate_hz, grip_at_start=hand.grip_at_start))
+        builder.Connect(commands.GetOutputPort("hand_target"), station.GetInputPort("hand_target"))
+        builder.Connect(commands.GetOutputPort("grip"), station.GetInputPort("hand_grip"))
+        return commands
+    target, grip = hand_plan(hand, start)
+    target_source = builder.AddNamedSystem(
+        "hand_target", TrajectorySource(target, output_derivative_order=1))
+    grip_source = builder.AddNamedSystem("hand_grip", TrajectorySource(grip))
+    builder.Connect(target_source.get_output_port(), station.GetInputPort("hand_target"))
+    builder.Connect(grip_source.get_output_port(), station.GetInputPort("hand_grip"))
+    return None
