@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pytest
 from pydrake.autodiffutils import AutoDiffXd, InitializeAutoDiff
+from pydrake.common.eigen_geometry import Quaternion
 from pydrake.common.yaml import yaml_load_typed
 from pydrake.geometry import Box, Role, TriangleSurfaceMesh, VolumeMesh
 from pydrake.math import RigidTransform, RollPitchYaw
@@ -32,20 +33,34 @@ def pose_vector(X: RigidTransform):
     return np.array([q.w(), q.x(), q.y(), q.z(), *X.translation()])
 
 
+def tool_centre_pose(X_WT, scene):
+    """X_WA: the tool's centre frame, at ``tool_offset_m`` in T with T's axes, for a
+    logged pose vector X_WT [qw, qx, qy, qz, x, y, z] (m)."""
+    q = np.asarray(X_WT[0:4])
+    return (RigidTransform(Quaternion(q / np.linalg.norm(q)), X_WT[4:7])
+            @ RigidTransform(scene.tool_offset_m))
+
+
 class HeldScene:
     """A scene whose tool is held by the virtual coupling to a fixed instrument pose,
-    plus a constant extra force on the tool; logs the tool, the ball and the contact
-    wrench every step. ``k_t = 0`` leaves only the coupling's damping and its
-    rotational spring, so the extra force is what presses the tool."""
+    plus a constant extra wrench on the tool (``force`` in W, N, and ``torque`` in W
+    about T, N*m); logs the tool, the ball and the contact wrench every step. The
+    coupling's gains are the scene's design values (5 N*s/m; 0.25 N*m/rad,
+    3.1e-3 N*m*s/rad); ``k_t = 0`` leaves only its damping and its rotational spring,
+    so the extra wrench is what presses the tool."""
 
-    def __init__(self, scene, X_WI, *, force=(0.0, 0.0, 0.0), k_t=400.0):
+    def __init__(self, scene, X_WI, *, force=(0.0, 0.0, 0.0), torque=(0.0, 0.0, 0.0),
+                 k_t=400.0):
         builder = DiagramBuilder()
         self.parts = AddScene(builder, scene=scene, time_step_s=STEP_S, X_WI_start=X_WI)
         coupling = builder.AddNamedSystem("coupling", HapticCoupling(
-            config=CouplingConfig(translational_stiffness=[k_t] * 3, ramp_s=0.0,
-                                  max_force_n=100.0, max_torque_nm=100.0),
+            config=CouplingConfig(translational_stiffness=[k_t] * 3,
+                                  translational_damping=[5.0] * 3,
+                                  rotational_stiffness=[0.25] * 3,
+                                  rotational_damping=[3.125e-3] * 3,
+                                  ramp_s=0.0, max_force_n=100.0, max_torque_nm=100.0),
             period_s=STEP_S, X_IT=self.parts.X_IT))
-        push = builder.AddSystem(ConstantVectorSource(np.concatenate((force, np.zeros(3)))))
+        push = builder.AddSystem(ConstantVectorSource(np.concatenate((force, torque))))
         total = builder.AddSystem(Adder(2, 6))
         builder.Connect(coupling.GetOutputPort("wrench_on_tool_W"), total.get_input_port(0))
         builder.Connect(push.get_output_port(), total.get_input_port(1))
@@ -151,6 +166,8 @@ def test_peg_scene_models_follow_the_config():
     peg = proximity_shapes(parts, "tool")["peg"]
     assert isinstance(peg[0], Box)
     np.testing.assert_allclose(peg[0].size(), scene.peg_size_m)
+    # The peg hangs at tool_offset_m below the grip, level.
+    assert peg[1].IsNearlyEqualTo(HOVER @ RigidTransform(scene.tool_offset_m), 1e-12)
     assert not peg[2].HasProperty("hydroelastic", "hydroelastic_modulus")  # rigid
     assert isinstance(inspector.maybe_get_hydroelastic_mesh(peg[3]), TriangleSurfaceMesh)
     block = proximity_shapes(parts, "block")
@@ -167,12 +184,17 @@ def test_peg_scene_models_follow_the_config():
     table, X_WG, _, _ = proximity_shapes(parts, "table")["table"]
     assert X_WG.translation()[2] + table.size()[2] / 2 == pytest.approx(block_bottom_z(scene))
 
-    inertia = parts.tool_body.default_spatial_inertia()
-    assert inertia.get_mass() == pytest.approx(scene.peg_mass_kg)
-    moments = np.diag(inertia.CalcRotationalInertia().CopyToFullMatrix3())
+    # About T (the grip) Drake holds the spatial inertia; the centre of mass is the
+    # peg's centre, and the floored moments are about it.
+    M_TTo_T = parts.tool_body.default_spatial_inertia()
+    assert M_TTo_T.get_mass() == pytest.approx(scene.peg_mass_kg)
+    np.testing.assert_allclose(M_TTo_T.get_com(), scene.tool_offset_m, atol=1e-12)
+    I_TCm_T = M_TTo_T.Shift(M_TTo_T.get_com()).CalcRotationalInertia().CopyToFullMatrix3()
+    moments = np.diag(I_TCm_T)
     np.testing.assert_allclose(
         moments, np.maximum(box_inertia(scene.peg_mass_kg, scene.peg_size_m),
                             scene.min_inertia_kg_m2), rtol=1e-6)
+    np.testing.assert_allclose(I_TCm_T - np.diag(moments), 0.0, atol=1e-15)  # principal axes
     assert min(moments) >= 5e-6
 
 
@@ -188,23 +210,29 @@ def test_every_visual_has_its_own_colour():
 
 def test_default_poses_and_ports():
     X_WI = RigidTransform(RollPitchYaw(0.1, -0.2, 0.3), [0.01, 0.02, 0.06])
-    for scene in (PegInHole(), HangingBall(), PaddleBall()):
+    # The second hanging ball's anchor sits off the grip, so its spring's end shows.
+    for scene in (PegInHole(), HangingBall(), HangingBall(tool_offset_m=[0.004, -0.003, -0.010]),
+                  PaddleBall()):
         builder, parts = build(scene, X_WI)
         assert parts.wrench_on_tool_input.size() == 6
         assert parts.X_WT_output.size() == 7 and parts.V_WT_output.size() == 6
         assert parts.contact_wrench_output.size() == 6 and parts.in_contact_output.size() == 1
         diagram = builder.Build()
         context = diagram.CreateDefaultContext()
-        X_WT = X_WI @ RigidTransform(scene.tool_offset_m)
-        assert parts.X_IT.IsExactlyEqualTo(RigidTransform(scene.tool_offset_m))
+        # T is I when relaxed: the tool starts at X_WI itself, its shape at tool_offset_m in T.
+        assert parts.X_IT.IsExactlyEqualTo(RigidTransform())
         np.testing.assert_allclose(
             np.abs(parts.X_WT_output.Eval(parts.X_WT_output.get_system()
                                           .GetMyContextFromRoot(context))),
-            np.abs(pose_vector(X_WT)), atol=1e-12)
+            np.abs(pose_vector(X_WI)), atol=1e-12)
+        X_WA = X_WI @ RigidTransform(scene.tool_offset_m)
+        (shape_pose,) = [X_WG for _, X_WG, _, _ in proximity_shapes(parts, "tool").values()]
+        assert shape_pose.IsNearlyEqualTo(X_WA, 1e-12)
         plant_context = parts.plant.GetMyContextFromRoot(context)
         if isinstance(scene, HangingBall):
             p_WB = parts.plant.EvalBodyPoseInWorld(plant_context, parts.ball_body).translation()
-            np.testing.assert_allclose(p_WB, X_WT.translation() - [0, 0, hanging_drop_m(scene)])
+            np.testing.assert_allclose(p_WB, X_WA.translation() - [0, 0, hanging_drop_m(scene)],
+                                       atol=1e-12)
         elif isinstance(scene, PaddleBall):
             p_WB = parts.plant.EvalBodyPoseInWorld(plant_context, parts.ball_body).translation()
             np.testing.assert_allclose(p_WB, scene.ball_start_m)
@@ -237,25 +265,36 @@ def test_scene_plant_is_its_own_plant_and_the_tool_has_no_weight():
             simulator.get_mutable_context()), np.zeros(6))
     simulator.AdvanceTo(0.1)
     context = parts.X_WT_output.get_system().GetMyContextFromRoot(simulator.get_context())
-    np.testing.assert_allclose(parts.X_WT_output.Eval(context), [1, 0, 0, 0, 0, 0, 0.035],
+    np.testing.assert_allclose(parts.X_WT_output.Eval(context), [1, 0, 0, 0, 0, 0, 0.06],
                                atol=1e-12)
 
 
 def test_the_wrench_input_pushes_and_turns_the_tool_in_W():
+    """One step from rest of the free paddle, tilted so that W and T differ, under a
+    wrench about T (the grip, 30 mm above the paddle's centre of mass Cm): its centre
+    of mass speeds up by h f / m, it turns by h I_Cm^-1 (tau + p_CmT x f) and T moves
+    with v_WCm + w x p_CmT."""
     scene = PaddleBall(ball_start_m=[0.3, 0.0, 0.0], table_z_m=None)  # the ball falls away
-    builder, parts = build(scene, RigidTransform([0.0, 0.0, 0.06]))
+    X_WI = RigidTransform(RollPitchYaw(0.1, -0.2, 0.3), [0.0, 0.0, 0.06])
+    builder, parts = build(scene, X_WI)
     diagram = builder.Build()
     simulator = Simulator(diagram)
-    wrench = np.array([0.01, -0.02, 0.03, 2e-7, -1e-7, 3e-7])  # N, N*m
+    wrench = np.array([0.01, -0.02, 0.03, 2e-4, -1e-4, 3e-4])  # N, N*m
     parts.wrench_on_tool_input.FixValue(
         parts.wrench_on_tool_input.get_system().GetMyMutableContextFromRoot(
             simulator.get_mutable_context()), wrench)
-    simulator.AdvanceTo(0.02)
+    simulator.AdvanceTo(STEP_S)
     context = parts.V_WT_output.get_system().GetMyContextFromRoot(simulator.get_context())
     V_WT = parts.V_WT_output.Eval(context)
-    moments = np.diag(parts.tool_body.default_rotational_inertia().CopyToFullMatrix3())
-    np.testing.assert_allclose(V_WT[3:6], wrench[0:3] / scene.paddle_mass_kg * 0.02, rtol=1e-9)
-    np.testing.assert_allclose(V_WT[0:3], wrench[3:6] / moments * 0.02, rtol=1e-3)
+    R_WT = X_WI.rotation().matrix()
+    moments = np.maximum(box_inertia(scene.paddle_mass_kg, scene.paddle_size_m),
+                         scene.min_inertia_kg_m2)  # about Cm, along T's axes (kg*m^2)
+    I_Cm_W = R_WT @ np.diag(moments) @ R_WT.T
+    p_CmT_W = -R_WT @ scene.tool_offset_m
+    w_WT = STEP_S * np.linalg.solve(I_Cm_W, wrench[3:6] + np.cross(p_CmT_W, wrench[0:3]))
+    v_WCm = STEP_S * wrench[0:3] / scene.paddle_mass_kg
+    np.testing.assert_allclose(V_WT[0:3], w_WT, rtol=1e-9)
+    np.testing.assert_allclose(V_WT[3:6], v_WCm + np.cross(w_WT, p_CmT_W), rtol=1e-9)
 
 
 def test_scene_converts_to_autodiff_for_linearization():
@@ -345,14 +384,16 @@ def test_peg_pressed_into_the_hole_feels_the_push():
                     k_t=0.0).run(0.5)
     _, contact = run.log("contact")
     _, X_WT = run.log("X_WT")
+    # Pushed down at the grip, straight above the peg's centre: the floor pushes back
+    # with the same force.
     np.testing.assert_allclose(contact[-100:, 0:3], np.tile([0.0, 0.0, 2.0], (100, 1)),
                                atol=0.02 * 2.0)
     assert np.ptp(contact[-100:, 2]) < 1e-3
-    p_WT = X_WT[-1, 4:7]
+    p_WA = tool_centre_pose(X_WT[-1], scene).translation()
     hx, hy, _ = scene.hole_size_m
-    assert abs(p_WT[0]) < (hx - scene.peg_size_m[0]) / 2
-    assert abs(p_WT[1]) < (hy - scene.peg_size_m[1]) / 2
-    bottom = p_WT[2] - scene.peg_size_m[2] / 2
+    assert abs(p_WA[0]) < (hx - scene.peg_size_m[0]) / 2
+    assert abs(p_WA[1]) < (hy - scene.peg_size_m[1]) / 2
+    bottom = p_WA[2] - scene.peg_size_m[2] / 2
     assert floor_z - 2e-4 < bottom < floor_z  # pressed in by a fraction of a millimetre
     assert run.log("in_contact")[1][-1, 0] == 1.0
 
@@ -363,12 +404,14 @@ def test_peg_sliding_on_the_floor_feels_coulomb_friction():
     left = -(scene.hole_size_m[0] - scene.peg_size_m[0]) / 2 + 0.0005
     # 0.45 N sideways against 0.15 * 2 N of friction; the coupling's 5 N*s/m damping
     # holds the slide at 0.03 m/s, which crosses the 29 mm of free floor in ~1 s.
+    # Pushed at the grip, 45 mm above the floor, the peg leans ~0.5 deg.
     run = HeldScene(scene, peg_in_hole_at(left, floor_z + 0.001), force=(0.45, 0.0, -2.0),
                     k_t=0.0).run(0.4)
     t, contact = run.log("contact")
     _, X_WT = run.log("X_WT")
     sliding = t > 0.1
-    speed = np.diff(X_WT[:, 4]) / STEP_S
+    x_A = [tool_centre_pose(X, scene).translation()[0] for X in X_WT]  # the peg's centre (m)
+    speed = np.diff(x_A) / STEP_S
     assert np.all(speed[sliding[1:]] > 0.02)
     ratio = -contact[sliding, 0] / contact[sliding, 2]
     np.testing.assert_allclose(ratio, scene.contact.friction, rtol=0.2)
@@ -378,17 +421,27 @@ def test_peg_sliding_on_the_floor_feels_coulomb_friction():
 def test_peg_pushed_against_the_side_wall_feels_it_in_x():
     scene = PegInHole()
     floor_z = scene.hole_center_m[2] - scene.hole_size_m[2]
-    run = HeldScene(scene, peg_in_hole_at(0.010, floor_z + 0.001), force=(1.0, 0.0, -1.0),
-                    k_t=0.0).run(0.4)
+    # The push acts at the peg's centre A: f at T with the couple p_TA x f (N*m; the peg
+    # starts level, so p_TA in W is tool_offset_m). At the grip alone f would add
+    # 0.025 N*m about y about A and tip the peg ~7 deg over the wall.
+    force = np.array([1.0, 0.0, -1.0])  # N
+    run = HeldScene(scene, peg_in_hole_at(0.010, floor_z + 0.001), force=force,
+                    torque=np.cross(scene.tool_offset_m, force), k_t=0.0).run(0.4)
     _, contact = run.log("contact")
     _, X_WT = run.log("X_WT")
     np.testing.assert_allclose(contact[-1, 0:3], [-1.0, 0.0, 1.0], atol=0.02)
+    # The peg's right face lies on the wall from its bottom edge up to the wall's top.
+    X_WA = tool_centre_pose(X_WT[-1], scene)
+    half_x, _, half_z = np.asarray(scene.peg_size_m) / 2
     wall_x = scene.hole_size_m[0] / 2
-    assert X_WT[-1, 4] + scene.peg_size_m[0] / 2 == pytest.approx(wall_x, abs=5e-4)
+    for z_A in (-half_z, -half_z + scene.hole_size_m[2]):
+        assert (X_WA @ [half_x, 0.0, z_A])[0] == pytest.approx(wall_x, abs=5e-4)
 
 
-def test_hanging_ball_hangs_at_the_static_deflection():
-    scene = HangingBall()
+# The anchor at the grip, and 10 mm below it: the spring hangs from the anchor's centre.
+@pytest.mark.parametrize("tool_offset_m", [[0.0, 0.0, 0.0], [0.0, 0.0, -0.010]])
+def test_hanging_ball_hangs_at_the_static_deflection(tool_offset_m):
+    scene = HangingBall(tool_offset_m=tool_offset_m)
     X_WI = RigidTransform([0.01, -0.02, 0.030])
     run = HeldScene(scene, X_WI).run(1.0)
     _, X_WT = run.log("X_WT")
@@ -397,9 +450,10 @@ def test_hanging_ball_hangs_at_the_static_deflection():
     # The coupling holds the weightless anchor against the ball's weight: 0.25 mm of sag.
     np.testing.assert_allclose(X_WT[-1, 4:7], X_WI.translation() - [0, 0, weight / 400.0],
                                atol=2e-5)
-    deflection = X_WT[-1, 6] - X_WB[-1, 6] - scene.spring_rest_length_m
+    p_WA = tool_centre_pose(X_WT[-1], scene).translation()
+    deflection = p_WA[2] - X_WB[-1, 6] - scene.spring_rest_length_m
     assert deflection == pytest.approx(weight / scene.spring_stiffness_n_per_m, rel=0.02)
-    np.testing.assert_allclose(X_WB[-1, 4:6], X_WI.translation()[0:2], atol=1e-6)
+    np.testing.assert_allclose(X_WB[-1, 4:6], p_WA[0:2], atol=1e-6)
     assert np.all(run.log("in_contact")[1] == 0.0)
 
 
@@ -432,12 +486,13 @@ def test_off_centre_hit_turns_the_paddle_about_y():
     start, end = first_contact(run)
     _, contact = run.log("contact")
     peak = start + int(np.argmin(contact[start:end, 2]))
-    f_z, tau_y = contact[peak, 2], contact[peak, 4]
-    # About the paddle's centre, a downward force f_z < 0 at x = +25 mm gives
-    # tau_y = z f_x - x f_z = -0.025 f_z > 0 (the +x edge dips).
+    f_x, f_z, tau_y = contact[peak, 0], contact[peak, 2], contact[peak, 4]
+    # About T (the grip), a downward force f_z < 0 at x = +25 mm on the paddle's top,
+    # z = -27 mm, gives tau_y = z f_x - x f_z = -0.027 f_x - 0.025 f_z > 0 (the +x edge dips).
+    z_top = scene.tool_offset_m[2] + scene.paddle_size_m[2] / 2
     assert f_z < -0.5
     assert tau_y > 0.0
-    assert tau_y == pytest.approx(-0.025 * f_z, rel=0.1)
+    assert tau_y == pytest.approx(z_top * f_x - 0.025 * f_z, rel=0.1)
 
 
 # --- configuration --------------------------------------------------------------------------
