@@ -77,6 +77,8 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
         builder.Connect(enable.get_output_port(), controller.GetInputPort("enable"))
         pd_gain = builder.AddNamedSystem("pd_gain", ConstantVectorSource([1.0]))
         builder.Connect(pd_gain.get_output_port(), controller.GetInputPort("pd_gain"))
+        brake_gain = builder.AddNamedSystem("brake_gain", ConstantVectorSource([0.0]))
+        builder.Connect(brake_gain.get_output_port(), controller.GetInputPort("brake_gain"))
         feedforward = builder.AddNamedSystem("haptic_feedforward",
                                              ConstantVectorSource(np.zeros(6)))
         builder.Connect(feedforward.get_output_port(),

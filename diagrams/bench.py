@@ -1,8 +1,10 @@
 """``maglev bench``: real-time factor of each scenario and what one control tick costs.
 
 Three kinds of numbers:
-- each shipped levitation scenario simulated without Meshcat: real-time factor
-  and wall time per simulated 1 ms;
+- each shipped scenario (levitation, and the rigid haptic scenes with their
+  whole diagram: station with hand, tracker, controller, allocator, coupling,
+  scene plant, logging) simulated without Meshcat: real-time factor and wall
+  time per simulated 1 ms;
 - each leaf system of the diagram on its own, at a hover operating point: the
   cost of one update (discrete update plus output evaluation), with inputs fixed
   to their values in the running diagram and re-fixed every call so nothing is
@@ -31,6 +33,8 @@ from maglev_haptics.systems.current_allocator import allocate_currents
 from maglev_haptics.systems.levitation_controller import GRAVITY_M_S2
 
 LEVITATE_FILE = SCENARIO_DIR / "levitate.yaml"
+HAPTIC_FILES = [SCENARIO_DIR / f"{name}.yaml" for name in ("hanging_ball", "paddle_ball",
+                                                            "peg_in_hole")]
 HOVER_TIME_S = 1.5  # operating point for the per-system costs (s into takeoff_hover_land)
 
 
@@ -132,11 +136,14 @@ def allocation_cost_us(config: DeviceConfig, n: int = 2000) -> Dict[str, float]:
 def run_benchmarks(duration_s: Optional[float] = None, progress: bool = True) -> Dict:
     """Everything ``maglev bench`` reports; each scenario runs its whole script by default."""
     results: Dict = {"scenarios": {}, "systems_us": {}, "wrench_matrix_us": {}, "allocation": {}}
-    for name in scenario_names(LEVITATE_FILE):
-        scenario = load_scenario(str(LEVITATE_FILE), name)
+    runs = [(LEVITATE_FILE, name) for name in scenario_names(LEVITATE_FILE)]
+    runs += [(path, scenario_names(path)[0]) for path in HAPTIC_FILES]
+    for path, name in runs:
+        scenario = load_scenario(str(path), name)
         built = BuildDiagram(scenario)
         simulate(built, 0.05, progress=False)  # loads the compiled kernels, off the clock
-        sim_s = built.plan.end_s if duration_s is None else min(duration_s, built.plan.end_s)
+        length_s = scenario.duration_s if scenario.duration_s is not None else built.plan.end_s
+        sim_s = length_s if duration_s is None else min(duration_s, length_s)
         _, wall_s = simulate(built, sim_s, progress=progress, label=name)
         results["scenarios"][name] = {
             "instrument": scenario.device.instrument,
@@ -160,7 +167,7 @@ def run_benchmarks(duration_s: Optional[float] = None, progress: bool = True) ->
 
 
 def format_report(results: Dict) -> str:
-    lines = ["Levitation scenarios (Meshcat off):",
+    lines = ["Scenarios, whole diagram (Meshcat off):",
              f"  {'scenario':<24}{'instrument':<13}{'sim s':>7}{'RTF':>8}{'us per 1 ms tick':>18}"]
     for name, r in results["scenarios"].items():
         lines.append(f"  {name:<24}{r['instrument']:<13}{r['simulated_s']:>7.2f}"

@@ -84,13 +84,21 @@ def releases(log, rest_height_m: float, debounce_s: float) -> List[Dict]:
     return events
 
 
+def peg_centers(log, scene: PegInHole) -> np.ndarray:
+    """(N, 3) centre of the simulated peg in W (m): ``tool_offset_m`` in the tool's frame."""
+    offset = np.asarray(scene.tool_offset_m, float)
+    return np.array([p + rotation_from_quaternion(q) @ offset
+                     for p, q in zip(log["p_WT"], log["q_WT"])])
+
+
 def peg_metrics(log, scene: PegInHole, ramp_s: float) -> Dict:
     """Stiffness of pressing on the hole's floor, sliding friction, x travel in the hole."""
     t = log["t"]
     engaged = engaged_mask(log, ramp_s)
-    # Where the peg's bottom would be if it moved rigidly with the instrument.
+    # Where the peg's bottom would be if it moved rigidly with the instrument (level).
     z_bottom_D = (log["p_WI_measured"][:, 2] + scene.tool_offset_m[2]
                   - scene.peg_size_m[2] / 2)
+    p_WPeg = peg_centers(log, scene)
     floor_z = scene.hole_center_m[2] - scene.hole_size_m[2]
     depth = floor_z - z_bottom_D
     f_z = log["f_user"][:, 2]
@@ -105,7 +113,7 @@ def peg_metrics(log, scene: PegInHole, ramp_s: float) -> Dict:
         result["stiffness_fit_r2"] = float(1 - residual @ residual / np.sum((f - f.mean())**2))
         result["max_depth_mm"] = float(1e3 * d.max())
         result["max_normal_force_n"] = float(f.max())
-    v_T = np.gradient(log["p_WT"][:, 0:2], t, axis=0)
+    v_T = np.gradient(p_WPeg[:, 0:2], t, axis=0)
     sliding = pressing & (np.linalg.norm(v_T, axis=1) > SLIDING_SPEED_M_S) & (f_z > 0.1)
     if np.sum(sliding) > 10:
         tangential = np.linalg.norm(log["tool_contact_wrench_W"][sliding, 0:2], axis=1)
@@ -113,9 +121,9 @@ def peg_metrics(log, scene: PegInHole, ramp_s: float) -> Dict:
         result["sliding_friction_ratio"] = float(np.median(tangential / normal))
         result["sliding_duration_s"] = float(np.sum(sliding) * np.median(np.diff(t)))
     top_z = scene.hole_center_m[2]
-    inside = engaged & (log["p_WT"][:, 2] - scene.peg_size_m[2] / 2 < top_z - 1e-3)
+    inside = engaged & (p_WPeg[:, 2] - scene.peg_size_m[2] / 2 < top_z - 1e-3)
     if inside.any():
-        x = log["p_WT"][inside, 0] - scene.hole_center_m[0]
+        x = p_WPeg[inside, 0] - scene.hole_center_m[0]
         result["x_range_in_hole_mm"] = float(1e3 * (x.max() - x.min()))
         result["x_clearance_mm"] = float(1e3 * (scene.hole_size_m[0] - scene.peg_size_m[0]))
         result["z_instrument_range_in_hole_mm"] = [
@@ -124,7 +132,7 @@ def peg_metrics(log, scene: PegInHole, ramp_s: float) -> Dict:
     return result
 
 
-def contact_hits(log, ramp_s: float) -> List[Dict]:
+def contact_hits(log, ramp_s: float, tool_offset_m) -> List[Dict]:
     """Each contact episode of the tool while engaged: where it hit (in the tool's
     x, from the contact wrench's moment) and the torque the user felt."""
     t = log["t"]
@@ -134,8 +142,9 @@ def contact_hits(log, ramp_s: float) -> List[Dict]:
         wrench = log["tool_contact_wrench_W"][run]
         k = int(np.argmax(np.abs(wrench[:, 2])))
         R_WT = rotation_from_quaternion(log["q_WT"][run][k])
+        # The contact moment about the paddle's centre (tool_offset_m in T), in T.
         f_T = R_WT.T @ wrench[k, 0:3]
-        tau_T = R_WT.T @ wrench[k, 3:6]
+        tau_T = R_WT.T @ wrench[k, 3:6] - np.cross(np.asarray(tool_offset_m, float), f_T)
         if abs(f_T[2]) < 1e-3:
             continue
         # A mainly normal force f_z at x on the paddle's face: tau_y = -x f_z.
@@ -173,7 +182,7 @@ def haptic_summary(log, scenario, *, rest_height_m: float) -> Dict:
     if isinstance(scene, PegInHole):
         summary["peg_in_hole"] = peg_metrics(log, scene, ramp_s)
     elif isinstance(scene, PaddleBall):
-        summary["paddle_hits"] = contact_hits(log, ramp_s)
+        summary["paddle_hits"] = contact_hits(log, ramp_s, scene.tool_offset_m)
     elif isinstance(scene, HangingBall) and engaged.any():
         force = log["f_user"][engaged]
         summary["hanging_ball"] = {

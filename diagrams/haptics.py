@@ -29,7 +29,8 @@ from maglev_haptics.diagrams.scenario import Scenario
 from maglev_haptics.diagrams.scene import AddScene
 from maglev_haptics.diagrams.station import hand_start_pose
 from maglev_haptics.hardware.limits import device_limits
-from maglev_haptics.systems.haptic_coupling import CouplingConfig, HapticCoupling
+from maglev_haptics.systems.haptic_coupling import (
+    CouplingConfig, HapticCoupling, resolved_rotational_gains)
 from maglev_haptics.systems.haptic_supervisor import HapticSupervisor
 from maglev_haptics.systems.meshcat_hand import MeshcatHandInput
 from maglev_haptics.systems.rotations import rotation_from_rpy
@@ -49,10 +50,13 @@ def haptic_start_pose(scenario: Scenario) -> np.ndarray:
     return hand_start_pose(scenario)
 
 
-def coupling_with_device_limits(scenario: Scenario, magnetics) -> CouplingConfig:
-    """The scenario's coupling config with null wrench limits replaced by what the
-    coils can add to the weight at the haptic start pose within ``device_limit``."""
-    config = scenario.haptics.coupling
+def resolved_coupling_config(scenario: Scenario, magnetics) -> CouplingConfig:
+    """The scenario's coupling config with its null values filled in: rotational
+    gains from the instrument's inertia, and wrench limits from what the coils can
+    add to the weight at the haptic start pose within ``device_limit``."""
+    spec = scenario.device.instrument_spec()
+    config = resolved_rotational_gains(scenario.haptics.coupling, spec.mass_kg,
+                                       np.diag(spec.inertia_about_I()))
     if config.max_force_n is not None and config.max_torque_nm is not None:
         return config
     device = scenario.device
@@ -89,7 +93,7 @@ def AddHaptics(builder, *, scenario: Scenario, magnetics, station, estimator, co
     x, y, z, roll, pitch, yaw = haptic_start_pose(scenario)
     scene = AddScene(builder, scene=haptics.scene, time_step_s=period_s, use_sampled_output_ports=False,
                      X_WI_start=RigidTransform(RollPitchYaw(roll, pitch, yaw), [x, y, z]))
-    config = coupling_with_device_limits(scenario, magnetics)
+    config = resolved_coupling_config(scenario, magnetics)
     coupling = builder.AddNamedSystem("haptic_coupling", HapticCoupling(
         config=config, period_s=period_s, X_IT=scene.X_IT))
     supervisor = builder.AddNamedSystem("haptic_supervisor", HapticSupervisor(
@@ -115,7 +119,7 @@ def AddHaptics(builder, *, scenario: Scenario, magnetics, station, estimator, co
     builder.Connect(supervisor.GetOutputPort("haptics_enable"),
                     coupling.GetInputPort("haptics_enable"))
 
-    for name in ("setpoint", "enable", "pd_gain"):
+    for name in ("setpoint", "enable", "pd_gain", "brake_gain"):
         builder.Connect(supervisor.GetOutputPort(name), controller.GetInputPort(name))
     builder.Connect(coupling.GetOutputPort("wrench_feedforward_W"),
                     controller.GetInputPort("wrench_feedforward_W"))

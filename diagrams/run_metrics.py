@@ -40,9 +40,13 @@ def coil_temperatures_c(t: np.ndarray, currents: np.ndarray, thermal) -> np.ndar
 def log_arrays(logger, log_layout, context, device) -> Dict[str, np.ndarray]:
     """The run's log as named arrays; the contract's keys first (DESIGN.md section 8)."""
     log = logger.FindLog(context)
-    data = {name: log.data()[rows].T for name, rows in log_layout.items()}
+    # The logger reads a sample-and-hold: what it publishes at t was sampled one
+    # period earlier, and its t = 0 entry is the hold's blank initial state.
+    keep = slice(1, None)
+    data = {name: log.data()[rows, keep].T for name, rows in log_layout.items()}
     thermal = coil_thermal(device)
-    t = log.sample_times()
+    times = log.sample_times()
+    t = times[keep] - (times[1] - times[0])
     state = data["instrument_state"]
     measured = data["X_WI_measured"]
     rendered = data["wrench_rendered_W"]

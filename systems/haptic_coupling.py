@@ -36,6 +36,7 @@ levitation controller (which adds the gravity compensation), so the user's hand
 is pulled toward the tool, i.e. feels what holds the tool back.
 """
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import List, Optional
 
@@ -49,22 +50,27 @@ from pydrake.systems.scalar_conversion import TemplateSystem
 from maglev_haptics.systems.float_twins import float64_twins
 from maglev_haptics.systems.rotations import rotation_from_quaternion
 
-# Lever arm (m) that scales translational gains to rotational ones: the 25 mm peg,
-# about the 20 mm magnet offset of the instrument.
-_GAIN_LENGTH_M = 0.025
-
-
 @dataclass
 class CouplingConfig:
     """Gains, start-up ramp and wrench limits of the virtual coupling.
 
     Stiffness 400 N/m is the paper's 0.4 N/mm; at 1 kHz its Colgate-Schenkel
-    damping need K T / 2 = 0.2 N*s/m is small. Damping 5 N*s/m damps a 50 g tool
-    on the spring at ratio 0.56 (0.35 for 125 g) while the estimator's 1.7 mm/s
-    velocity noise makes only 8.5 mN of force, a sixth of the 0.05 N free-motion
-    budget. Rotational gains are the translational ones times (25 mm)^2:
-    0.25 N*m/rad (1 N*mm per 4 mrad) and 3.1e-3 N*m*s/rad (0.08 N*mm from the
-    26 mrad/s rotational velocity noise). The wrench limits, when null, are
+    damping need K T / 2 = 0.2 N*s/m is small. Damping 5 N*s/m is what an
+    instrument let go needs: the 125 g instrument on the spring against a held
+    tool rings at 9 Hz, and the device adds no damping of its own, so the
+    coupling gives it damping ratio 0.35 (the 20 g peg on the spring: 0.88).
+    The damper acts on the instrument's measured velocity low-passed at
+    ``velocity_filter_hz`` (first order, one tick per update): 30 Hz trims the
+    estimator's ~1.7 mm/s velocity noise while lagging the 9 Hz mode by only
+    17 deg. Rotational gains, when null, give each of the instrument's axes
+    the same natural frequency and damping ratio as the translation: the
+    instrument's principal inertia times k / m and b / m (for the 2-magnet
+    instrument 0.026, 0.18, 0.19 N*m/rad). One rotational stiffness for all
+    axes would make the turn about the magnet row (8e-6 kg*m^2) ring at 28 Hz,
+    where the tracker's latency and the velocity filters turn the damper's
+    phase around: an instrument let go then spins up. The diagram builder
+    fills them in (``resolved_rotational_gains``). The wrench limits, when
+    null, are
     what the coils can add on top of the weight at the pose where haptics
     starts, the smallest over the axis directions
     (``hardware.limits.device_limits``), with every coil within
@@ -78,14 +84,30 @@ class CouplingConfig:
     translational_stiffness: List[float] = field(default_factory=lambda: [400.0] * 3)  # N/m
     translational_damping: List[float] = field(default_factory=lambda: [5.0] * 3)  # N*s/m
     # about the instrument's x, y, z axes
-    rotational_stiffness: List[float] = field(
-        default_factory=lambda: [400.0 * _GAIN_LENGTH_M**2] * 3)  # N*m/rad
-    rotational_damping: List[float] = field(
-        default_factory=lambda: [5.0 * _GAIN_LENGTH_M**2] * 3)  # N*m*s/rad
+    rotational_stiffness: Optional[List[float]] = None  # N*m/rad; null: from the instrument
+    rotational_damping: Optional[List[float]] = None  # N*m*s/rad; null: likewise
+    velocity_filter_hz: float = 30.0  # corner of the low-pass on the measured V_WI (Hz)
     ramp_s: float = 0.5  # the user's wrench fades in linearly over this time after enable (s)
     max_force_n: Optional[float] = None  # |f| limit (N); null: the device's thermal limit
     max_torque_nm: Optional[float] = None  # |tau| limit (N*m); null: likewise
     device_limit: str = "peak"  # "peak" or "thermal": the coil current the null limits assume
+
+
+def resolved_rotational_gains(config: CouplingConfig, mass_kg: float,
+                              inertia_diag) -> CouplingConfig:
+    """``config`` with null rotational gains set to the instrument's principal
+    inertias ``inertia_diag`` (kg*m^2, about I's axes) times the translational
+    gains per unit mass (``mass_kg``, kg): the same modal frequency and damping
+    ratio about every axis as along x."""
+    inertia = np.asarray(inertia_diag, dtype=float)
+    stiffness = config.rotational_stiffness
+    damping = config.rotational_damping
+    if stiffness is None:
+        stiffness = [float(v) for v in inertia * config.translational_stiffness[0] / mass_kg]
+    if damping is None:
+        damping = [float(v) for v in inertia * config.translational_damping[0] / mass_kg]
+    return dataclasses.replace(config, rotational_stiffness=stiffness,
+                               rotational_damping=damping)
 
 
 def coupling_gains(config: CouplingConfig):
@@ -154,6 +176,12 @@ def limited_wrenches(X_WI, V_WI, X_WT, V_WT, R_IT, p_IT, k, b, fraction, max_for
     return scale * on_tool, fraction * scale * on_instrument, scale
 
 
+def velocity_filter_gain(corner_hz: float, period_s: float) -> float:
+    """alpha in v_f <- v_f + alpha (v - v_f): exact sampling of a first-order
+    low-pass with corner ``corner_hz`` (Hz) at ``period_s`` (s)."""
+    return float(1.0 - np.exp(-2.0 * np.pi * corner_hz * period_s))
+
+
 def ramp_step(fraction, enable, period_s, ramp_s):
     """The ramp fraction (0..1) after one period (s): grows by period / ramp_s while
     enabled, resets to 0 when disabled so the next enable ramps again."""
@@ -200,17 +228,19 @@ def HapticCoupling_(T):
         full wrench is within the limits (the tool is never driven harder than
         the device could render); ``coupling_clamped`` is 1 when that factor
         is below 1. The discrete state (updated every period_s) is the ramp
-        fraction 0..1: it grows by period / ramp_s each period while
-        ``haptics_enable`` > 0.5 and resets to 0 otherwise, so the user feels
-        nothing while disabled.
+        fraction 0..1, which grows by period / ramp_s each period while
+        ``haptics_enable`` > 0.5 and resets to 0 otherwise (so the user feels
+        nothing while disabled), and the low-passed V_WI_measured the damper
+        uses; the outputs do not feed ``V_WI_measured`` through.
         """
 
         def _construct(self, *, config: CouplingConfig, period_s: float,
                        X_IT: RigidTransform = RigidTransform(), converter=None):
             LeafSystem_[T].__init__(self, converter)
-            for name in ("max_force_n", "max_torque_nm"):
+            for name in ("max_force_n", "max_torque_nm", "rotational_stiffness",
+                         "rotational_damping"):
                 if getattr(config, name) is None:
-                    raise ValueError(f"CouplingConfig.{name} is None: give a limit, or let "
+                    raise ValueError(f"CouplingConfig.{name} is None: give a value, or let "
                                      "the diagram builder derive it from the device")
             self._config = config
             self._period_s = float(period_s)
@@ -227,13 +257,17 @@ def HapticCoupling_(T):
             self._V_WT = self.DeclareVectorInputPort("V_WT", 6)
             self._enable = self.DeclareVectorInputPort("haptics_enable", 1)
             self._ramp = self.DeclareDiscreteState(1)
-            self.DeclarePeriodicDiscreteUpdateEvent(period_s, 0.0, self._update_ramp)
+            self._V_WI_filtered = self.DeclareDiscreteState(6)
+            self._alpha = velocity_filter_gain(config.velocity_filter_hz, period_s)
+            self.DeclarePeriodicDiscreteUpdateEvent(period_s, 0.0, self._update)
             # The scene reads one output and the controller the other: compute once.
             self._cache = self.DeclareCacheEntry(
                 description="limited wrenches",
                 value_producer=ValueProducer(allocate=AbstractValue.Make(()).Clone,
                                              calc=self._calc_cache),
-                prerequisites_of_calc={self.all_input_ports_ticket(), self.xd_ticket()})
+                prerequisites_of_calc={self._X_WI.ticket(), self._X_WT.ticket(),
+                                       self._V_WT.ticket(), self._enable.ticket(),
+                                       self.xd_ticket()})
             self.DeclareVectorOutputPort("wrench_on_tool_W", 6, self._calc_on_tool)
             self.DeclareVectorOutputPort("wrench_feedforward_W", 6, self._calc_feedforward)
             self.DeclareVectorOutputPort("coupling_clamped", 1, self._calc_clamped)
@@ -242,11 +276,14 @@ def HapticCoupling_(T):
             Impl._construct(self, config=other._config, period_s=other._period_s,
                             X_IT=other._X_IT, converter=converter)
 
-        def _update_ramp(self, context, discrete_state):
+        def _update(self, context, discrete_state):
             fraction = context.get_discrete_state(self._ramp).CopyToVector()[0]
             fraction = ramp_step(fraction, self._enable.Eval(context)[0], self._period_s,
                                  self._config.ramp_s)
             discrete_state.get_mutable_vector(self._ramp).SetFromVector([fraction])
+            filtered = context.get_discrete_state(self._V_WI_filtered).CopyToVector()
+            filtered = filtered + self._alpha * (self._V_WI.Eval(context) - filtered)
+            discrete_state.get_mutable_vector(self._V_WI_filtered).SetFromVector(filtered)
 
         def _calc_cache(self, context, value):
             """(wrench on tool, wrench on instrument, clamp factor) after ramp and clamp."""
@@ -254,7 +291,9 @@ def HapticCoupling_(T):
             if self._enable.Eval(context)[0] < 0.5:
                 fraction = 0.0 * fraction
             value.set_value(self._limited_wrenches(
-                self._X_WI.Eval(context), self._V_WI.Eval(context), self._X_WT.Eval(context),
+                self._X_WI.Eval(context),
+                context.get_discrete_state(self._V_WI_filtered).CopyToVector(),
+                self._X_WT.Eval(context),
                 self._V_WT.Eval(context), self._R_IT, self._p_IT, self._k, self._b, fraction,
                 self._config.max_force_n, self._config.max_torque_nm))
 

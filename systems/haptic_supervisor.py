@@ -12,7 +12,10 @@
     never yanks the instrument;
   - the handle is let go (for longer than ``release_debounce_s``) while the
     tool touches the scene (within ``contact_memory_s``): the scene holds it
-    (a peg let go in its hole stays up between the virtual walls);
+    (a peg let go in its hole stays up between the virtual walls). Nobody
+    holds the instrument now, so the device brakes it (the PD's damping,
+    ``brake`` output) until the hand grips again: a weightless instrument let
+    go would otherwise keep whatever momentum the let-go gave it;
   - let go with the tool free: **landing**. Haptics is disabled and the PD lands
     the instrument level on the glass below where it was let go. Once it has
     settled, the force ramps to zero. Gravity compensation alone would leave a
@@ -154,6 +157,7 @@ def HapticSupervisor_(T):
             - enable
             - pd_gain
             - haptics_enable
+            - brake_gain
             - mode
 
         The discrete state (updated every ``period_s``) holds the mode, the
@@ -188,6 +192,7 @@ def HapticSupervisor_(T):
                                          state | {self._scripted_enable.ticket()})
             self.DeclareVectorOutputPort("pd_gain", 1, self._calc_pd_gain, state)
             self.DeclareVectorOutputPort("haptics_enable", 1, self._calc_haptics_enable, state)
+            self.DeclareVectorOutputPort("brake_gain", 1, self._calc_brake_gain, state)
             self.DeclareVectorOutputPort("mode", 1, self._calc_mode, state)
 
         def _construct_copy(self, other, converter=None):
@@ -230,6 +235,12 @@ def HapticSupervisor_(T):
 
         def _calc_haptics_enable(self, context, output):
             output.SetFromVector([T(1.0 if self._values(context)[_MODE] == HAPTIC else 0.0)])
+
+        def _calc_brake_gain(self, context, output):
+            values = self._values(context)
+            held_by_scene = (values[_MODE] == HAPTIC
+                             and values[_RELEASED] > self._config.release_debounce_s)
+            output.SetFromVector([T(1.0 if held_by_scene else 0.0)])
 
         def _calc_mode(self, context, output):
             output.SetFromVector([T(self._values(context)[_MODE])])

@@ -51,6 +51,14 @@ def pd_gains(config: ControllerConfig, mass_kg: float, inertia_diag: np.ndarray)
     return kp, kd
 
 
+def brake_wrench(pose, velocity, kd):
+    """The PD's damping alone, toward rest: [f; tau] in W (N, N*m)."""
+    R_WI = rotation_from_quaternion(pose[0:4])
+    force = -kd[0:3] * velocity[3:6]
+    torque = R_WI @ (-kd[3:6] * (R_WI.T @ velocity[0:3]))
+    return np.concatenate((force, torque))
+
+
 def pd_wrench(setpoint, pose, velocity, kp, kd, mass_kg):
     """Wrench [f; tau] in W (N, N*m) that tracks ``setpoint`` and carries the weight.
 
@@ -74,7 +82,8 @@ def pd_wrench(setpoint, pose, velocity, kp, kd, mass_kg):
 
 # The 1 kHz float path: the same functions compiled by numba (27 us -> 3 us a call).
 _FLOAT64 = float64_twins(rotation_from_quaternion, rotation_from_rpy,
-                         angular_velocity_from_rpy_rates, rotation_error_W, pd_wrench)
+                         angular_velocity_from_rpy_rates, rotation_error_W, pd_wrench,
+                         brake_wrench)
 
 
 def carries_weight_while_lost(lost_time_s: float, config: ControllerConfig) -> bool:
@@ -97,9 +106,11 @@ def LevitationController_(T):
         """Levitation controller (MLHI style): PD about a setpoint, gravity
         compensation, feed-forward wrench, safe force ramp, blind landing.
 
-        The commanded wrench is ``enable * (pd_gain * PD + weight) +
-        feedforward`` while tracking is good: ``pd_gain`` 0 leaves the
-        instrument to the hand and the feed-forward (haptic mode).
+        The commanded wrench is ``enable * (pd_gain * PD + brake_gain * D +
+        weight) + feedforward`` while tracking is good: ``pd_gain`` 0 leaves
+        the instrument to the hand and the feed-forward (haptic mode); D is
+        the PD's damping alone, toward rest, which brakes an instrument let go
+        while the virtual scene holds it.
         ``wrench_rendered_W`` is what acts on the hand: the commanded wrench
         less the weight it carries. When tracking is lost the measurement is stale, so PD
         stops: the weight is carried for ``lost_grace_s`` (short dropouts are
@@ -117,6 +128,7 @@ def LevitationController_(T):
             - tracking_ok
             - enable
             - pd_gain
+            - brake_gain
             - wrench_feedforward_W
             output_ports:
             - wrench_commanded_W
@@ -136,12 +148,14 @@ def LevitationController_(T):
             self._period_s = float(period_s)
             self._kp, self._kd = pd_gains(config, mass_kg, self._inertia_diag)
             self._pd_wrench = _FLOAT64.pd_wrench if T == float else pd_wrench
+            self._brake_wrench = _FLOAT64.brake_wrench if T == float else brake_wrench
             self._setpoint = self.DeclareVectorInputPort("setpoint", 12)
             self._pose = self.DeclareVectorInputPort("X_WI_measured", 7)
             self._velocity = self.DeclareVectorInputPort("V_WI_measured", 6)
             self._tracking_ok = self.DeclareVectorInputPort("tracking_ok", 1)
             self._enable = self.DeclareVectorInputPort("enable", 1)
             self._pd_gain = self.DeclareVectorInputPort("pd_gain", 1)
+            self._brake_gain = self.DeclareVectorInputPort("brake_gain", 1)
             self._feedforward = self.DeclareVectorInputPort("wrench_feedforward_W", 6)
             self._lost_time = self.DeclareDiscreteState(1)
             self.DeclarePeriodicDiscreteUpdateEvent(period_s, 0.0, self._update_lost_time)
@@ -179,14 +193,18 @@ def LevitationController_(T):
             if lost_time > 0.0 or self._tracking_ok.Eval(context)[0] < 0.5:
                 output.SetFromVector(weight)
                 return
-            pd = self._pd_wrench(self._setpoint.Eval(context), self._pose.Eval(context),
-                                 self._velocity.Eval(context), self._kp, self._kd,
-                                 self._mass_kg)
+            pose, velocity = self._pose.Eval(context), self._velocity.Eval(context)
+            pd = self._pd_wrench(self._setpoint.Eval(context), pose, velocity, self._kp,
+                                 self._kd, self._mass_kg)
             enable = self._enable.Eval(context)[0]
             pd_gain = self._pd_gain.Eval(context)[0]
             # pd already carries the weight; only its PD part fades with pd_gain.
-            output.SetFromVector(enable * pd_gain * pd + (1.0 - pd_gain) * weight
-                                 + self._feedforward.Eval(context))
+            wrench = enable * pd_gain * pd + (1.0 - pd_gain) * weight
+            brake_gain = self._brake_gain.Eval(context)[0]
+            if brake_gain != 0.0:
+                wrench = wrench + enable * brake_gain * self._brake_wrench(pose, velocity,
+                                                                           self._kd)
+            output.SetFromVector(wrench + self._feedforward.Eval(context))
 
         def _calc_rendered(self, context, output):
             commanded = self.GetOutputPort("wrench_commanded_W").Eval(context)

@@ -8,11 +8,14 @@ from pydrake.math import RigidTransform, RollPitchYaw, RotationMatrix
 
 from maglev_haptics.systems.haptic_coupling import (
     _FLOAT64, CouplingConfig, HapticCoupling, HapticCoupling_, clamp_scale, coupling_gains,
-    coupling_wrenches, spring_potential)
+    coupling_wrenches, resolved_rotational_gains, spring_potential, velocity_filter_gain)
 from maglev_haptics.systems.rotations import quaternion_exp
 
 PERIOD_S = 1e-3
 # Distinct per-axis gains so a mixed-up axis shows.
+# What the diagram builder fills in for a device: limits and rotational gains.
+RESOLVED = dict(max_force_n=4.0, max_torque_nm=0.08, rotational_stiffness=[0.03, 0.18, 0.19],
+                rotational_damping=[3e-4, 2.2e-3, 2.4e-3])
 GAINS = CouplingConfig(translational_stiffness=[300.0, 400.0, 500.0],
                        translational_damping=[3.0, 4.0, 5.0],
                        rotational_stiffness=[0.1, 0.2, 0.3],
@@ -42,7 +45,16 @@ def fix(coupling, context, *, X_WI, X_WT, V_WI=np.zeros(6), V_WT=np.zeros(6), en
     coupling.GetInputPort("X_WT").FixValue(context, pose_vector(X_WT))
     coupling.GetInputPort("V_WT").FixValue(context, V_WT)
     coupling.GetInputPort("haptics_enable").FixValue(context, [enable])
-    context.SetDiscreteState([ramp])
+    # The damper uses the low-passed velocity: start the filter settled at V_WI.
+    context.SetDiscreteState(0, [ramp])
+    context.SetDiscreteState(1, V_WI)
+
+
+def step(system, context):
+    """Apply one periodic update to ``context``."""
+    update = system.EvalUniquePeriodicDiscreteUpdate(context)
+    for group in range(update.num_groups()):
+        context.SetDiscreteState(group, update.get_vector(group).CopyToVector())
 
 
 def outputs(coupling, context):
@@ -151,7 +163,7 @@ def test_potential_decreases_along_the_spring_wrench():
 
 
 def test_ramp_from_enable():
-    config = CouplingConfig(ramp_s=0.01, max_force_n=4.0, max_torque_nm=0.08)
+    config = CouplingConfig(ramp_s=0.01, **RESOLVED)
     k, _ = coupling_gains(config)
     coupling, context = make(config)
     X_WI = RigidTransform([0, 0, 0.03])
@@ -159,8 +171,7 @@ def test_ramp_from_enable():
     forces = []
     for _ in range(15):
         forces.append(outputs(coupling, context)[1][0])
-        context.SetDiscreteState(
-            coupling.EvalUniquePeriodicDiscreteUpdate(context).get_vector().CopyToVector())
+        step(coupling, context)
     # Feed-forward (on the instrument) pulls it toward the tool: +x, ramping in over 10 periods.
     expected = k[0] * 0.001 * np.minimum(np.arange(15) / 10, 1.0)
     np.testing.assert_allclose(forces, expected, rtol=1e-12, atol=1e-15)
@@ -169,14 +180,13 @@ def test_ramp_from_enable():
     coupling.GetInputPort("haptics_enable").FixValue(context, [0.0])
     assert np.all(outputs(coupling, context)[1] == 0.0)
     assert outputs(coupling, context)[0][0] == pytest.approx(-k[0] * 0.001)
-    context.SetDiscreteState(
-        coupling.EvalUniquePeriodicDiscreteUpdate(context).get_vector().CopyToVector())
+    step(coupling, context)
     coupling.GetInputPort("haptics_enable").FixValue(context, [1.0])
     assert np.all(outputs(coupling, context)[1] == 0.0)
 
 
 def test_clamp_preserves_direction_and_limits():
-    config = CouplingConfig(ramp_s=0.0, max_force_n=4.0, max_torque_nm=0.08)
+    config = CouplingConfig(ramp_s=0.0, **RESOLVED)
     coupling, context = make(config)
     rng = np.random.default_rng(3)
     for _ in range(10):
@@ -202,8 +212,8 @@ def test_clamp_preserves_direction_and_limits():
 
 
 def test_converts_to_autodiff_with_the_stiffness_as_derivative():
-    coupling, _ = make(CouplingConfig(ramp_s=0.0, max_force_n=4.0, max_torque_nm=0.08))
-    k, _ = coupling_gains(CouplingConfig())
+    coupling, _ = make(CouplingConfig(ramp_s=0.0, **RESOLVED))
+    k, _ = coupling_gains(CouplingConfig(**RESOLVED))
     ad = coupling.ToAutoDiffXd()
     assert isinstance(ad, HapticCoupling_[AutoDiffXd])
     context = ad.CreateDefaultContext()
@@ -215,8 +225,7 @@ def test_converts_to_autodiff_with_the_stiffness_as_derivative():
     for name in ("V_WI_measured", "V_WT"):
         ad.GetInputPort(name).FixValue(context, [AutoDiffXd(0.0)] * 6)
     ad.GetInputPort("haptics_enable").FixValue(context, [AutoDiffXd(1.0)])
-    context.SetDiscreteState(
-        ad.EvalUniquePeriodicDiscreteUpdate(context).get_vector().CopyToVector())
+    step(ad, context)
     # A pose vector is [q; p]: x_WI is derivative 4, x_WT derivative 11.
     f_tool = ad.GetOutputPort("wrench_on_tool_W").Eval(context)[0]
     assert f_tool.value() == pytest.approx(-k[0] * 0.001)
@@ -238,3 +247,35 @@ def test_numba_twin_equals_the_python_function():
         wrench = rng.normal(0, 3, 6)
         assert _FLOAT64.clamp_scale(wrench, 4.0, 0.08) == pytest.approx(
             clamp_scale(wrench, 4.0, 0.08), rel=1e-15)
+
+
+def test_damper_uses_the_low_passed_velocity():
+    config = CouplingConfig(ramp_s=0.0, **RESOLVED)
+    k, b = coupling_gains(config)
+    coupling, context = make(config)
+    X_WI = RigidTransform([0, 0, 0.03])
+    fix(coupling, context, X_WI=X_WI, X_WT=X_WI)
+    # A step in the measured velocity reaches the damper through the first-order filter.
+    coupling.GetInputPort("V_WI_measured").FixValue(context, [0, 0, 0, 0.01, 0, 0])
+    alpha = velocity_filter_gain(config.velocity_filter_hz, PERIOD_S)
+    assert outputs(coupling, context)[0][0] == 0.0  # no direct feedthrough
+    forces = []
+    for _ in range(50):
+        step(coupling, context)
+        forces.append(outputs(coupling, context)[0][0])
+    expected = b[0] * 0.01 * (1 - (1 - alpha) ** np.arange(1, 51))
+    np.testing.assert_allclose(forces, expected, rtol=1e-9)
+
+
+def test_rotational_gains_follow_the_instrument_inertia():
+    config = resolved_rotational_gains(CouplingConfig(), 0.125, [8e-6, 5.6e-5, 6e-5])
+    k, b = coupling_gains(config)
+    # Every axis has the translation's natural frequency and damping ratio.
+    np.testing.assert_allclose(k[3:6] / [8e-6, 5.6e-5, 6e-5], k[0] / 0.125)
+    np.testing.assert_allclose(b[3:6] / [8e-6, 5.6e-5, 6e-5], b[0] / 0.125)
+    given = resolved_rotational_gains(CouplingConfig(rotational_stiffness=[1.0, 2.0, 3.0]),
+                                      0.125, [8e-6, 5.6e-5, 6e-5])
+    assert given.rotational_stiffness == [1.0, 2.0, 3.0]
+    with pytest.raises(ValueError, match="rotational_stiffness is None"):
+        HapticCoupling(config=CouplingConfig(max_force_n=1.0, max_torque_nm=0.1),
+                       period_s=PERIOD_S)

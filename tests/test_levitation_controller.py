@@ -22,13 +22,14 @@ def make(config=ControllerConfig()):
 
 
 def fix(controller, context, *, setpoint, pose, velocity=np.zeros(6), ok=1.0, enable=1.0,
-        feedforward=np.zeros(6), pd_gain=1.0):
+        feedforward=np.zeros(6), pd_gain=1.0, brake_gain=0.0):
     controller.GetInputPort("setpoint").FixValue(context, setpoint)
     controller.GetInputPort("X_WI_measured").FixValue(context, pose)
     controller.GetInputPort("V_WI_measured").FixValue(context, velocity)
     controller.GetInputPort("tracking_ok").FixValue(context, [ok])
     controller.GetInputPort("enable").FixValue(context, [enable])
     controller.GetInputPort("pd_gain").FixValue(context, [pd_gain])
+    controller.GetInputPort("brake_gain").FixValue(context, [brake_gain])
     controller.GetInputPort("wrench_feedforward_W").FixValue(context, feedforward)
 
 
@@ -121,6 +122,7 @@ def test_converts_to_autodiff_and_differentiates():
     ad.GetInputPort("tracking_ok").FixValue(context, [AutoDiffXd(1.0)])
     ad.GetInputPort("enable").FixValue(context, [AutoDiffXd(1.0)])
     ad.GetInputPort("pd_gain").FixValue(context, [AutoDiffXd(1.0)])
+    ad.GetInputPort("brake_gain").FixValue(context, [AutoDiffXd(0.0)])
     wrench = ad.GetOutputPort("wrench_commanded_W").Eval(context)
     kp, _ = pd_gains(ControllerConfig(), MASS_KG, INERTIA)
     # d fz / d z = -kp_z (the pose vector is [q; p], so z is entry 6).
@@ -145,3 +147,16 @@ def test_haptic_mode_renders_only_the_feedforward_beyond_the_weight():
     kp, _ = pd_gains(ControllerConfig(), MASS_KG, INERTIA)
     rendered = controller.GetOutputPort("wrench_rendered_W").Eval(context)
     assert rendered[2] == pytest.approx(0.5 * kp[2] * 0.001)
+
+
+def test_brake_damps_toward_rest_without_a_spring():
+    controller, context = make()
+    _, kd = pd_gains(ControllerConfig(), MASS_KG, INERTIA)
+    velocity = np.array([0.0, 0.0, 0.3, 0.01, -0.02, 0.0])
+    fix(controller, context, setpoint=np.array([0.05, 0.0, 0.03] + [0.0] * 9),
+        pose=pose_vector([0, 0, 0], [0.0, 0.0, 0.02]), velocity=velocity, pd_gain=0.0,
+        brake_gain=1.0)
+    rendered = controller.GetOutputPort("wrench_rendered_W").Eval(context)
+    # Level instrument: I's axes are W's. No pull toward the far setpoint, only damping.
+    expected = np.concatenate((-kd[0:3] * velocity[3:6], -kd[3:6] * velocity[0:3]))
+    np.testing.assert_allclose(rendered, expected, atol=1e-12)
