@@ -28,19 +28,29 @@ def _load(args):
 
 
 def _cmd_run(args) -> int:
+    from maglev_haptics.diagrams.haptics import interactive_variant
     from maglev_haptics.diagrams.runner import run_scenario
 
     if args.duration is not None and not args.duration > 0:
         raise ScenarioError(f"--duration = {args.duration}: must be > 0 simulated seconds")
     scenario, label = _load(args)
+    duration = args.duration
+    if args.interactive:
+        if args.no_meshcat:
+            raise ScenarioError("--interactive drives the hand from Meshcat: drop --no-meshcat")
+        scenario = interactive_variant(scenario, duration)
+        duration = scenario.duration_s
+        print("interactive: move the hand with the sliders in Meshcat's Controls panel; "
+              "'Grip / release' (or the G key) grips the instrument; Ctrl-C ends the run")
     meshcat = not args.no_meshcat
     realtime = args.realtime if args.realtime is not None else (1.0 if meshcat else 0.0)
     out = Path(args.out) if args.out else Path("out") / label.replace(":", "-")
     result = run_scenario(scenario, label=label, out_dir=out, meshcat=meshcat,
-                          realtime_rate=realtime, duration_s=args.duration)
+                          realtime_rate=realtime, duration_s=duration)
     printed = {k: v for k, v in result.summary.items() if k != "holds"}
     print(json.dumps(printed, indent=2))
-    print(f"wrote {out}/log.npz, {out}/summary.json, {out}/levitation.png")
+    plots = "levitation.png" + (", haptics.png" if scenario.haptics is not None else "")
+    print(f"wrote {out}/log.npz, {out}/summary.json, {out}/{plots}")
     if result.meshcat is not None:
         print(f"Meshcat: {result.meshcat.web_url()} (the run's recording is replayable there)")
         if sys.stdin.isatty():
@@ -82,6 +92,9 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--duration", type=float, help="simulated seconds (default: the script's length)")
     run.add_argument("--out", help="output folder (default: out/<file>-<name>)")
     run.add_argument("--no-meshcat", action="store_true", help="do not start Meshcat")
+    run.add_argument("--interactive", action="store_true",
+                     help="drive the simulated hand from Meshcat (sliders, grip button) in "
+                     "real time instead of its script; haptic scenarios only")
     run.add_argument("--realtime", type=float,
                      help="target real-time rate (default 1 with Meshcat, else 0 = as fast as possible)")
     run.set_defaults(func=_cmd_run)

@@ -169,7 +169,9 @@ def haptic_summary(log, scenario, *, rest_height_m: float) -> Dict:
     engaged = engaged_mask(log, ramp_s)
     summary: Dict = {
         "haptics_engaged_s": float(np.sum(log["haptic_mode"] == HAPTIC) * np.median(np.diff(log["t"]))),
-        "free_motion": free_motion(log, ramp_s),
+        # The hanging ball's spring always pulls on the tool: it never moves freely.
+        "free_motion": (None if isinstance(haptics.scene, HangingBall)
+                        else free_motion(log, ramp_s)),
         "releases": releases(log, rest_height_m, haptics.supervisor.release_debounce_s),
         "coupling_clamped_s": float(np.sum(log["coupling_clamped"] > 0.5)
                                     * np.median(np.diff(log["t"]))),

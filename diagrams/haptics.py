@@ -127,6 +127,28 @@ def AddHaptics(builder, *, scenario: Scenario, magnetics, station, estimator, co
                        coupling_config=config)
 
 
+INTERACTIVE_DURATION_S = 600.0  # an interactive run lasts this long unless told (s)
+
+
+def interactive_variant(scenario: Scenario, duration_s: Optional[float]) -> Scenario:
+    """``scenario`` with the hand driven from Meshcat: sliders for its target pose
+    and a grip button (key G); the hover is held and haptics stays requested for
+    the whole run (``duration_s``, default INTERACTIVE_DURATION_S)."""
+    if scenario.haptics is None:
+        raise ValueError("--interactive needs a scenario with haptics (a scene to touch)")
+    duration_s = INTERACTIVE_DURATION_S if duration_s is None else duration_s
+    impedance = (scenario.hand.impedance if scenario.hand is not None
+                 else MeshcatHand().impedance)
+    waypoints = list(scenario.motion.waypoints)
+    last = waypoints[-1]
+    waypoints[-1] = dataclasses.replace(last, hold_s=last.hold_s + duration_s)
+    return dataclasses.replace(
+        scenario, hand=MeshcatHand(impedance=impedance),
+        motion=dataclasses.replace(scenario.motion, waypoints=waypoints),
+        haptics=dataclasses.replace(scenario.haptics, disable_at_s=None),
+        duration_s=duration_s)
+
+
 def AddHandCommands(builder, *, scenario: Scenario, station, meshcat: Optional[Meshcat]):
     """The hand's target and grip: from its script, or from Meshcat's controls.
 

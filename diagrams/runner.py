@@ -49,6 +49,8 @@ def simulate(built, duration_s: float, *, realtime_rate: float = 0.0,
             for t in chunks:
                 simulator.AdvanceTo(float(t))
                 bar.update(float(t) - bar.n)
+    except KeyboardInterrupt:
+        pass  # Ctrl-C ends an interactive run early; what was simulated is kept
     finally:
         gc.unfreeze()  # later runs in this process must be able to collect this one
     return simulator, time.perf_counter() - start
@@ -76,6 +78,7 @@ def run_scenario(scenario: Scenario, *, label: str, out_dir: Optional[Path] = No
         viewer.StopRecording()
         viewer.PublishRecording()
         aim_camera_at_device(viewer)
+    duration_s = simulator.get_context().get_time()
     log = log_arrays(built.logger, built.log_layout, simulator.get_context(), scenario.device)
     spec = scenario.device.instrument_spec()
     summary = {

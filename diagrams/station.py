@@ -24,7 +24,7 @@ from pydrake.math import RigidTransform, RollPitchYaw
 from pydrake.multibody.parsing import Parser
 from pydrake.multibody.plant import AddMultibodyPlant
 from pydrake.systems.framework import Diagram, DiagramBuilder
-from pydrake.systems.primitives import LinearSystem, MatrixGain, Saturation
+from pydrake.systems.primitives import Adder, LinearSystem, MatrixGain, Saturation
 
 from maglev_haptics.diagrams.scenario import Scenario, ScenarioError
 from maglev_haptics.plant_models import PACKAGE_XML
@@ -80,12 +80,13 @@ def add_station_models(plant, scenario: Scenario):
     return instrument, hand
 
 
-def generalized_force_placement(plant, body) -> np.ndarray:
-    """(nv, 6) matrix that puts a free body's generalized force [tau; f] into the
-    plant's generalized force vector."""
-    placement = np.zeros((plant.num_velocities(), 6))
-    start = body.floating_velocities_start_in_v()
-    placement[start:start + 6, :] = np.eye(6)
+def generalized_force_placement(plant, *bodies) -> np.ndarray:
+    """(nv, 6 * len(bodies)) matrix that puts free bodies' generalized forces
+    [tau; f], stacked in the order given, into the plant's generalized force vector."""
+    placement = np.zeros((plant.num_velocities(), 6 * len(bodies)))
+    for i, body in enumerate(bodies):
+        start = body.floating_velocities_start_in_v()
+        placement[start:start + 6, 6 * i:6 * i + 6] = np.eye(6)
     return placement
 
 
@@ -132,8 +133,9 @@ def MakeStation(scenario: Scenario, *, magnetics) -> Diagram:
     placement = builder.AddNamedSystem(
         "actuation_placement", MatrixGain(generalized_force_placement(plant, body)))
     builder.Connect(actuation.get_output_port(), placement.get_input_port())
-    builder.Connect(placement.get_output_port(),
-                    plant.get_applied_generalized_force_input_port())
+    if hand is None:
+        builder.Connect(placement.get_output_port(),
+                        plant.get_applied_generalized_force_input_port())
     builder.Connect(state_port, sensor.GetInputPort("instrument_state"))
 
     builder.ExportInput(amplifiers.get_input_port(), "coil_currents_commanded")
@@ -142,27 +144,35 @@ def MakeStation(scenario: Scenario, *, magnetics) -> Diagram:
     builder.ExportOutput(state_port, "instrument_state")
     builder.ExportOutput(scene_graph.get_query_output_port(), "query_object")
     if hand is not None:
-        _add_hand(builder, scenario, plant, hand, body, control_period_s)
+        _add_hand(builder, scenario, plant, hand, body, control_period_s,
+                  actuation_force=placement.get_output_port())
     station = builder.Build()
     station.set_name("station")
     return station
 
 
-def _add_hand(builder, scenario: Scenario, plant, hand, instrument_body, period_s: float):
-    """The simulated user's hand: its impedance forces and grip, and its ports."""
+def _add_hand(builder, scenario: Scenario, plant, hand, instrument_body, period_s: float, *,
+              actuation_force):
+    """The simulated user's hand: its impedance forces and grip, added to the coils'
+    ``actuation_force`` (nv) on the plant, and its ports."""
     hand_body = plant.GetBodyByName("hand", hand)
     if abs(hand_body.default_mass() - scenario.hand.impedance.mass_kg) > 1e-9:
         raise ScenarioError(
             f"hand.impedance.mass_kg = {scenario.hand.impedance.mass_kg}: the hand model "
             f"{HAND_MODEL_URL} has {hand_body.default_mass()} kg; the two must agree")
     simulated_hand = builder.AddNamedSystem("hand", SimulatedHand(
-        config=scenario.hand.impedance, period_s=period_s, hand_body_index=hand_body.index(),
-        instrument_body_index=instrument_body.index()))
+        config=scenario.hand.impedance, period_s=period_s))
     builder.Connect(plant.get_state_output_port(hand), simulated_hand.GetInputPort("hand_state"))
     builder.Connect(plant.get_state_output_port(instrument_body.model_instance()),
                     simulated_hand.GetInputPort("instrument_state"))
-    builder.Connect(simulated_hand.GetOutputPort("spatial_forces"),
-                    plant.get_applied_spatial_force_input_port())
+    placement = builder.AddNamedSystem("hand_force_placement", MatrixGain(
+        generalized_force_placement(plant, hand_body, instrument_body)))
+    total = builder.AddNamedSystem("generalized_force_sum", Adder(2, plant.num_velocities()))
+    builder.Connect(simulated_hand.GetOutputPort("generalized_forces"),
+                    placement.get_input_port())
+    builder.Connect(placement.get_output_port(), total.get_input_port(0))
+    builder.Connect(actuation_force, total.get_input_port(1))
+    builder.Connect(total.get_output_port(), plant.get_applied_generalized_force_input_port())
     builder.ExportInput(simulated_hand.GetInputPort("hand_target"), "hand_target")
     builder.ExportInput(simulated_hand.GetInputPort("grip"), "hand_grip")
     builder.ExportOutput(simulated_hand.GetOutputPort("handle_gripped"), "handle_gripped")

@@ -36,8 +36,6 @@ from typing import List
 
 import numpy as np
 from pydrake.common.value import AbstractValue
-from pydrake.multibody.math import SpatialForce
-from pydrake.multibody.plant import ExternallyAppliedSpatialForce
 from pydrake.multibody.tree import SpatialInertia
 from pydrake.systems.framework import LeafSystem, ValueProducer
 
@@ -209,15 +207,6 @@ _FLOAT64 = float64_twins(rotation_from_quaternion, rotation_from_rpy,
                          coupling_wrenches, arm_wrench, grip_wrenches, hand_wrenches)
 
 
-def applied_spatial_force(body_index, wrench) -> ExternallyAppliedSpatialForce:
-    """``wrench`` [f; tau] in W (N, N*m) about the body's origin, for the plant."""
-    force = ExternallyAppliedSpatialForce()
-    force.body_index = body_index
-    force.p_BoBq_B = np.zeros(3)
-    force.F_Bq_W = SpatialForce(tau=wrench[3:6], f=wrench[0:3])
-    return force
-
-
 class SimulatedHand(LeafSystem):
     """The user's hand: arm impedance toward ``hand_target``, a latched grip on the
     instrument, and the handle's grip sensor.
@@ -231,17 +220,20 @@ class SimulatedHand(LeafSystem):
         - hand_target
         - grip
         output_ports:
-        - spatial_forces
+        - generalized_forces
         - handle_gripped
         - wrench_on_instrument_W
 
     ``hand_state`` and ``instrument_state`` are the plant's per-model-instance
     state outputs (13: [qw, qx, qy, qz, x, y, z, wx, wy, wz, vx, vy, vz],
     velocities in W); ``hand_target`` (12) is [x, y, z, roll, pitch, yaw] of H
-    in W and their rates; ``grip`` (1) > 0.5 means grip. ``spatial_forces``
-    (for the plant's ``applied_spatial_force`` input) holds the wrench on the
-    hand (arm, weight carried and the grip's reaction) and the grip's wrench on
-    the instrument (zero while released); ``wrench_on_instrument_W`` (6) is the
+    in W and their rates; ``grip`` (1) > 0.5 means grip. ``generalized_forces``
+    (12) holds, as free-body generalized forces [tau; f] in W about each body's
+    origin (N*m, N), the wrench on the hand (arm, weight carried and the grip's
+    reaction) then the grip's wrench on the instrument (zero while released): a
+    vector, placed into the plant's generalized force by a C++ gain, costs far
+    less than a list of ExternallyAppliedSpatialForce made in Python each tick.
+    ``wrench_on_instrument_W`` (6) is the
     latter as [f; tau] in W about I's origin, for logging; ``handle_gripped`` (1)
     is 1.0 while gripped.
 
@@ -250,13 +242,10 @@ class SimulatedHand(LeafSystem):
     latched, so the grip starts relaxed; on a falling edge the hand releases.
     """
 
-    def __init__(self, *, config: HandImpedanceConfig, period_s: float, hand_body_index,
-                 instrument_body_index):
+    def __init__(self, *, config: HandImpedanceConfig, period_s: float):
         LeafSystem.__init__(self)
         self._config = config
         self._k_arm, self._b_arm, self._k_grip, self._b_grip = impedance_gains(config)
-        self._hand_body_index = hand_body_index
-        self._instrument_body_index = instrument_body_index
         self._hand_state = self.DeclareVectorInputPort("hand_state", 13)
         self._instrument_state = self.DeclareVectorInputPort("instrument_state", 13)
         self._target = self.DeclareVectorInputPort("hand_target", 12)
@@ -273,9 +262,9 @@ class SimulatedHand(LeafSystem):
                 self.input_port_ticket(port.get_index())
                 for port in (self._hand_state, self._instrument_state, self._target)
             } | {self.xd_ticket()})
-        self.DeclareAbstractOutputPort(
-            "spatial_forces", lambda: AbstractValue.Make([ExternallyAppliedSpatialForce()]),
-            self._calc_spatial_forces, prerequisites_of_calc={self._wrenches.ticket()})
+        self.DeclareVectorOutputPort(
+            "generalized_forces", 12, self._calc_generalized_forces,
+            prerequisites_of_calc={self._wrenches.ticket()})
         self.DeclareVectorOutputPort("handle_gripped", 1, self._calc_handle_gripped,
                                      prerequisites_of_calc={self.xd_ticket()})
         self.DeclareVectorOutputPort("wrench_on_instrument_W", 6,
@@ -298,10 +287,10 @@ class SimulatedHand(LeafSystem):
             self._target.Eval(context), state[0], state[1:8], self._k_arm, self._b_arm,
             self._k_grip, self._b_grip, self._config.mass_kg))
 
-    def _calc_spatial_forces(self, context, output):
+    def _calc_generalized_forces(self, context, output):
         on_hand, on_instrument = self._wrenches.Eval(context)
-        output.set_value([applied_spatial_force(self._hand_body_index, on_hand),
-                          applied_spatial_force(self._instrument_body_index, on_instrument)])
+        output.SetFromVector(np.concatenate((on_hand[3:6], on_hand[0:3],
+                                             on_instrument[3:6], on_instrument[0:3])))
 
     def _calc_handle_gripped(self, context, output):
         output.SetFromVector(context.get_discrete_state(self._grip_state).CopyToVector()[0:1])

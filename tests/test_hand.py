@@ -13,10 +13,11 @@ from pydrake.multibody.parsing import Parser
 from pydrake.multibody.plant import AddMultibodyPlant, MultibodyPlantConfig
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
-from pydrake.systems.primitives import ConstantVectorSource, TrajectorySource
+from pydrake.systems.primitives import Adder, ConstantVectorSource, MatrixGain, TrajectorySource
 
 from maglev_haptics.diagrams.hand_script import (
     GripEvent, HandWaypoint, MeshcatHand, ScriptedHand, hand_plan, validate_hand)
+from maglev_haptics.diagrams.station import generalized_force_placement
 from maglev_haptics.plant_models import PACKAGE_XML
 from maglev_haptics.systems.hand import (
     _FLOAT64, HAND_BODY_NAME, HAND_MODEL_URL, HandImpedanceConfig, SimulatedHand, arm_wrench,
@@ -216,23 +217,27 @@ class Bench:
         plant.SetVelocitiesInArray(instrument_model, [0, 0, 0, 0, 0, mass * GRAVITY_M_S2],
                                    weight)
         lift = builder.AddSystem(ConstantVectorSource(weight))
-        builder.Connect(lift.get_output_port(), plant.get_applied_generalized_force_input_port())
+        total = builder.AddSystem(Adder(2, plant.num_velocities()))
+        builder.Connect(lift.get_output_port(), total.get_input_port(0))
+        builder.Connect(total.get_output_port(), plant.get_applied_generalized_force_input_port())
 
         target, grip = hand_plan(script, START)
         self.target = target
         target_source = builder.AddSystem(TrajectorySource(target, output_derivative_order=1))
         grip_source = builder.AddSystem(TrajectorySource(grip))
         self.hand = builder.AddNamedSystem("hand", SimulatedHand(
-            config=config, period_s=TIME_STEP_S, hand_body_index=hand_body.index(),
-            instrument_body_index=instrument_body.index()))
+            config=config, period_s=TIME_STEP_S))
         builder.Connect(plant.get_state_output_port(hand_model),
                         self.hand.GetInputPort("hand_state"))
         builder.Connect(plant.get_state_output_port(instrument_model),
                         self.hand.GetInputPort("instrument_state"))
         builder.Connect(target_source.get_output_port(), self.hand.GetInputPort("hand_target"))
         builder.Connect(grip_source.get_output_port(), self.hand.GetInputPort("grip"))
-        builder.Connect(self.hand.GetOutputPort("spatial_forces"),
-                        plant.get_applied_spatial_force_input_port())
+        placement = builder.AddSystem(MatrixGain(
+            generalized_force_placement(plant, hand_body, instrument_body)))
+        builder.Connect(self.hand.GetOutputPort("generalized_forces"),
+                        placement.get_input_port())
+        builder.Connect(placement.get_output_port(), total.get_input_port(1))
         self.diagram = builder.Build()
         self.plant, self.hand_body, self.instrument_body = plant, hand_body, instrument_body
         self.simulator = Simulator(self.diagram)

@@ -51,19 +51,6 @@ def test_each_click_toggles_the_grip():
     assert [grip_from_clicks(c, True) for c in range(4)] == [1.0, 0.0, 1.0, 0.0]
 
 
-def _msgpack_str(text: str) -> bytes:
-    data = text.encode()
-    assert len(data) < 32  # a msgpack fixstr
-    return bytes([0xA0 | len(data)]) + data
-
-
-def click(meshcat: Meshcat, name: str) -> None:
-    """What a browser sends when the button is clicked: {"type": "button", "name": name}."""
-    meshcat._InjectWebsocketMessage(message=bytes([0x82]) + _msgpack_str("type")
-                                    + _msgpack_str("button") + _msgpack_str("name")
-                                    + _msgpack_str(name))
-
-
 @pytest.fixture(scope="module")
 def meshcat():
     return Meshcat()
@@ -134,16 +121,16 @@ def test_target_follows_the_sliders_smoothly(meshcat):
         hand_input.Delete()
 
 
-def test_button_clicks_toggle_the_grip(meshcat):
+def test_button_clicks_toggle_the_grip(meshcat, click_button):
     hand_input, simulator, _, grip_log = build(meshcat)
     try:
         context = hand_input.GetMyContextFromRoot(simulator.get_context())
         simulator.AdvanceTo(0.1)
         assert hand_input.GetOutputPort("grip").Eval(context)[0] == 0.0
-        click(meshcat, GRIP_BUTTON)
+        click_button(meshcat, GRIP_BUTTON)
         simulator.AdvanceTo(0.2)
         assert hand_input.GetOutputPort("grip").Eval(context)[0] == 1.0
-        click(meshcat, GRIP_BUTTON)
+        click_button(meshcat, GRIP_BUTTON)
         simulator.AdvanceTo(0.3)
         assert hand_input.GetOutputPort("grip").Eval(context)[0] == 0.0
         log = grip_log.FindLog(simulator.get_context())
@@ -152,12 +139,12 @@ def test_button_clicks_toggle_the_grip(meshcat):
         hand_input.Delete()
 
 
-def test_grip_at_start_grips_before_any_click(meshcat):
+def test_grip_at_start_grips_before_any_click(meshcat, click_button):
     hand_input, simulator, _, _ = build(meshcat, grip_at_start=True)
     try:
         context = hand_input.GetMyContextFromRoot(simulator.get_context())
         assert hand_input.GetOutputPort("grip").Eval(context)[0] == 1.0
-        click(meshcat, GRIP_BUTTON)
+        click_button(meshcat, GRIP_BUTTON)
         simulator.AdvanceTo(0.1)
         assert hand_input.GetOutputPort("grip").Eval(context)[0] == 0.0
     finally:
