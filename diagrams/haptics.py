@@ -36,6 +36,11 @@ from maglev_haptics.systems.meshcat_hand import MeshcatHandInput
 from maglev_haptics.systems.rotations import rotation_from_rpy
 
 
+# The tool's contact wrench and flag feed only the supervisor's let-go decision
+# (which remembers contact for 0.1 s) and the log, never the rendered force: 200 Hz.
+CONTACT_SAMPLE_PERIOD_S = 0.005
+
+
 @dataclass
 class HapticParts:
     scene: object  # diagrams.scene.SceneParts
@@ -91,7 +96,11 @@ def AddHaptics(builder, *, scenario: Scenario, magnetics, station, estimator, co
     haptics = scenario.haptics
     period_s = 1.0 / scenario.control_rate_hz
     x, y, z, roll, pitch, yaw = haptic_start_pose(scenario)
-    scene = AddScene(builder, scene=haptics.scene, time_step_s=period_s, use_sampled_output_ports=False,
+    # Unsampled ports: the scene steps in the loop's own discrete update (no unrestricted
+    # update that would make the loop compute twice a tick).
+    scene = AddScene(builder, scene=haptics.scene, time_step_s=period_s,
+                     use_sampled_output_ports=False,
+                     contact_sample_period_s=CONTACT_SAMPLE_PERIOD_S,
                      X_WI_start=RigidTransform(RollPitchYaw(roll, pitch, yaw), [x, y, z]))
     config = resolved_coupling_config(scenario, magnetics)
     coupling = builder.AddNamedSystem("haptic_coupling", HapticCoupling(

@@ -59,7 +59,7 @@ from pydrake.multibody.parsing import Parser
 from pydrake.multibody.plant import AddMultibodyPlant, MultibodyPlant, MultibodyPlantConfig
 from pydrake.multibody.tree import LinearSpringDamper, RigidBody
 from pydrake.systems.framework import DiagramBuilder, InputPort, OutputPort
-from pydrake.systems.primitives import Demultiplexer, MatrixGain
+from pydrake.systems.primitives import Demultiplexer, MatrixGain, ZeroOrderHold
 
 from maglev_haptics.systems.tool_contact import ToolContactSensor
 
@@ -168,8 +168,8 @@ class SceneParts:
     wrench_on_tool_input: InputPort  # the coupling's wrench on the tool
     X_WT_output: OutputPort
     V_WT_output: OutputPort
-    contact_wrench_output: OutputPort  # total contact wrench on the tool
-    in_contact_output: OutputPort  # 1.0 while anything touches the tool
+    contact_wrench_output: OutputPort  # total contact wrench on the tool (sampled)
+    in_contact_output: OutputPort  # 1.0 while anything touches the tool (sampled)
     tool_contact: ToolContactSensor
 
 
@@ -515,7 +515,8 @@ def table_sdf(top_z_m: float, contact: ContactProperties) -> str:
 # --- builder --------------------------------------------------------------------------
 
 def AddScene(builder: DiagramBuilder, *, scene: SceneConfig, time_step_s: float,
-             X_WI_start: RigidTransform, use_sampled_output_ports: bool = True) -> SceneParts:
+             X_WI_start: RigidTransform, use_sampled_output_ports: bool = True,
+             contact_sample_period_s: Optional[float] = None) -> SceneParts:
     """Add the scene's plant and scene graph, its models and its ports to ``builder``.
 
     The tool starts at X_WI_start * X_IT (X_IT the identity); the hanging ball at its static hanging
@@ -524,6 +525,8 @@ def AddScene(builder: DiagramBuilder, *, scene: SceneConfig, time_step_s: float,
     tool or the ball inside the scene. ``use_sampled_output_ports=False`` (for
     linearization, DESIGN.md section 6) makes the plant's outputs, the contact
     wrench among them, functions of the current state instead of the last step's.
+    ``contact_sample_period_s`` (s), when given, samples the contact wrench and
+    the contact flag at that period instead of every step.
     """
     validate_scene(scene)
     _positive("time_step_s", time_step_s)
@@ -577,9 +580,19 @@ def AddScene(builder: DiagramBuilder, *, scene: SceneConfig, time_step_s: float,
     sensor = builder.AddNamedSystem("scene_tool_contact", ToolContactSensor(plant, tool_body))
     builder.Connect(plant.get_contact_results_output_port(), sensor.GetInputPort("contact_results"))
     builder.Connect(split.get_output_port(0), sensor.GetInputPort("X_WT"))
+    contact_wrench = sensor.GetOutputPort("wrench_on_tool_W")
+    in_contact = sensor.GetOutputPort("in_contact")
+    if contact_sample_period_s is not None:
+        # Sample-and-hold: the plant's contact results (about as costly as its step)
+        # and the sensor then run only at this period.
+        holds = [builder.AddNamedSystem(f"scene_tool_contact_hold_{i}", ZeroOrderHold(
+            contact_sample_period_s, port.size())) for i, port in enumerate((contact_wrench,
+                                                                            in_contact))]
+        for hold, port in zip(holds, (contact_wrench, in_contact)):
+            builder.Connect(port, hold.get_input_port())
+        contact_wrench, in_contact = (hold.get_output_port() for hold in holds)
     return SceneParts(
         plant=plant, scene_graph=scene_graph, tool_body=tool_body, X_IT=X_IT, ball_body=ball_body,
         wrench_on_tool_input=gain.get_input_port(), X_WT_output=split.get_output_port(0),
         V_WT_output=split.get_output_port(1),
-        contact_wrench_output=sensor.GetOutputPort("wrench_on_tool_W"),
-        in_contact_output=sensor.GetOutputPort("in_contact"), tool_contact=sensor)
+        contact_wrench_output=contact_wrench, in_contact_output=in_contact, tool_contact=sensor)
