@@ -39,6 +39,9 @@ from maglev_haptics.systems.rotations import rotation_from_rpy
 # The tool's contact wrench and flag feed only the supervisor's let-go decision
 # (which remembers contact for 0.1 s) and the log, never the rendered force: 200 Hz.
 CONTACT_SAMPLE_PERIOD_S = 0.005
+# The mode logic's timers (50 ms debounce, 0.1 s contact memory, 0.5 s handover)
+# need no finer step; its outputs are read every control tick.
+SUPERVISOR_PERIOD_S = 0.005
 
 
 @dataclass
@@ -106,7 +109,7 @@ def AddHaptics(builder, *, scenario: Scenario, magnetics, station, estimator, co
     coupling = builder.AddNamedSystem("haptic_coupling", HapticCoupling(
         config=config, period_s=period_s, X_IT=scene.X_IT))
     supervisor = builder.AddNamedSystem("haptic_supervisor", HapticSupervisor(
-        config=haptics.supervisor, period_s=period_s,
+        config=haptics.supervisor, period_s=SUPERVISOR_PERIOD_S,
         rest_height_m=scenario.device.instrument_spec().rest_height_m))
     request = builder.AddNamedSystem("haptics_request", TrajectorySource(
         haptics_request(scenario)))

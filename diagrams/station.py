@@ -34,6 +34,7 @@ from maglev_haptics.systems.marker_sensor import MarkerSensor
 
 DISPLAY_MODEL_URL = "package://maglev_haptics/display.sdf"
 DISPLAY_MODEL_THICKNESS_M = 0.010
+HAND_GRIP_PERIOD_S = 0.01  # the hand closes or opens on the handle within 10 ms (s)
 
 
 def amplifier_lag_coefficient(bandwidth_hz: float, period_s: float) -> float:
@@ -144,15 +145,13 @@ def MakeStation(scenario: Scenario, *, magnetics) -> Diagram:
     builder.ExportOutput(state_port, "instrument_state")
     builder.ExportOutput(scene_graph.get_query_output_port(), "query_object")
     if hand is not None:
-        _add_hand(builder, scenario, plant, hand, body, control_period_s,
-                  actuation_force=placement.get_output_port())
+        _add_hand(builder, scenario, plant, hand, body, actuation_force=placement.get_output_port())
     station = builder.Build()
     station.set_name("station")
     return station
 
 
-def _add_hand(builder, scenario: Scenario, plant, hand, instrument_body, period_s: float, *,
-              actuation_force):
+def _add_hand(builder, scenario: Scenario, plant, hand, instrument_body, *, actuation_force):
     """The simulated user's hand: its impedance forces and grip, added to the coils'
     ``actuation_force`` (nv) on the plant, and its ports."""
     hand_body = plant.GetBodyByName("hand", hand)
@@ -161,7 +160,7 @@ def _add_hand(builder, scenario: Scenario, plant, hand, instrument_body, period_
             f"hand.impedance.mass_kg = {scenario.hand.impedance.mass_kg}: the hand model "
             f"{HAND_MODEL_URL} has {hand_body.default_mass()} kg; the two must agree")
     simulated_hand = builder.AddNamedSystem("hand", SimulatedHand(
-        config=scenario.hand.impedance, period_s=period_s))
+        config=scenario.hand.impedance, period_s=HAND_GRIP_PERIOD_S))
     builder.Connect(plant.get_state_output_port(hand), simulated_hand.GetInputPort("hand_state"))
     builder.Connect(plant.get_state_output_port(instrument_body.model_instance()),
                     simulated_hand.GetInputPort("instrument_state"))
