@@ -146,7 +146,8 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
             builder, station.GetOutputPort("query_object"), meshcat,
             MeshcatVisualizerParams(publish_period=MESHCAT_PERIOD_S, role=Role.kIllustration))
         visualizer = builder.AddNamedSystem("device_visualizer", DeviceVisualizer(
-            meshcat=meshcat, device=device, period_s=MESHCAT_PERIOD_S))
+            meshcat=meshcat, device=device, period_s=MESHCAT_PERIOD_S,
+            close_view=scenario.haptics is not None))
         builder.Connect(station.GetOutputPort("coil_currents"),
                         visualizer.GetInputPort("coil_currents"))
         builder.Connect(controller_setpoint, visualizer.GetInputPort("setpoint"))
@@ -164,7 +165,7 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
             ContactVisualizer.AddToBuilder(
                 builder, haptics.scene.plant, meshcat,
                 ContactVisualizerParams(publish_period=MESHCAT_PERIOD_S, prefix="contact",
-                                        newtons_per_meter=20.0, newton_meters_per_meter=1.0))
+                                        newtons_per_meter=10.0, newton_meters_per_meter=1.0))
     diagram = builder.Build()
     diagram.set_name("maglev_haptics")
     return BuiltDiagram(diagram=diagram, plan=plan, logger=logger, log_layout=log_layout,

@@ -77,7 +77,7 @@ def run_scenario(scenario: Scenario, *, label: str, out_dir: Optional[Path] = No
     if record:
         viewer.StopRecording()
         viewer.PublishRecording()
-        aim_camera_at_device(viewer)
+        aim_camera_at_device(viewer, close=scenario.haptics is not None)
     duration_s = simulator.get_context().get_time()
     log = log_arrays(built.logger, built.log_layout, simulator.get_context(), scenario.device)
     spec = scenario.device.instrument_spec()

@@ -173,7 +173,7 @@ class SceneParts:
     tool_contact: ToolContactSensor
 
 
-TABLE_SIZE_M = (0.40, 0.30, 0.010)  # x, y, z of the table's box (m)
+TABLE_SIZE_M = (0.24, 0.18, 0.010)  # x, y, z of the table's box (m)
 
 # Visual colours, RGBA.
 PEG_RGBA = (0.20, 0.45, 0.85, 1.0)

@@ -15,11 +15,11 @@ SETPOINT_PATH = "/device/setpoint"
 MEASURED_PATH = "/device/measured"
 MARKERS_PATH = "/device/markers_measured"
 FORCE_PATH = "/device/rendered_force"
-FORCE_SCALE_M_PER_N = 0.02  # arrow length per newton of rendered force (m/N)
+FORCE_SCALE_M_PER_N = 0.05  # arrow length per newton of rendered force (m/N)
 FORCE_SHOWN_N = 0.005  # smaller rendered forces are not drawn (N)
 
 
-def current_color(current_a: float, limit_a: float) -> list:
+def current_color(current_a: float, limit_a: float, opacity: float = 1.0) -> list:
     """Diverging colour: grey at 0 A, red for positive, blue for negative, full at the limit.
 
     The square root makes the ~1-2 A of hovering clearly visible against a 4 A scale.
@@ -27,7 +27,7 @@ def current_color(current_a: float, limit_a: float) -> list:
     level = float(np.sqrt(np.clip(abs(current_a) / limit_a, 0.0, 1.0)))
     grey = np.array([0.6, 0.6, 0.6])
     hot = np.array([0.9, 0.1, 0.05]) if current_a >= 0 else np.array([0.05, 0.25, 0.95])
-    return [*(grey + level * (hot - grey)), 1.0]
+    return [*(grey + level * (hot - grey)), opacity]
 
 
 class DeviceVisualizer(LeafSystem):
@@ -50,9 +50,12 @@ class DeviceVisualizer(LeafSystem):
     force rendered on the user's hand (FORCE_SCALE_M_PER_N).
     """
 
-    def __init__(self, *, meshcat: Meshcat, device, period_s: float = 1 / 30):
+    def __init__(self, *, meshcat: Meshcat, device, period_s: float = 1 / 30,
+                 close_view: bool = False):
         super().__init__()
         self._meshcat = meshcat
+        # Close up, the virtual scene lies among the coils (under the glass): see through them.
+        self._coil_opacity = 0.25 if close_view else 1.0
         self._limit_a = device.amplifier.current_limit_a
         n_markers = len(device.instrument_spec().p_IK_m)
         self._currents = self.DeclareVectorInputPort("coil_currents", device.n_coils)
@@ -61,7 +64,7 @@ class DeviceVisualizer(LeafSystem):
         self._markers = self.DeclareVectorInputPort("markers_measured", 3 * n_markers)
         self._rendered = self.DeclareVectorInputPort("wrench_rendered_W", 6)
         meshcat.SetObject(FORCE_PATH, Cylinder(0.0015, 1.0), Rgba(1.0, 0.55, 0.0, 1.0))
-        aim_camera_at_device(meshcat)
+        aim_camera_at_device(meshcat, close=close_view)
         coil = device.coil
         p_WC = device.array.coil_positions_A() + device.p_WA
         for j, p in enumerate(p_WC):
@@ -79,7 +82,8 @@ class DeviceVisualizer(LeafSystem):
     def _draw(self, context):
         meshcat = self._meshcat
         for j, current in enumerate(self._currents.Eval(context)):
-            meshcat.SetProperty(f"{COIL_PATH}/{j}", "color", current_color(current, self._limit_a))
+            meshcat.SetProperty(f"{COIL_PATH}/{j}", "color",
+                                current_color(current, self._limit_a, self._coil_opacity))
         setpoint = self._setpoint.Eval(context)
         meshcat.SetTransform(SETPOINT_PATH, RigidTransform(
             RollPitchYaw(setpoint[3:6]), setpoint[0:3]))
@@ -110,12 +114,18 @@ def force_rod_transform(p_WI, f_W) -> np.ndarray:
     return X
 
 
-def aim_camera_at_device(meshcat: Meshcat) -> None:
+def aim_camera_at_device(meshcat: Meshcat, *, close: bool = False) -> None:
     """Look at the ~0.5 m device from the user's side; hide the metre-scale grid and axes.
+    ``close``: nearer, at the handful of centimetres where a virtual scene is touched.
 
     Publishing a recording resets the view, so runners call this again after it.
     """
-    meshcat.SetCameraPose(camera_in_world=[0.16, -0.30, 0.20], target_in_world=[0.0, 0.0, 0.0])
+    if close:
+        meshcat.SetCameraPose(camera_in_world=[0.09, -0.17, 0.09],
+                              target_in_world=[0.0, 0.0, -0.01])
+    else:
+        meshcat.SetCameraPose(camera_in_world=[0.16, -0.30, 0.20],
+                              target_in_world=[0.0, 0.0, 0.0])
     meshcat.SetProperty("/Axes", "visible", False)
     meshcat.SetProperty("/Grid", "visible", False)
 
