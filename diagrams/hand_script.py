@@ -15,22 +15,13 @@ from typing import List
 import numpy as np
 from pydrake.trajectories import PiecewisePolynomial
 
+from maglev_haptics.diagrams.waypoints import Waypoint
 from maglev_haptics.systems.blends import SAMPLES_PER_S, minimum_jerk
 from maglev_haptics.systems.hand import HandImpedanceConfig
 
 # The plans end with this long a hold of their last value, so each has a segment
 # however short the script; beyond its end a PiecewisePolynomial holds its end value.
 TAIL_S = 1.0
-
-
-@dataclass
-class HandWaypoint:
-    """A hand target pose to move to and hold."""
-
-    pose: List[float] = field(default_factory=lambda: [0.0, 0.0, 0.020, 0.0, 0.0, 0.0])
-    # [x, y, z, roll, pitch, yaw] of H in W (m, rad; yaw unwrapped: 6.283 is a full turn)
-    move_s: float = 1.0  # duration of the minimum-jerk move into this pose (s)
-    hold_s: float = 1.0  # time held at the pose (s)
 
 
 @dataclass
@@ -48,7 +39,7 @@ class ScriptedHand:
 
     impedance: HandImpedanceConfig = field(default_factory=HandImpedanceConfig)
     start_s: float = 0.0  # the first move starts here (s)
-    waypoints: List[HandWaypoint] = field(default_factory=list)
+    waypoints: List[Waypoint] = field(default_factory=list)
     events: List[GripEvent] = field(default_factory=list)
 
 

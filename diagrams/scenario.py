@@ -21,6 +21,7 @@ from pydrake.multibody.plant import MultibodyPlantConfig
 
 from maglev_haptics.diagrams.hand_script import MeshcatHand, ScriptedHand, validate_hand
 from maglev_haptics.diagrams.scene import HangingBall, PaddleBall, PegInHole
+from maglev_haptics.diagrams.waypoints import Waypoint
 from maglev_haptics.hardware.device import INSTRUMENT_KINDS, DeviceConfig
 from maglev_haptics.systems.haptic_coupling import CouplingConfig
 from maglev_haptics.systems.haptic_supervisor import SupervisorConfig
@@ -33,16 +34,6 @@ SCENARIO_DIR = Path(__file__).resolve().parent.parent / "scenarios"
 
 class ScenarioError(ValueError):
     """A scenario that cannot be run, with the offending field named."""
-
-
-@dataclass
-class Waypoint:
-    """A pose to move to and hold."""
-
-    pose: List[float] = field(default_factory=lambda: [0.0, 0.0, 0.020, 0.0, 0.0, 0.0])
-    # [x, y, z, roll, pitch, yaw] of I in W (m, rad; yaw unwrapped: 6.283 is a full turn)
-    move_s: float = 1.0  # duration of the minimum-jerk move into this pose (s)
-    hold_s: float = 1.0  # time held at the pose (s)
 
 
 @dataclass

@@ -22,3 +22,8 @@ def float64_twins(*functions) -> types.SimpleNamespace:
                                      function.__defaults__)
         namespace[function.__name__] = numba.njit(cache=True)(rebound)
     return types.SimpleNamespace(**{f.__name__: namespace[f.__name__] for f in functions})
+
+
+def scalar_value(x) -> float:
+    """The float value of a float or AutoDiffXd scalar (for branching on it)."""
+    return float(x.value()) if hasattr(x, "value") else float(x)

@@ -33,6 +33,7 @@ from pydrake.systems.framework import LeafSystem_
 from pydrake.systems.scalar_conversion import TemplateSystem
 
 from maglev_haptics.systems.blends import clipped_minimum_jerk
+from maglev_haptics.systems.float_twins import scalar_value
 from maglev_haptics.systems.rotations import rotation_from_quaternion, rpy_from_rotation
 
 LEVITATE, HAPTIC, LANDING = 0, 1, 2
@@ -201,27 +202,27 @@ def HapticSupervisor_(T):
 
         def _values(self, context) -> np.ndarray:
             state = context.get_discrete_state(self._state).CopyToVector()
-            return state if T is float else np.array([_value(x) for x in state])
+            return state if T is float else np.array([scalar_value(x) for x in state])
 
         def _update(self, context, discrete_state):
             scripted = self._scripted.Eval(context)[0:6]
             X_WI = self._X_WI.Eval(context)
             if T is not float:
-                scripted = np.array([_value(x) for x in scripted])
-                X_WI = np.array([_value(x) for x in X_WI])
+                scripted = np.array([scalar_value(x) for x in scripted])
+                X_WI = np.array([scalar_value(x) for x in X_WI])
             new = supervisor_step(
-                self._values(context), _value(context.get_time()), self._period_s,
+                self._values(context), scalar_value(context.get_time()), self._period_s,
                 scripted, X_WI,
-                _value(self._tracking_ok.Eval(context)[0]) > 0.5,
-                _value(self._request.Eval(context)[0]) > 0.5,
-                _value(self._gripped.Eval(context)[0]) > 0.5,
-                _value(self._in_contact.Eval(context)[0]) > 0.5, self._config)
+                scalar_value(self._tracking_ok.Eval(context)[0]) > 0.5,
+                scalar_value(self._request.Eval(context)[0]) > 0.5,
+                scalar_value(self._gripped.Eval(context)[0]) > 0.5,
+                scalar_value(self._in_contact.Eval(context)[0]) > 0.5, self._config)
             discrete_state.get_mutable_vector(self._state).SetFromVector(
                 new if T is float else np.array([T(x) for x in new]))
 
         def _calc_setpoint(self, context, output):
             scripted = self._scripted.Eval(context)
-            setpoint = supervisor_setpoint(self._values(context), _value(context.get_time()),
+            setpoint = supervisor_setpoint(self._values(context), scalar_value(context.get_time()),
                                            scripted, self._rest_height_m, self._config)
             output.SetFromVector(setpoint if setpoint is scripted or T is float
                                  else np.array([T(x) for x in setpoint]))
@@ -246,11 +247,6 @@ def HapticSupervisor_(T):
             output.SetFromVector([T(self._values(context)[_MODE])])
 
     return Impl
-
-
-def _value(x) -> float:
-    """The float value of a float or AutoDiffXd scalar."""
-    return float(x.value()) if hasattr(x, "value") else float(x)
 
 
 HapticSupervisor = HapticSupervisor_[None]

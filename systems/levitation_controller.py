@@ -17,7 +17,7 @@ from pydrake.autodiffutils import AutoDiffXd
 from pydrake.systems.framework import LeafSystem_
 from pydrake.systems.scalar_conversion import TemplateSystem
 
-from maglev_haptics.systems.float_twins import float64_twins
+from maglev_haptics.systems.float_twins import float64_twins, scalar_value
 from maglev_haptics.systems.rotations import (
     angular_velocity_from_rpy_rates, rotation_error_W, rotation_from_quaternion, rotation_from_rpy)
 
@@ -183,7 +183,7 @@ def LevitationController_(T):
             enable = self._enable.Eval(context)[0]
             weight = np.array([0.0, 0.0, enable * self._mass_kg * GRAVITY_M_S2, 0.0, 0.0, 0.0])
             lost_time = context.get_discrete_state(self._lost_time).CopyToVector()[0]
-            if not carries_weight_while_lost(_value(lost_time), self._config):
+            if not carries_weight_while_lost(scalar_value(lost_time), self._config):
                 return 0.0 * weight
             return weight
 
@@ -211,11 +211,6 @@ def LevitationController_(T):
             output.SetFromVector(commanded - self._weight_carried(context))
 
     return Impl
-
-
-def _value(x) -> float:
-    """The float value of a float or AutoDiffXd scalar."""
-    return float(x.value()) if hasattr(x, "value") else float(x)
 
 
 LevitationController = LevitationController_[None]

@@ -16,7 +16,8 @@ from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import Adder, ConstantVectorSource, MatrixGain, TrajectorySource
 
 from maglev_haptics.diagrams.hand_script import (
-    GripEvent, HandWaypoint, MeshcatHand, ScriptedHand, hand_plan, validate_hand)
+    GripEvent, MeshcatHand, ScriptedHand, hand_plan, validate_hand)
+from maglev_haptics.diagrams.waypoints import Waypoint
 from maglev_haptics.diagrams.station import generalized_force_placement
 from maglev_haptics.plant_models import PACKAGE_XML
 from maglev_haptics.systems.hand import (
@@ -265,7 +266,7 @@ MOVED = np.array([START[0] + 0.030, START[1], START[2] + 0.005, 0.0, 0.0, START[
 
 
 def moving_script(events):
-    return ScriptedHand(start_s=0.3, waypoints=[HandWaypoint(pose=list(MOVED), move_s=0.5,
+    return ScriptedHand(start_s=0.3, waypoints=[Waypoint(pose=list(MOVED), move_s=0.5,
                                                              hold_s=1.0)], events=events)
 
 
@@ -303,8 +304,8 @@ def test_an_open_hand_leaves_the_instrument_and_hovers_at_its_target():
 def test_released_instrument_is_no_longer_pulled():
     script = ScriptedHand(
         start_s=0.3,
-        waypoints=[HandWaypoint(pose=list(MOVED), move_s=0.5, hold_s=1.0),
-                   HandWaypoint(pose=list(START), move_s=0.5, hold_s=0.5)],
+        waypoints=[Waypoint(pose=list(MOVED), move_s=0.5, hold_s=1.0),
+                   Waypoint(pose=list(START), move_s=0.5, hold_s=0.5)],
         events=[GripEvent(at_s=0.1, grip=True), GripEvent(at_s=1.5, grip=False)])
     bench = Bench("two_magnet", script)
     bench.advance(1.55)
@@ -409,11 +410,11 @@ hand: !MeshcatHand {filter_time_constant_s: 0.5, grip_at_start: true}
     (ScriptedHand(impedance=HandImpedanceConfig(arm_rotational_stiffness=[1.0])),
      "test: hand.impedance.arm_rotational_stiffness = [1.0]: must be 3"),
     (ScriptedHand(start_s=float("nan")), "test: hand.start_s = nan: must be a finite"),
-    (ScriptedHand(waypoints=[HandWaypoint(), HandWaypoint(pose=[0.0] * 5)]),
+    (ScriptedHand(waypoints=[Waypoint(), Waypoint(pose=[0.0] * 5)]),
      "test: hand.waypoints[1].pose = [0.0, 0.0, 0.0, 0.0, 0.0]: must be 6 finite numbers"),
-    (ScriptedHand(waypoints=[HandWaypoint(move_s=0.0)]),
+    (ScriptedHand(waypoints=[Waypoint(move_s=0.0)]),
      "test: hand.waypoints[0].move_s = 0.0: must be a finite number > 0"),
-    (ScriptedHand(waypoints=[HandWaypoint(hold_s=-1.0)]),
+    (ScriptedHand(waypoints=[Waypoint(hold_s=-1.0)]),
      "test: hand.waypoints[0].hold_s = -1.0: must be a finite number >= 0"),
     (ScriptedHand(events=[GripEvent(at_s=-0.1)]),
      "test: hand.events[0].at_s = -0.1: must be a finite number >= 0"),
