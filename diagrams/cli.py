@@ -52,7 +52,8 @@ def _cmd_run(args) -> int:
     plots = "levitation.png" + (", haptics.png" if scenario.haptics is not None else "")
     print(f"wrote {out}/log.npz, {out}/summary.json, {out}/{plots}")
     if result.meshcat is not None:
-        print(f"Meshcat: {result.meshcat.web_url()} (the run's recording is replayable there)")
+        replay = "" if args.interactive else " (the run's recording is replayable there)"
+        print(f"Meshcat: {result.meshcat.web_url()}{replay}")
         if sys.stdin.isatty():
             input("press Enter to close Meshcat and exit ")
     return 0
