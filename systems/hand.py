@@ -237,9 +237,10 @@ class SimulatedHand(LeafSystem):
     latter as [f; tau] in W about I's origin, for logging; ``handle_gripped`` (1)
     is 1.0 while gripped.
 
-    The discrete state [gripped, X_HI (7)] is updated every ``period_s``: on a
-    rising edge of ``grip`` the current relative pose X_HI = X_WH^-1 X_WI is
-    latched, so the grip starts relaxed; on a falling edge the hand releases.
+    The discrete state, the grip flag and X_HI (7) in groups of their own, is
+    updated every ``period_s``: on a rising edge of ``grip`` the current
+    relative pose X_HI = X_WH^-1 X_WI is latched, so the grip starts relaxed;
+    on a falling edge the hand releases.
     """
 
     def __init__(self, *, config: HandImpedanceConfig, period_s: float):
@@ -250,7 +251,9 @@ class SimulatedHand(LeafSystem):
         self._instrument_state = self.DeclareVectorInputPort("instrument_state", 13)
         self._target = self.DeclareVectorInputPort("hand_target", 12)
         self._grip = self.DeclareVectorInputPort("grip", 1)
-        self._grip_state = self.DeclareDiscreteState(np.concatenate(([0.0], IDENTITY_POSE)))
+        # The grip flag is a group of its own: its port is a plain state output.
+        self._gripped = self.DeclareDiscreteState(1)
+        self._X_HI = self.DeclareDiscreteState(IDENTITY_POSE)
         self.DeclarePeriodicDiscreteUpdateEvent(period_s, 0.0, self._update_grip)
         # The plant reads one output and the logger the other: compute once. The grip
         # command acts only through the update, so the outputs do not depend on it.
@@ -265,35 +268,31 @@ class SimulatedHand(LeafSystem):
         self.DeclareVectorOutputPort(
             "generalized_forces", 12, self._calc_generalized_forces,
             prerequisites_of_calc={self._wrenches.ticket()})
-        self.DeclareVectorOutputPort("handle_gripped", 1, self._calc_handle_gripped,
-                                     prerequisites_of_calc={self.xd_ticket()})
+        self.DeclareStateOutputPort("handle_gripped", self._gripped)
         self.DeclareVectorOutputPort("wrench_on_instrument_W", 6,
                                      self._calc_wrench_on_instrument,
                                      prerequisites_of_calc={self._wrenches.ticket()})
 
     def _update_grip(self, context, discrete_state):
-        state = context.get_discrete_state(self._grip_state).CopyToVector()
-        gripped, X_HI = grip_update(state[0], state[1:8], self._grip.Eval(context)[0],
-                                    self._hand_state.Eval(context)[0:7],
-                                    self._instrument_state.Eval(context)[0:7])
-        discrete_state.get_mutable_vector(self._grip_state).SetFromVector(
-            np.concatenate(([gripped], X_HI)))
+        gripped, X_HI = grip_update(
+            context.get_discrete_state(self._gripped).GetAtIndex(0),
+            context.get_discrete_state(self._X_HI).CopyToVector(), self._grip.Eval(context)[0],
+            self._hand_state.Eval(context)[0:7], self._instrument_state.Eval(context)[0:7])
+        discrete_state.get_mutable_vector(self._gripped).SetFromVector([gripped])
+        discrete_state.get_mutable_vector(self._X_HI).SetFromVector(X_HI)
 
     def _calc_wrenches(self, context, value):
         """(wrench on the hand, wrench on the instrument)."""
-        state = context.get_discrete_state(self._grip_state).CopyToVector()
         value.set_value(_FLOAT64.hand_wrenches(
             self._hand_state.Eval(context), self._instrument_state.Eval(context),
-            self._target.Eval(context), state[0], state[1:8], self._k_arm, self._b_arm,
+            self._target.Eval(context), context.get_discrete_state(self._gripped).GetAtIndex(0),
+            context.get_discrete_state(self._X_HI).CopyToVector(), self._k_arm, self._b_arm,
             self._k_grip, self._b_grip, self._config.mass_kg))
 
     def _calc_generalized_forces(self, context, output):
         on_hand, on_instrument = self._wrenches.Eval(context)
         output.SetFromVector(np.concatenate((on_hand[3:6], on_hand[0:3],
                                              on_instrument[3:6], on_instrument[0:3])))
-
-    def _calc_handle_gripped(self, context, output):
-        output.SetFromVector(context.get_discrete_state(self._grip_state).CopyToVector()[0:1])
 
     def _calc_wrench_on_instrument(self, context, output):
         output.SetFromVector(self._wrenches.Eval(context)[1])

@@ -115,6 +115,20 @@ def supervisor_step(state: np.ndarray, t: float, period_s: float, scripted_pose6
     return new
 
 
+# The state-output ports, in the order supervisor_gains returns them.
+_GAIN_OUTPUTS = ("pd_gain", "brake_gain", "haptics_enable", "mode")
+
+
+def supervisor_gains(state: np.ndarray, config: SupervisorConfig):
+    """(pd_gain, brake_gain, haptics_enable, mode) in ``state``: the PD's share
+    0..1, the brake 0/1 (haptic, let go for longer than the debounce: the scene
+    holds the instrument), the coupling's enable 0/1 and the mode number."""
+    haptic = state[_MODE] == HAPTIC
+    held_by_scene = haptic and state[_RELEASED] > config.release_debounce_s
+    return (state[_PD], 1.0 if held_by_scene else 0.0, 1.0 if haptic else 0.0,
+            float(state[_MODE]))
+
+
 def supervisor_setpoint(state: np.ndarray, t: float, scripted, rest_height_m: float,
                         config: SupervisorConfig):
     """The controller's setpoint (12,) in ``state`` at time ``t`` (s), given the
@@ -163,9 +177,11 @@ def HapticSupervisor_(T):
 
         The discrete state (updated every ``period_s``) holds the mode, the
         time and measured pose of the last mode change, the PD and force
-        gains and the release and contact timers; the mode logic runs on
-        values, so under AutoDiffXd the state carries no derivatives and
-        the scripted setpoint passes through with its own.
+        gains and the release and contact timers, and, in groups of their
+        own, what ``pd_gain``, ``brake_gain``, ``haptics_enable`` and ``mode``
+        output (``supervisor_gains``). The mode logic runs on values, so
+        under AutoDiffXd the state carries no derivatives and the scripted
+        setpoint passes through with its own.
         """
 
         def _construct(self, *, config: SupervisorConfig, period_s: float,
@@ -191,10 +207,13 @@ def HapticSupervisor_(T):
                 state | {self.time_ticket(), self._scripted.ticket()})
             self.DeclareVectorOutputPort("enable", 1, self._calc_enable,
                                          state | {self._scripted_enable.ticket()})
-            self.DeclareVectorOutputPort("pd_gain", 1, self._calc_pd_gain, state)
-            self.DeclareVectorOutputPort("haptics_enable", 1, self._calc_haptics_enable, state)
-            self.DeclareVectorOutputPort("brake_gain", 1, self._calc_brake_gain, state)
-            self.DeclareVectorOutputPort("mode", 1, self._calc_mode, state)
+            # The gains and the mode are kept as state groups of their own, so their
+            # ports are plain state outputs read every tick without calling Python.
+            initial = supervisor_gains(initial_supervisor_state(), config)
+            self._gains = {name: self.DeclareDiscreteState([value])
+                           for name, value in zip(_GAIN_OUTPUTS, initial)}
+            for name, group in self._gains.items():
+                self.DeclareStateOutputPort(name, group)
 
         def _construct_copy(self, other, converter=None):
             Impl._construct(self, config=other._config, period_s=other._period_s,
@@ -219,6 +238,8 @@ def HapticSupervisor_(T):
                 scalar_value(self._in_contact.Eval(context)[0]) > 0.5, self._config)
             discrete_state.get_mutable_vector(self._state).SetFromVector(
                 new if T is float else np.array([T(x) for x in new]))
+            for name, value in zip(_GAIN_OUTPUTS, supervisor_gains(new, self._config)):
+                discrete_state.get_mutable_vector(self._gains[name]).SetFromVector([T(value)])
 
         def _calc_setpoint(self, context, output):
             scripted = self._scripted.Eval(context)
@@ -230,21 +251,6 @@ def HapticSupervisor_(T):
         def _calc_enable(self, context, output):
             gain = self._values(context)[_ENABLE]
             output.SetFromVector(gain * self._scripted_enable.Eval(context))
-
-        def _calc_pd_gain(self, context, output):
-            output.SetFromVector([T(self._values(context)[_PD])])
-
-        def _calc_haptics_enable(self, context, output):
-            output.SetFromVector([T(1.0 if self._values(context)[_MODE] == HAPTIC else 0.0)])
-
-        def _calc_brake_gain(self, context, output):
-            values = self._values(context)
-            held_by_scene = (values[_MODE] == HAPTIC
-                             and values[_RELEASED] > self._config.release_debounce_s)
-            output.SetFromVector([T(1.0 if held_by_scene else 0.0)])
-
-        def _calc_mode(self, context, output):
-            output.SetFromVector([T(self._values(context)[_MODE])])
 
     return Impl
 

@@ -118,8 +118,9 @@ def test_system_ports_and_autodiff_conversion():
                   "haptics_request": [1.0], "handle_gripped": [1.0], "tool_in_contact": [0.0]}
         for name, value in values.items():
             system.GetInputPort(name).FixValue(context, [scalar(float(v)) for v in value])
-        state = system.EvalUniquePeriodicDiscreteUpdate(context)
-        context.SetDiscreteState(state.get_vector().CopyToVector())
+        update = system.EvalUniquePeriodicDiscreteUpdate(context)
+        for group in range(update.num_groups()):
+            context.SetDiscreteState(group, update.get_vector(group).CopyToVector())
         mode = system.GetOutputPort("mode").Eval(context)[0]
         enable = system.GetOutputPort("enable").Eval(context)[0]
         as_float = (lambda v: v) if system is supervisor else (lambda v: v.value())
