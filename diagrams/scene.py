@@ -6,8 +6,8 @@ in the station's plant, so virtual and real bodies never collide.
 
 Three scenes, picked by the config's type:
 
-- ``PegInHole``: a square peg (the tool) and a static block with a rectangular
-  hole, on a table;
+- ``PegInHole``: a square peg (the tool) and a static plate lying on a table,
+  with a rectangular hole through it, so the hole's floor is the table;
 - ``HangingBall``: a small anchor sphere (the tool) with a ball hung from it by a
   ``LinearSpringDamper``, over a table;
 - ``PaddleBall``: a paddle (the tool) and a ball dropped onto it, over a table.
@@ -35,14 +35,30 @@ resonance at 0.25 N*m/rad).
 Contact is hydroelastic ("hydroelastic_with_fallback", polygon surfaces, the
 "lagged" discrete approximation, which uses the Hunt-Crossley dissipation; "sap"
 costs about the same but ignores it, "similar" was no faster, triangle surfaces
-cost a third more). The block, the table and the balls are compliant (boxes get
-Drake's coarse 40-44 tetrahedron meshes; a sphere's mesh follows
-``resolution_hint_m``); the tools are rigid: against the compliant block a rigid
-peg makes ~43 contact polygons, a compliant one ~51 (both work; the rigid one
-costs ~15 % less). Measured cost of one scene plant step on the 2-core reference
-machine: ~15 us free; in contact ~110 us plus ~3-4 us per contact polygon: the
-ball on the table ~130 us, on the paddle ~170 us, the peg pressed on the hole's
-floor or sliding on it ~250 us, on the floor and against a wall ~290 us.
+cost a third more). The table is a compliant half-space (collision only; Meshcat
+draws a finite thin box of TABLE_SIZE_M): Drake clips a rigid tool's surface mesh
+against its plane, the cheapest hydroelastic contact, and no table edge is ever
+reached. The plate's walls and the balls are compliant too (boxes get Drake's
+coarse 40-44 tetrahedron meshes; a sphere's mesh follows ``resolution_hint_m``);
+the tools are rigid. Drake has no hydroelastic contact between two compliant
+bodies when one is a half-space, so a ball meets the table in point contact (the
+"fallback", with Drake's default point stiffness: a hard table, into which a
+ball dropped 5 cm sinks ~0.5 mm).
+
+Measured cost of one scene plant step on the 2-core reference machine (the
+plant alone, best of several runs): ~15 us free; the peg pressed on the hole's
+floor ~80 us (16 contact polygons; the compliant box floor this table replaced
+made 43 and cost ~230 us), sliding on it ~105 us (11), on the floor and against a
+wall ~230 us (the wall's mesh against the peg's makes ~19 polygons, the table
+~10); the ball on the table ~65 us, on the paddle ~170 us.
+
+Drake 1.51's clipping of a rigid mesh by a half-space fails a check
+("mesh_half_space_intersection.cc ... sgn(s_a) != sgn(s_b)") when two vertices
+of one triangle lie exactly on the plane: a level tool, never perturbed, whose
+bottom lands exactly on the table, which takes round numbers in a noiseless test
+(the tracker's noise keeps the haptic runs off it). Drake also warns once per
+process that half-spaces take no part in deformable contact; the scene has no
+deformable bodies.
 
 Models are generated SDFormat text, so every size and contact property comes
 from the scenario; nothing is read from files.
@@ -53,10 +69,13 @@ from dataclasses import dataclass, field
 from typing import List, NamedTuple, Optional, Sequence, Union
 
 import numpy as np
-from pydrake.geometry import SceneGraph
+from pydrake.geometry import (
+    AddCompliantHydroelasticPropertiesForHalfSpace, AddContactMaterial, Box, HalfSpace,
+    ProximityProperties, SceneGraph)
 from pydrake.math import RigidTransform
 from pydrake.multibody.parsing import Parser
-from pydrake.multibody.plant import AddMultibodyPlant, MultibodyPlant, MultibodyPlantConfig
+from pydrake.multibody.plant import (
+    AddMultibodyPlant, CoulombFriction, MultibodyPlant, MultibodyPlantConfig)
 from pydrake.multibody.tree import LinearSpringDamper, RigidBody
 from pydrake.systems.framework import DiagramBuilder, InputPort, OutputPort
 from pydrake.systems.primitives import Demultiplexer, MatrixGain, ZeroOrderHold
@@ -80,10 +99,13 @@ class ContactProperties:
 
 @dataclass
 class PegInHole:
-    """A square peg to insert into a rectangular hole in a static block on a table.
+    """A square peg to insert into a rectangular hole through a static plate lying on
+    the table.
 
-    The hole is 2 mm wider than the peg in y (1 mm clearance a side) and 29 mm in x,
-    so the peg can be slid along x inside the hole against the walls.
+    The plate is as thick as the hole is deep, so the hole's floor is the table's
+    top, at hole_center_m[2] - hole_size_m[2] in W (m). The hole is 2 mm wider than
+    the peg in y (1 mm clearance a side) and 29 mm in x, so the peg can be slid
+    along x inside the hole against the walls.
     """
 
     # x, y, length (m)
@@ -92,14 +114,13 @@ class PegInHole:
     min_inertia_kg_m2: float = 5e-6  # floor of the peg's principal moments (kg*m^2)
     # Position of the peg's centre in I (m): the peg hangs below I.
     tool_offset_m: List[float] = field(default_factory=lambda: [0.0, 0.0, -0.025])
-    # x, y, depth (m)
+    # x, y, depth (m); the depth is also the plate's thickness.
     hole_size_m: List[float] = field(default_factory=lambda: [0.054, 0.027, 0.010])
-    # Centre of the hole's opening in the block's top surface, in W (m); the block's
-    # outer box is centred on it in x and y.
+    # Centre of the hole's opening in the plate's top surface, in W (m); the plate is
+    # centred on it in x and y.
     hole_center_m: List[float] = field(default_factory=lambda: [0.0, 0.0, -0.015])
-    # outer x, y, z (m)
-    block_size_m: List[float] = field(default_factory=lambda: [0.12, 0.08, 0.03])
-    table_z_m: Optional[float] = None  # top of the table in W (m); None: the block's bottom
+    # Outer x, y of the plate (m).
+    block_size_m: List[float] = field(default_factory=lambda: [0.12, 0.08])
     contact: ContactProperties = field(default_factory=ContactProperties)
 
 
@@ -132,9 +153,9 @@ class PaddleBall:
 
     The 1 ms implicit contact step damps short impacts by itself, so the ball is
     soft (1e5 Pa; it sinks ~3 mm into the paddle at 1 m/s) with little Hunt-Crossley
-    dissipation: dropped 5 cm, it rebounds at ~0.5 of its speed from the table and
-    ~0.37 from the paddle held by the coupling (the paddle recoils). At 1e6 Pa
-    those are ~0.3 and ~0.2.
+    dissipation: dropped 5 cm, it rebounds at ~0.37 of its speed from the paddle
+    held by the coupling (the paddle recoils; ~0.2 at 1e6 Pa), and at ~0.5 from the
+    table whatever the modulus (point contact with the half-space).
     """
 
     paddle_size_m: List[float] = field(default_factory=lambda: [0.08, 0.05, 0.006])  # x, y, z (m)
@@ -173,7 +194,13 @@ class SceneParts:
     tool_contact: ToolContactSensor
 
 
-TABLE_SIZE_M = (0.24, 0.18, 0.010)  # x, y, z of the table's box (m)
+# The table's visual box, x, y, z (m), centred on W's z axis under the table's top;
+# for contact the table is a half-space.
+TABLE_SIZE_M = (0.24, 0.18, 0.010)
+# Depth of the compliant half-space's slab (m): the pressure rises from 0 at the
+# table's top to the modulus this deep, as in a 20 mm thick compliant box. At 1e6 Pa
+# the peg's 25 x 25 mm face then meets 1e6 * 6.25e-4 / 0.010 = 62.5 N/mm.
+TABLE_SLAB_M = 0.010
 
 # Visual colours, RGBA.
 PEG_RGBA = (0.20, 0.45, 0.85, 1.0)
@@ -181,7 +208,6 @@ PADDLE_RGBA = (0.90, 0.50, 0.10, 1.0)
 ANCHOR_RGBA = (0.30, 0.30, 0.35, 1.0)
 BALL_RGBA = (0.85, 0.15, 0.15, 1.0)
 BLOCK_RGBA = (0.80, 0.65, 0.40, 1.0)
-HOLE_FLOOR_RGBA = (0.45, 0.32, 0.18, 1.0)
 TABLE_RGBA = (0.35, 0.55, 0.40, 1.0)
 
 
@@ -200,20 +226,18 @@ def sphere_inertia(mass_kg: float, radius_m: float) -> np.ndarray:
 
 
 def hole_block_boxes(block_size_m, hole_size_m, hole_center_m):
-    """The block with a hole as five boxes [(name, centre in W (3,), size (3,))] (m):
-    a floor under the whole block, then the walls left and right of the hole (full
-    depth in y) and in front of and behind it (between those)."""
-    bx, by, bz = block_size_m
+    """The plate with a hole through it as four boxes [(name, centre in W (3,),
+    size (3,))] (m), each as thick as the hole is deep: the walls left and right of
+    the hole (the plate's full y) and in front of and behind it (between those)."""
+    bx, by = block_size_m
     hx, hy, depth = hole_size_m
     cx, cy, top = hole_center_m
-    floor = bz - depth
     wall_z = top - depth / 2
     side_x = (bx - hx) / 2
     side_y = (by - hy) / 2
     x_wall = (hx + side_x) / 2  # wall centres' distance from the hole's centre (m)
     y_wall = (hy + side_y) / 2
     boxes = [
-        ("floor", [cx, cy, top - depth - floor / 2], [bx, by, floor]),
         ("wall_left", [cx - x_wall, cy, wall_z], [side_x, by, depth]),
         ("wall_right", [cx + x_wall, cy, wall_z], [side_x, by, depth]),
         ("wall_front", [cx, cy - y_wall, wall_z], [hx, side_y, depth]),
@@ -222,15 +246,11 @@ def hole_block_boxes(block_size_m, hole_size_m, hole_center_m):
     return [(name, np.array(centre), np.array(size)) for name, centre, size in boxes]
 
 
-def block_bottom_z(scene: PegInHole) -> float:
-    """z of the block's underside in W (m)."""
-    return scene.hole_center_m[2] - scene.block_size_m[2]
-
-
 def table_top_z(scene: SceneConfig) -> Optional[float]:
-    """z of the table's top in W (m), None without a table."""
-    if isinstance(scene, PegInHole) and scene.table_z_m is None:
-        return block_bottom_z(scene)
+    """z of the table's top in W (m), None without a table. Under the peg's plate it
+    is the hole's floor."""
+    if isinstance(scene, PegInHole):
+        return scene.hole_center_m[2] - scene.hole_size_m[2]
     return scene.table_z_m
 
 
@@ -282,32 +302,41 @@ def solid_overlaps_box(solid: Solid, box: Solid) -> bool:
     return sphere_overlaps_box(solid.X_WS.translation(), solid.radius_m, box.X_WS, box.size_m)
 
 
-def start_overlap(scene: SceneConfig, X_WT: RigidTransform) -> Optional[str]:
-    """What the tool at X_WT or the ball at its start would start inside, or None."""
+def solid_bottom_z(solid: Solid) -> float:
+    """z in W of the solid's lowest point (m)."""
+    if solid.radius_m is not None:
+        return solid.X_WS.translation()[2] - solid.radius_m
+    R_WS = solid.X_WS.rotation().matrix()
+    return solid.X_WS.translation()[2] - np.abs(R_WS[2, :]) @ (np.asarray(solid.size_m) / 2)
+
+
+def start_overlap(scene: SceneConfig, X_WA: RigidTransform) -> Optional[str]:
+    """What the tool's shape at X_WA (its centre frame, m) or the ball at its start
+    would start inside, or None. The table is a half-space: anything reaching below
+    its top starts inside it."""
     boxes = []
     if isinstance(scene, PegInHole):
         boxes = [Solid(f"the block's {name.replace('_', ' ')}", RigidTransform(centre), size)
                  for name, centre, size in hole_block_boxes(
                      scene.block_size_m, scene.hole_size_m, scene.hole_center_m)]
-        moving = [Solid("peg", X_WT, scene.peg_size_m)]
+        moving = [Solid("peg", X_WA, scene.peg_size_m)]
     elif isinstance(scene, HangingBall):
-        p_WB = X_WT.translation() - [0.0, 0.0, hanging_drop_m(scene)]
-        moving = [Solid("anchor", X_WT, radius_m=scene.anchor_radius_m),
+        p_WB = X_WA.translation() - [0.0, 0.0, hanging_drop_m(scene)]
+        moving = [Solid("anchor", X_WA, radius_m=scene.anchor_radius_m),
                   Solid("ball", RigidTransform(p_WB), radius_m=scene.ball_radius_m)]
     else:
         ball = Solid("ball", RigidTransform(np.asarray(scene.ball_start_m, dtype=float)),
                      radius_m=scene.ball_radius_m)
-        if solid_overlaps_box(ball, Solid("the paddle", X_WT, scene.paddle_size_m)):
+        if solid_overlaps_box(ball, Solid("the paddle", X_WA, scene.paddle_size_m)):
             return "the ball starts inside the paddle"
-        moving = [Solid("paddle", X_WT, scene.paddle_size_m), ball]
+        moving = [Solid("paddle", X_WA, scene.paddle_size_m), ball]
     table_z = table_top_z(scene)
-    if table_z is not None:
-        boxes.append(Solid("the table", RigidTransform([0.0, 0.0, table_z - TABLE_SIZE_M[2] / 2]),
-                           TABLE_SIZE_M))
     for solid in moving:
         for box in boxes:
             if solid_overlaps_box(solid, box):
                 return f"the {solid.name} starts inside {box.name}"
+        if table_z is not None and solid_bottom_z(solid) < table_z:
+            return f"the {solid.name} starts inside the table (its top at z = {table_z:.4g} m)"
     return None
 
 
@@ -340,10 +369,11 @@ def _nonnegative(path: str, value) -> None:
     _require(_finite(value) and value >= 0, path, value, "must be a finite number >= 0")
 
 
-def _vector(path: str, value, positive: bool = False) -> None:
-    _require(isinstance(value, (list, tuple)) and len(value) == 3 and all(map(_finite, value))
-             and (not positive or all(v > 0 for v in value)), path, value,
-             f"must be a list of 3 finite numbers{' > 0' if positive else ''}")
+def _vector(path: str, value, positive: bool = False, length: int = 3, meaning: str = "") -> None:
+    _require(isinstance(value, (list, tuple)) and len(value) == length
+             and all(map(_finite, value)) and (not positive or all(v > 0 for v in value)),
+             path, value,
+             f"must be a list of {length} finite numbers{' > 0' if positive else ''}{meaning}")
 
 
 def _validate_contact(c: ContactProperties, path: str) -> None:
@@ -359,7 +389,7 @@ def validate_scene(scene: SceneConfig, label: str = "scene") -> None:
              "must be a PegInHole, HangingBall or PaddleBall")
     _nonnegative(f"{label}.min_inertia_kg_m2", scene.min_inertia_kg_m2)
     _vector(f"{label}.tool_offset_m", scene.tool_offset_m)
-    if scene.table_z_m is not None:
+    if not isinstance(scene, PegInHole) and scene.table_z_m is not None:
         _require(_finite(scene.table_z_m), f"{label}.table_z_m", scene.table_z_m,
                  "must be a finite number or null")
     _validate_contact(scene.contact, f"{label}.contact")
@@ -368,21 +398,16 @@ def validate_scene(scene: SceneConfig, label: str = "scene") -> None:
         _positive(f"{label}.peg_mass_kg", scene.peg_mass_kg)
         _vector(f"{label}.hole_size_m", scene.hole_size_m, positive=True)
         _vector(f"{label}.hole_center_m", scene.hole_center_m)
-        _vector(f"{label}.block_size_m", scene.block_size_m, positive=True)
+        _vector(f"{label}.block_size_m", scene.block_size_m, positive=True, length=2,
+                meaning=": the plate's outer x, y (its thickness is the hole's depth, "
+                "hole_size_m[2])")
         for i, axis in enumerate("xy"):
             _require(scene.peg_size_m[i] < scene.hole_size_m[i], f"{label}.peg_size_m[{i}]",
                      scene.peg_size_m[i], f"the peg must be narrower than the hole in {axis} "
                      f"(hole_size_m[{i}] = {scene.hole_size_m[i]})")
             _require(scene.hole_size_m[i] < scene.block_size_m[i], f"{label}.hole_size_m[{i}]",
-                     scene.hole_size_m[i], f"the hole must be narrower than the block in {axis} "
+                     scene.hole_size_m[i], f"the hole must be narrower than the plate in {axis} "
                      f"(block_size_m[{i}] = {scene.block_size_m[i]})")
-        _require(scene.hole_size_m[2] < scene.block_size_m[2], f"{label}.hole_size_m[2]",
-                 scene.hole_size_m[2], f"the hole must be shallower than the block "
-                 f"(block_size_m[2] = {scene.block_size_m[2]})")
-        if scene.table_z_m is not None:
-            _require(scene.table_z_m <= block_bottom_z(scene) + 1e-12, f"{label}.table_z_m",
-                     scene.table_z_m, f"the table must be at or below the block's bottom "
-                     f"({block_bottom_z(scene)} m)")
     elif isinstance(scene, HangingBall):
         _positive(f"{label}.anchor_radius_m", scene.anchor_radius_m)
         _positive(f"{label}.anchor_mass_kg", scene.anchor_mass_kg)
@@ -497,19 +522,27 @@ def ball_sdf(radius_m: float, mass_kg: float, contact: ContactProperties) -> str
 
 
 def block_sdf(scene: PegInHole) -> str:
-    """The static block "block": five boxes on one body, placed in W."""
-    parts = [Part(name, box_geometry(size), centre,
-                  HOLE_FLOOR_RGBA if name == "floor" else BLOCK_RGBA)
+    """The static plate "block": its four walls on one body, placed in W."""
+    parts = [Part(name, box_geometry(size), centre, BLOCK_RGBA)
              for name, centre, size in hole_block_boxes(scene.block_size_m, scene.hole_size_m,
                                                         scene.hole_center_m)]
     return model_sdf("block", parts, scene.contact)
 
 
-def table_sdf(top_z_m: float, contact: ContactProperties) -> str:
-    """The static table "table": a large thin box with its top at ``top_z_m`` in W."""
-    part = Part("table", box_geometry(TABLE_SIZE_M), (0.0, 0.0, top_z_m - TABLE_SIZE_M[2] / 2),
-                TABLE_RGBA)
-    return model_sdf("table", [part], contact)
+def register_table(plant: MultibodyPlant, top_z_m: float, contact: ContactProperties) -> None:
+    """The table "table", on the world body before Finalize: for contact a compliant
+    half-space with its top at ``top_z_m`` in W (a slab TABLE_SLAB_M deep); to see,
+    a TABLE_SIZE_M box under that top."""
+    properties = ProximityProperties()
+    AddCompliantHydroelasticPropertiesForHalfSpace(
+        TABLE_SLAB_M, contact.hydroelastic_modulus_pa, properties)
+    AddContactMaterial(contact.hunt_crossley_dissipation_s_per_m, None,
+                       CoulombFriction(contact.friction, contact.friction), properties)
+    world = plant.world_body()
+    plant.RegisterCollisionGeometry(world, HalfSpace.MakePose([0.0, 0.0, 1.0], [0.0, 0.0, top_z_m]),
+                                    HalfSpace(), "table", properties)
+    plant.RegisterVisualGeometry(world, RigidTransform([0.0, 0.0, top_z_m - TABLE_SIZE_M[2] / 2]),
+                                 Box(*TABLE_SIZE_M), "table", np.array(TABLE_RGBA))
 
 
 # --- builder --------------------------------------------------------------------------
@@ -554,7 +587,7 @@ def AddScene(builder: DiagramBuilder, *, scene: SceneConfig, time_step_s: float,
             ball_sdf(scene.ball_radius_m, scene.ball_mass_kg, scene.contact), "sdf")[0]
     table_z = table_top_z(scene)
     if table_z is not None:
-        parser.AddModelsFromString(table_sdf(table_z, scene.contact), "sdf")
+        register_table(plant, table_z, scene.contact)
     tool_body = plant.GetBodyByName("body", tool)
     ball_body = None if ball is None else plant.GetBodyByName("body", ball)
     p_TA = np.asarray(scene.tool_offset_m, dtype=float)  # the tool's centre in T (m)
