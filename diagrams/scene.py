@@ -40,10 +40,10 @@ draws a finite thin box of TABLE_SIZE_M): Drake clips a rigid tool's surface mes
 against its plane, the cheapest hydroelastic contact, and no table edge is ever
 reached. The plate's walls and the balls are compliant too (boxes get Drake's
 coarse 40-44 tetrahedron meshes; a sphere's mesh follows ``resolution_hint_m``);
-the tools are rigid. Drake has no hydroelastic contact between two compliant
-bodies when one is a half-space, so a ball meets the table in point contact (the
-"fallback", with Drake's default point stiffness: a hard table, into which a
-ball dropped 5 cm sinks ~0.5 mm).
+the tools are rigid. Drake has no hydroelastic contact between a compliant body
+and a compliant half-space, so under the balls the table is a rigid half-space
+(the ball is the soft side); a rigid tool pushed onto that table would meet it
+in point contact (the "fallback"), which the scripts never do.
 
 Measured cost of one scene plant step on the 2-core reference machine (the
 plant alone, best of several runs): ~15 us free; the peg pressed on the hole's
@@ -70,7 +70,8 @@ from typing import List, NamedTuple, Optional, Sequence, Union
 
 import numpy as np
 from pydrake.geometry import (
-    AddCompliantHydroelasticPropertiesForHalfSpace, AddContactMaterial, Box, HalfSpace,
+    AddCompliantHydroelasticPropertiesForHalfSpace, AddContactMaterial,
+    AddRigidHydroelasticProperties, Box, HalfSpace,
     ProximityProperties, SceneGraph)
 from pydrake.math import RigidTransform
 from pydrake.multibody.parsing import Parser
@@ -155,7 +156,7 @@ class PaddleBall:
     soft (1e5 Pa; it sinks ~3 mm into the paddle at 1 m/s) with little Hunt-Crossley
     dissipation: dropped 5 cm, it rebounds at ~0.37 of its speed from the paddle
     held by the coupling (the paddle recoils; ~0.2 at 1e6 Pa), and at ~0.5 from the
-    table whatever the modulus (point contact with the half-space).
+    rigid table.
     """
 
     paddle_size_m: List[float] = field(default_factory=lambda: [0.08, 0.05, 0.006])  # x, y, z (m)
@@ -529,13 +530,17 @@ def block_sdf(scene: PegInHole) -> str:
     return model_sdf("block", parts, scene.contact)
 
 
-def register_table(plant: MultibodyPlant, top_z_m: float, contact: ContactProperties) -> None:
-    """The table "table", on the world body before Finalize: for contact a compliant
-    half-space with its top at ``top_z_m`` in W (a slab TABLE_SLAB_M deep); to see,
-    a TABLE_SIZE_M box under that top."""
+def register_table(plant: MultibodyPlant, top_z_m: float, contact: ContactProperties, *,
+                   compliant: bool) -> None:
+    """The table "table", on the world body before Finalize: for contact a half-space
+    with its top at ``top_z_m`` in W, compliant (a slab TABLE_SLAB_M deep) or rigid;
+    to see, a TABLE_SIZE_M box under that top."""
     properties = ProximityProperties()
-    AddCompliantHydroelasticPropertiesForHalfSpace(
-        TABLE_SLAB_M, contact.hydroelastic_modulus_pa, properties)
+    if compliant:
+        AddCompliantHydroelasticPropertiesForHalfSpace(
+            TABLE_SLAB_M, contact.hydroelastic_modulus_pa, properties)
+    else:
+        AddRigidHydroelasticProperties(properties)
     AddContactMaterial(contact.hunt_crossley_dissipation_s_per_m, None,
                        CoulombFriction(contact.friction, contact.friction), properties)
     world = plant.world_body()
@@ -587,7 +592,10 @@ def AddScene(builder: DiagramBuilder, *, scene: SceneConfig, time_step_s: float,
             ball_sdf(scene.ball_radius_m, scene.ball_mass_kg, scene.contact), "sdf")[0]
     table_z = table_top_z(scene)
     if table_z is not None:
-        register_table(plant, table_z, scene.contact)
+        # The soft side against the table: the table itself under the rigid peg, the
+        # compliant balls over a rigid table (Drake has no hydroelastic contact of a
+        # compliant body with a compliant half-space).
+        register_table(plant, table_z, scene.contact, compliant=isinstance(scene, PegInHole))
     tool_body = plant.GetBodyByName("body", tool)
     ball_body = None if ball is None else plant.GetBodyByName("body", ball)
     p_TA = np.asarray(scene.tool_offset_m, dtype=float)  # the tool's centre in T (m)
