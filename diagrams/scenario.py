@@ -322,6 +322,10 @@ def validate_scenario(s: Scenario, label: str) -> None:
     _positive(f"{label}: plant_config.time_step", s.plant_config.time_step)
     if s.duration_s is not None:
         _positive(f"{label}: duration_s", s.duration_s)
+    if s.haptics is not None and s.hand is None:
+        raise ScenarioError(f"{label}: hand = null: a haptic scenario needs the user's hand "
+                            "(hand: !ScriptedHand {...} or !MeshcatHand {...}), whose grip "
+                            "engages haptics")
     if s.hand is not None:
         try:
             validate_hand(s.hand, label)

@@ -146,3 +146,8 @@ def test_scene_kind_needs_its_tag():
         load_scenario("peg_in_hole", scenario_text="{haptics: {scene: !Teapot {}}}")
     with pytest.raises(ScenarioError, match=r"hand: needs a tag"):
         load_scenario("peg_in_hole", scenario_text="{hand: {start_s: 1.0}}")
+
+
+def test_haptics_needs_a_hand():
+    with pytest.raises(ScenarioError, match=r"hand = null: a haptic scenario needs the user's hand"):
+        load_scenario("peg_in_hole", scenario_text="{hand: null}")
