@@ -20,9 +20,10 @@ from pydrake.common.yaml import yaml_load_typed
 from pydrake.multibody.plant import MultibodyPlantConfig
 
 from maglev_haptics.diagrams.hand_script import MeshcatHand, ScriptedHand, validate_hand
-from maglev_haptics.diagrams.scene import HangingBall, PaddleBall, PegInHole
+from maglev_haptics.diagrams.scene import HangingBall, PaddleBall, PegInHole, validate_scene
 from maglev_haptics.diagrams.waypoints import Waypoint
 from maglev_haptics.hardware.device import INSTRUMENT_KINDS, DeviceConfig
+from maglev_haptics.hardware.limits import LIMIT_KINDS
 from maglev_haptics.systems.haptic_coupling import CouplingConfig
 from maglev_haptics.systems.haptic_supervisor import SupervisorConfig
 from maglev_haptics.systems.levitation_controller import ControllerConfig
@@ -322,6 +323,8 @@ def validate_scenario(s: Scenario, label: str) -> None:
     _positive(f"{label}: plant_config.time_step", s.plant_config.time_step)
     if s.duration_s is not None:
         _positive(f"{label}: duration_s", s.duration_s)
+    if s.haptics is not None:
+        _validate_haptics(s.haptics, label)
     if s.haptics is not None and s.hand is None:
         raise ScenarioError(f"{label}: hand = null: a haptic scenario needs the user's hand "
                             "(hand: !ScriptedHand {...} or !MeshcatHand {...}), whose grip "
@@ -333,3 +336,35 @@ def validate_scenario(s: Scenario, label: str) -> None:
             raise ScenarioError(str(error)) from None
     _require(s.hardware == "sim", f"{label}: hardware", s.hardware,
              "must be 'sim' (the real-hardware station is not part of this release)")
+
+
+def _validate_haptics(h: Haptics, label: str) -> None:
+    p = f"{label}: haptics"
+    try:
+        validate_scene(h.scene, f"{p}.scene")
+    except ValueError as error:
+        raise ScenarioError(str(error)) from None
+    _nonnegative(f"{p}.enable_at_s", h.enable_at_s)
+    if h.disable_at_s is not None:
+        _require(isinstance(h.disable_at_s, (int, float)) and h.disable_at_s > h.enable_at_s,
+                 f"{p}.disable_at_s", h.disable_at_s,
+                 f"must be after enable_at_s ({h.enable_at_s} s), or null")
+    c = h.coupling
+    for name in ("translational_stiffness", "translational_damping"):
+        _vector(f"{p}.coupling.{name}", getattr(c, name), 3)
+        for i, v in enumerate(getattr(c, name)):
+            _positive(f"{p}.coupling.{name}[{i}]", v)
+    for name in ("rotational_stiffness", "rotational_damping"):
+        if getattr(c, name) is not None:
+            _vector(f"{p}.coupling.{name}", getattr(c, name), 3)
+            for i, v in enumerate(getattr(c, name)):
+                _positive(f"{p}.coupling.{name}[{i}]", v)
+    _positive(f"{p}.coupling.velocity_filter_hz", c.velocity_filter_hz)
+    _nonnegative(f"{p}.coupling.ramp_s", c.ramp_s)
+    for name in ("max_force_n", "max_torque_nm"):
+        if getattr(c, name) is not None:
+            _positive(f"{p}.coupling.{name}", getattr(c, name))
+    _require(c.device_limit in LIMIT_KINDS, f"{p}.coupling.device_limit", c.device_limit,
+             f"must be one of {', '.join(LIMIT_KINDS)}")
+    for f in dataclasses.fields(h.supervisor):
+        _nonnegative(f"{p}.supervisor.{f.name}", getattr(h.supervisor, f.name))

@@ -151,3 +151,16 @@ def test_scene_kind_needs_its_tag():
 def test_haptics_needs_a_hand():
     with pytest.raises(ScenarioError, match=r"hand = null: a haptic scenario needs the user's hand"):
         load_scenario("peg_in_hole", scenario_text="{hand: null}")
+
+
+@pytest.mark.parametrize("text, message", [
+    ("{haptics: {coupling: {translational_stiffness: [400.0, -1.0, 400.0]}}}",
+     r"haptics.coupling.translational_stiffness\[1\] = -1.0: must be a finite number > 0"),
+    ("{haptics: {coupling: {device_limit: nominal}}}",
+     r"haptics.coupling.device_limit = 'nominal': must be one of peak, thermal"),
+    ("{haptics: {disable_at_s: 1.0}}", r"haptics.disable_at_s = 1.0: must be after enable_at_s"),
+    ("{haptics: {scene: !PegInHole {peg_mass_kg: -0.02}}}", r"haptics.scene.peg_mass_kg = -0.02"),
+])
+def test_bad_haptics_input_names_the_field(text, message):
+    with pytest.raises(ScenarioError, match=message):
+        load_scenario("peg_in_hole", scenario_text=text)
