@@ -253,6 +253,13 @@ def _vector(path: str, value, size: int) -> None:
              path, value, f"must be a list of {size} finite numbers")
 
 
+def _each(path: str, value, size: int, check) -> None:
+    """A list of ``size`` finite numbers, each passing ``check`` (path[i], v)."""
+    _vector(path, value, size)
+    for i, v in enumerate(value):
+        check(f"{path}[{i}]", v)
+
+
 def validate_scenario(s: Scenario, label: str) -> None:
     """Range checks; each error names the field, its value and what is allowed."""
     d = s.device
@@ -285,16 +292,11 @@ def validate_scenario(s: Scenario, label: str) -> None:
     _nonnegative(f"{p}.tracker.latency_s", d.tracker.latency_s)
 
     c = s.controller
-    _vector(f"{label}: controller.natural_frequency_hz", c.natural_frequency_hz, 6)
-    _vector(f"{label}: controller.damping_ratio", c.damping_ratio, 6)
     for name in ("natural_frequency_hz", "damping_ratio"):
-        for i, v in enumerate(getattr(c, name)):
-            _positive(f"{label}: controller.{name}[{i}]", v)
+        _each(f"{label}: controller.{name}", getattr(c, name), 6, _positive)
     for name in ("kp", "kd"):
         if getattr(c, name) is not None:
-            _vector(f"{label}: controller.{name}", getattr(c, name), 6)
-            for i, v in enumerate(getattr(c, name)):
-                _nonnegative(f"{label}: controller.{name}[{i}]", v)
+            _each(f"{label}: controller.{name}", getattr(c, name), 6, _nonnegative)
     _nonnegative(f"{label}: controller.lost_grace_s", c.lost_grace_s)
 
     m = s.motion
@@ -351,14 +353,10 @@ def _validate_haptics(h: Haptics, label: str) -> None:
                  f"must be after enable_at_s ({h.enable_at_s} s), or null")
     c = h.coupling
     for name in ("translational_stiffness", "translational_damping"):
-        _vector(f"{p}.coupling.{name}", getattr(c, name), 3)
-        for i, v in enumerate(getattr(c, name)):
-            _positive(f"{p}.coupling.{name}[{i}]", v)
+        _each(f"{p}.coupling.{name}", getattr(c, name), 3, _positive)
     for name in ("rotational_stiffness", "rotational_damping"):
         if getattr(c, name) is not None:
-            _vector(f"{p}.coupling.{name}", getattr(c, name), 3)
-            for i, v in enumerate(getattr(c, name)):
-                _positive(f"{p}.coupling.{name}[{i}]", v)
+            _each(f"{p}.coupling.{name}", getattr(c, name), 3, _positive)
     _positive(f"{p}.coupling.velocity_filter_hz", c.velocity_filter_hz)
     _nonnegative(f"{p}.coupling.ramp_s", c.ramp_s)
     for name in ("max_force_n", "max_torque_nm"):
