@@ -19,7 +19,7 @@ from maglev_haptics.diagrams.waypoints import Waypoint
 from maglev_haptics.systems.blends import SAMPLES_PER_S, minimum_jerk
 from maglev_haptics.systems.hand import HandImpedanceConfig
 
-# The plans end with this long a hold of their last value, so each has a segment
+# The plans end with this long a hold of their last value (s), so each has a segment
 # however short the script; beyond its end a PiecewisePolynomial holds its end value.
 TAIL_S = 1.0
 

@@ -64,13 +64,21 @@ def releases(log, rest_height_m: float, debounce_s: float) -> List[Dict]:
             continue
         window = (t >= t[k]) & (t <= t[k] + RELEASE_WINDOW_S) & ~gripped
         after = (t > t[k] + debounce_s + 0.01) & (t <= t[k] + RELEASE_WINDOW_S)
-        landed = bool(np.any(log["haptic_mode"][after] == LANDING))
+        modes = log["haptic_mode"][after]
+        if np.any(modes == LANDING):
+            outcome = "landed"
+        elif np.any(gripped[after]):
+            outcome = "gripped again"
+        elif np.any(modes != HAPTIC):
+            outcome = "haptics disabled"
+        else:
+            outcome = "held by the scene"
         p = log["p_WI_true"][window]
         deviation = np.linalg.norm(p - log["p_WI_true"][k], axis=1)
         last = window & (t >= t[k] + RELEASE_WINDOW_S - 2.0)
         events.append({
             "time_s": float(t[k]),
-            "outcome": "landed" if landed else "held by the scene",
+            "outcome": outcome,
             "watched_s": float(t[window][-1] - t[k]) if window.any() else 0.0,
             "max_deviation_mm": float(1e3 * deviation.max()) if window.any() else None,
             # The last 2 s of the window: a settled hold has no motion left.

@@ -6,9 +6,10 @@ so the scene can use hydroelastic contact while the station uses point
 contact), the virtual coupling between the measured instrument and the scene's
 tool, the tool's contact sensor and the mode supervisor into the diagram, and
 connects them to the levitation controller. The scene plant steps at the
-control period, so once the coupling engages, physics advances in lock-step
-with the device's control tick; until then (and after haptics is disabled) the
-scene evolves on its own, with the tool free.
+control period, so physics advances in lock-step with the device's control
+tick. The tool always follows the instrument through the coupling; until haptics
+engages (and after it is disabled) the user feels none of it, and when it
+engages the user's wrench ramps in.
 
 ``AddHandCommands`` feeds the simulated hand's target and grip from its script
 or from Meshcat's controls.
@@ -83,8 +84,8 @@ def haptics_request(scenario: Scenario) -> PiecewisePolynomial:
     """1 while haptics is requested, 0 otherwise (zero-order hold)."""
     haptics = scenario.haptics
     end = haptics.disable_at_s if haptics.disable_at_s is not None else np.inf
-    times = [0.0, haptics.enable_at_s]
-    values = [0.0, 1.0]
+    times, values = ([0.0, haptics.enable_at_s], [0.0, 1.0]) if haptics.enable_at_s > 0 \
+        else ([0.0], [1.0])
     if np.isfinite(end):
         times.append(end)
         values.append(0.0)
@@ -149,13 +150,15 @@ def interactive_variant(scenario: Scenario, duration_s: Optional[float]) -> Scen
     if scenario.haptics is None:
         raise ValueError("--interactive needs a scenario with haptics (a scene to touch)")
     duration_s = INTERACTIVE_DURATION_S if duration_s is None else duration_s
-    impedance = (scenario.hand.impedance if scenario.hand is not None
-                 else MeshcatHand().impedance)
+    hand = scenario.hand
+    if not isinstance(hand, MeshcatHand):
+        hand = MeshcatHand(impedance=hand.impedance if hand is not None
+                           else MeshcatHand().impedance)
     waypoints = list(scenario.motion.waypoints)
     last = waypoints[-1]
     waypoints[-1] = dataclasses.replace(last, hold_s=last.hold_s + duration_s)
     return dataclasses.replace(
-        scenario, hand=MeshcatHand(impedance=impedance),
+        scenario, hand=hand,
         motion=dataclasses.replace(scenario.motion, waypoints=waypoints),
         haptics=dataclasses.replace(scenario.haptics, disable_at_s=None),
         duration_s=duration_s)
@@ -171,7 +174,8 @@ def AddHandCommands(builder, *, scenario: Scenario, station, meshcat: Optional[M
     start = hand_start_pose(scenario)
     if isinstance(hand, MeshcatHand):
         if meshcat is None:
-            raise ValueError("hand: !MeshcatHand needs Meshcat (drop --no-meshcat)")
+            raise ValueError("hand: !MeshcatHand is driven from Meshcat's controls, so the "
+                             "diagram needs a Meshcat (run it without --no-meshcat)")
         commands = builder.AddNamedSystem("meshcat_hand", MeshcatHandInput(
             meshcat, start_pose=start, filter_time_constant_s=hand.filter_time_constant_s,
             period_s=1.0 / hand.input_rate_hz, grip_at_start=hand.grip_at_start))

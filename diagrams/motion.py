@@ -15,12 +15,11 @@ import numpy as np
 from pydrake.trajectories import PiecewisePolynomial
 
 from maglev_haptics.diagrams.scenario import ScenarioError
-from maglev_haptics.systems.blends import SAMPLES_PER_S, minimum_jerk
+from maglev_haptics.systems.blends import LANDING_PRESS_M, SAMPLES_PER_S, minimum_jerk
 from maglev_haptics.systems.current_allocator import allocate_currents
 from maglev_haptics.systems.levitation_controller import GRAVITY_M_S2
 from maglev_haptics.systems.rotations import rotation_from_rpy
 
-LANDING_PRESS_M = 0.001  # the landing setpoint ends this far below the rest height
 IDLE_AFTER_S = 0.2  # the script ends this long after the currents are ramped to zero
 HOLD_MARGIN = 1.2  # a waypoint must be holdable with this multiple of the weight
 MAX_TILT_DEG = 45.0  # the tilt range over which the wrench table is checked against magpylib

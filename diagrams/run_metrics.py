@@ -12,6 +12,7 @@ from maglev_haptics.diagrams.motion import FlightPlan
 from maglev_haptics.hardware.thermal import (
     coil_thermal, continuous_current_limit_a, steady_state_temperature_c, temperature_after_c,
     winding_resistance_ohm)
+from maglev_haptics.systems.haptic_supervisor import HAPTIC
 from maglev_haptics.systems.rotations import rotation_from_quaternion, rotation_from_rpy
 
 HOVER_SETTLE_S = 0.5  # skipped at the start of each hold before hover errors count (s)
@@ -46,10 +47,16 @@ def log_arrays(logger, log_layout, context, device) -> Dict[str, np.ndarray]:
     data = {name: log.data()[rows, keep].T for name, rows in log_layout.items()}
     thermal = coil_thermal(device)
     times = log.sample_times()
+    if len(times) < 2:
+        raise ValueError(f"the run logged {len(times)} sample(s) in {times[-1] if len(times) else 0} "
+                         "s: simulate at least two log periods")
     t = times[keep] - (times[1] - times[0])
     state = data["instrument_state"]
     measured = data["X_WI_measured"]
     rendered = data["wrench_rendered_W"]
+    engaged = (data["haptic_mode"][:, 0] == HAPTIC if "haptic_mode" in data
+               else np.zeros(len(t), dtype=bool))
+    user_wrench = rendered * engaged[:, None]
     currents = data["coil_currents"]
     temperatures = coil_temperatures_c(t, currents, thermal)
     return {
@@ -58,10 +65,10 @@ def log_arrays(logger, log_layout, context, device) -> Dict[str, np.ndarray]:
         "p_WI_true": state[:, 4:7],
         "rpy_WI_measured": rpy_from_quaternions(measured[:, 0:4]),
         "rpy_WI_true": rpy_from_quaternions(state[:, 0:4]),
-        # Everything the device applies beyond carrying the weight: the haptic
-        # rendering (and, while levitating, the PD's effort).
-        "f_user": rendered[:, 0:3],
-        "tau_user": rendered[:, 3:6],
+        # What the device renders on the hand beyond carrying the weight while
+        # haptics is engaged; zero otherwise (levitation has no user's wrench).
+        "f_user": user_wrench[:, 0:3],
+        "tau_user": user_wrench[:, 3:6],
         "coil_currents": currents,
         "coil_power_w": np.sum(winding_resistance_ohm(thermal, temperatures) * currents**2, axis=1),
         "coil_temperature_c": temperatures,
@@ -73,6 +80,7 @@ def log_arrays(logger, log_layout, context, device) -> Dict[str, np.ndarray]:
         "V_WI_measured": data["V_WI_measured"],
         "tracking_ok": data["tracking_ok"][:, 0],
         "wrench_commanded_W": data["wrench_commanded_W"],
+        "wrench_rendered_W": rendered,
         "allocation_shortfall_W": data["allocation_shortfall_W"],
         **_optional_arrays(data),
     }

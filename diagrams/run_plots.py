@@ -10,6 +10,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from maglev_haptics.diagrams.run_metrics import angle_between_deg  # noqa: E402
+from maglev_haptics.systems.haptic_supervisor import HAPTIC  # noqa: E402
 
 AXIS_COLORS = ("tab:red", "tab:green", "tab:blue")
 
@@ -102,7 +103,7 @@ def plot_haptics(log: Dict[str, np.ndarray], out_dir: Path, *, title: str) -> Pa
     t = log["t"]
     measured = np.cumsum(log["tracking_ok"] > 0.5) > 0
     fig, axes = plt.subplots(7, 1, figsize=(10, 15), sharex=True)
-    engaged = log["haptic_mode"] == 1
+    engaged = log["haptic_mode"] == HAPTIC
     contact = log["tool_in_contact"] > 0.5
     for i, axis in enumerate("xyz"):
         ax = axes[i]

@@ -33,8 +33,9 @@ class RunResult:
 
 
 def simulate(built, duration_s: float, *, realtime_rate: float = 0.0,
-             progress: bool = True, label: str = ""):
-    """Advance the diagram to ``duration_s``; returns (simulator, wall seconds)."""
+             progress: bool = True, label: str = "", interruptible: bool = False):
+    """Advance the diagram to ``duration_s``; returns (simulator, wall seconds).
+    ``interruptible``: Ctrl-C ends the run early instead of raising."""
     # The diagram lives as long as the run: keep the collector from scanning it every tick.
     gc.collect()
     gc.freeze()
@@ -50,7 +51,9 @@ def simulate(built, duration_s: float, *, realtime_rate: float = 0.0,
                 simulator.AdvanceTo(float(t))
                 bar.update(float(t) - bar.n)
     except KeyboardInterrupt:
-        pass  # Ctrl-C ends an interactive run early; what was simulated is kept
+        if not interruptible:
+            raise
+        # Ctrl-C ends an interactive run early; what was simulated is kept.
     finally:
         gc.unfreeze()  # later runs in this process must be able to collect this one
     return simulator, time.perf_counter() - start
@@ -70,7 +73,8 @@ def run_scenario(scenario: Scenario, *, label: str, out_dir: Optional[Path] = No
         viewer.StartRecording()
     try:
         simulator, wall_s = simulate(built, duration_s, realtime_rate=realtime_rate,
-                                     progress=progress, label=label)
+                                     progress=progress, label=label,
+                                     interruptible=built.meshcat_hand is not None)
     finally:
         if built.meshcat_hand is not None:
             built.meshcat_hand.Delete()

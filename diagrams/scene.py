@@ -25,12 +25,13 @@ long axis the estimated angular velocity carries ~130 mrad/s of noise, which at 
 
 Explicit coupling stability: the coupling's wrench is computed from the tool's
 sampled state and held for one step h, so each tool needs k h^2 / m < 1 and
-b h / m < 2 per axis. With the coupling's 400 N/m, 5 N*s/m and 0.25 N*m/rad,
-3.1e-3 N*m*s/rad at h = 1 ms that means m >~ 10 g and every principal moment of
-inertia >~ 5e-6 kg*m^2 (b h / I = 0.62). Small tools have smaller solid-body
-moments, so each tool's moments are raised to ``min_inertia_kg_m2``: added
-virtual inertia (the user feels it through the coupling as a 36 Hz rotational
-resonance at 0.25 N*m/rad).
+b h / m < 2 per axis. With the coupling's 400 N/m and 5 N*s/m at h = 1 ms that
+means m >~ 10 g. Its rotational gains follow the instrument's inertia (for the
+2-magnet instrument up to 0.19 N*m/rad and 2.4e-3 N*m*s/rad), so every principal
+moment of inertia about T must be >~ 5e-6 kg*m^2 (b h / I = 0.48). Small tools
+have smaller solid-body moments, so each tool's moments are raised to
+``min_inertia_kg_m2``: added virtual inertia (the user feels it through the
+coupling as a rotational resonance near 31 Hz at 0.19 N*m/rad).
 
 Contact is hydroelastic ("hydroelastic_with_fallback", polygon surfaces, the
 "lagged" discrete approximation, which uses the Hunt-Crossley dissipation; "sap"
@@ -192,7 +193,6 @@ class SceneParts:
     V_WT_output: OutputPort
     contact_wrench_output: OutputPort  # total contact wrench on the tool (sampled)
     in_contact_output: OutputPort  # 1.0 while anything touches the tool (sampled)
-    tool_contact: ToolContactSensor
 
 
 # The table's visual box, x, y, z (m), centred on W's z axis under the table's top;
@@ -636,4 +636,4 @@ def AddScene(builder: DiagramBuilder, *, scene: SceneConfig, time_step_s: float,
         plant=plant, scene_graph=scene_graph, tool_body=tool_body, X_IT=X_IT, ball_body=ball_body,
         wrench_on_tool_input=gain.get_input_port(), X_WT_output=split.get_output_port(0),
         V_WT_output=split.get_output_port(1),
-        contact_wrench_output=contact_wrench, in_contact_output=in_contact, tool_contact=sensor)
+        contact_wrench_output=contact_wrench, in_contact_output=in_contact)

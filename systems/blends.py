@@ -1,7 +1,6 @@
 """Smooth 0 -> 1 blends shared by the scripted trajectories and the supervisor."""
 
-import numpy as np
-
+LANDING_PRESS_M = 0.001  # a landing setpoint ends this far below the rest height (m)
 # Hermite samples per second of a minimum-jerk move: the cubic Hermite fit of
 # the quintic then errs by < 1e-7 of the move's amplitude.
 SAMPLES_PER_S = 200

@@ -65,7 +65,7 @@ class CouplingConfig:
     17 deg. Rotational gains, when null, give each of the instrument's axes
     the same natural frequency and damping ratio as the translation: the
     instrument's principal inertia times k / m and b / m (for the 2-magnet
-    instrument 0.026, 0.18, 0.19 N*m/rad). One rotational stiffness for all
+    instrument 0.025, 0.18, 0.19 N*m/rad). One rotational stiffness for all
     axes would make the turn about the magnet row (8e-6 kg*m^2) ring at 28 Hz,
     where the tracker's latency and the velocity filters turn the damper's
     phase around: an instrument let go then spins up. The diagram builder
@@ -88,7 +88,7 @@ class CouplingConfig:
     rotational_damping: Optional[List[float]] = None  # N*m*s/rad; null: likewise
     velocity_filter_hz: float = 30.0  # corner of the low-pass on the measured V_WI (Hz)
     ramp_s: float = 0.5  # the user's wrench fades in linearly over this time after enable (s)
-    max_force_n: Optional[float] = None  # |f| limit (N); null: the device's thermal limit
+    max_force_n: Optional[float] = None  # |f| limit (N); null: from device_limit
     max_torque_nm: Optional[float] = None  # |tau| limit (N*m); null: likewise
     device_limit: str = "peak"  # "peak" or "thermal": the coil current the null limits assume
 

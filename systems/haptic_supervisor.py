@@ -32,13 +32,11 @@ from pydrake.autodiffutils import AutoDiffXd
 from pydrake.systems.framework import LeafSystem_
 from pydrake.systems.scalar_conversion import TemplateSystem
 
-from maglev_haptics.systems.blends import clipped_minimum_jerk
+from maglev_haptics.systems.blends import LANDING_PRESS_M, clipped_minimum_jerk
 from maglev_haptics.systems.float_twins import scalar_value
 from maglev_haptics.systems.rotations import rotation_from_quaternion, rpy_from_rotation
 
 LEVITATE, HAPTIC, LANDING = 0, 1, 2
-MODE_NAMES = ("levitate", "haptic", "landing")
-LANDING_PRESS_M = 0.001  # the landing setpoint ends this far below the rest height (m)
 
 # The discrete state vector's layout.
 _MODE, _SINCE, _POSE, _OFFSET, _PD, _ENABLE, _RELEASED, _SINCE_CONTACT = (
@@ -171,8 +169,8 @@ def HapticSupervisor_(T):
             - setpoint
             - enable
             - pd_gain
-            - haptics_enable
             - brake_gain
+            - haptics_enable
             - mode
 
         The discrete state (updated every ``period_s``) holds the mode, the

@@ -12,10 +12,10 @@ from maglev_haptics.systems.haptic_coupling import (
 from maglev_haptics.systems.rotations import quaternion_exp
 
 PERIOD_S = 1e-3
-# Distinct per-axis gains so a mixed-up axis shows.
 # What the diagram builder fills in for a device: limits and rotational gains.
 RESOLVED = dict(max_force_n=4.0, max_torque_nm=0.08, rotational_stiffness=[0.03, 0.18, 0.19],
                 rotational_damping=[3e-4, 2.2e-3, 2.4e-3])
+# Distinct per-axis gains so a mixed-up axis shows.
 GAINS = CouplingConfig(translational_stiffness=[300.0, 400.0, 500.0],
                        translational_damping=[3.0, 4.0, 5.0],
                        rotational_stiffness=[0.1, 0.2, 0.3],
