@@ -16,7 +16,7 @@ import numpy as np
 from pydrake.trajectories import PiecewisePolynomial
 
 from maglev_haptics.diagrams.waypoints import Waypoint
-from maglev_haptics.systems.blends import SAMPLES_PER_S, minimum_jerk
+from maglev_haptics.systems.blends import minimum_jerk_samples
 from maglev_haptics.systems.hand import HandImpedanceConfig
 
 # The plans end with this long a hold of their last value (s), so each has a segment
@@ -78,12 +78,9 @@ def hand_plan(script: ScriptedHand, start_pose):
     for waypoint in script.waypoints:
         hold_until(t)
         goal = np.asarray(waypoint.pose, dtype=float)
-        n = max(2, math.ceil(waypoint.move_s * SAMPLES_PER_S))
-        for s in np.linspace(0.0, 1.0, n + 1)[1:]:
-            blend, blend_rate = minimum_jerk(s)
-            times.append(t + s * waypoint.move_s)
-            values.append(pose + blend * (goal - pose))
-            rates.append(blend_rate / waypoint.move_s * (goal - pose))
+        for samples, new in zip((times, values, rates), minimum_jerk_samples(
+                pose, goal, t, waypoint.move_s)):
+            samples.extend(new)
         pose = goal
         t += waypoint.move_s + waypoint.hold_s
     hold_until(max(t, times[-1]) + TAIL_S)

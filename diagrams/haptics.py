@@ -53,12 +53,6 @@ class HapticParts:
     coupling_config: CouplingConfig  # with the device-derived limits filled in
 
 
-def haptic_start_pose(scenario: Scenario) -> np.ndarray:
-    """[x, y, z, roll, pitch, yaw] (m, rad) where haptics starts: the hover pose
-    of the motion script's first waypoint, where the hand grips the instrument."""
-    return hand_start_pose(scenario)
-
-
 def resolved_coupling_config(scenario: Scenario, magnetics) -> CouplingConfig:
     """The scenario's coupling config with its null values filled in: rotational
     gains from the instrument's inertia, and wrench limits from what the coils can
@@ -69,7 +63,7 @@ def resolved_coupling_config(scenario: Scenario, magnetics) -> CouplingConfig:
     if config.max_force_n is not None and config.max_torque_nm is not None:
         return config
     device = scenario.device
-    pose = haptic_start_pose(scenario)
+    pose = hand_start_pose(scenario)  # where the hand grips and haptics starts
     limits = device_limits(device, pose[0:3] - device.p_WA, rotation_from_rpy(pose[3:6]),
                            limit=config.device_limit, magnetics=magnetics,
                            workspace=(np.zeros(3), np.zeros(3)))
@@ -99,7 +93,7 @@ def AddHaptics(builder, *, scenario: Scenario, magnetics, station, estimator, co
     """Scene, coupling, contact sensor and supervisor, wired to the controller."""
     haptics = scenario.haptics
     period_s = 1.0 / scenario.control_rate_hz
-    x, y, z, roll, pitch, yaw = haptic_start_pose(scenario)
+    x, y, z, roll, pitch, yaw = hand_start_pose(scenario)
     # Unsampled ports: the scene steps in the loop's own discrete update (no unrestricted
     # update that would make the loop compute twice a tick).
     scene = AddScene(builder, scene=haptics.scene, time_step_s=period_s,

@@ -15,7 +15,7 @@ import numpy as np
 from pydrake.trajectories import PiecewisePolynomial
 
 from maglev_haptics.diagrams.scenario import ScenarioError
-from maglev_haptics.systems.blends import LANDING_PRESS_M, SAMPLES_PER_S, minimum_jerk
+from maglev_haptics.systems.blends import LANDING_PRESS_M, minimum_jerk_samples
 from maglev_haptics.systems.current_allocator import allocate_currents
 from maglev_haptics.systems.levitation_controller import GRAVITY_M_S2
 from maglev_haptics.systems.rotations import rotation_from_rpy
@@ -52,12 +52,9 @@ def flight_plan(motion, rest_height_m: float) -> FlightPlan:
                 rates.append(np.zeros(6))
 
     def move(pose_from, pose_to, t_from, duration):
-        n = max(2, int(np.ceil(duration * SAMPLES_PER_S)))
-        for s in np.linspace(0.0, 1.0, n + 1)[1:]:
-            blend, blend_rate = minimum_jerk(s)
-            times.append(t_from + s * duration)
-            values.append(pose_from + blend * (pose_to - pose_from))
-            rates.append(blend_rate / duration * (pose_to - pose_from))
+        for samples, new in zip((times, values, rates), minimum_jerk_samples(
+                pose_from, pose_to, t_from, duration)):
+            samples.extend(new)
 
     rest = rest_pose(motion.start_xy_yaw, rest_height_m)
     t = motion.takeoff_at_s + motion.force_ramp_s
