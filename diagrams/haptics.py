@@ -27,6 +27,7 @@ from pydrake.trajectories import PiecewisePolynomial
 
 from maglev_haptics.diagrams.hand_script import MeshcatHand, hand_plan
 from maglev_haptics.diagrams.scenario import Scenario
+from maglev_haptics.diagrams.deformable_scene import AddDeformableScene, DeformableSurface
 from maglev_haptics.diagrams.scene import AddScene
 from maglev_haptics.diagrams.station import hand_start_pose
 from maglev_haptics.hardware.limits import device_limits
@@ -94,12 +95,17 @@ def AddHaptics(builder, *, scenario: Scenario, magnetics, station, estimator, co
     haptics = scenario.haptics
     period_s = 1.0 / scenario.control_rate_hz
     x, y, z, roll, pitch, yaw = hand_start_pose(scenario)
-    # Unsampled ports: the scene steps in the loop's own discrete update (no unrestricted
-    # update that would make the loop compute twice a tick).
-    scene = AddScene(builder, scene=haptics.scene, time_step_s=period_s,
-                     use_sampled_output_ports=False,
-                     contact_sample_period_s=CONTACT_SAMPLE_PERIOD_S,
-                     X_WI_start=RigidTransform(RollPitchYaw(roll, pitch, yaw), [x, y, z]))
+    X_WI_start = RigidTransform(RollPitchYaw(roll, pitch, yaw), [x, y, z])
+    if isinstance(haptics.scene, DeformableSurface):
+        scene = AddDeformableScene(builder, scene=haptics.scene, time_step_s=period_s,
+                                   X_WI_start=X_WI_start)
+    else:
+        # Unsampled ports: the scene steps in the loop's own discrete update (no
+        # unrestricted update that would make the loop compute twice a tick).
+        scene = AddScene(builder, scene=haptics.scene, time_step_s=period_s,
+                         use_sampled_output_ports=False,
+                         contact_sample_period_s=CONTACT_SAMPLE_PERIOD_S,
+                         X_WI_start=X_WI_start)
     config = resolved_coupling_config(scenario, magnetics)
     coupling = builder.AddNamedSystem("haptic_coupling", HapticCoupling(
         config=config, period_s=period_s, X_IT=scene.X_IT))

@@ -20,6 +20,8 @@ from pydrake.common.yaml import yaml_load_typed
 from pydrake.multibody.plant import MultibodyPlantConfig
 
 from maglev_haptics.diagrams.hand_script import MeshcatHand, ScriptedHand, validate_hand
+from maglev_haptics.diagrams.deformable_scene import (
+    DeformableSurface, validate_deformable_surface)
 from maglev_haptics.diagrams.scene import HangingBall, PaddleBall, PegInHole, validate_scene
 from maglev_haptics.diagrams.waypoints import Waypoint
 from maglev_haptics.hardware.device import INSTRUMENT_KINDS, DeviceConfig
@@ -57,7 +59,8 @@ class Haptics:
     gripped; it is requested until ``disable_at_s`` (null: to the end).
     """
 
-    scene: Union[PegInHole, HangingBall, PaddleBall] = field(default_factory=PegInHole)
+    scene: Union[PegInHole, HangingBall, PaddleBall, DeformableSurface] = field(
+        default_factory=PegInHole)
     coupling: CouplingConfig = field(default_factory=CouplingConfig)
     supervisor: SupervisorConfig = field(default_factory=SupervisorConfig)
     enable_at_s: float = 2.0  # (s)
@@ -343,7 +346,10 @@ def validate_scenario(s: Scenario, label: str) -> None:
 def _validate_haptics(h: Haptics, label: str) -> None:
     p = f"{label}: haptics"
     try:
-        validate_scene(h.scene, f"{p}.scene")
+        if isinstance(h.scene, DeformableSurface):
+            validate_deformable_surface(h.scene, f"{p}.scene")
+        else:
+            validate_scene(h.scene, f"{p}.scene")
     except ValueError as error:
         raise ScenarioError(str(error)) from None
     _nonnegative(f"{p}.enable_at_s", h.enable_at_s)

@@ -193,6 +193,8 @@ class SceneParts:
     V_WT_output: OutputPort
     contact_wrench_output: OutputPort  # total contact wrench on the tool (sampled)
     in_contact_output: OutputPort  # 1.0 while anything touches the tool (sampled)
+    surface: Optional[object] = None  # the DeformableSurface system of a deformable scene
+    lattice: Optional[object] = None  # its Lattice at rest
 
 
 # The table's visual box, x, y, z (m), centred on W's z axis under the table's top;

@@ -1,0 +1,223 @@
+"""The deformable scene (the paper's Section V.D): a probe on the tool touches a
+mass-spring-damper lattice built under a heightmap.
+
+``AddDeformableScene`` gives the same ``SceneParts`` as ``AddScene``, so the
+coupling, the supervisor, the log and the plots treat it like the rigid scenes:
+the tool is a free body in its own MultibodyPlant (no collision geometry; its
+weight is off, as for the rigid tools), driven by the coupling's wrench plus
+the lattice's contact wrench; the lattice is a ``DeformableSurface`` system
+stepped at the control period, reading the tool's pose and velocity.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import List
+
+import numpy as np
+from pydrake.math import RigidTransform
+from pydrake.multibody.parsing import Parser
+from pydrake.multibody.plant import AddMultibodyPlant, MultibodyPlantConfig
+from pydrake.systems.framework import DiagramBuilder
+from pydrake.systems.primitives import Adder, Demultiplexer, MatrixGain
+
+from maglev_haptics.diagrams.scene import (
+    SceneParts, _finite, _nonnegative, _positive, _require, _vector, sphere_inertia,
+    wrench_to_generalized_force)
+from maglev_haptics.systems.deformable_surface import DeformableSurface as DeformableSurfaceSystem
+from maglev_haptics.systems.heightmap import (
+    Heightmap, RandomHeightmap, heightmap_heights, validate_heightmap)
+from maglev_haptics.systems.lattice_construction import Lattice, build_lattice
+from maglev_haptics.systems.lattice_dynamics import (
+    INTEGRATORS, ProbeContact, lattice_model)
+
+PROBE_RGBA = (0.75, 0.75, 0.78, 1.0)
+PROBE_SHAFT_RADIUS_M = 0.0015  # drawn only (m)
+
+
+@dataclass
+class DeformableSurface:
+    """A jelly landscape: the lattice under a heightmap, and the probe that touches it.
+
+    The lattice covers ``size_m`` (x, y) centred on ``center_m`` in W with
+    columns every ``column_spacing_m``; its masses fill each column from
+    ``base_z_m`` up to the surface at ``surface_z_m`` plus the heightmap, on
+    levels ``level_spacing_m`` apart, respaced evenly (the paper's Fig. 7c).
+    Bottom and edge masses are fixed. Every link has the same stiffness and
+    damping. The defaults (33 x 25 columns, ~5,900 masses) are heavy and soft
+    enough for one symplectic Euler step a millisecond (see
+    ``max_stable_link_stiffness``) and jiggle visibly at a few Hz.
+    """
+
+    size_m: List[float] = field(default_factory=lambda: [0.080, 0.060])  # x, y (m)
+    center_m: List[float] = field(default_factory=lambda: [0.0, 0.0])  # x, y in W (m)
+    column_spacing_m: float = 0.0025  # (m)
+    level_spacing_m: float = 0.003  # (m)
+    base_z_m: float = -0.030  # the fixed bottom layer, in W (m)
+    surface_z_m: float = -0.015  # mean height of the surface in W (m)
+    heightmap: Heightmap = field(default_factory=RandomHeightmap)
+    node_mass_kg: float = 0.001  # every mass (kg)
+    link_stiffness_n_per_m: float = 60.0  # every link (N/m)
+    link_damping_n_s_per_m: float = 0.02  # every link, along it (N*s/m)
+    integrator: str = "symplectic_euler"  # or "linearly_implicit"
+    substeps: int = 1  # symplectic Euler substeps per control tick
+    cg_tolerance: float = 1e-4  # linearly implicit: relative CG residual
+    cg_max_iterations: int = 40  # linearly implicit: CG iteration cap
+    gravity_m_s2: List[float] = field(default_factory=lambda: [0.0, 0.0, -9.81])  # on the lattice
+    probe: ProbeContact = field(default_factory=ProbeContact)
+    # The probe sphere's centre in I (m): a tip below the instrument.
+    tool_offset_m: List[float] = field(default_factory=lambda: [0.0, 0.0, -0.030])
+    tool_mass_kg: float = 0.015  # (kg); >= 10 g for the explicit coupling
+    min_inertia_kg_m2: float = 5e-6  # floor of the tool's principal moments (kg*m^2)
+
+
+def lattice_grid(scene: DeformableSurface):
+    """(x_m (nx,), y_m (ny,)): the columns' positions in W (m)."""
+    axes = []
+    for i in range(2):
+        count = int(round(scene.size_m[i] / scene.column_spacing_m)) + 1
+        half = (count - 1) * scene.column_spacing_m / 2
+        axes.append(scene.center_m[i] + np.linspace(-half, half, count))
+    return axes[0], axes[1]
+
+
+def build_scene_lattice(scene: DeformableSurface) -> Lattice:
+    """The lattice of ``scene`` at rest."""
+    x_m, y_m = lattice_grid(scene)
+    heights = scene.surface_z_m + heightmap_heights(scene.heightmap, x_m, y_m)
+    return build_lattice(heights, x_m, y_m, scene.base_z_m, scene.level_spacing_m)
+
+
+def validate_deformable_surface(scene: DeformableSurface, label: str = "scene") -> None:
+    """Range checks; a ValueError names ``label.field``, its value and what is allowed."""
+    _vector(f"{label}.size_m", scene.size_m, positive=True, length=2)
+    _vector(f"{label}.center_m", scene.center_m, length=2)
+    _positive(f"{label}.column_spacing_m", scene.column_spacing_m)
+    for i in range(2):
+        _require(scene.size_m[i] >= 2 * scene.column_spacing_m, f"{label}.size_m[{i}]",
+                 scene.size_m[i], f"at least 2 column spacings ({2 * scene.column_spacing_m} m)")
+    _positive(f"{label}.level_spacing_m", scene.level_spacing_m)
+    _require(_finite(scene.base_z_m), f"{label}.base_z_m", scene.base_z_m, "a finite number")
+    _require(_finite(scene.surface_z_m) and scene.surface_z_m > scene.base_z_m,
+             f"{label}.surface_z_m", scene.surface_z_m,
+             f"a finite height above base_z_m ({scene.base_z_m} m)")
+    validate_heightmap(scene.heightmap, f"{label}.heightmap")
+    _positive(f"{label}.node_mass_kg", scene.node_mass_kg)
+    _positive(f"{label}.link_stiffness_n_per_m", scene.link_stiffness_n_per_m)
+    _nonnegative(f"{label}.link_damping_n_s_per_m", scene.link_damping_n_s_per_m)
+    _require(scene.integrator in INTEGRATORS, f"{label}.integrator", scene.integrator,
+             f"one of {', '.join(INTEGRATORS)}")
+    _require(isinstance(scene.substeps, int) and scene.substeps >= 1, f"{label}.substeps",
+             scene.substeps, "an integer >= 1")
+    _positive(f"{label}.cg_tolerance", scene.cg_tolerance)
+    _require(isinstance(scene.cg_max_iterations, int) and scene.cg_max_iterations >= 1,
+             f"{label}.cg_max_iterations", scene.cg_max_iterations, "an integer >= 1")
+    _vector(f"{label}.gravity_m_s2", scene.gravity_m_s2)
+    probe = scene.probe
+    _positive(f"{label}.probe.radius_m", probe.radius_m)
+    _positive(f"{label}.probe.stiffness_n_per_m", probe.stiffness_n_per_m)
+    _nonnegative(f"{label}.probe.damping_n_s_per_m", probe.damping_n_s_per_m)
+    _nonnegative(f"{label}.probe.friction", probe.friction)
+    _positive(f"{label}.probe.slip_speed_m_s", probe.slip_speed_m_s)
+    _vector(f"{label}.tool_offset_m", scene.tool_offset_m)
+    _positive(f"{label}.tool_mass_kg", scene.tool_mass_kg)
+    _nonnegative(f"{label}.min_inertia_kg_m2", scene.min_inertia_kg_m2)
+
+
+def probe_tool_sdf(scene: DeformableSurface) -> str:
+    """The tool "tool": link frame T at the grip (I's origin when relaxed), a shaft
+    from T down to the probe sphere at ``tool_offset_m``; visuals only."""
+    p_TP = np.asarray(scene.tool_offset_m, dtype=float)
+    radius = scene.probe.radius_m
+    shaft_length = max(float(np.linalg.norm(p_TP)) - radius, 1e-4)
+    axis = p_TP / np.linalg.norm(p_TP) if np.linalg.norm(p_TP) > 0 else np.array([0, 0, -1.0])
+    # The shaft's cylinder runs along its own z: Rz(yaw) Ry(pitch) turns z onto T -> P.
+    pitch = float(np.arccos(np.clip(axis[2], -1.0, 1.0)))
+    yaw = float(np.arctan2(axis[1], axis[0]))
+    centre = axis * shaft_length / 2
+    inertia = np.maximum(sphere_inertia(scene.tool_mass_kg, radius), scene.min_inertia_kg_m2)
+    material = "<material><diffuse>{:.3g} {:.3g} {:.3g} {:.3g}</diffuse></material>".format(
+        *PROBE_RGBA)
+    return (
+        '<?xml version="1.0"?><sdf version="1.9"><model name="tool"><link name="body">'
+        "<inertial><pose>{:.9g} {:.9g} {:.9g} 0 0 0</pose>".format(*p_TP) +
+        f"<mass>{scene.tool_mass_kg:.9g}</mass><inertia><ixx>{inertia[0]:.9g}</ixx>"
+        f"<iyy>{inertia[1]:.9g}</iyy><izz>{inertia[2]:.9g}</izz><ixy>0</ixy><ixz>0</ixz>"
+        "<iyz>0</iyz></inertia></inertial>"
+        '<visual name="tip"><pose>{:.9g} {:.9g} {:.9g} 0 0 0</pose>'.format(*p_TP) +
+        f"<geometry><sphere><radius>{radius:.9g}</radius></sphere></geometry>{material}</visual>"
+        '<visual name="shaft"><pose>{:.9g} {:.9g} {:.9g} 0 {:.9g} {:.9g}</pose>'.format(
+            *centre, pitch, yaw) +
+        f"<geometry><cylinder><radius>{PROBE_SHAFT_RADIUS_M:.9g}</radius>"
+        f"<length>{shaft_length:.9g}</length></cylinder></geometry>{material}</visual>"
+        "</link></model></sdf>")
+
+
+def probe_start_overlap(scene: DeformableSurface, lattice: Lattice, X_WT: RigidTransform):
+    """A message if the probe at X_WT starts touching or under the surface, else None."""
+    p_WP = X_WT @ np.asarray(scene.tool_offset_m, dtype=float)
+    surface = lattice.positions_m[lattice.surface.ravel()]
+    near = np.hypot(surface[:, 0] - p_WP[0], surface[:, 1] - p_WP[1]) < scene.probe.radius_m
+    x_m, y_m = lattice.x_m, lattice.y_m
+    over = x_m[0] <= p_WP[0] <= x_m[-1] and y_m[0] <= p_WP[1] <= y_m[-1]
+    if not over:
+        return None
+    highest = surface[near, 2].max() if near.any() else surface[:, 2].max()
+    if p_WP[2] - scene.probe.radius_m <= highest:
+        return (f"the probe (centre at z = {p_WP[2]:.4g} m, radius {scene.probe.radius_m} m) "
+                f"starts in the surface (up to z = {highest:.4g} m under it)")
+    return None
+
+
+def AddDeformableScene(builder: DiagramBuilder, *, scene: DeformableSurface, time_step_s: float,
+                       X_WI_start: RigidTransform) -> SceneParts:
+    """Add the tool's plant and scene graph and the lattice to ``builder``.
+
+    The tool starts at X_WI_start (X_IT the identity), at rest; the lattice at rest
+    as built. A ValueError names a bad config field, or X_WI_start if the probe
+    would start in the surface."""
+    validate_deformable_surface(scene)
+    _positive("time_step_s", time_step_s)
+    lattice = build_scene_lattice(scene)
+    X_IT = RigidTransform()
+    X_WT = X_WI_start @ X_IT
+    overlap = probe_start_overlap(scene, lattice, X_WT)
+    if overlap is not None:
+        raise ValueError(f"X_WI_start (p_WI = {np.round(X_WI_start.translation(), 6).tolist()} "
+                         f"m): {overlap}; start the instrument higher")
+    plant, scene_graph = AddMultibodyPlant(
+        MultibodyPlantConfig(time_step=time_step_s, use_sampled_output_ports=False), builder)
+    plant.set_name("scene_plant")
+    scene_graph.set_name("scene_graph")
+    tool = Parser(plant).AddModelsFromString(probe_tool_sdf(scene), "sdf")[0]
+    plant.set_gravity_enabled(tool, False)
+    plant.Finalize()
+    tool_body = plant.GetBodyByName("body", tool)
+    plant.SetDefaultFloatingBaseBodyPose(tool_body, X_WT)
+
+    surface = builder.AddNamedSystem("deformable_surface", DeformableSurfaceSystem(
+        model=lattice_model(lattice.links, lattice.rest_lengths_m, lattice.fixed, lattice.surface,
+                            node_mass_kg=scene.node_mass_kg,
+                            link_stiffness_n_per_m=scene.link_stiffness_n_per_m,
+                            link_damping_n_s_per_m=scene.link_damping_n_s_per_m,
+                            gravity_m_s2=scene.gravity_m_s2),
+        positions_m=lattice.positions_m, probe=scene.probe, p_TP_m=scene.tool_offset_m,
+        period_s=time_step_s, integrator=scene.integrator, substeps=scene.substeps,
+        cg_tolerance=scene.cg_tolerance, cg_max_iterations=scene.cg_max_iterations))
+    total = builder.AddNamedSystem("scene_tool_wrench_sum", Adder(2, 6))
+    gain = builder.AddNamedSystem("scene_tool_wrench", MatrixGain(
+        wrench_to_generalized_force(tool_body.floating_velocities_start_in_v(),
+                                    plant.num_velocities())))
+    builder.Connect(total.get_output_port(), gain.get_input_port())
+    builder.Connect(gain.get_output_port(), plant.get_applied_generalized_force_input_port())
+    split = builder.AddNamedSystem("scene_tool_state", Demultiplexer([7, 6]))
+    builder.Connect(plant.get_state_output_port(tool), split.get_input_port())
+    builder.Connect(split.get_output_port(0), surface.GetInputPort("X_WT"))
+    builder.Connect(split.get_output_port(1), surface.GetInputPort("V_WT"))
+    builder.Connect(surface.GetOutputPort("wrench_on_tool_W"), total.get_input_port(1))
+    return SceneParts(
+        plant=plant, scene_graph=scene_graph, tool_body=tool_body, X_IT=X_IT, ball_body=None,
+        wrench_on_tool_input=total.get_input_port(0), X_WT_output=split.get_output_port(0),
+        V_WT_output=split.get_output_port(1),
+        contact_wrench_output=surface.GetOutputPort("wrench_on_tool_W"),
+        in_contact_output=surface.GetOutputPort("in_contact"), surface=surface, lattice=lattice)

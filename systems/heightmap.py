@@ -1,0 +1,154 @@
+"""Heightmaps for the deformable landscape: pseudo-random or a sum of two sine waves.
+
+A heightmap gives the height (m) of the landscape's surface above its mean level
+at each point of a rectangular grid of columns, x_m (nx,) by y_m (ny,) in W (m),
+both uniformly spaced and ascending. It fixes the surface the user sees; the
+lattice beneath it is built by ``lattice_construction.build_lattice``.
+
+- ``RandomHeightmap``: Gaussian-correlated noise. Its correlation length L is the
+  lag at which the height's autocorrelation falls to 1/e: the ideal field's
+  normalized autocorrelation is exp(-r^2 / L^2) at horizontal distance r (the
+  usual Gaussian rough-surface model). It is made by smoothing white noise with
+  a Gaussian kernel of standard deviation L / 2 (in m; L / (2 dx) grid cells
+  along x, L / (2 dy) along y), since a Gaussian of standard deviation s
+  convolved with itself is a Gaussian of standard deviation s sqrt(2). The grid
+  samples this faithfully for L >= ~1.6 spacings (the autocorrelation at one
+  spacing is within 0.005 of the ideal); for shorter L the sampled kernel
+  under-correlates neighbours (0.26 instead of 0.37 at L = one spacing), and
+  below half a spacing, where the ideal correlation between neighbours is under
+  exp(-4) = 0.02, the heights are, correctly, nearly independent.
+- ``SineHeightmap``: a_x sin(2 pi x / l_x + phi_x) + a_y sin(2 pi y / l_y + phi_y).
+"""
+
+import math
+from dataclasses import dataclass, field
+from typing import List, Union
+
+import numpy as np
+from scipy.ndimage import gaussian_filter
+
+# Relative deviation of a grid's spacings from their mean still called uniform:
+# np.linspace's spacings differ by a few ulps.
+UNIFORM_SPACING_RTOL = 1e-6
+
+
+@dataclass
+class RandomHeightmap:
+    """Gaussian-correlated pseudo-random heights, zero mean, exactly the given RMS.
+
+    The heights depend on the seed and on the grid (its shape and spacing): the
+    same seed on the same grid gives the same map."""
+
+    seed: int = 0  # seeds np.random.default_rng; an integer >= 0
+    amplitude_m: float = 0.0008  # RMS height over the grid (m)
+    # Lag at which the autocorrelation falls to 1/e (m); the smoothing kernel's
+    # standard deviation is half of it (see the module docstring).
+    correlation_length_m: float = 0.004
+
+
+@dataclass
+class SineHeightmap:
+    """a_x sin(2 pi x / l_x + phi_x) + a_y sin(2 pi y / l_y + phi_y), x and y in W (m)."""
+
+    amplitude_m: List[float] = field(default_factory=lambda: [0.001, 0.0005])  # a_x, a_y (m)
+    wavelength_m: List[float] = field(default_factory=lambda: [0.02, 0.015])  # l_x, l_y (m)
+    phase_rad: List[float] = field(default_factory=lambda: [0.0, 0.0])  # phi_x, phi_y (rad)
+
+
+Heightmap = Union[RandomHeightmap, SineHeightmap]
+
+
+def heightmap_heights(config: Heightmap, x_m: np.ndarray, y_m: np.ndarray) -> np.ndarray:
+    """(nx, ny) heights (m) of the surface above its mean level at the grid points
+    (x_m[ix], y_m[iy]) in W (m); x_m (nx,) and y_m (ny,) uniformly spaced and
+    ascending. A random map is de-meaned over the grid; a sine map's mean level is
+    its waves' mean over whole periods. Raises ValueError for an invalid config
+    or grid."""
+    validate_heightmap(config, type(config).__name__)
+    # A random map's smoothing needs a spacing per axis, so at least 2 points.
+    min_points = 2 if isinstance(config, RandomHeightmap) else 1
+    x_m = validate_grid_axis("x_m", x_m, min_points)
+    y_m = validate_grid_axis("y_m", y_m, min_points)
+    if isinstance(config, SineHeightmap):
+        (a_x, a_y), (l_x, l_y), (phi_x, phi_y) = (config.amplitude_m, config.wavelength_m,
+                                                  config.phase_rad)
+        return (a_x * np.sin(2 * np.pi * x_m / l_x + phi_x))[:, None] \
+            + (a_y * np.sin(2 * np.pi * y_m / l_y + phi_y))[None, :]
+    return _random_heights(config, x_m[1] - x_m[0], y_m[1] - y_m[0], (len(x_m), len(y_m)))
+
+
+def _random_heights(config: RandomHeightmap, dx_m: float, dy_m: float, shape) -> np.ndarray:
+    noise = np.random.default_rng(config.seed).standard_normal(shape)
+    kernel_sigma_m = config.correlation_length_m / 2
+    # mode="wrap" keeps the noise statistically the same everywhere: "reflect" would
+    # count the noise near an edge twice, raising the variance and the correlation
+    # there. The price is that opposite edges of the map match, which the lattice's
+    # fixed edge columns hide.
+    smooth = gaussian_filter(noise, sigma=(kernel_sigma_m / dx_m, kernel_sigma_m / dy_m),
+                             mode="wrap")
+    smooth -= smooth.mean()
+    rms = math.sqrt(np.mean(smooth ** 2))
+    # A zero map (all noise smoothed away) stays zero rather than dividing by 0.
+    return smooth * (config.amplitude_m / rms) if rms > 0 else smooth
+
+
+def validate_grid_axis(name: str, values, min_points: int) -> np.ndarray:
+    """``values`` as a float64 (n,) array after checking it is 1-D, has at least
+    ``min_points`` finite values, ascending and uniformly spaced (spacings within
+    UNIFORM_SPACING_RTOL of their mean); else ValueError naming ``name``."""
+    values = np.asarray(values, dtype=float)
+    if values.ndim != 1 or len(values) < min_points:
+        raise ValueError(f"{name} has shape {values.shape}: must be a 1-D array of at "
+                         f"least {min_points} grid coordinates (m)")
+    bad = np.flatnonzero(~np.isfinite(values))
+    if len(bad):
+        raise ValueError(f"{name}[{bad[0]}] = {float(values[bad[0]])!r}: must be finite")
+    if len(values) > 1:
+        spacing = np.diff(values)
+        if np.any(spacing <= 0):
+            i = int(np.flatnonzero(spacing <= 0)[0])
+            raise ValueError(f"{name}[{i + 1}] = {float(values[i + 1])!r} after {name}[{i}] = "
+                             f"{float(values[i])!r}: must be strictly ascending")
+        mean = spacing.mean()
+        if np.max(np.abs(spacing - mean)) > UNIFORM_SPACING_RTOL * mean:
+            raise ValueError(f"{name} spacing ranges from {float(spacing.min())!r} to "
+                             f"{float(spacing.max())!r} m: must be uniform (within "
+                             f"{UNIFORM_SPACING_RTOL:g} of the mean)")
+    return values
+
+
+# --- validation -----------------------------------------------------------------------
+
+def _require(ok: bool, path: str, value, allowed: str) -> None:
+    if not ok:
+        raise ValueError(f"{path} = {value!r}: {allowed}")
+
+
+def _finite(value) -> bool:
+    return (isinstance(value, (int, float, np.integer, np.floating))
+            and not isinstance(value, bool) and math.isfinite(value))
+
+
+def _pair(path: str, values, minimum: float, strict: bool, meaning: str) -> None:
+    ok = (isinstance(values, (list, tuple)) and len(values) == 2
+          and all(_finite(v) and (v > minimum if strict else v >= minimum) for v in values))
+    bound = "" if minimum == -math.inf else f" {'>' if strict else '>='} {minimum:g}"
+    _require(ok, path, values, f"must be a list of 2 finite numbers{bound} ({meaning})")
+
+
+def validate_heightmap(config: Heightmap, path: str) -> None:
+    """Range checks; a ValueError names ``path.field``, its value and what is allowed."""
+    _require(isinstance(config, (RandomHeightmap, SineHeightmap)), path, config,
+             "must be a RandomHeightmap or a SineHeightmap")
+    if isinstance(config, RandomHeightmap):
+        _require(isinstance(config.seed, (int, np.integer)) and not isinstance(config.seed, bool)
+                 and config.seed >= 0, f"{path}.seed", config.seed, "must be an integer >= 0")
+        _require(_finite(config.amplitude_m) and config.amplitude_m >= 0, f"{path}.amplitude_m",
+                 config.amplitude_m, "must be a finite RMS height >= 0 (m)")
+        _require(_finite(config.correlation_length_m) and config.correlation_length_m > 0,
+                 f"{path}.correlation_length_m", config.correlation_length_m,
+                 "must be a finite length > 0 (m)")
+        return
+    _pair(f"{path}.amplitude_m", config.amplitude_m, 0.0, False, "x and y amplitudes, m")
+    _pair(f"{path}.wavelength_m", config.wavelength_m, 0.0, True, "x and y wavelengths, m")
+    _pair(f"{path}.phase_rad", config.phase_rad, -math.inf, False, "x and y phases, rad")

@@ -1,0 +1,418 @@
+"""Mass-spring-damper lattice dynamics: link forces, probe contact, two integrators (numba).
+
+State: positions ``x`` (n, 3) in W (m) and velocities ``v`` (n, 3) (m/s) of every
+mass; fixed masses (``inv_mass`` 0) never move. Link e joins masses i < j with
+rest length L0 (m), stiffness k (N/m) and damping b (N*s/m) along the link:
+the force on i is (k (L - L0) + b u.(v_j - v_i)) u, u the unit vector from i to
+j, and its opposite on j.
+
+The probe is a sphere of radius r (m) at p_WP on the tool. Each surface vertex
+inside it is pushed out along n, the unit vector from the sphere's centre to
+the vertex, by a penalty k_c depth - b_c (v_rel . n) (never pulling), with
+regularized Coulomb friction mu f_n against the tangential slip; the tool gets
+the opposite force at the vertex, so the wrench on the tool is exactly the
+negative sum of the forces on the masses, its torque taken about the tool's
+origin T.
+
+Integrators, one tick of length h (s):
+- symplectic Euler (velocity first, then position) with ``substeps`` equal
+  substeps. Per mode of angular frequency w with stiffness-proportional link
+  damping it is stable iff h_s^2 w^2 (1 + 2 b / (k h_s)) < 4, h_s = h / substeps
+  (``max_stable_link_stiffness``); each substep is one pass over the links.
+- linearly implicit Euler (Baraff and Witkin 1998): one Newton step of backward
+  Euler, (M - h dF/dv - h^2 dF/dx) dv = h (F + h dF/dx v), solved by
+  Jacobi-preconditioned conjugate gradients without assembling the matrix. The
+  compressive part of the geometric stiffness is dropped so the matrix stays
+  positive definite. Stable for any link stiffness; costs two link passes plus
+  one per CG iteration. Contact enters explicitly in F.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numba
+import numpy as np
+import scipy.sparse
+import scipy.sparse.linalg
+
+SYMPLECTIC_EULER = "symplectic_euler"
+LINEARLY_IMPLICIT = "linearly_implicit"
+INTEGRATORS = (SYMPLECTIC_EULER, LINEARLY_IMPLICIT)
+
+
+class LatticeModel(NamedTuple):
+    """The arrays the kernels read; see ``lattice_model``."""
+
+    links: np.ndarray  # (m, 2) int64 mass indices
+    rest_lengths_m: np.ndarray  # (m,)
+    stiffness_n_per_m: np.ndarray  # (m,)
+    damping_n_s_per_m: np.ndarray  # (m,)
+    mass_kg: np.ndarray  # (n,); fixed masses keep their nominal mass here
+    inv_mass_per_kg: np.ndarray  # (n,); 0 for fixed masses
+    surface: np.ndarray  # (n_s,) int64 indices of the surface vertices
+    gravity_m_s2: np.ndarray  # (3,) in W
+
+
+@dataclass
+class ProbeContact:
+    """Penalty contact of the probe sphere with the lattice's surface vertices."""
+
+    radius_m: float = 0.0025  # (m)
+    stiffness_n_per_m: float = 400.0  # per vertex (N/m)
+    damping_n_s_per_m: float = 0.5  # per vertex, along the normal (N*s/m)
+    friction: float = 0.1  # Coulomb coefficient (-)
+    slip_speed_m_s: float = 0.002  # friction reaches ~70 % of mu f_n at this slip (m/s)
+
+
+def lattice_model(links, rest_lengths_m, fixed, surface, *, node_mass_kg: float,
+                  link_stiffness_n_per_m: float, link_damping_n_s_per_m: float,
+                  gravity_m_s2=(0.0, 0.0, -9.81)) -> LatticeModel:
+    """Contiguous kernel arrays: every mass ``node_mass_kg`` (kg), every link the
+    same stiffness (N/m) and damping (N*s/m), ``fixed`` (n,) bool masses immobile."""
+    n = len(fixed)
+    m = len(links)
+    mass = np.full(n, float(node_mass_kg))
+    return LatticeModel(
+        links=np.ascontiguousarray(links, dtype=np.int64),
+        rest_lengths_m=np.ascontiguousarray(rest_lengths_m, dtype=float),
+        stiffness_n_per_m=np.full(m, float(link_stiffness_n_per_m)),
+        damping_n_s_per_m=np.full(m, float(link_damping_n_s_per_m)),
+        mass_kg=mass,
+        inv_mass_per_kg=np.where(np.asarray(fixed, bool), 0.0, 1.0 / mass),
+        surface=np.ascontiguousarray(np.asarray(surface).ravel(), dtype=np.int64),
+        gravity_m_s2=np.asarray(gravity_m_s2, dtype=float).copy())
+
+
+# --- forces -------------------------------------------------------------------------
+
+@numba.njit(cache=True)
+def add_link_forces(x, v, links, rest, k, b, f):
+    """Add every link's spring-damper force into f (n, 3) (N)."""
+    for e in range(links.shape[0]):
+        i, j = links[e, 0], links[e, 1]
+        dx = x[j, 0] - x[i, 0]
+        dy = x[j, 1] - x[i, 1]
+        dz = x[j, 2] - x[i, 2]
+        length = math.sqrt(dx * dx + dy * dy + dz * dz)
+        ux, uy, uz = dx / length, dy / length, dz / length
+        closing = ux * (v[j, 0] - v[i, 0]) + uy * (v[j, 1] - v[i, 1]) + uz * (v[j, 2] - v[i, 2])
+        s = k[e] * (length - rest[e]) + b[e] * closing
+        f[i, 0] += s * ux
+        f[i, 1] += s * uy
+        f[i, 2] += s * uz
+        f[j, 0] -= s * ux
+        f[j, 1] -= s * uy
+        f[j, 2] -= s * uz
+
+
+@numba.njit(cache=True)
+def probe_point(X_WT, V_WT, p_TP):
+    """(p_WP, v_WP): the probe centre's position (m) and velocity (m/s) in W from the
+    tool pose [qw, qx, qy, qz, x, y, z], its spatial velocity [w; v] in W and p_TP (m)."""
+    qw, qx, qy, qz = X_WT[0], X_WT[1], X_WT[2], X_WT[3]
+    norm = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+    qw, qx, qy, qz = qw / norm, qx / norm, qy / norm, qz / norm
+    R = np.empty((3, 3))
+    R[0, 0] = 1 - 2 * (qy * qy + qz * qz)
+    R[0, 1] = 2 * (qx * qy - qw * qz)
+    R[0, 2] = 2 * (qx * qz + qw * qy)
+    R[1, 0] = 2 * (qx * qy + qw * qz)
+    R[1, 1] = 1 - 2 * (qx * qx + qz * qz)
+    R[1, 2] = 2 * (qy * qz - qw * qx)
+    R[2, 0] = 2 * (qx * qz - qw * qy)
+    R[2, 1] = 2 * (qy * qz + qw * qx)
+    R[2, 2] = 1 - 2 * (qx * qx + qy * qy)
+    r = R @ p_TP  # from T's origin to the probe centre, W axes
+    p_WP = X_WT[4:7] + r
+    w = V_WT[0:3]
+    v_WP = V_WT[3:6] + np.array([w[1] * r[2] - w[2] * r[1], w[2] * r[0] - w[0] * r[2],
+                                 w[0] * r[1] - w[1] * r[0]])
+    return p_WP, v_WP
+
+
+@numba.njit(cache=True)
+def add_probe_forces(x, v, surface, p_WP, v_WP, p_WT, radius, k_c, b_c, mu, slip_speed, f):
+    """Add the probe's contact forces on the surface vertices into f (n, 3) (N);
+    an f with no rows records nothing.
+
+    Returns (wrench on the tool [f; tau] in W about p_WT (N, N*m), number of
+    vertices in contact)."""
+    wrench = np.zeros(6)
+    touching = 0
+    for s in range(surface.shape[0]):
+        i = surface[s]
+        nx, ny, nz = x[i, 0] - p_WP[0], x[i, 1] - p_WP[1], x[i, 2] - p_WP[2]
+        distance = math.sqrt(nx * nx + ny * ny + nz * nz)
+        if distance >= radius or distance == 0.0:
+            continue
+        nx, ny, nz = nx / distance, ny / distance, nz / distance
+        rx, ry, rz = v[i, 0] - v_WP[0], v[i, 1] - v_WP[1], v[i, 2] - v_WP[2]
+        approach = rx * nx + ry * ny + rz * nz
+        normal = k_c * (radius - distance) - b_c * approach
+        if normal <= 0.0:
+            continue
+        touching += 1
+        tx, ty, tz = rx - approach * nx, ry - approach * ny, rz - approach * nz
+        slip = math.sqrt(tx * tx + ty * ty + tz * tz + slip_speed * slip_speed)
+        drag = -mu * normal / slip
+        fx = normal * nx + drag * tx
+        fy = normal * ny + drag * ty
+        fz = normal * nz + drag * tz
+        if f.shape[0] > 0:
+            f[i, 0] += fx
+            f[i, 1] += fy
+            f[i, 2] += fz
+        # The opposite force on the tool, applied at the vertex.
+        ax, ay, az = x[i, 0] - p_WT[0], x[i, 1] - p_WT[1], x[i, 2] - p_WT[2]
+        wrench[0] -= fx
+        wrench[1] -= fy
+        wrench[2] -= fz
+        wrench[3] -= ay * fz - az * fy
+        wrench[4] -= az * fx - ax * fz
+        wrench[5] -= ax * fy - ay * fx
+    return wrench, touching
+
+
+@numba.njit(cache=True)
+def _gravity_and_external(mass, inv_mass, gravity, external, f):
+    for i in range(f.shape[0]):
+        if inv_mass[i] == 0.0:
+            for a in range(3):
+                f[i, a] = 0.0
+            continue
+        for a in range(3):
+            f[i, a] = mass[i] * gravity[a] + external[i, a]
+
+
+# --- integrators ------------------------------------------------------------------------
+
+@numba.njit(cache=True)
+def symplectic_euler_tick(x, v, links, rest, k, b, mass, inv_mass, gravity, surface, external,
+                          p_WP, v_WP, p_WT, radius, k_c, b_c, mu, slip_speed, h, substeps, f):
+    """Advance x, v (in place) by h (s) in ``substeps`` symplectic Euler substeps.
+
+    ``external`` (n, 3) N is held over the tick; the probe is held at p_WP moving
+    at v_WP. f (n, 3) is work space. Returns (the wrench on the tool of the first
+    substep, as ``add_probe_forces``, vertices in contact then)."""
+    h_s = h / substeps
+    wrench = np.zeros(6)
+    touching = 0
+    for step in range(substeps):
+        _gravity_and_external(mass, inv_mass, gravity, external, f)
+        add_link_forces(x, v, links, rest, k, b, f)
+        w, t = add_probe_forces(x, v, surface, p_WP, v_WP, p_WT, radius, k_c, b_c, mu,
+                                slip_speed, f)
+        if step == 0:
+            wrench, touching = w, t
+        for i in range(x.shape[0]):
+            g = h_s * inv_mass[i]
+            for a in range(3):
+                v[i, a] += g * f[i, a]
+                x[i, a] += h_s * v[i, a]
+    return wrench, touching
+
+
+@numba.njit(cache=True)
+def _implicit_link_terms(x, links, rest, k, b, h, u, c_iso, c_axial):
+    """Per link: unit vector u and the two coefficients of its block of
+    h dF/dv + h^2 dF/dx = c_iso I + c_axial u u^T (compression dropped)."""
+    for e in range(links.shape[0]):
+        i, j = links[e, 0], links[e, 1]
+        dx = x[j, 0] - x[i, 0]
+        dy = x[j, 1] - x[i, 1]
+        dz = x[j, 2] - x[i, 2]
+        length = math.sqrt(dx * dx + dy * dy + dz * dz)
+        u[e, 0], u[e, 1], u[e, 2] = dx / length, dy / length, dz / length
+        geometric = k[e] * max(0.0, 1.0 - rest[e] / length)
+        c_iso[e] = h * h * geometric
+        c_axial[e] = h * b[e] + h * h * (k[e] - geometric)
+
+
+@numba.njit(cache=True)
+def _apply_link_blocks(y, links, u, c_iso, c_axial, scale, out):
+    """out += scale * sum over links of the block acting on y's difference (i - j)."""
+    for e in range(links.shape[0]):
+        i, j = links[e, 0], links[e, 1]
+        d0, d1, d2 = y[i, 0] - y[j, 0], y[i, 1] - y[j, 1], y[i, 2] - y[j, 2]
+        along = c_axial[e] * (u[e, 0] * d0 + u[e, 1] * d1 + u[e, 2] * d2)
+        t0 = scale * (c_iso[e] * d0 + along * u[e, 0])
+        t1 = scale * (c_iso[e] * d1 + along * u[e, 1])
+        t2 = scale * (c_iso[e] * d2 + along * u[e, 2])
+        out[i, 0] += t0
+        out[i, 1] += t1
+        out[i, 2] += t2
+        out[j, 0] -= t0
+        out[j, 1] -= t1
+        out[j, 2] -= t2
+
+
+@numba.njit(cache=True)
+def _system_product(y, mass, inv_mass, links, u, c_iso, c_axial, out):
+    """out = A y, A = M - h dF/dv - h^2 dF/dx, zero at fixed masses."""
+    for i in range(y.shape[0]):
+        for a in range(3):
+            out[i, a] = mass[i] * y[i, a]
+    _apply_link_blocks(y, links, u, c_iso, c_axial, 1.0, out)
+    for i in range(y.shape[0]):
+        if inv_mass[i] == 0.0:
+            for a in range(3):
+                out[i, a] = 0.0
+
+
+@numba.njit(cache=True)
+def _dot(a, b):
+    total = 0.0
+    for i in range(a.shape[0]):
+        for c in range(3):
+            total += a[i, c] * b[i, c]
+    return total
+
+
+@numba.njit(cache=True)
+def linearly_implicit_tick(x, v, links, rest, k, b, mass, inv_mass, gravity, surface, external,
+                           p_WP, v_WP, p_WT, radius, k_c, b_c, mu, slip_speed, h, tolerance,
+                           max_iterations, node_work, u, link_work):
+    """Advance x, v (in place) by one linearly implicit Euler step of h (s).
+
+    ``node_work``, ``u`` and ``link_work`` are work space from
+    ``implicit_workspace``. CG stops when the preconditioned residual is below
+    ``tolerance`` times that of the right-hand side, or after ``max_iterations``.
+    Returns (wrench on the tool, vertices in contact, CG iterations)."""
+    f, rhs, dv, r, z, p, q, inv_diag = (node_work[0], node_work[1], node_work[2], node_work[3],
+                                        node_work[4], node_work[5], node_work[6], node_work[7])
+    m_links = links.shape[0]
+    c_iso, c_axial, stiff_axial = link_work[0], link_work[1], link_work[2]
+    _gravity_and_external(mass, inv_mass, gravity, external, f)
+    add_link_forces(x, v, links, rest, k, b, f)
+    wrench, touching = add_probe_forces(x, v, surface, p_WP, v_WP, p_WT, radius, k_c, b_c, mu,
+                                        slip_speed, f)
+    _implicit_link_terms(x, links, rest, k, b, h, u, c_iso, c_axial)
+    # rhs = h F + h^2 dF/dx v; the stiffness part of the blocks alone is h^2 dF/dx,
+    # applied to v with the damping coefficient removed.
+    for i in range(x.shape[0]):
+        for a in range(3):
+            rhs[i, a] = h * f[i, a]
+    for e in range(m_links):
+        stiff_axial[e] = c_axial[e] - h * b[e]
+    _apply_link_blocks(v, links, u, c_iso, stiff_axial, -1.0, rhs)
+    # Jacobi preconditioner: the diagonal of A.
+    diag = z  # reuse z as the diagonal until the loop starts
+    for i in range(x.shape[0]):
+        for a in range(3):
+            diag[i, a] = mass[i]
+    for e in range(m_links):
+        i, j = links[e, 0], links[e, 1]
+        for a in range(3):
+            d = c_iso[e] + c_axial[e] * u[e, a] * u[e, a]
+            diag[i, a] += d
+            diag[j, a] += d
+    for i in range(x.shape[0]):
+        for a in range(3):
+            inv_diag[i, a] = 0.0 if inv_mass[i] == 0.0 else 1.0 / diag[i, a]
+            dv[i, a] = 0.0
+            r[i, a] = rhs[i, a] if inv_mass[i] != 0.0 else 0.0
+            z[i, a] = r[i, a] * inv_diag[i, a]
+            p[i, a] = z[i, a]
+    rz = _dot(r, z)
+    limit = tolerance * tolerance * rz
+    iterations = 0
+    while iterations < max_iterations and rz > limit and rz > 0.0:
+        _system_product(p, mass, inv_mass, links, u, c_iso, c_axial, q)
+        alpha = rz / _dot(p, q)
+        for i in range(x.shape[0]):
+            for a in range(3):
+                dv[i, a] += alpha * p[i, a]
+                r[i, a] -= alpha * q[i, a]
+                z[i, a] = r[i, a] * inv_diag[i, a]
+        rz_next = _dot(r, z)
+        beta = rz_next / rz
+        rz = rz_next
+        for i in range(x.shape[0]):
+            for a in range(3):
+                p[i, a] = z[i, a] + beta * p[i, a]
+        iterations += 1
+    for i in range(x.shape[0]):
+        for a in range(3):
+            v[i, a] += dv[i, a]
+            x[i, a] += h * v[i, a]
+    return wrench, touching, iterations
+
+
+def implicit_workspace(num_masses: int, num_links: int):
+    """(node_work, u, link_work): work space for ``linearly_implicit_tick``."""
+    return np.zeros((8, num_masses, 3)), np.zeros((num_links, 3)), np.zeros((3, num_links))
+
+
+@numba.njit(cache=True)
+def probe_wrench(x, v, surface, p_WP, v_WP, p_WT, radius, k_c, b_c, mu, slip_speed):
+    """(wrench on the tool [f; tau] in W about p_WT, vertices in contact) at this state."""
+    return add_probe_forces(x, v, surface, p_WP, v_WP, p_WT, radius, k_c, b_c, mu, slip_speed,
+                            np.zeros((0, 3)))
+
+
+# --- energy and stability --------------------------------------------------------------
+
+@numba.njit(cache=True)
+def lattice_energy(x, v, links, rest, k, mass, inv_mass, gravity):
+    """Kinetic + spring + gravitational energy of the free masses (J); gravity's
+    zero at z = 0 of W."""
+    energy = 0.0
+    for i in range(x.shape[0]):
+        if inv_mass[i] == 0.0:
+            continue
+        energy += 0.5 * mass[i] * (v[i, 0] ** 2 + v[i, 1] ** 2 + v[i, 2] ** 2)
+        energy -= mass[i] * (gravity[0] * x[i, 0] + gravity[1] * x[i, 1] + gravity[2] * x[i, 2])
+    for e in range(links.shape[0]):
+        i, j = links[e, 0], links[e, 1]
+        length = math.sqrt((x[j, 0] - x[i, 0]) ** 2 + (x[j, 1] - x[i, 1]) ** 2
+                           + (x[j, 2] - x[i, 2]) ** 2)
+        energy += 0.5 * k[e] * (length - rest[e]) ** 2
+    return energy
+
+
+def stiffness_matrix(positions_m, links, stiffness_n_per_m, fixed) -> scipy.sparse.csr_matrix:
+    """The lattice's linear stiffness K (N/m) at ``positions_m`` with every link at
+    rest, on the free masses' coordinates (3 per free mass, in mass order): the
+    sum over links of k u u^T blocks."""
+    positions_m = np.asarray(positions_m, float)
+    links = np.asarray(links)
+    free = ~np.asarray(fixed, bool)
+    index = np.full(len(free), -1)
+    index[free] = np.arange(free.sum())
+    d = positions_m[links[:, 1]] - positions_m[links[:, 0]]
+    u = d / np.linalg.norm(d, axis=1)[:, None]
+    blocks = np.asarray(stiffness_n_per_m, float)[:, None, None] * u[:, :, None] * u[:, None, :]
+    rows, cols, values = [], [], []
+    for (a, b_), sign in (((0, 0), 1.0), ((1, 1), 1.0), ((0, 1), -1.0), ((1, 0), -1.0)):
+        ia, ib = index[links[:, a]], index[links[:, b_]]
+        keep = (ia >= 0) & (ib >= 0)
+        for r in range(3):
+            for c in range(3):
+                rows.append(3 * ia[keep] + r)
+                cols.append(3 * ib[keep] + c)
+                values.append(sign * blocks[keep, r, c])
+    size = 3 * int(free.sum())
+    return scipy.sparse.coo_matrix((np.concatenate(values), (np.concatenate(rows),
+                                                            np.concatenate(cols))),
+                                   shape=(size, size)).tocsr()
+
+
+def max_stable_link_stiffness(positions_m, links, fixed, *, node_mass_kg: float,
+                              link_damping_n_s_per_m: float, time_step_s: float,
+                              substeps: int = 1) -> float:
+    """Largest link stiffness (N/m) for which symplectic Euler with ``substeps``
+    substeps of a ``time_step_s`` (s) tick is stable on this lattice at rest.
+
+    From h_s^2 w_max^2 (1 + 2 b / (k h_s)) < 4 with w_max^2 = k lam / m, lam the
+    largest eigenvalue of the stiffness matrix with unit link stiffness: k <
+    (4 - 2 b h_s lam / m) m / (lam h_s^2); 0 if the damping alone is unstable.
+    Contact stiffness on the surface vertices is not included.
+    """
+    unit = stiffness_matrix(positions_m, links, np.ones(len(links)), fixed)
+    lam = float(scipy.sparse.linalg.eigsh(unit, k=1, which="LA", return_eigenvectors=False)[0])
+    h_s = time_step_s / substeps
+    margin = 4.0 - 2.0 * link_damping_n_s_per_m * h_s * lam / node_mass_kg
+    return max(0.0, margin * node_mass_kg / (lam * h_s * h_s))
