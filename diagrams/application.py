@@ -26,6 +26,7 @@ from maglev_haptics.diagrams.station import MakeStation
 from maglev_haptics.hardware.magnetics import load_magnetics
 from maglev_haptics.systems.current_allocator import CurrentAllocator
 from maglev_haptics.systems.device_visualizer import DeviceVisualizer
+from maglev_haptics.systems.lattice_visualizer import LatticeVisualizer
 from maglev_haptics.systems.levitation_controller import LevitationController
 from maglev_haptics.systems.pose_estimator import PoseEstimator
 
@@ -162,10 +163,23 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
                 builder, haptics.scene.scene_graph.get_query_output_port(), meshcat,
                 MeshcatVisualizerParams(publish_period=MESHCAT_PERIOD_S,
                                         role=Role.kIllustration, prefix="scene"))
-            ContactVisualizer.AddToBuilder(
-                builder, haptics.scene.plant, meshcat,
-                ContactVisualizerParams(publish_period=MESHCAT_PERIOD_S, prefix="contact",
-                                        newtons_per_meter=10.0, newton_meters_per_meter=1.0))
+            scene = haptics.scene
+            if scene.surface is None:
+                ContactVisualizer.AddToBuilder(
+                    builder, scene.plant, meshcat,
+                    ContactVisualizerParams(publish_period=MESHCAT_PERIOD_S, prefix="contact",
+                                            newtons_per_meter=10.0, newton_meters_per_meter=1.0))
+            else:
+                # The lattice is no geometry of the scene plant: it draws itself.
+                config = scenario.haptics.scene
+                surface_visualizer = builder.AddNamedSystem(
+                    "lattice_visualizer", LatticeVisualizer(
+                        meshcat=meshcat, lattice=scene.lattice, p_TP_m=config.tool_offset_m,
+                        probe_radius_m=config.probe.radius_m, period_s=MESHCAT_PERIOD_S))
+                for name in ("surface_positions_m", "wrench_on_tool_W"):
+                    builder.Connect(scene.surface.GetOutputPort(name),
+                                    surface_visualizer.GetInputPort(name))
+                builder.Connect(scene.X_WT_output, surface_visualizer.GetInputPort("X_WT"))
     diagram = builder.Build()
     diagram.set_name("maglev_haptics")
     return BuiltDiagram(diagram=diagram, plan=plan, logger=logger, log_layout=log_layout,

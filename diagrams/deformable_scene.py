@@ -9,8 +9,6 @@ the lattice's contact wrench; the lattice is a ``DeformableSurface`` system
 stepped at the control period, reading the tool's pose and velocity.
 """
 
-from __future__ import annotations
-
 from dataclasses import dataclass, field
 from typing import List
 

@@ -27,8 +27,6 @@ Integrators, one tick of length h (s):
   one per CG iteration. Contact enters explicitly in F.
 """
 
-from __future__ import annotations
-
 import math
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -89,9 +87,9 @@ def lattice_model(links, rest_lengths_m, fixed, surface, *, node_mass_kg: float,
 # --- forces -------------------------------------------------------------------------
 
 @numba.njit(cache=True)
-def add_link_forces(x, v, links, rest, k, b, f):
-    """Add every link's spring-damper force into f (n, 3) (N)."""
-    for e in range(links.shape[0]):
+def _add_link_range(x, v, links, rest, k, b, start, stop, f):
+    """Add the spring-damper forces of links start..stop-1 into f (n, 3) (N)."""
+    for e in range(start, stop):
         i, j = links[e, 0], links[e, 1]
         dx = x[j, 0] - x[i, 0]
         dy = x[j, 1] - x[i, 1]
@@ -106,6 +104,13 @@ def add_link_forces(x, v, links, rest, k, b, f):
         f[j, 0] -= s * ux
         f[j, 1] -= s * uy
         f[j, 2] -= s * uz
+
+
+@numba.njit(cache=True)
+def link_forces(x, v, links, rest, k, b, f):
+    """f (n, 3) = every link's spring-damper force on each mass (N)."""
+    f[:] = 0.0
+    _add_link_range(x, v, links, rest, k, b, 0, links.shape[0], f)
 
 
 @numba.njit(cache=True)
@@ -177,17 +182,22 @@ def add_probe_forces(x, v, surface, p_WP, v_WP, p_WT, radius, k_c, b_c, mu, slip
 
 
 @numba.njit(cache=True)
-def _gravity_and_external(mass, inv_mass, gravity, external, f):
-    for i in range(f.shape[0]):
-        if inv_mass[i] == 0.0:
-            for a in range(3):
-                f[i, a] = 0.0
-            continue
-        for a in range(3):
-            f[i, a] = mass[i] * gravity[a] + external[i, a]
+def _total_force(i, a, mass, gravity, external, f):
+    """Force (N) on mass i along axis a: weight, external, and links and contact from f."""
+    return mass[i] * gravity[a] + external[i, a] + f[i, a]
 
 
 # --- integrators ------------------------------------------------------------------------
+
+@numba.njit(cache=True)
+def _symplectic_substep(x, v, mass, inv_mass, gravity, external, f, h_s):
+    for i in range(x.shape[0]):
+        if inv_mass[i] == 0.0:
+            continue
+        for a in range(3):
+            v[i, a] += h_s * inv_mass[i] * _total_force(i, a, mass, gravity, external, f)
+            x[i, a] += h_s * v[i, a]
+
 
 @numba.njit(cache=True)
 def symplectic_euler_tick(x, v, links, rest, k, b, mass, inv_mass, gravity, surface, external,
@@ -201,17 +211,12 @@ def symplectic_euler_tick(x, v, links, rest, k, b, mass, inv_mass, gravity, surf
     wrench = np.zeros(6)
     touching = 0
     for step in range(substeps):
-        _gravity_and_external(mass, inv_mass, gravity, external, f)
-        add_link_forces(x, v, links, rest, k, b, f)
+        link_forces(x, v, links, rest, k, b, f)
         w, t = add_probe_forces(x, v, surface, p_WP, v_WP, p_WT, radius, k_c, b_c, mu,
                                 slip_speed, f)
         if step == 0:
             wrench, touching = w, t
-        for i in range(x.shape[0]):
-            g = h_s * inv_mass[i]
-            for a in range(3):
-                v[i, a] += g * f[i, a]
-                x[i, a] += h_s * v[i, a]
+        _symplectic_substep(x, v, mass, inv_mass, gravity, external, f, h_s)
     return wrench, touching
 
 
@@ -232,15 +237,15 @@ def _implicit_link_terms(x, links, rest, k, b, h, u, c_iso, c_axial):
 
 
 @numba.njit(cache=True)
-def _apply_link_blocks(y, links, u, c_iso, c_axial, scale, out):
-    """out += scale * sum over links of the block acting on y's difference (i - j)."""
-    for e in range(links.shape[0]):
+def _apply_link_range(y, links, u, c_iso, c_axial, start, stop, out):
+    """out += the blocks of links start..stop-1 acting on y's difference (i - j)."""
+    for e in range(start, stop):
         i, j = links[e, 0], links[e, 1]
         d0, d1, d2 = y[i, 0] - y[j, 0], y[i, 1] - y[j, 1], y[i, 2] - y[j, 2]
         along = c_axial[e] * (u[e, 0] * d0 + u[e, 1] * d1 + u[e, 2] * d2)
-        t0 = scale * (c_iso[e] * d0 + along * u[e, 0])
-        t1 = scale * (c_iso[e] * d1 + along * u[e, 1])
-        t2 = scale * (c_iso[e] * d2 + along * u[e, 2])
+        t0 = c_iso[e] * d0 + along * u[e, 0]
+        t1 = c_iso[e] * d1 + along * u[e, 1]
+        t2 = c_iso[e] * d2 + along * u[e, 2]
         out[i, 0] += t0
         out[i, 1] += t1
         out[i, 2] += t2
@@ -255,7 +260,7 @@ def _system_product(y, mass, inv_mass, links, u, c_iso, c_axial, out):
     for i in range(y.shape[0]):
         for a in range(3):
             out[i, a] = mass[i] * y[i, a]
-    _apply_link_blocks(y, links, u, c_iso, c_axial, 1.0, out)
+    _apply_link_range(y, links, u, c_iso, c_axial, 0, links.shape[0], out)
     for i in range(y.shape[0]):
         if inv_mass[i] == 0.0:
             for a in range(3):
@@ -285,21 +290,26 @@ def linearly_implicit_tick(x, v, links, rest, k, b, mass, inv_mass, gravity, sur
                                         node_work[4], node_work[5], node_work[6], node_work[7])
     m_links = links.shape[0]
     c_iso, c_axial, stiff_axial = link_work[0], link_work[1], link_work[2]
-    _gravity_and_external(mass, inv_mass, gravity, external, f)
-    add_link_forces(x, v, links, rest, k, b, f)
+    link_forces(x, v, links, rest, k, b, f)
     wrench, touching = add_probe_forces(x, v, surface, p_WP, v_WP, p_WT, radius, k_c, b_c, mu,
                                         slip_speed, f)
-    _implicit_link_terms(x, links, rest, k, b, h, u, c_iso, c_axial)
-    # rhs = h F + h^2 dF/dx v; the stiffness part of the blocks alone is h^2 dF/dx,
-    # applied to v with the damping coefficient removed.
+    # rhs = h F + h^2 dF/dx v, zero at fixed masses.
     for i in range(x.shape[0]):
         for a in range(3):
-            rhs[i, a] = h * f[i, a]
+            rhs[i, a] = (0.0 if inv_mass[i] == 0.0
+                         else h * _total_force(i, a, mass, gravity, external, f))
+    _implicit_link_terms(x, links, rest, k, b, h, u, c_iso, c_axial)
+    # The blocks' stiffness part alone (damping removed) is -h^2 dF/dx per link.
     for e in range(m_links):
         stiff_axial[e] = c_axial[e] - h * b[e]
-    _apply_link_blocks(v, links, u, c_iso, stiff_axial, -1.0, rhs)
+    q[:] = 0.0
+    _apply_link_range(v, links, u, c_iso, stiff_axial, 0, m_links, q)
+    for i in range(x.shape[0]):
+        if inv_mass[i] != 0.0:
+            for a in range(3):
+                rhs[i, a] -= q[i, a]
     # Jacobi preconditioner: the diagonal of A.
-    diag = z  # reuse z as the diagonal until the loop starts
+    diag = z  # z holds the diagonal until the iterations start
     for i in range(x.shape[0]):
         for a in range(3):
             diag[i, a] = mass[i]
@@ -313,7 +323,7 @@ def linearly_implicit_tick(x, v, links, rest, k, b, mass, inv_mass, gravity, sur
         for a in range(3):
             inv_diag[i, a] = 0.0 if inv_mass[i] == 0.0 else 1.0 / diag[i, a]
             dv[i, a] = 0.0
-            r[i, a] = rhs[i, a] if inv_mass[i] != 0.0 else 0.0
+            r[i, a] = rhs[i, a]
             z[i, a] = r[i, a] * inv_diag[i, a]
             p[i, a] = z[i, a]
     rz = _dot(r, z)
