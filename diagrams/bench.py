@@ -1,10 +1,12 @@
 """``maglev bench``: real-time factor of each scenario and what one control tick costs.
 
-Three kinds of numbers:
-- each shipped scenario (levitation, and the rigid haptic scenes with their
-  whole diagram: station with hand, tracker, controller, allocator, coupling,
-  scene plant, logging) simulated without Meshcat: real-time factor and wall
-  time per simulated 1 ms;
+Four kinds of numbers:
+- each shipped scenario (levitation, the rigid haptic scenes and the deformable
+  surface with their whole diagram: station with hand, tracker, controller,
+  allocator, coupling, scene plant or lattice, logging) simulated without
+  Meshcat: real-time factor and wall time per simulated 1 ms;
+- the deformable lattice's kernel against its size (``lattice_bench``), with a
+  plot;
 - each leaf system of the diagram on its own, at a hover operating point: the
   cost of one update (discrete update plus output evaluation), with inputs fixed
   to their values in the running diagram and re-fixed every call so nothing is
@@ -14,7 +16,9 @@ Three kinds of numbers:
 
 from __future__ import annotations
 
+import json
 import time
+from pathlib import Path
 from typing import Dict, Optional
 
 import numpy as np
@@ -23,7 +27,11 @@ from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import ConstantVectorSource, VectorLogSink
 
+from tqdm import tqdm
+
 from maglev_haptics.diagrams.application import BuildDiagram
+from maglev_haptics.diagrams.lattice_bench import (
+    LATTICE_SIZES, format_lattice_report, lattice_scaling, plot_lattice_scaling)
 from maglev_haptics.diagrams.runner import simulate
 from maglev_haptics.diagrams.scenario import SCENARIO_DIR, load_scenario, scenario_names
 from maglev_haptics.diagrams.station import add_station_models, rest_transform
@@ -34,7 +42,7 @@ from maglev_haptics.systems.levitation_controller import GRAVITY_M_S2
 
 LEVITATE_FILE = SCENARIO_DIR / "levitate.yaml"
 HAPTIC_FILES = [SCENARIO_DIR / f"{name}.yaml" for name in ("hanging_ball", "paddle_ball",
-                                                            "peg_in_hole")]
+                                                            "peg_in_hole", "deformable_surface")]
 HOVER_TIME_S = 1.5  # operating point for the per-system costs (s into takeoff_hover_land)
 
 
@@ -133,8 +141,10 @@ def allocation_cost_us(config: DeviceConfig, n: int = 2000) -> Dict[str, float]:
     }
 
 
-def run_benchmarks(duration_s: Optional[float] = None, progress: bool = True) -> Dict:
-    """Everything ``maglev bench`` reports; each scenario runs its whole script by default."""
+def run_benchmarks(duration_s: Optional[float] = None, progress: bool = True,
+                   out_dir: Optional[Path] = None) -> Dict:
+    """Everything ``maglev bench`` reports; each scenario runs its whole script by
+    default. With ``out_dir``, writes bench.json and lattice_scaling.png there."""
     results: Dict = {"scenarios": {}, "systems_us": {}, "wrench_matrix_us": {}, "allocation": {}}
     runs = [(LEVITATE_FILE, name) for name in scenario_names(LEVITATE_FILE)]
     runs += [(path, scenario_names(path)[0]) for path in HAPTIC_FILES]
@@ -162,7 +172,13 @@ def run_benchmarks(duration_s: Optional[float] = None, progress: bool = True) ->
         config = DeviceConfig(instrument=kind)
         results["wrench_matrix_us"][kind] = bench_wrench_matrix(config)
         results["allocation"][kind] = allocation_cost_us(config)
+    with tqdm(total=len(LATTICE_SIZES), desc="lattice sizes", disable=not progress) as bar:
+        results["lattice"] = lattice_scaling(progress=lambda _: bar.update(1))
     results["report"] = format_report(results)
+    if out_dir is not None:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        (out_dir / "bench.json").write_text(json.dumps(results, indent=2))
+        plot_lattice_scaling(results["lattice"], out_dir / "lattice_scaling.png")
     return results
 
 
@@ -182,4 +198,5 @@ def format_report(results: Dict) -> str:
     for kind, r in results["allocation"].items():
         lines.append(f"  {kind:<14} within limits {r['within_limits_us']:.1f}  "
                      f"saturating {r['saturating_us']:.1f}")
+    lines.append(format_lattice_report(results["lattice"]))
     return "\n".join(lines)

@@ -78,8 +78,11 @@ def _cmd_diagram(args) -> int:
 def _cmd_bench(args) -> int:
     from maglev_haptics.diagrams.bench import run_benchmarks
 
-    results = run_benchmarks(duration_s=args.duration, progress=not args.json)
+    out_dir = Path(args.out)
+    results = run_benchmarks(duration_s=args.duration, progress=not args.json, out_dir=out_dir)
     print(json.dumps(results, indent=2) if args.json else results["report"])
+    if not args.json:
+        print(f"wrote {out_dir / 'bench.json'}, {out_dir / 'lattice_scaling.png'}")
     return 0
 
 
@@ -110,6 +113,8 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--json", action="store_true", help="print JSON instead of a table")
     bench.add_argument("--duration", type=float,
                        help="simulated seconds per scenario (default: each whole script)")
+    bench.add_argument("--out", default="out/bench",
+                       help="folder for bench.json and lattice_scaling.png (default: out/bench)")
     bench.set_defaults(func=_cmd_bench)
     return parser
 

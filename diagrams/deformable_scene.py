@@ -42,9 +42,9 @@ class DeformableSurface:
     ``base_z_m`` up to the surface at ``surface_z_m`` plus the heightmap, on
     levels ``level_spacing_m`` apart, respaced evenly (the paper's Fig. 7c).
     Bottom and edge masses are fixed. Every link has the same stiffness and
-    damping. The defaults (33 x 25 columns, ~5,900 masses) are heavy and soft
-    enough for one symplectic Euler step a millisecond (see
-    ``max_stable_link_stiffness``) and jiggle visibly at a few Hz.
+    damping. The defaults (33 x 25 columns, 5,357 masses, 58,715 links) are heavy
+    enough for one symplectic Euler step a millisecond at 250 N/m links (the
+    limit, ``max_stable_link_stiffness``, is ~320 N/m), and jiggle visibly.
     """
 
     size_m: List[float] = field(default_factory=lambda: [0.080, 0.060])  # x, y (m)
@@ -54,9 +54,11 @@ class DeformableSurface:
     base_z_m: float = -0.030  # the fixed bottom layer, in W (m)
     surface_z_m: float = -0.015  # mean height of the surface in W (m)
     heightmap: Heightmap = field(default_factory=RandomHeightmap)
-    node_mass_kg: float = 0.001  # every mass (kg)
-    link_stiffness_n_per_m: float = 60.0  # every link (N/m)
-    link_damping_n_s_per_m: float = 0.02  # every link, along it (N*s/m)
+    # Every mass (kg): with explicit steps the node mass is a stability parameter (mass
+    # scaling); the linearly implicit integrator allows lighter, stiffer lattices.
+    node_mass_kg: float = 0.002
+    link_stiffness_n_per_m: float = 250.0  # every link (N/m); explicit limit ~320 here
+    link_damping_n_s_per_m: float = 0.07  # every link, along it (N*s/m)
     integrator: str = "symplectic_euler"  # or "linearly_implicit"
     substeps: int = 1  # symplectic Euler substeps per control tick
     cg_tolerance: float = 1e-4  # linearly implicit: relative CG residual
@@ -114,7 +116,8 @@ def validate_deformable_surface(scene: DeformableSurface, label: str = "scene") 
     probe = scene.probe
     _positive(f"{label}.probe.radius_m", probe.radius_m)
     _positive(f"{label}.probe.stiffness_n_per_m", probe.stiffness_n_per_m)
-    _nonnegative(f"{label}.probe.damping_n_s_per_m", probe.damping_n_s_per_m)
+    _positive(f"{label}.probe.onset_depth_m", probe.onset_depth_m)
+    _nonnegative(f"{label}.probe.dissipation_s_per_m", probe.dissipation_s_per_m)
     _nonnegative(f"{label}.probe.friction", probe.friction)
     _positive(f"{label}.probe.slip_speed_m_s", probe.slip_speed_m_s)
     _vector(f"{label}.tool_offset_m", scene.tool_offset_m)
@@ -157,12 +160,13 @@ def probe_start_overlap(scene: DeformableSurface, lattice: Lattice, X_WT: RigidT
     surface = lattice.positions_m[lattice.surface.ravel()]
     near = np.hypot(surface[:, 0] - p_WP[0], surface[:, 1] - p_WP[1]) < scene.probe.radius_m
     x_m, y_m = lattice.x_m, lattice.y_m
-    over = x_m[0] <= p_WP[0] <= x_m[-1] and y_m[0] <= p_WP[1] <= y_m[-1]
+    r = scene.probe.radius_m
+    over = x_m[0] - r <= p_WP[0] <= x_m[-1] + r and y_m[0] - r <= p_WP[1] <= y_m[-1] + r
     if not over:
         return None
     highest = surface[near, 2].max() if near.any() else surface[:, 2].max()
-    if p_WP[2] - scene.probe.radius_m <= highest:
-        return (f"the probe (centre at z = {p_WP[2]:.4g} m, radius {scene.probe.radius_m} m) "
+    if p_WP[2] - r <= highest:
+        return (f"the probe (centre at z = {p_WP[2]:.4g} m, radius {r} m) "
                 f"starts in the surface (up to z = {highest:.4g} m under it)")
     return None
 
@@ -173,7 +177,7 @@ def AddDeformableScene(builder: DiagramBuilder, *, scene: DeformableSurface, tim
 
     The tool starts at X_WI_start (X_IT the identity), at rest; the lattice at rest
     as built. A ValueError names a bad config field, or X_WI_start if the probe
-    would start in the surface."""
+    would start in or under the surface."""
     validate_deformable_surface(scene)
     _positive("time_step_s", time_step_s)
     lattice = build_scene_lattice(scene)
@@ -182,7 +186,8 @@ def AddDeformableScene(builder: DiagramBuilder, *, scene: DeformableSurface, tim
     overlap = probe_start_overlap(scene, lattice, X_WT)
     if overlap is not None:
         raise ValueError(f"X_WI_start (p_WI = {np.round(X_WI_start.translation(), 6).tolist()} "
-                         f"m): {overlap}; start the instrument higher")
+                         f"m): {overlap}; rest the instrument beside the lattice "
+                         "(motion.start_xy_yaw) or move the lattice (center_m, size_m)")
     plant, scene_graph = AddMultibodyPlant(
         MultibodyPlantConfig(time_step=time_step_s, use_sampled_output_ports=False), builder)
     plant.set_name("scene_plant")

@@ -5,6 +5,9 @@ from typing import Dict, List, Optional
 
 import numpy as np
 
+from scipy.signal import butter, sosfiltfilt
+
+from maglev_haptics.diagrams.deformable_scene import DeformableSurface
 from maglev_haptics.diagrams.scene import HangingBall, PaddleBall, PegInHole
 from maglev_haptics.systems.haptic_supervisor import HAPTIC, LANDING
 from maglev_haptics.systems.rotations import rotation_from_quaternion
@@ -13,6 +16,60 @@ CONTACT_GUARD_S = 0.05  # free motion excludes samples this close to any contact
 RELEASE_WINDOW_S = 5.0  # how long a let-go is watched (s)
 DEPTH_MIN_M = 2e-4  # pressing shallower than this is not used for the stiffness fit (m)
 SLIDING_SPEED_M_S = 2e-3  # the tool slides when faster than this along the floor (m/s)
+STRIKE_MAX_S = 0.6  # a contact shorter than this is a strike, longer a press or a slide (s)
+CONTACT_GAP_S = 0.15  # contacts closer than this are one touch: the probe skips on bumps (s)
+# The palpation metrics split the rendered force at this frequency (Hz): below it,
+# the hand's pressing and the texture met at sweep speed (a 4 mm bump at 15 mm/s
+# is ~4 Hz); above it, ringing, stick-slip and the tracker noise.
+SMOOTH_BELOW_HZ = 20.0
+TEXTURE_ABOVE_HZ = 1.0  # slower z-force changes while sliding are the hand's, not the texture's
+
+
+def _band(signal: np.ndarray, t: np.ndarray, corner_hz: float, kind: str) -> np.ndarray:
+    """Zero-phase 2nd-order Butterworth low- or high-pass of ``signal`` (along axis 0)."""
+    rate_hz = 1.0 / float(np.median(np.diff(t)))
+    return sosfiltfilt(butter(2, corner_hz, btype=kind, fs=rate_hz, output="sos"), signal, axis=0)
+
+
+def force_roughness(log, mask: np.ndarray) -> Optional[float]:
+    """RMS of the rendered force above SMOOTH_BELOW_HZ over the RMS force (-), on the
+    samples of ``mask``: how jagged contact feels, whatever its strength."""
+    if mask.sum() < 10:
+        return None
+    force = log["f_user"]
+    rough = force - _band(force, log["t"], SMOOTH_BELOW_HZ, "lowpass")
+    strength = np.sqrt(np.mean(np.sum(force[mask] ** 2, axis=1)))
+    return float(np.sqrt(np.mean(np.sum(rough[mask] ** 2, axis=1))) / strength)
+
+
+def palpation_metrics(log, ramp_s: float) -> Dict:
+    """Strikes (short contacts: their peak upward force), the slide (long contacts
+    while the tool moves sideways: the z-force variation the texture gives), and
+    the roughness of the force in contact."""
+    t = log["t"]
+    engaged = engaged_mask(log, ramp_s)
+    contact = (log["tool_in_contact"] > 0.5) & engaged
+    strikes, sliding = [], np.zeros_like(contact)
+    speed = np.linalg.norm(log["V_WI_true"][:, 3:5], axis=1)
+    for touch in _runs(_near(contact, t, CONTACT_GAP_S / 2) & engaged):
+        touching = np.flatnonzero(contact[touch]) + touch.start
+        if t[touching[-1]] - t[touching[0]] < STRIKE_MAX_S:
+            strikes.append({"time_s": float(t[touching[0]]),
+                            "peak_force_z_n": float(log["f_user"][touch, 2].max())})
+        else:
+            sliding[touch] = speed[touch] > 5 * SLIDING_SPEED_M_S
+    texture = _band(log["f_user"][:, 2], t, TEXTURE_ABOVE_HZ, "highpass")
+    smooth_texture = _band(texture, t, SMOOTH_BELOW_HZ, "lowpass")
+    return {
+        "strikes": strikes,
+        "sliding_s": float(sliding.sum() * np.median(np.diff(t))),
+        # z-force variation while sliding, between TEXTURE_ABOVE_HZ and SMOOTH_BELOW_HZ (N)
+        "sliding_force_z_variation_n": (float(np.sqrt(np.mean(smooth_texture[sliding] ** 2)))
+                                        if sliding.any() else None),
+        "sliding_mean_force_z_n": (float(log["f_user"][sliding, 2].mean())
+                                   if sliding.any() else None),
+        "contact_force_roughness": force_roughness(log, contact),
+    }
 
 
 def _runs(mask: np.ndarray) -> List[slice]:
@@ -191,6 +248,10 @@ def haptic_summary(log, scenario, *, rest_height_m: float) -> Dict:
     scene = haptics.scene
     if isinstance(scene, PegInHole):
         summary["peg_in_hole"] = peg_metrics(log, scene, ramp_s)
+        summary["contact_force_roughness"] = force_roughness(
+            log, (log["tool_in_contact"] > 0.5) & engaged)
+    elif isinstance(scene, DeformableSurface):
+        summary["palpation"] = palpation_metrics(log, ramp_s)
     elif isinstance(scene, PaddleBall):
         summary["paddle_hits"] = contact_hits(log, ramp_s, scene.tool_offset_m)
     elif isinstance(scene, HangingBall) and engaged.any():

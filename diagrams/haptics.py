@@ -29,7 +29,7 @@ from maglev_haptics.diagrams.hand_script import MeshcatHand, hand_plan
 from maglev_haptics.diagrams.scenario import Scenario
 from maglev_haptics.diagrams.deformable_scene import AddDeformableScene, DeformableSurface
 from maglev_haptics.diagrams.scene import AddScene
-from maglev_haptics.diagrams.station import hand_start_pose
+from maglev_haptics.diagrams.station import hand_start_pose, rest_transform
 from maglev_haptics.hardware.limits import device_limits
 from maglev_haptics.systems.haptic_coupling import (
     CouplingConfig, HapticCoupling, resolved_rotational_gains)
@@ -97,8 +97,10 @@ def AddHaptics(builder, *, scenario: Scenario, magnetics, station, estimator, co
     x, y, z, roll, pitch, yaw = hand_start_pose(scenario)
     X_WI_start = RigidTransform(RollPitchYaw(roll, pitch, yaw), [x, y, z])
     if isinstance(haptics.scene, DeformableSurface):
+        # The probe starts where the instrument rests, so it never sweeps through the
+        # jelly on its way to the instrument; rest beside the lattice.
         scene = AddDeformableScene(builder, scene=haptics.scene, time_step_s=period_s,
-                                   X_WI_start=X_WI_start)
+                                   X_WI_start=rest_transform(scenario))
     else:
         # Unsampled ports: the scene steps in the loop's own discrete update (no
         # unrestricted update that would make the loop compute twice a tick).

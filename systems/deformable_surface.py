@@ -86,7 +86,7 @@ class DeformableSurface(LeafSystem):
         p_WP, v_WP = probe_point(X_WT, self._V_WT.Eval(context), self._p_TP)
         probe = self._probe
         return (p_WP, v_WP, X_WT[4:7].copy(), probe.radius_m, probe.stiffness_n_per_m,
-                probe.damping_n_s_per_m, probe.friction, probe.slip_speed_m_s)
+                probe.onset_depth_m, probe.dissipation_s_per_m, probe.friction, probe.slip_speed_m_s)
 
     def _positions_velocities(self, state_vector):
         both = state_vector.reshape(2, self._n, 3)

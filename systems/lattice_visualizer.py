@@ -1,5 +1,5 @@
 """Meshcat drawing of the deformable surface: the lattice's top surface as a
-triangle mesh, and the contact force on the tool as a rod from the probe."""
+triangle mesh, and the contact force on the probe as a rod."""
 
 from __future__ import annotations
 
@@ -13,18 +13,19 @@ from maglev_haptics.systems.rotations import rotation_from_quaternion
 SURFACE_PATH = "/deformable_surface/top"
 WIRE_PATH = "/deformable_surface/wire"
 FORCE_PATH = "/deformable_surface/contact_force"
-# Lime jelly, see-through enough to show the force rod in it; the darker wireframe
-# shows the surface's shape, which shading alone leaves flat from most angles.
-JELLY_RGBA = Rgba(0.30, 0.80, 0.25, 0.8)
-WIRE_RGBA = Rgba(0.10, 0.35, 0.10, 0.5)
-FORCE_RGBA = Rgba(1.0, 0.55, 0.0, 1.0)  # orange, as the device's rendered-force rod
-FORCE_ROD_RADIUS_M = 0.0008  # (m), thinner than the probe's 1.5 mm shaft
+# Opaque: three.js draws see-through objects far to near by their origin, and the
+# translucent display glass, whose centre is farther than W's origin (the mesh's),
+# would be drawn first and hide a see-through surface under it. The wireframe
+# shows the shape, which the shading alone leaves flat from most angles.
+JELLY_RGBA = Rgba(0.40, 0.85, 0.30, 1.0)  # lime jelly
+WIRE_RGBA = Rgba(0.10, 0.35, 0.10, 1.0)
+FORCE_RGBA = Rgba(0.95, 0.10, 0.65, 1.0)  # magenta, apart from the device's orange rod
+FORCE_ROD_RADIUS_M = 0.002  # (m): sheathes the probe's 1.5 mm shaft, inside its 2.5 mm tip
 FORCE_SCALE_M_PER_N = 0.1  # rod length per newton of contact force (m/N)
 FORCE_SHOWN_N = 0.005  # smaller contact forces are not drawn (N)
-# Looks at the default 80 x 60 mm surface (15 mm under the display) from the user's
-# side, high enough to see the dent under the probe (m, in W).
-CAMERA_IN_WORLD_M = (0.03, -0.11, 0.07)
-CAMERA_TARGET_M = (0.0, 0.0, -0.015)
+# From the surface's centre to the camera (m, W axes): the default 80 x 60 mm surface
+# whole, from the user's right, low enough to see the probe sink in.
+CAMERA_OFFSET_M = (0.038, -0.063, 0.029)
 
 
 def surface_faces(surface: np.ndarray, surface_triangles: np.ndarray) -> np.ndarray:
@@ -42,11 +43,10 @@ def surface_faces(surface: np.ndarray, surface_triangles: np.ndarray) -> np.ndar
 
 def force_rod_transform(p_WP, radius_m: float, f_W, scale_m_per_n: float = FORCE_SCALE_M_PER_N,
                         shown_n: float = FORCE_SHOWN_N) -> np.ndarray:
-    """4x4 transform stretching a unit cylinder along z into a rod along f_W (N),
-    ``scale_m_per_n`` long per newton, ending where it pushes: at the point of the
-    probe sphere (centre p_WP, radius ``radius_m``, m) facing away from f_W, its
-    contact side. The rod then lies in the surface, off the tool's shaft (a force
-    mostly along the shaft would hide in it). Zero size below ``shown_n``."""
+    """4x4 transform stretching a unit cylinder along z into a rod along the force f_W
+    (N) on the probe sphere (centre p_WP, radius ``radius_m``, m), ``scale_m_per_n``
+    long per newton, from the sphere's contact side: its point facing away from f_W.
+    Zero size below ``shown_n``."""
     magnitude = float(np.linalg.norm(f_W))
     if magnitude < shown_n:
         return np.diag([0.0, 0.0, 0.0, 1.0])
@@ -54,7 +54,7 @@ def force_rod_transform(p_WP, radius_m: float, f_W, scale_m_per_n: float = FORCE
     length = scale_m_per_n * magnitude
     X = np.eye(4)
     X[0:3, 0:3] = RotationMatrix.MakeFromOneVector(z, 2).matrix() @ np.diag([1.0, 1.0, length])
-    X[0:3, 3] = np.asarray(p_WP, float) - z * (radius_m + length / 2)
+    X[0:3, 3] = np.asarray(p_WP, float) + z * (length / 2 - radius_m)
     return X
 
 
@@ -73,10 +73,11 @@ class LatticeVisualizer(LeafSystem):
     ``surface_positions_m`` (3 n_s): the surface vertices in W (m), in the order of
     ``lattice.surface.ravel()``; ``X_WT`` [qw, qx, qy, qz, x, y, z] the tool pose;
     ``wrench_on_tool_W`` [f; tau] (N, N*m) the contact's wrench on the tool. The top
-    surface is a translucent triangle mesh resent whole each frame (Meshcat has no
-    vertex update); the force is an orange rod from the probe's contact side,
-    FORCE_SCALE_M_PER_N long per newton. Like the device overlays these are drawn
-    live only: a Meshcat recording replays transforms, not meshes.
+    surface is a triangle mesh with a wireframe over it, both resent whole each frame
+    (Meshcat has no vertex update); the force is a magenta rod from the probe's
+    contact side along the force, FORCE_SCALE_M_PER_N long per newton. Like the
+    device overlays these are drawn live only: a Meshcat recording replays
+    transforms, not meshes.
     """
 
     def __init__(self, *, meshcat: Meshcat, lattice, p_TP_m, probe_radius_m: float,
@@ -92,25 +93,22 @@ class LatticeVisualizer(LeafSystem):
         self._positions = self.DeclareVectorInputPort("surface_positions_m", 3 * n_s)
         self._X_WT = self.DeclareVectorInputPort("X_WT", 7)
         self._wrench = self.DeclareVectorInputPort("wrench_on_tool_W", 6)
-        # The rest shape, until the first publish sends the state's.
-        self._draw_surface(lattice.positions_m[lattice.surface.ravel()].ravel())
         meshcat.SetObject(FORCE_PATH, Cylinder(FORCE_ROD_RADIUS_M, 1.0), FORCE_RGBA)
         meshcat.SetTransform(FORCE_PATH, np.diag([0.0, 0.0, 0.0, 1.0]))
         if aim_camera:
-            meshcat.SetCameraPose(camera_in_world=list(CAMERA_IN_WORLD_M),
-                                  target_in_world=list(CAMERA_TARGET_M))
+            surface = lattice.positions_m[lattice.surface.ravel()]
+            target = [np.mean(lattice.x_m), np.mean(lattice.y_m), np.mean(surface[:, 2])]
+            meshcat.SetCameraPose(camera_in_world=np.add(target, CAMERA_OFFSET_M),
+                                  target_in_world=target)
         self.DeclarePeriodicPublishEvent(period_s, 0.0, self._draw)
         self.DeclareForcedPublishEvent(self._draw)
 
-    def _draw_surface(self, positions_m):
+    def _draw(self, context):
         # (3 n_s,) vertex by vertex, C order: its (n_s, 3) transpose is Fortran (3, n_s).
-        vertices = np.asarray(positions_m, float).reshape(-1, 3).T
+        vertices = self._positions.Eval(context).reshape(-1, 3).T
         self._meshcat.SetTriangleMesh(SURFACE_PATH, vertices, self._faces, JELLY_RGBA)
         self._meshcat.SetTriangleMesh(WIRE_PATH, vertices, self._faces, WIRE_RGBA,
                                       wireframe=True)
-
-    def _draw(self, context):
-        self._draw_surface(self._positions.Eval(context))
         X_WT = self._X_WT.Eval(context)
         p_WP = X_WT[4:7] + rotation_from_quaternion(X_WT[0:4]) @ self._p_TP
         self._meshcat.SetTransform(FORCE_PATH, force_rod_transform(

@@ -1,0 +1,118 @@
+"""The deformable surface demo (issue 4) with the whole diagram: palpation, texture,
+smoothness against the peg, the integrator choice, and bad input."""
+
+import numpy as np
+import pytest
+from pydrake.geometry import Meshcat
+from pydrake.systems.analysis import Simulator
+
+from maglev_haptics.diagrams.application import BuildDiagram
+from maglev_haptics.diagrams.deformable_scene import build_scene_lattice
+from maglev_haptics.diagrams.haptics import interactive_variant
+from maglev_haptics.diagrams.runner import run_scenario
+from maglev_haptics.diagrams.scenario import ScenarioError, load_scenario
+
+FLAT = ("{haptics: {scene: !DeformableSurface {center_m: [0.010, 0.0], "
+        "heightmap: !SineHeightmap {amplitude_m: [0.0, 0.0]}}}}")
+
+
+def palpate(text="{}"):
+    scenario = load_scenario("deformable_surface", scenario_text=text)
+    return scenario, run_scenario(scenario, label="deformable_surface", progress=False)
+
+
+@pytest.fixture(scope="module")
+def palpation():
+    return palpate()
+
+
+@pytest.fixture(scope="module")
+def palpation_flat():
+    return palpate(FLAT)
+
+
+def test_the_default_lattice_is_the_papers_size(palpation):
+    scenario, _ = palpation
+    lattice = build_scene_lattice(scenario.haptics.scene)
+    assert lattice.num_masses >= 5000
+    assert lattice.num_links > 10 * lattice.num_masses  # the 26-neighbour links
+
+
+def test_strikes_give_force_peaks(palpation):
+    _, result = palpation
+    strikes = result.summary["palpation"]["strikes"]
+    assert len(strikes) == 3  # the script's three taps, each one touch
+    for strike in strikes:
+        assert strike["peak_force_z_n"] > 0.1  # the surface pushes the probe up (N)
+    assert result.summary["max_coil_current_a"] <= 3.0
+
+
+def test_sliding_over_texture_varies_the_z_force(palpation, palpation_flat):
+    _, textured = palpation
+    _, flat = palpation_flat
+    slide, slide_flat = textured.summary["palpation"], flat.summary["palpation"]
+    assert slide["sliding_s"] > 3.0 and slide_flat["sliding_s"] > 3.0
+    assert slide["sliding_mean_force_z_n"] > 0.03  # pressed into the surface while sliding
+    # The texture, not the tracker noise or the hand, makes the z force vary.
+    assert slide["sliding_force_z_variation_n"] > 2.0 * slide_flat["sliding_force_z_variation_n"]
+
+
+def test_deformable_forces_are_smoother_than_the_pegs(palpation, peg):
+    _, deformable = palpation
+    _, rigid = peg
+    assert (deformable.summary["palpation"]["contact_force_roughness"]
+            < 0.75 * rigid.summary["contact_force_roughness"])
+
+
+def test_linearly_implicit_lattice_runs_in_the_diagram():
+    text = ("{haptics: {scene: !DeformableSurface {center_m: [0.010, 0.0], "
+            "column_spacing_m: 0.005, integrator: linearly_implicit, "
+            "link_stiffness_n_per_m: 2000.0}}}")
+    scenario = load_scenario("deformable_surface", scenario_text=text)
+    built = BuildDiagram(scenario)
+    simulator = Simulator(built.diagram)
+    simulator.Initialize()
+    simulator.AdvanceTo(0.3)
+    surface = built.haptics.scene.surface
+    state = surface.GetMyContextFromRoot(simulator.get_context()).get_discrete_state(0)
+    assert np.all(np.isfinite(state.get_value()))
+    lattice = built.haptics.scene.lattice
+    positions = state.get_value()[:3 * lattice.num_masses].reshape(-1, 3)
+    # Sagged under its weight at 2000 N/m links (5x the explicit limit), not blown up.
+    assert np.abs(positions - lattice.positions_m).max() < 1e-3
+
+
+def test_interactive_variant_runs_with_the_lattice_in_meshcat():
+    meshcat = Meshcat()
+    scenario = interactive_variant(load_scenario("deformable_surface"), 10.0)
+    built = BuildDiagram(scenario, meshcat=meshcat)
+    simulator = Simulator(built.diagram)
+    simulator.Initialize()
+    simulator.AdvanceTo(0.1)
+    built.meshcat_hand.Delete()
+
+
+@pytest.mark.parametrize("text, message", [
+    ("{haptics: {scene: !DeformableSurface {node_mass_kg: -0.001}}}",
+     r"haptics.scene.node_mass_kg = -0.001: must be"),
+    ("{haptics: {scene: !DeformableSurface {integrator: runge_kutta}}}",
+     r"haptics.scene.integrator = 'runge_kutta': one of symplectic_euler, linearly_implicit"),
+    ("{haptics: {scene: !DeformableSurface {surface_z_m: -0.04}}}",
+     r"haptics.scene.surface_z_m = -0.04: a finite height above base_z_m"),
+    ("{haptics: {scene: !DeformableSurface {heightmap: !RandomHeightmap {amplitude_m: -1.0}}}}",
+     r"haptics.scene.heightmap.amplitude_m = -1.0"),
+    ("{haptics: {scene: !DeformableSurface {probe: {radius_m: 0.0}}}}",
+     r"haptics.scene.probe.radius_m = 0.0"),
+    ("{haptics: {scene: !DeformableSurface {node_mas_kg: 0.001}}}", r"node_mas_kg"),
+])
+def test_bad_lattice_input_names_the_field(text, message):
+    with pytest.raises(ScenarioError, match=message):
+        load_scenario("deformable_surface", scenario_text=text)
+
+
+def test_probe_starting_in_the_surface_is_refused():
+    # Resting over the lattice puts the probe, 30 mm under the instrument, in the jelly.
+    scenario = load_scenario("deformable_surface",
+                             scenario_text="{motion: {start_xy_yaw: [0.0, 0.0, 0.0]}}")
+    with pytest.raises(ValueError, match=r"X_WI_start .*the probe .* starts in the surface"):
+        BuildDiagram(scenario)
