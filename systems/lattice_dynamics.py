@@ -60,11 +60,11 @@ class LatticeModel(NamedTuple):
 class ProbeContact:
     """Penalty contact of the probe sphere with the lattice's surface vertices."""
 
-    radius_m: float = 0.003  # (m)
+    radius_m: float = 0.004  # (m): several vertices at once, 2.5 mm apart in the scene
     stiffness_n_per_m: float = 400.0  # per vertex, past the onset (N/m)
     onset_depth_m: float = 0.0003  # the stiffness ramps in over this depth (m)
     dissipation_s_per_m: float = 5.0  # Hunt-Crossley, on the approach speed (s/m)
-    friction: float = 0.1  # Coulomb coefficient (-)
+    friction: float = 0.05  # Coulomb coefficient (-): jelly is slippery (the peg's is 0.15)
     slip_speed_m_s: float = 0.002  # friction reaches ~70 % of mu f_n at this slip (m/s)
 
 

@@ -3,9 +3,6 @@
 import pytest
 from pydrake.geometry import Meshcat
 
-from maglev_haptics.diagrams.runner import run_scenario
-from maglev_haptics.diagrams.scenario import load_scenario
-
 
 def _msgpack_str(text: str) -> bytes:
     data = text.encode()
@@ -24,11 +21,3 @@ def _click(meshcat: Meshcat, name: str) -> None:
 def click_button():
     """click_button(meshcat, name): press a Meshcat button as the browser would."""
     return _click
-
-
-@pytest.fixture(scope="session")
-def peg():
-    """(scenario, RunResult) of the shipped peg_in_hole run (the rigid scenes and the
-    deformable surface's smoothness comparison share it)."""
-    scenario = load_scenario("peg_in_hole")
-    return scenario, run_scenario(scenario, label="peg_in_hole", progress=False)

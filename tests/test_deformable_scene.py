@@ -1,5 +1,5 @@
 """The deformable surface demo (issue 4) with the whole diagram: palpation, texture,
-smoothness against the peg, the integrator choice, and bad input."""
+the integrator choice, and bad input."""
 
 import numpy as np
 import pytest
@@ -12,8 +12,7 @@ from maglev_haptics.diagrams.haptics import interactive_variant
 from maglev_haptics.diagrams.runner import run_scenario
 from maglev_haptics.diagrams.scenario import ScenarioError, load_scenario
 
-FLAT = ("{haptics: {scene: !DeformableSurface {center_m: [0.010, 0.0], "
-        "heightmap: !SineHeightmap {amplitude_m: [0.0, 0.0]}}}}")
+FLAT = "{haptics: {scene: !DeformableSurface {heightmap: !SineHeightmap {amplitude_m: [0.0, 0.0]}}}}"
 
 
 def palpate(text="{}"):
@@ -39,12 +38,12 @@ def test_the_default_lattice_is_the_papers_size(palpation):
 
 
 def test_strikes_give_force_peaks(palpation):
-    _, result = palpation
+    scenario, result = palpation
     strikes = result.summary["palpation"]["strikes"]
     assert len(strikes) == 3  # the script's three taps, each one touch
     for strike in strikes:
         assert strike["peak_force_z_n"] > 0.1  # the surface pushes the probe up (N)
-    assert result.summary["max_coil_current_a"] <= 3.0
+    assert result.summary["max_coil_current_a"] <= scenario.device.amplifier.current_limit_a
 
 
 def test_sliding_over_texture_varies_the_z_force(palpation, palpation_flat):
@@ -54,20 +53,12 @@ def test_sliding_over_texture_varies_the_z_force(palpation, palpation_flat):
     assert slide["sliding_s"] > 3.0 and slide_flat["sliding_s"] > 3.0
     assert slide["sliding_mean_force_z_n"] > 0.03  # pressed into the surface while sliding
     # The texture, not the tracker noise or the hand, makes the z force vary.
-    assert slide["sliding_force_z_variation_n"] > 2.0 * slide_flat["sliding_force_z_variation_n"]
-
-
-def test_deformable_forces_are_smoother_than_the_pegs(palpation, peg):
-    _, deformable = palpation
-    _, rigid = peg
-    assert (deformable.summary["palpation"]["contact_force_roughness"]
-            < 0.75 * rigid.summary["contact_force_roughness"])
+    assert slide["sliding_force_z_variation_n"] > 3.0 * slide_flat["sliding_force_z_variation_n"]
 
 
 def test_linearly_implicit_lattice_runs_in_the_diagram():
-    text = ("{haptics: {scene: !DeformableSurface {center_m: [0.010, 0.0], "
-            "column_spacing_m: 0.005, integrator: linearly_implicit, "
-            "link_stiffness_n_per_m: 2000.0}}}")
+    text = ("{haptics: {scene: !DeformableSurface {column_spacing_m: 0.005, "
+            "integrator: linearly_implicit, link_stiffness_n_per_m: 2000.0}}}")
     scenario = load_scenario("deformable_surface", scenario_text=text)
     built = BuildDiagram(scenario)
     simulator = Simulator(built.diagram)

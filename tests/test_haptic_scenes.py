@@ -21,6 +21,11 @@ def run(name, path=None, **kwargs):
     return scenario, run_scenario(scenario, label=name, progress=False, **kwargs)
 
 
+@pytest.fixture(scope="module")
+def peg():
+    return run("peg_in_hole")
+
+
 def test_peg_free_motion_is_transparent(peg):
     _, result = peg
     free = result.summary["free_motion"]
