@@ -5,6 +5,7 @@ from typing import Dict, List, Optional
 
 import numpy as np
 
+from scipy.ndimage import binary_dilation
 from scipy.signal import butter, sosfiltfilt
 
 from maglev_haptics.diagrams.deformable_scene import DeformableSurface
@@ -23,6 +24,7 @@ CONTACT_GAP_S = 0.15  # contacts closer than this are one touch: the probe skips
 # is ~4 Hz); above it, ringing, stick-slip and the tracker noise.
 SMOOTH_BELOW_HZ = 20.0
 TEXTURE_ABOVE_HZ = 1.0  # slower z-force changes while sliding are the hand's, not the texture's
+MIN_FILTERED_SAMPLES = 100  # zero-phase filtering needs this many log samples
 
 
 def _band(signal: np.ndarray, t: np.ndarray, corner_hz: float, kind: str) -> np.ndarray:
@@ -33,8 +35,9 @@ def _band(signal: np.ndarray, t: np.ndarray, corner_hz: float, kind: str) -> np.
 
 def force_roughness(log, mask: np.ndarray) -> Optional[float]:
     """RMS of the rendered force above SMOOTH_BELOW_HZ over the RMS force (-), on the
-    samples of ``mask``: how jagged contact feels, whatever its strength."""
-    if mask.sum() < 10:
+    samples of ``mask``: how jagged contact feels, whatever its strength. None for
+    runs too short to filter."""
+    if mask.sum() < 10 or len(log["t"]) < MIN_FILTERED_SAMPLES:
         return None
     force = log["f_user"]
     rough = force - _band(force, log["t"], SMOOTH_BELOW_HZ, "lowpass")
@@ -58,14 +61,16 @@ def palpation_metrics(log, ramp_s: float) -> Dict:
                             "peak_force_z_n": float(log["f_user"][touch, 2].max())})
         else:
             sliding[touch] = speed[touch] > 5 * SLIDING_SPEED_M_S
-    texture = _band(log["f_user"][:, 2], t, TEXTURE_ABOVE_HZ, "highpass")
-    smooth_texture = _band(texture, t, SMOOTH_BELOW_HZ, "lowpass")
+    variation = None
+    if sliding.any() and len(t) >= MIN_FILTERED_SAMPLES:
+        texture = _band(log["f_user"][:, 2], t, TEXTURE_ABOVE_HZ, "highpass")
+        smooth_texture = _band(texture, t, SMOOTH_BELOW_HZ, "lowpass")
+        variation = float(np.sqrt(np.mean(smooth_texture[sliding] ** 2)))
     return {
         "strikes": strikes,
         "sliding_s": float(sliding.sum() * np.median(np.diff(t))),
         # z-force variation while sliding, between TEXTURE_ABOVE_HZ and SMOOTH_BELOW_HZ (N)
-        "sliding_force_z_variation_n": (float(np.sqrt(np.mean(smooth_texture[sliding] ** 2)))
-                                        if sliding.any() else None),
+        "sliding_force_z_variation_n": variation,
         "sliding_mean_force_z_n": (float(log["f_user"][sliding, 2].mean())
                                    if sliding.any() else None),
         "contact_force_roughness": force_roughness(log, contact),
@@ -82,7 +87,7 @@ def _near(mask: np.ndarray, t: np.ndarray, guard_s: float) -> np.ndarray:
     """``mask`` widened by ``guard_s`` (s) on both sides."""
     dt = float(np.median(np.diff(t))) if len(t) > 1 else 1.0
     n = int(np.ceil(guard_s / dt))
-    return np.convolve(mask.astype(float), np.ones(2 * n + 1), mode="same") > 0
+    return binary_dilation(mask, structure=np.ones(2 * n + 1, dtype=bool))
 
 
 def engaged_mask(log: Dict[str, np.ndarray], ramp_s: float) -> np.ndarray:

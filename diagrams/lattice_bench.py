@@ -45,9 +45,10 @@ def scene_with_masses(target_masses: int, base: DeformableSurface = None) -> Def
 
 
 def _time_us(step, repeats: int) -> float:
+    """Best over 7 windows of ``repeats`` calls (us a call): this host's load comes and goes."""
     step()  # compiled and warm
     best = np.inf
-    for _ in range(3):
+    for _ in range(7):
         start = time.perf_counter()
         for _ in range(repeats):
             step()
