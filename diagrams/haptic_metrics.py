@@ -19,9 +19,9 @@ DEPTH_MIN_M = 2e-4  # pressing shallower than this is not used for the stiffness
 SLIDING_SPEED_M_S = 2e-3  # the tool slides when faster than this along the floor (m/s)
 STRIKE_MAX_S = 0.6  # a contact shorter than this is a strike, longer a press or a slide (s)
 CONTACT_GAP_S = 0.15  # contacts closer than this are one touch: the probe skips on bumps (s)
-# The palpation metrics split the rendered force at this frequency (Hz): below it,
-# the hand's pressing and the texture met at sweep speed (a 4 mm bump at 15 mm/s
-# is ~4 Hz); above it, ringing, stick-slip and the tracker noise.
+# The palpation and roughness metrics split the rendered force at this frequency
+# (Hz): below it, the hand's pressing and the texture met at sweep speed (a 4 mm
+# bump at 15 mm/s is ~4 Hz); above it, ringing, stick-slip and the tracker noise.
 SMOOTH_BELOW_HZ = 20.0
 TEXTURE_ABOVE_HZ = 1.0  # slower z-force changes while sliding are the hand's, not the texture's
 MIN_FILTERED_SAMPLES = 100  # zero-phase filtering needs this many log samples
@@ -33,16 +33,20 @@ def _band(signal: np.ndarray, t: np.ndarray, corner_hz: float, kind: str) -> np.
     return sosfiltfilt(butter(2, corner_hz, btype=kind, fs=rate_hz, output="sos"), signal, axis=0)
 
 
-def force_roughness(log, mask: np.ndarray) -> Optional[float]:
-    """RMS of the rendered force above SMOOTH_BELOW_HZ over the RMS force (-), on the
-    samples of ``mask``: how jagged contact feels, whatever its strength. None for
-    runs too short to filter."""
-    if mask.sum() < 10 or len(log["t"]) < MIN_FILTERED_SAMPLES:
+def force_roughness(log, ramp_s: float) -> Optional[Dict]:
+    """How jagged the rendered force is in contact: its RMS above SMOOTH_BELOW_HZ (N)
+    in contact and in free motion (the tracker noise's floor), and what contact adds
+    to that floor, in quadrature. None for runs too short to filter or without both."""
+    contact = (log["tool_in_contact"] > 0.5) & engaged_mask(log, ramp_s)
+    free = free_mask(log, ramp_s)
+    if contact.sum() < 10 or free.sum() < 10 or len(log["t"]) < MIN_FILTERED_SAMPLES:
         return None
     force = log["f_user"]
     rough = force - _band(force, log["t"], SMOOTH_BELOW_HZ, "lowpass")
-    strength = np.sqrt(np.mean(np.sum(force[mask] ** 2, axis=1)))
-    return float(np.sqrt(np.mean(np.sum(rough[mask] ** 2, axis=1))) / strength)
+    in_contact, in_free = (float(np.sqrt(np.mean(np.sum(rough[mask] ** 2, axis=1))))
+                           for mask in (contact, free))
+    return {"in_contact_n": in_contact, "free_motion_n": in_free,
+            "added_by_contact_n": float(np.sqrt(max(in_contact**2 - in_free**2, 0.0)))}
 
 
 def palpation_metrics(log, ramp_s: float) -> Dict:
@@ -73,7 +77,6 @@ def palpation_metrics(log, ramp_s: float) -> Dict:
         "sliding_force_z_variation_n": variation,
         "sliding_mean_force_z_n": (float(log["f_user"][sliding, 2].mean())
                                    if sliding.any() else None),
-        "contact_force_roughness": force_roughness(log, contact),
     }
 
 
@@ -100,11 +103,16 @@ def engaged_mask(log: Dict[str, np.ndarray], ramp_s: float) -> np.ndarray:
     return mask
 
 
+def free_mask(log, ramp_s: float) -> np.ndarray:
+    """Samples engaged, held and at least CONTACT_GUARD_S from any contact."""
+    return (engaged_mask(log, ramp_s) & (log["handle_gripped"] > 0.5)
+            & ~_near(log["tool_in_contact"] > 0.5, log["t"], CONTACT_GUARD_S))
+
+
 def free_motion(log, ramp_s: float) -> Optional[Dict]:
     """Rendered wrench while engaged, held and far from any contact: should be ~0."""
     t = log["t"]
-    free = (engaged_mask(log, ramp_s) & (log["handle_gripped"] > 0.5)
-            & ~_near(log["tool_in_contact"] > 0.5, t, CONTACT_GUARD_S))
+    free = free_mask(log, ramp_s)
     if not free.any():
         return None
     force = np.linalg.norm(log["f_user"][free], axis=1)
@@ -253,10 +261,10 @@ def haptic_summary(log, scenario, *, rest_height_m: float) -> Dict:
     scene = haptics.scene
     if isinstance(scene, PegInHole):
         summary["peg_in_hole"] = peg_metrics(log, scene, ramp_s)
-        summary["contact_force_roughness"] = force_roughness(
-            log, (log["tool_in_contact"] > 0.5) & engaged)
     elif isinstance(scene, DeformableSurface):
         summary["palpation"] = palpation_metrics(log, ramp_s)
+    if isinstance(scene, (PegInHole, DeformableSurface)):
+        summary["force_roughness"] = force_roughness(log, ramp_s)
     elif isinstance(scene, PaddleBall):
         summary["paddle_hits"] = contact_hits(log, ramp_s, scene.tool_offset_m)
     elif isinstance(scene, HangingBall) and engaged.any():
