@@ -63,6 +63,9 @@ class DeformableSurface:
     substeps: int = 1  # symplectic Euler substeps per control tick
     cg_tolerance: float = 1e-4  # linearly implicit: relative CG residual
     cg_max_iterations: int = 40  # linearly implicit: CG iteration cap
+    # Step the lattice one tick ahead on another core, while the rest of the diagram
+    # computes (``systems/lattice_worker.py``); false: in the update itself. Same results.
+    worker_thread: bool = True
     gravity_m_s2: List[float] = field(default_factory=lambda: [0.0, 0.0, -9.81])  # on the lattice
     probe: ProbeContact = field(default_factory=ProbeContact)
     # The probe sphere's centre in I (m): a tip below the instrument.
@@ -205,8 +208,9 @@ def AddDeformableScene(builder: DiagramBuilder, *, scene: DeformableSurface, tim
                             link_damping_n_s_per_m=scene.link_damping_n_s_per_m,
                             gravity_m_s2=scene.gravity_m_s2),
         positions_m=lattice.positions_m, probe=scene.probe, p_TP_m=scene.tool_offset_m,
-        period_s=time_step_s, integrator=scene.integrator, substeps=scene.substeps,
-        cg_tolerance=scene.cg_tolerance, cg_max_iterations=scene.cg_max_iterations))
+        X_WT_start=X_WT, period_s=time_step_s, integrator=scene.integrator,
+        substeps=scene.substeps, cg_tolerance=scene.cg_tolerance,
+        cg_max_iterations=scene.cg_max_iterations, worker_thread=scene.worker_thread))
     total = builder.AddNamedSystem("scene_tool_wrench_sum", Adder(2, 6))
     gain = builder.AddNamedSystem("scene_tool_wrench", MatrixGain(
         wrench_to_generalized_force(tool_body.floating_velocities_start_in_v(),

@@ -12,39 +12,70 @@ touched by the probe on the scene's tool.
     - in_contact
     - surface_positions_m
 
-The discrete state is one vector [x; v]: every mass's position (m) then
-velocity (m/s) in W, 3 numbers each, mass by mass. Each period the lattice
-advances one tick with the configured integrator (``lattice_dynamics``), the
-probe held at its pose from ``X_WT``, ``V_WT`` ([qw, qx, qy, qz, x, y, z];
-[wx, wy, wz, vx, vy, vz] in W). ``wrench_on_tool_W`` [f; tau] (N, N*m, in W
-about T's origin) is the contact's wrench on the tool at the current state and
-tool pose: exactly the opposite of the forces the next tick applies to the
-masses (with one substep; with more, of the first substep's). ``in_contact`` is
-1.0 while any surface vertex is inside the probe. ``surface_positions_m``
-(3 n_s) are the surface vertices' positions, column by column, for drawing.
+The discrete state is one vector [x; v; X_WT; V_WT]: every mass's position (m)
+then velocity (m/s) in W, 3 numbers each, mass by mass, then the tool's pose
+[qw, qx, qy, qz, x, y, z] and spatial velocity [wx, wy, wz, vx, vy, vz] in W as
+the last update read them from the inputs. Each period the lattice advances one
+tick with the configured integrator (``lattice_dynamics``), the probe held at that
+stored pose, and the inputs are stored for the next tick. So the lattice and the
+tool see each other one tick (1 ms) late, as the paper's unsynchronized physics
+thread did, and in exchange the next step is known one tick ahead and runs on
+the other core (``lattice_worker``) while the rest of the diagram computes.
+
+``wrench_on_tool_W`` [f; tau] (N, N*m, in W about T's origin) is the contact's
+wrench on the tool from the state alone: exactly the opposite of the forces the
+next tick applies to the masses (with one substep; with more, the first
+substep's). ``in_contact`` is 1.0 while any surface vertex is inside the probe.
+``surface_positions_m`` (3 n_s) are the surface vertices' positions, column by
+column, for drawing.
 
 Float only: a state of tens of thousands of numbers has no use for AutoDiffXd.
 """
 
-from __future__ import annotations
-
+import numba
 import numpy as np
 from pydrake.common.value import AbstractValue
+from pydrake.math import RigidTransform
 from pydrake.systems.framework import LeafSystem, ValueProducer
 
 from maglev_haptics.systems.lattice_dynamics import (
-    LINEARLY_IMPLICIT, LatticeModel, ProbeContact, implicit_workspace, linearly_implicit_tick,
-    probe_point, probe_wrench, symplectic_euler_tick)
+    LINEARLY_IMPLICIT, LatticeModel, ProbeContact, add_probe_forces, implicit_workspace,
+    linearly_implicit_tick, probe_point, symplectic_euler_tick)
+from maglev_haptics.systems.lattice_worker import LatticeWorker
+
+
+@numba.njit(cache=True)
+def probe_arguments(tool, p_TP):
+    """[p_WP, v_WP, p_WT] (9) from the stored tool state [X_WT; V_WT] (13)."""
+    p_WP, v_WP = probe_point(tool[0:7], tool[7:13], p_TP)
+    return np.concatenate((p_WP, v_WP, tool[4:7]))
+
+
+@numba.njit(cache=True)
+def state_contact(state, surface, p_TP, constants):
+    """(wrench on the tool [f; tau] in W about T's origin, vertices in contact) for the
+    state vector [x; v; X_WT; V_WT]; ``constants`` the probe's radius, stiffness,
+    onset, dissipation, friction and slip speed."""
+    n = (state.shape[0] - 13) // 6
+    x = state[:3 * n].reshape((n, 3))
+    v = state[3 * n:6 * n].reshape((n, 3))
+    probe = probe_arguments(state[6 * n:], p_TP)
+    return add_probe_forces(x, v, surface, probe[0:3], probe[3:6], probe[6:9], constants[0],
+                            constants[1], constants[2], constants[3], constants[4],
+                            constants[5], np.zeros((0, 3)))
 
 
 class DeformableSurface(LeafSystem):
     """See the module docstring."""
 
     def __init__(self, *, model: LatticeModel, positions_m: np.ndarray, probe: ProbeContact,
-                 p_TP_m, period_s: float, integrator: str, substeps: int = 1,
-                 cg_tolerance: float = 1e-4, cg_max_iterations: int = 40):
+                 p_TP_m, X_WT_start: RigidTransform, period_s: float, integrator: str,
+                 substeps: int = 1, cg_tolerance: float = 1e-4, cg_max_iterations: int = 40,
+                 worker_thread: bool = True):
         """``positions_m`` (n, 3): the masses at rest (m), where the state starts;
-        ``p_TP_m`` (3,): the probe sphere's centre in the tool frame T (m)."""
+        ``p_TP_m`` (3,): the probe sphere's centre in the tool frame T (m);
+        ``X_WT_start``: the tool's pose at the start, at rest; ``worker_thread``:
+        precompute each next tick on another core (the results are the same)."""
         LeafSystem.__init__(self)
         self._model = model
         self._n = len(positions_m)
@@ -57,19 +88,27 @@ class DeformableSurface(LeafSystem):
         self._cg_max_iterations = int(cg_max_iterations)
         self._external = np.zeros((self._n, 3))
         self._workspace = (implicit_workspace(self._n, len(model.links)) if self._implicit
-                           else np.zeros((self._n, 3)))
+                           else (np.zeros((self._n, 3)),))
+        self._use_worker = worker_thread
+        self._worker = None  # started by the first update
         self._surface_rows = np.asarray(model.surface)
+        self._constants = np.array([probe.radius_m, probe.stiffness_n_per_m, probe.onset_depth_m,
+                                    probe.dissipation_s_per_m, probe.friction,
+                                    probe.slip_speed_m_s])
         self._X_WT = self.DeclareVectorInputPort("X_WT", 7)
         self._V_WT = self.DeclareVectorInputPort("V_WT", 6)
-        initial = np.concatenate((np.asarray(positions_m, float).ravel(), np.zeros(3 * self._n)))
+        q = X_WT_start.rotation().ToQuaternion()
+        tool = np.concatenate(([q.w(), q.x(), q.y(), q.z()], X_WT_start.translation(),
+                               np.zeros(6)))
+        initial = np.concatenate((np.asarray(positions_m, float).ravel(), np.zeros(3 * self._n),
+                                  tool))
         self._state = self.DeclareDiscreteState(initial)
         self.DeclarePeriodicDiscreteUpdateEvent(period_s, 0.0, self._update)
         self._contact = self.DeclareCacheEntry(
             description="probe contact",
             value_producer=ValueProducer(allocate=AbstractValue.Make(()).Clone,
                                          calc=self._calc_contact),
-            prerequisites_of_calc={self._X_WT.ticket(), self._V_WT.ticket(),
-                                   self.xd_ticket()})
+            prerequisites_of_calc={self.xd_ticket()})
         self.DeclareVectorOutputPort("wrench_on_tool_W", 6, self._calc_wrench,
                                      prerequisites_of_calc={self._contact.ticket()})
         self.DeclareVectorOutputPort("in_contact", 1, self._calc_in_contact,
@@ -81,20 +120,14 @@ class DeformableSurface(LeafSystem):
     def num_masses(self) -> int:
         return self._n
 
-    def _probe_arguments(self, context):
-        X_WT = self._X_WT.Eval(context)
-        p_WP, v_WP = probe_point(X_WT, self._V_WT.Eval(context), self._p_TP)
-        probe = self._probe
-        return (p_WP, v_WP, X_WT[4:7].copy(), probe.radius_m, probe.stiffness_n_per_m,
-                probe.onset_depth_m, probe.dissipation_s_per_m, probe.friction, probe.slip_speed_m_s)
-
-    def _positions_velocities(self, state_vector):
-        both = state_vector.reshape(2, self._n, 3)
-        return both[0], both[1]
+    def _split(self, state_vector):
+        """Views (x (n, 3), v (n, 3), tool (13,)) into a state vector."""
+        masses = state_vector[:6 * self._n].reshape(2, self._n, 3)
+        return masses[0], masses[1], state_vector[6 * self._n:]
 
     def _calc_contact(self, context, value):
-        x, v = self._positions_velocities(context.get_discrete_state(self._state).get_value())
-        value.set_value(probe_wrench(x, v, self._model.surface, *self._probe_arguments(context)))
+        value.set_value(state_contact(context.get_discrete_state(self._state).get_value(),
+                                      self._model.surface, self._p_TP, self._constants))
 
     def _calc_wrench(self, context, output):
         output.SetFromVector(self._contact.Eval(context)[0])
@@ -103,19 +136,41 @@ class DeformableSurface(LeafSystem):
         output.SetFromVector([1.0 if self._contact.Eval(context)[1] > 0 else 0.0])
 
     def _calc_surface(self, context, output):
-        x, _ = self._positions_velocities(context.get_discrete_state(self._state).get_value())
+        x, _, _ = self._split(context.get_discrete_state(self._state).get_value())
         output.SetFromVector(x[self._surface_rows].ravel())
 
-    def _update(self, context, discrete_state):
-        # The update's state starts as a copy of the context's: step it in place.
-        x, v = self._positions_velocities(
-            discrete_state.get_mutable_vector(self._state).get_mutable_value())
+    def _step(self, x, v, tool):
+        """One tick of (x, v) in place, synchronously."""
         m = self._model
+        probe = probe_arguments(tool, self._p_TP)
         common = (x, v, m.links, m.rest_lengths_m, m.stiffness_n_per_m, m.damping_n_s_per_m,
                   m.mass_kg, m.inv_mass_per_kg, m.gravity_m_s2, m.surface, self._external,
-                  *self._probe_arguments(context), self._period_s)
+                  probe[0:3], probe[3:6], probe[6:9], *self._constants, self._period_s)
         if self._implicit:
             linearly_implicit_tick(*common, self._cg_tolerance, self._cg_max_iterations,
                                    *self._workspace)
         else:
-            symplectic_euler_tick(*common, self._substeps, self._workspace)
+            symplectic_euler_tick(*common, self._substeps, *self._workspace)
+
+    def _start_worker(self):
+        self._worker = LatticeWorker(
+            self._model, self._n, (*self._constants, self._period_s, self._cg_tolerance),
+            implicit=self._implicit, substeps=self._substeps,
+            cg_max_iterations=self._cg_max_iterations)
+
+    def _update(self, context, discrete_state):
+        current = context.get_discrete_state(self._state).get_value()
+        # The update's state starts as a copy of the context's: step it in place.
+        new = discrete_state.get_mutable_vector(self._state).get_mutable_value()
+        x, v, tool = self._split(new)
+        if self._use_worker and self._worker is None:
+            self._start_worker()
+        ahead = None if self._worker is None else self._worker.result_for(current)
+        if ahead is None:
+            self._step(x, v, tool)
+        else:
+            new[:6 * self._n] = ahead
+        tool[0:7] = self._X_WT.Eval(context)
+        tool[7:13] = self._V_WT.Eval(context)
+        if self._worker is not None:
+            self._worker.request(new, probe_arguments(tool, self._p_TP))

@@ -20,7 +20,7 @@ FORCE_PATH = "/deformable_surface/contact_force"
 JELLY_RGBA = Rgba(0.40, 0.85, 0.30, 1.0)  # lime jelly
 WIRE_RGBA = Rgba(0.10, 0.35, 0.10, 1.0)
 FORCE_RGBA = Rgba(0.95, 0.10, 0.65, 1.0)  # magenta, apart from the device's orange rod
-FORCE_ROD_RADIUS_M = 0.002  # (m): sheathes the probe's 1.5 mm shaft, inside its 2.5 mm tip
+FORCE_ROD_RADIUS_M = 0.002  # (m): sheathes the probe's 1.5 mm shaft, inside its tip
 FORCE_SCALE_M_PER_N = 0.1  # rod length per newton of contact force (m/N)
 FORCE_SHOWN_N = 0.005  # smaller contact forces are not drawn (N)
 # From the surface's centre to the camera (m, W axes): the default 80 x 60 mm surface

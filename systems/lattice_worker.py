@@ -1,0 +1,157 @@
+"""A core of its own for the lattice: the next tick's step, computed while the rest
+of the diagram runs (the paper ran its physics in a thread of its own too).
+
+The ``DeformableSurface`` update at tick k knows everything the update at k+1 will
+need (the state it writes), so it hands that to the worker, which steps a private
+copy of the lattice on the machine's other core, outside Python's GIL, while the
+other systems compute. At k+1 the update takes the worker's result if it was
+computed from exactly the state now in the context, and steps synchronously
+otherwise (the first tick, a context changed from outside, a busy worker). The
+result is bit for bit the synchronous step's: the same kernel on the same numbers.
+
+Protocol, on ``control`` (int64): [0] stop flag, [1] the sequence number of the
+last request, [2] that of the last finished step. The main thread writes the
+inputs only while the worker is idle ([1] == [2]) and then bumps [1]; the worker
+polls [1], steps, and sets [2]. x86 keeps stores in order, and an opaque libc
+call before [2] is set keeps the compiler from moving the result's stores after
+it. During a run a request comes every tick and the worker polls by yielding
+its core (``sched_yield``: no timer slack, and other processes go first); idle
+for FAST_POLLS looks it sleeps IDLE_POLL_US between them, and after
+IDLE_EXIT_POLLS of those (~0.5 s) it ends (a pydrake diagram keeps its Python
+systems alive, so a worker must not outlive its use); the next request starts
+a new one.
+"""
+
+import ctypes
+import threading
+import weakref
+
+import numba
+import numpy as np
+
+from maglev_haptics.systems.lattice_dynamics import (
+    LatticeModel, implicit_workspace, linearly_implicit_tick, symplectic_euler_tick)
+
+FAST_POLLS = 20000  # looks by yielding (~5-10 ms idle) before the worker sleeps between them
+IDLE_POLL_US = 1000  # (us)
+IDLE_EXIT_POLLS = 500  # and after this many slow looks (~0.5 s) it ends
+_STOP, _REQUESTED, _DONE = 0, 1, 2
+
+_libc = ctypes.CDLL(None)
+_usleep = _libc.usleep
+_usleep.argtypes = [ctypes.c_uint]
+_usleep.restype = ctypes.c_int
+_sched_yield = _libc.sched_yield
+_sched_yield.argtypes = []
+_sched_yield.restype = ctypes.c_int
+
+
+# Not cached: numba cannot cache code that calls a ctypes function.
+@numba.njit(nogil=True)
+def _serve(control, masses_in, masses_out, probe, links, rest, k, b, mass, inv_mass, gravity,
+           surface, external, constants, implicit, substeps, cg_max_iterations, forces,
+           node_work, u, link_work):
+    """For every request until the stop flag is set: ``masses_out`` = one tick from
+    ``masses_in`` ([x; v], 6 n). ``probe`` is [p_WP, v_WP, p_WT] (9); ``constants``
+    the probe's radius, stiffness, onset, dissipation, friction, slip speed, then
+    the tick and the CG tolerance."""
+    n = masses_in.shape[0] // 6
+    x = masses_out[:3 * n].reshape((n, 3))
+    v = masses_out[3 * n:].reshape((n, 3))
+    done = control[_DONE]
+    idle = 0
+    while control[_STOP] == 0:
+        sequence = control[_REQUESTED]
+        if sequence == done:
+            idle += 1
+            if idle > FAST_POLLS + IDLE_EXIT_POLLS:
+                return
+            if idle <= FAST_POLLS:
+                _sched_yield()
+            else:
+                _usleep(IDLE_POLL_US)
+            continue
+        idle = 0
+        masses_out[:] = masses_in
+        if implicit:
+            linearly_implicit_tick(
+                x, v, links, rest, k, b, mass, inv_mass, gravity, surface, external,
+                probe[0:3], probe[3:6], probe[6:9], constants[0], constants[1], constants[2],
+                constants[3], constants[4], constants[5], constants[6], constants[7],
+                cg_max_iterations, node_work, u, link_work)
+        else:
+            symplectic_euler_tick(
+                x, v, links, rest, k, b, mass, inv_mass, gravity, surface, external,
+                probe[0:3], probe[3:6], probe[6:9], constants[0], constants[1], constants[2],
+                constants[3], constants[4], constants[5], constants[6], substeps, forces)
+        _usleep(0)  # a compiler barrier: the result is stored before it is announced
+        control[_DONE] = sequence
+        done = sequence
+
+
+def _stop(control: np.ndarray) -> None:
+    control[_STOP] = 1
+
+
+class LatticeWorker:
+    """The worker thread and its private copy of the lattice (see the module docstring)."""
+
+    def __init__(self, model: LatticeModel, num_masses: int, constants, *, implicit: bool,
+                 substeps: int, cg_max_iterations: int):
+        """``constants``: as ``_serve`` takes them (8)."""
+        self._control = np.zeros(3, dtype=np.int64)
+        # The request's state, [x; v] (6 n) and the tool's (13), and the step's result.
+        self._masses_in = np.zeros(6 * num_masses)
+        self._tool_in = np.zeros(13)
+        self._masses_out = np.zeros(6 * num_masses)
+        self._probe = np.zeros(9)
+        self._pending = False  # a request not yet taken
+        node_work, u, link_work = implicit_workspace(num_masses, len(model.links))
+        self._arguments = (
+            self._control, self._masses_in, self._masses_out, self._probe, model.links,
+            model.rest_lengths_m,
+            model.stiffness_n_per_m, model.damping_n_s_per_m, model.mass_kg,
+            model.inv_mass_per_kg, model.gravity_m_s2, model.surface, np.zeros((num_masses, 3)),
+            np.asarray(constants, dtype=float), implicit, int(substeps), int(cg_max_iterations),
+            np.zeros((num_masses, 3)), node_work, u, link_work)
+        self._thread = None
+        weakref.finalize(self, _stop, self._control)
+
+    def idle(self) -> bool:
+        return self._control[_REQUESTED] == self._control[_DONE]
+
+    def _ensure_running(self) -> None:
+        if self._thread is not None and self._thread.is_alive():
+            return
+        # A worker that ended idle may have left a request unserved: drop it.
+        self._control[_DONE] = self._control[_REQUESTED]
+        self._thread = threading.Thread(target=_serve, args=self._arguments, daemon=True,
+                                        name="lattice-worker")
+        self._thread.start()
+
+    def request(self, state: np.ndarray, probe) -> bool:
+        """Start a tick from ``state`` ([x; v; tool], 6 n + 13) with ``probe``
+        [p_WP, v_WP, p_WT]. False, and nothing started, while the worker is busy."""
+        self._ensure_running()
+        if not self.idle():
+            return False
+        split = len(self._masses_in)
+        self._masses_in[:] = state[:split]
+        self._tool_in[:] = state[split:]
+        self._probe[:] = probe
+        self._pending = True
+        self._control[_REQUESTED] += 1
+        return True
+
+    def result_for(self, state: np.ndarray):
+        """[x; v] (6 n) one tick after exactly ``state``, waiting for the worker if it
+        is on it; None if it was not asked for that state."""
+        split = len(self._masses_in)
+        if not (self._pending and np.array_equal(self._tool_in, state[split:])
+                and np.array_equal(self._masses_in, state[:split])):
+            return None
+        self._pending = False
+        while not self.idle():  # the worker is within a tick of done
+            if not self._thread.is_alive():
+                return None  # it ended before it saw the request
+        return self._masses_out
