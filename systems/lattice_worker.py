@@ -46,18 +46,35 @@ _sched_yield.argtypes = []
 _sched_yield.restype = ctypes.c_int
 
 
-# Not cached: numba cannot cache code that calls a ctypes function.
-@numba.njit(nogil=True)
-def _serve(control, masses_in, masses_out, probe, links, rest, k, b, mass, inv_mass, gravity,
-           surface, external, constants, implicit, substeps, cg_max_iterations, forces,
-           node_work, u, link_work):
-    """For every request until the stop flag is set: ``masses_out`` = one tick from
-    ``masses_in`` ([x; v], 6 n). ``probe`` is [p_WP, v_WP, p_WT] (9); ``constants``
-    the probe's radius, stiffness, onset, dissipation, friction, slip speed, then
-    the tick and the CG tolerance."""
+@numba.njit(cache=True, nogil=True)
+def _tick(masses_in, masses_out, probe, links, rest, k, b, mass, inv_mass, gravity, surface,
+          external, constants, implicit, substeps, cg_max_iterations, forces, node_work, u,
+          link_work):
+    """``masses_out`` = one tick from ``masses_in`` ([x; v], 6 n). ``probe`` is
+    [p_WP, v_WP, p_WT] (9); ``constants`` the probe's radius, stiffness, onset,
+    dissipation, friction, slip speed, then the tick and the CG tolerance."""
     n = masses_in.shape[0] // 6
+    masses_out[:] = masses_in
     x = masses_out[:3 * n].reshape((n, 3))
     v = masses_out[3 * n:].reshape((n, 3))
+    if implicit:
+        linearly_implicit_tick(
+            x, v, links, rest, k, b, mass, inv_mass, gravity, surface, external, probe[0:3],
+            probe[3:6], probe[6:9], constants[0], constants[1], constants[2], constants[3],
+            constants[4], constants[5], constants[6], constants[7], cg_max_iterations,
+            node_work, u, link_work)
+    else:
+        symplectic_euler_tick(
+            x, v, links, rest, k, b, mass, inv_mass, gravity, surface, external, probe[0:3],
+            probe[3:6], probe[6:9], constants[0], constants[1], constants[2], constants[3],
+            constants[4], constants[5], constants[6], substeps, forces)
+
+
+# Not cached (numba cannot cache code that calls a ctypes function), so kept small:
+# the tick it calls comes compiled from the cache.
+@numba.njit(nogil=True)
+def _serve(control, arguments):
+    """Run ``_tick(*arguments)`` for every request until the stop flag is set."""
     done = control[_DONE]
     idle = 0
     while control[_STOP] == 0:
@@ -72,18 +89,7 @@ def _serve(control, masses_in, masses_out, probe, links, rest, k, b, mass, inv_m
                 _usleep(IDLE_POLL_US)
             continue
         idle = 0
-        masses_out[:] = masses_in
-        if implicit:
-            linearly_implicit_tick(
-                x, v, links, rest, k, b, mass, inv_mass, gravity, surface, external,
-                probe[0:3], probe[3:6], probe[6:9], constants[0], constants[1], constants[2],
-                constants[3], constants[4], constants[5], constants[6], constants[7],
-                cg_max_iterations, node_work, u, link_work)
-        else:
-            symplectic_euler_tick(
-                x, v, links, rest, k, b, mass, inv_mass, gravity, surface, external,
-                probe[0:3], probe[3:6], probe[6:9], constants[0], constants[1], constants[2],
-                constants[3], constants[4], constants[5], constants[6], substeps, forces)
+        _tick(*arguments)
         _usleep(0)  # a compiler barrier: the result is stored before it is announced
         control[_DONE] = sequence
         done = sequence
@@ -98,7 +104,7 @@ class LatticeWorker:
 
     def __init__(self, model: LatticeModel, num_masses: int, constants, *, implicit: bool,
                  substeps: int, cg_max_iterations: int):
-        """``constants``: as ``_serve`` takes them (8)."""
+        """``constants``: as ``_tick`` takes them (8)."""
         self._control = np.zeros(3, dtype=np.int64)
         # The request's state, [x; v] (6 n) and the tool's (13), and the step's result.
         self._masses_in = np.zeros(6 * num_masses)
@@ -108,8 +114,7 @@ class LatticeWorker:
         self._pending = False  # a request not yet taken
         node_work, u, link_work = implicit_workspace(num_masses, len(model.links))
         self._arguments = (
-            self._control, self._masses_in, self._masses_out, self._probe, model.links,
-            model.rest_lengths_m,
+            self._masses_in, self._masses_out, self._probe, model.links, model.rest_lengths_m,
             model.stiffness_n_per_m, model.damping_n_s_per_m, model.mass_kg,
             model.inv_mass_per_kg, model.gravity_m_s2, model.surface, np.zeros((num_masses, 3)),
             np.asarray(constants, dtype=float), implicit, int(substeps), int(cg_max_iterations),
@@ -125,8 +130,8 @@ class LatticeWorker:
             return
         # A worker that ended idle may have left a request unserved: drop it.
         self._control[_DONE] = self._control[_REQUESTED]
-        self._thread = threading.Thread(target=_serve, args=self._arguments, daemon=True,
-                                        name="lattice-worker")
+        self._thread = threading.Thread(target=_serve, args=(self._control, self._arguments),
+                                        daemon=True, name="lattice-worker")
         self._thread.start()
 
     def request(self, state: np.ndarray, probe) -> bool:
