@@ -27,7 +27,7 @@ from maglev_haptics.systems.heightmap import (
     Heightmap, RandomHeightmap, heightmap_heights, validate_heightmap)
 from maglev_haptics.systems.lattice_construction import Lattice, build_lattice
 from maglev_haptics.systems.lattice_dynamics import (
-    INTEGRATORS, ProbeContact, lattice_model)
+    INTEGRATORS, SYMPLECTIC_EULER, ProbeContact, lattice_model, max_stable_link_stiffness)
 
 PROBE_RGBA = (0.75, 0.75, 0.78, 1.0)
 PROBE_SHAFT_RADIUS_M = 0.0015  # drawn only (m)
@@ -157,6 +157,26 @@ def probe_tool_sdf(scene: DeformableSurface) -> str:
         "</link></model></sdf>")
 
 
+def check_explicit_stability(scene: DeformableSurface, lattice: Lattice, time_step_s: float,
+                             label: str = "haptics.scene") -> None:
+    """A ValueError if symplectic Euler would blow this lattice up at ``time_step_s`` (s)."""
+    if scene.integrator != SYMPLECTIC_EULER:
+        return
+    limit = max_stable_link_stiffness(
+        lattice.positions_m, lattice.links, lattice.fixed, node_mass_kg=scene.node_mass_kg,
+        link_damping_n_s_per_m=scene.link_damping_n_s_per_m, time_step_s=time_step_s,
+        substeps=scene.substeps)
+    if scene.link_stiffness_n_per_m >= limit:
+        cause = (f"must be below {limit:.4g} N/m" if limit > 0 else
+                 f"cannot be stable: link_damping_n_s_per_m = {scene.link_damping_n_s_per_m} "
+                 "alone is too much")
+        raise ValueError(
+            f"{label}.link_stiffness_n_per_m = {scene.link_stiffness_n_per_m}: {cause} for "
+            f"symplectic Euler with {scene.substeps} substep(s) of the {1e3 * time_step_s:g} ms "
+            f"tick on this lattice ({scene.node_mass_kg} kg nodes); raise substeps or "
+            "node_mass_kg, or use integrator: linearly_implicit")
+
+
 def probe_start_overlap(scene: DeformableSurface, lattice: Lattice, X_WT: RigidTransform):
     """A message if the probe at X_WT starts touching or under the surface, else None."""
     p_WP = X_WT @ np.asarray(scene.tool_offset_m, dtype=float)
@@ -179,11 +199,13 @@ def AddDeformableScene(builder: DiagramBuilder, *, scene: DeformableSurface, tim
     """Add the tool's plant and scene graph and the lattice to ``builder``.
 
     The tool starts at X_WI_start (X_IT the identity), at rest; the lattice at rest
-    as built. A ValueError names a bad config field, or X_WI_start if the probe
-    would start in or under the surface."""
+    as built. A ValueError names a bad config field (a link stiffness symplectic
+    Euler cannot step among them), or X_WI_start if the probe would start in or
+    under the surface."""
     validate_deformable_surface(scene)
     _positive("time_step_s", time_step_s)
     lattice = build_scene_lattice(scene)
+    check_explicit_stability(scene, lattice, time_step_s)
     X_IT = RigidTransform()
     X_WT = X_WI_start @ X_IT
     overlap = probe_start_overlap(scene, lattice, X_WT)

@@ -114,3 +114,20 @@ def test_runs_shorter_than_the_guard_windows_still_summarize(name):
     # 0.1 s: fewer log samples than the 50 ms contact guard's window and the filters'.
     result = run_scenario(load_scenario(name), label=name, progress=False, duration_s=0.1)
     assert result.summary["duration_s"] == pytest.approx(0.1)
+
+
+@pytest.mark.parametrize("text, message", [
+    ("{haptics: {scene: !DeformableSurface {link_stiffness_n_per_m: 400.0}}}",
+     r"haptics.scene.link_stiffness_n_per_m = 400.0: must be below 3\d\d(\.\d)? N/m for "
+     r"symplectic Euler with 1 substep\(s\)"),
+    ("{haptics: {scene: !DeformableSurface {link_damping_n_s_per_m: 1.0}}}",
+     r"cannot be stable: link_damping_n_s_per_m = 1.0 alone is too much"),
+])
+def test_a_lattice_symplectic_euler_would_blow_up_is_refused(text, message):
+    with pytest.raises(ValueError, match=message):
+        BuildDiagram(load_scenario("deformable_surface", scenario_text=text))
+
+
+def test_substeps_make_a_stiffer_lattice_steppable():
+    text = "{haptics: {scene: !DeformableSurface {link_stiffness_n_per_m: 400.0, substeps: 2}}}"
+    BuildDiagram(load_scenario("deformable_surface", scenario_text=text))
