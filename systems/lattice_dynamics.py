@@ -374,13 +374,6 @@ def implicit_workspace(num_masses: int, num_links: int):
     return np.zeros((8, num_masses, 3)), np.zeros((num_links, 3)), np.zeros((3, num_links))
 
 
-@numba.njit(cache=True)
-def probe_wrench(x, v, surface, p_WP, v_WP, p_WT, radius, k_c, onset, d_hc, mu, slip_speed):
-    """(wrench on the tool [f; tau] in W about p_WT, vertices in contact) at this state."""
-    return add_probe_forces(x, v, surface, p_WP, v_WP, p_WT, radius, k_c, onset, d_hc, mu,
-                            slip_speed, np.zeros((0, 3)))
-
-
 # --- energy and stability --------------------------------------------------------------
 
 @numba.njit(cache=True)
