@@ -32,37 +32,15 @@ column, for drawing.
 Float only: a state of tens of thousands of numbers has no use for AutoDiffXd.
 """
 
-import numba
 import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.math import RigidTransform
 from pydrake.systems.framework import LeafSystem, ValueProducer
 
 from maglev_haptics.systems.lattice_dynamics import (
-    LINEARLY_IMPLICIT, LatticeModel, ProbeContact, add_probe_forces, implicit_workspace,
-    linearly_implicit_tick, probe_point, symplectic_euler_tick)
+    LINEARLY_IMPLICIT, LatticeModel, ProbeContact, implicit_workspace, linearly_implicit_tick,
+    probe_arguments, state_contact, symplectic_euler_tick)
 from maglev_haptics.systems.lattice_worker import LatticeWorker
-
-
-@numba.njit(cache=True)
-def probe_arguments(tool, p_TP):
-    """[p_WP, v_WP, p_WT] (9) from the stored tool state [X_WT; V_WT] (13)."""
-    p_WP, v_WP = probe_point(tool[0:7], tool[7:13], p_TP)
-    return np.concatenate((p_WP, v_WP, tool[4:7]))
-
-
-@numba.njit(cache=True)
-def state_contact(state, surface, p_TP, constants):
-    """(wrench on the tool [f; tau] in W about T's origin, vertices in contact) for the
-    state vector [x; v; X_WT; V_WT]; ``constants`` the probe's radius, stiffness,
-    onset, dissipation, friction and slip speed."""
-    n = (state.shape[0] - 13) // 6
-    x = state[:3 * n].reshape((n, 3))
-    v = state[3 * n:6 * n].reshape((n, 3))
-    probe = probe_arguments(state[6 * n:], p_TP)
-    return add_probe_forces(x, v, surface, probe[0:3], probe[3:6], probe[6:9], constants[0],
-                            constants[1], constants[2], constants[3], constants[4],
-                            constants[5], np.zeros((0, 3)))
 
 
 class DeformableSurface(LeafSystem):
@@ -84,6 +62,9 @@ class DeformableSurface(LeafSystem):
         self._period_s = float(period_s)
         self._implicit = integrator == LINEARLY_IMPLICIT
         self._substeps = int(substeps)
+        # The step the contact is applied over first: the tick, or its first substep (s).
+        self._first_step_s = (self._period_s if self._implicit
+                              else self._period_s / self._substeps)
         self._cg_tolerance = float(cg_tolerance)
         self._cg_max_iterations = int(cg_max_iterations)
         self._external = np.zeros((self._n, 3))
@@ -127,7 +108,8 @@ class DeformableSurface(LeafSystem):
 
     def _calc_contact(self, context, value):
         value.set_value(state_contact(context.get_discrete_state(self._state).get_value(),
-                                      self._model.surface, self._p_TP, self._constants))
+                                      self._model.surface, self._p_TP, self._constants,
+                                      self._model.mass_kg, self._first_step_s))
 
     def _calc_wrench(self, context, output):
         output.SetFromVector(self._contact.Eval(context)[0])

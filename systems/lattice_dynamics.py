@@ -157,9 +157,15 @@ def probe_point(X_WT, V_WT, p_TP):
 
 @numba.njit(cache=True)
 def add_probe_forces(x, v, surface, p_WP, v_WP, p_WT, radius, k_c, onset, d_hc, mu, slip_speed,
-                     f):
+                     mass, h, f):
     """Add the probe's contact forces on the surface vertices into f (n, 3) (N);
     an f with no rows records nothing.
+
+    The contact's damping on a vertex, Hunt-Crossley along the normal and the
+    regularized friction across it, is applied explicitly over the step h (s); so
+    each is capped at the vertex's mass (kg) over h, which stops the relative motion
+    in one step instead of reversing it (uncapped, a held probe made the surface
+    chatter at half the tick rate).
 
     Returns (wrench on the tool [f; tau] in W about p_WT (N, N*m), number of
     vertices in contact)."""
@@ -179,12 +185,15 @@ def add_probe_forces(x, v, surface, p_WP, v_WP, p_WT, radius, k_c, onset, d_hc, 
             squeeze = 0.5 * depth * depth / onset
         else:
             squeeze = depth - 0.5 * onset
-        normal = k_c * squeeze * (1.0 - d_hc * approach)
+        damping_cap = mass[i] / h
+        normal = k_c * squeeze - min(k_c * squeeze * d_hc, damping_cap) * approach
         if normal <= 0.0:
             continue
         touching += 1
         tx, ty, tz = rx - approach * nx, ry - approach * ny, rz - approach * nz
-        slip = math.sqrt(tx * tx + ty * ty + tz * tz + slip_speed * slip_speed)
+        # At small slip the friction is a damper mu normal / slip_speed: keep it under the cap.
+        regularization = max(slip_speed, mu * normal / damping_cap)
+        slip = math.sqrt(tx * tx + ty * ty + tz * tz + regularization * regularization)
         drag = -mu * normal / slip
         fx = normal * nx + drag * tx
         fy = normal * ny + drag * ty
@@ -237,7 +246,7 @@ def symplectic_euler_tick(x, v, links, rest, k, b, mass, inv_mass, gravity, surf
     for step in range(substeps):
         link_forces(x, v, links, rest, k, b, f)
         w, t = add_probe_forces(x, v, surface, p_WP, v_WP, p_WT, radius, k_c, onset, d_hc,
-                                mu, slip_speed, f)
+                                mu, slip_speed, mass, h_s, f)
         if step == 0:
             wrench, touching = w, t
         _symplectic_substep(x, v, mass, inv_mass, gravity, external, f, h_s)
@@ -310,7 +319,7 @@ def linearly_implicit_tick(x, v, links, rest, k, b, mass, inv_mass, gravity, sur
     c_iso, c_axial, stiff_axial = link_work[0], link_work[1], link_work[2]
     link_forces(x, v, links, rest, k, b, f)
     wrench, touching = add_probe_forces(x, v, surface, p_WP, v_WP, p_WT, radius, k_c, onset,
-                                        d_hc, mu, slip_speed, f)
+                                        d_hc, mu, slip_speed, mass, h, f)
     # rhs = h F + h^2 dF/dx v, zero at fixed masses.
     for i in range(x.shape[0]):
         for a in range(3):
@@ -367,6 +376,54 @@ def linearly_implicit_tick(x, v, links, rest, k, b, mass, inv_mass, gravity, sur
             v[i, a] += dv[i, a]
             x[i, a] += h * v[i, a]
     return wrench, touching, iterations
+
+
+@numba.njit(cache=True, nogil=True)
+def tick_from(masses_in, masses_out, probe, links, rest, k, b, mass, inv_mass, gravity, surface,
+              external, constants, implicit, substeps, cg_max_iterations, forces, node_work, u,
+              link_work):
+    """``masses_out`` = one tick from ``masses_in`` ([x; v], 6 n). ``probe`` is
+    [p_WP, v_WP, p_WT] (9); ``constants`` the probe's radius, stiffness, onset,
+    dissipation, friction, slip speed, then the tick and the CG tolerance."""
+    n = masses_in.shape[0] // 6
+    masses_out[:] = masses_in
+    x = masses_out[:3 * n].reshape((n, 3))
+    v = masses_out[3 * n:].reshape((n, 3))
+    if implicit:
+        linearly_implicit_tick(
+            x, v, links, rest, k, b, mass, inv_mass, gravity, surface, external, probe[0:3],
+            probe[3:6], probe[6:9], constants[0], constants[1], constants[2], constants[3],
+            constants[4], constants[5], constants[6], constants[7], cg_max_iterations,
+            node_work, u, link_work)
+    else:
+        symplectic_euler_tick(
+            x, v, links, rest, k, b, mass, inv_mass, gravity, surface, external, probe[0:3],
+            probe[3:6], probe[6:9], constants[0], constants[1], constants[2], constants[3],
+            constants[4], constants[5], constants[6], substeps, forces)
+
+
+# The DeformableSurface system's state vector is [x; v; X_WT; V_WT] (6 n + 13).
+
+@numba.njit(cache=True)
+def probe_arguments(tool, p_TP):
+    """[p_WP, v_WP, p_WT] (9) from the stored tool state [X_WT; V_WT] (13)."""
+    p_WP, v_WP = probe_point(tool[0:7], tool[7:13], p_TP)
+    return np.concatenate((p_WP, v_WP, tool[4:7]))
+
+
+@numba.njit(cache=True)
+def state_contact(state, surface, p_TP, constants, mass, h):
+    """(wrench on the tool [f; tau] in W about T's origin, vertices in contact) for the
+    state vector [x; v; X_WT; V_WT]; ``constants`` the probe's radius, stiffness,
+    onset, dissipation, friction and slip speed; ``mass`` (n,) kg and the (sub)step
+    h (s) as the next step applies the contact."""
+    n = (state.shape[0] - 13) // 6
+    x = state[:3 * n].reshape((n, 3))
+    v = state[3 * n:6 * n].reshape((n, 3))
+    probe = probe_arguments(state[6 * n:], p_TP)
+    return add_probe_forces(x, v, surface, probe[0:3], probe[3:6], probe[6:9], constants[0],
+                            constants[1], constants[2], constants[3], constants[4],
+                            constants[5], mass, h, np.zeros((0, 3)))
 
 
 def implicit_workspace(num_masses: int, num_links: int):

@@ -29,8 +29,7 @@ import weakref
 import numba
 import numpy as np
 
-from maglev_haptics.systems.lattice_dynamics import (
-    LatticeModel, implicit_workspace, linearly_implicit_tick, symplectic_euler_tick)
+from maglev_haptics.systems.lattice_dynamics import LatticeModel, implicit_workspace, tick_from
 
 FAST_POLLS = 20000  # looks by yielding (~5-10 ms idle) before the worker sleeps between them
 IDLE_POLL_US = 1000  # (us)
@@ -46,35 +45,12 @@ _sched_yield.argtypes = []
 _sched_yield.restype = ctypes.c_int
 
 
-@numba.njit(cache=True, nogil=True)
-def _tick(masses_in, masses_out, probe, links, rest, k, b, mass, inv_mass, gravity, surface,
-          external, constants, implicit, substeps, cg_max_iterations, forces, node_work, u,
-          link_work):
-    """``masses_out`` = one tick from ``masses_in`` ([x; v], 6 n). ``probe`` is
-    [p_WP, v_WP, p_WT] (9); ``constants`` the probe's radius, stiffness, onset,
-    dissipation, friction, slip speed, then the tick and the CG tolerance."""
-    n = masses_in.shape[0] // 6
-    masses_out[:] = masses_in
-    x = masses_out[:3 * n].reshape((n, 3))
-    v = masses_out[3 * n:].reshape((n, 3))
-    if implicit:
-        linearly_implicit_tick(
-            x, v, links, rest, k, b, mass, inv_mass, gravity, surface, external, probe[0:3],
-            probe[3:6], probe[6:9], constants[0], constants[1], constants[2], constants[3],
-            constants[4], constants[5], constants[6], constants[7], cg_max_iterations,
-            node_work, u, link_work)
-    else:
-        symplectic_euler_tick(
-            x, v, links, rest, k, b, mass, inv_mass, gravity, surface, external, probe[0:3],
-            probe[3:6], probe[6:9], constants[0], constants[1], constants[2], constants[3],
-            constants[4], constants[5], constants[6], substeps, forces)
-
-
 # Not cached (numba cannot cache code that calls a ctypes function), so kept small:
-# the tick it calls comes compiled from the cache.
+# the tick it calls comes compiled from the cache. That tick lives with the kernels
+# it calls: numba's cache goes stale only when the function's own file changes.
 @numba.njit(nogil=True)
 def _serve(control, arguments):
-    """Run ``_tick(*arguments)`` for every request until the stop flag is set."""
+    """Run ``tick_from(*arguments)`` for every request until the stop flag is set."""
     done = control[_DONE]
     idle = 0
     while control[_STOP] == 0:
@@ -89,7 +65,7 @@ def _serve(control, arguments):
                 _usleep(IDLE_POLL_US)
             continue
         idle = 0
-        _tick(*arguments)
+        tick_from(*arguments)
         _usleep(0)  # a compiler barrier: the result is stored before it is announced
         control[_DONE] = sequence
         done = sequence
@@ -104,7 +80,7 @@ class LatticeWorker:
 
     def __init__(self, model: LatticeModel, num_masses: int, constants, *, implicit: bool,
                  substeps: int, cg_max_iterations: int):
-        """``constants``: as ``_tick`` takes them (8)."""
+        """``constants``: as ``tick_from`` takes them (8)."""
         self._control = np.zeros(3, dtype=np.int64)
         # The request's state, [x; v] (6 n) and the tool's (13), and the step's result.
         self._masses_in = np.zeros(6 * num_masses)

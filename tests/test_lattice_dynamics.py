@@ -212,7 +212,7 @@ def test_probe_forces_balance_the_wrench_on_the_tool():
     wrench, touching = add_probe_forces(x, v, model.surface, p_WP, np.array([0.02, 0.0, -0.01]),
                                         p_WT, probe.radius_m, probe.stiffness_n_per_m,
                                         probe.onset_depth_m, probe.dissipation_s_per_m, probe.friction,
-                                        probe.slip_speed_m_s, forces)
+                                        probe.slip_speed_m_s, model.mass_kg, TICK_S, forces)
     assert touching >= 3
     touched = np.flatnonzero(np.abs(forces).sum(axis=1))
     assert len(touched) == touching
@@ -245,3 +245,16 @@ def test_probe_point_follows_the_tool_pose():
                                       0.01])
     r = p_WP - X_WT[4:7]
     np.testing.assert_allclose(v_WP, V_WT[3:6] + np.cross(V_WT[0:3], r))
+
+
+@pytest.mark.parametrize("integrator", ["symplectic_euler", "linearly_implicit"])
+def test_a_still_probe_pressed_in_settles_without_chatter(integrator):
+    lattice = small_lattice(bumpy=True)
+    run = Run(lattice, k=40.0, b=0.05, integrator=integrator)
+    node = centre_surface_vertex(lattice)
+    probe = ProbeContact(friction=0.3)  # friction strong enough to chatter if stepped naively
+    centre = lattice.positions_m[node] + [0.0005, 0.0, probe.radius_m - 0.0015]
+    forces = np.array([run.step(centre, probe=probe)[0] for _ in range(1500)])
+    last = forces[-200:, 2]
+    assert last.mean() > 0.01  # pressed (N)
+    assert np.ptp(last) < 1e-4 * last.mean()  # and still: no tick-to-tick alternation
