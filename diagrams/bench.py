@@ -34,6 +34,7 @@ from maglev_haptics.diagrams.lattice_bench import (
     LATTICE_SIZES, format_lattice_report, lattice_scaling, plot_lattice_scaling)
 from maglev_haptics.diagrams.runner import simulate
 from maglev_haptics.diagrams.scenario import SCENARIO_DIR, load_scenario, scenario_names
+from maglev_haptics.diagrams.timing import time_per_call_us
 from maglev_haptics.diagrams.station import add_station_models, rest_transform
 from maglev_haptics.hardware.device import DeviceConfig
 from maglev_haptics.hardware.magnetics import bench_wrench_matrix, load_magnetics
@@ -44,14 +45,6 @@ LEVITATE_FILE = SCENARIO_DIR / "levitate.yaml"
 HAPTIC_FILES = [SCENARIO_DIR / f"{name}.yaml" for name in ("hanging_ball", "paddle_ball",
                                                             "peg_in_hole", "deformable_surface")]
 HOVER_TIME_S = 1.5  # operating point for the per-system costs (s into takeoff_hover_land)
-
-
-def _time_per_call_us(function, n: int) -> float:
-    function()
-    start = time.perf_counter()
-    for _ in range(n):
-        function()
-    return 1e6 * (time.perf_counter() - start) / n
 
 
 def leaf_system_costs(built, context, n: int = 300) -> Dict[str, float]:
@@ -90,7 +83,7 @@ def leaf_system_costs(built, context, n: int = 300) -> Dict[str, float]:
                     system.EvalUniquePeriodicDiscreteUpdate(own)
             # Re-fixing the inputs is the harness's cost, not the system's.
             costs[system.get_name()] = max(
-                0.0, _time_per_call_us(one_update, n) - _time_per_call_us(fix_inputs, n))
+                0.0, time_per_call_us(one_update, n) - time_per_call_us(fix_inputs, n))
     return costs
 
 
@@ -136,8 +129,8 @@ def allocation_cost_us(config: DeviceConfig, n: int = 2000) -> Dict[str, float]:
     hover = np.array([0, 0, spec.mass_kg * 9.81, 0, 0, 0])
     limit = config.amplifier.current_limit_a
     return {
-        "within_limits_us": _time_per_call_us(lambda: allocate_currents(A, hover, limit), n),
-        "saturating_us": _time_per_call_us(lambda: allocate_currents(A, 40 * hover, limit), n // 4),
+        "within_limits_us": time_per_call_us(lambda: allocate_currents(A, hover, limit), n),
+        "saturating_us": time_per_call_us(lambda: allocate_currents(A, 40 * hover, limit), n // 4),
     }
 
 

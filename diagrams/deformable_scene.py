@@ -19,9 +19,8 @@ from pydrake.multibody.plant import AddMultibodyPlant, MultibodyPlantConfig
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import Adder, Demultiplexer, MatrixGain
 
-from maglev_haptics.diagrams.scene import (
-    SceneParts, _finite, _nonnegative, _positive, _require, _vector, sphere_inertia,
-    wrench_to_generalized_force)
+from maglev_haptics.diagrams.scene import SceneParts, sphere_inertia, wrench_to_generalized_force
+from maglev_haptics.systems.config_checks import finite, nonnegative, positive, require, vector
 from maglev_haptics.systems.deformable_surface import DeformableSurface as DeformableSurfaceSystem
 from maglev_haptics.systems.heightmap import (
     Heightmap, RandomHeightmap, heightmap_heights, validate_heightmap)
@@ -93,39 +92,39 @@ def build_scene_lattice(scene: DeformableSurface) -> Lattice:
 
 def validate_deformable_surface(scene: DeformableSurface, label: str = "scene") -> None:
     """Range checks; a ValueError names ``label.field``, its value and what is allowed."""
-    _vector(f"{label}.size_m", scene.size_m, positive=True, length=2)
-    _vector(f"{label}.center_m", scene.center_m, length=2)
-    _positive(f"{label}.column_spacing_m", scene.column_spacing_m)
+    vector(f"{label}.size_m", scene.size_m, positive=True, length=2)
+    vector(f"{label}.center_m", scene.center_m, length=2)
+    positive(f"{label}.column_spacing_m", scene.column_spacing_m)
     for i in range(2):
-        _require(scene.size_m[i] >= 2 * scene.column_spacing_m, f"{label}.size_m[{i}]",
-                 scene.size_m[i], f"at least 2 column spacings ({2 * scene.column_spacing_m} m)")
-    _positive(f"{label}.level_spacing_m", scene.level_spacing_m)
-    _require(_finite(scene.base_z_m), f"{label}.base_z_m", scene.base_z_m, "a finite number")
-    _require(_finite(scene.surface_z_m) and scene.surface_z_m > scene.base_z_m,
-             f"{label}.surface_z_m", scene.surface_z_m,
-             f"a finite height above base_z_m ({scene.base_z_m} m)")
+        require(scene.size_m[i] >= 2 * scene.column_spacing_m, f"{label}.size_m[{i}]",
+                scene.size_m[i], f"at least 2 column spacings ({2 * scene.column_spacing_m} m)")
+    positive(f"{label}.level_spacing_m", scene.level_spacing_m)
+    require(finite(scene.base_z_m), f"{label}.base_z_m", scene.base_z_m, "a finite number")
+    require(finite(scene.surface_z_m) and scene.surface_z_m > scene.base_z_m,
+            f"{label}.surface_z_m", scene.surface_z_m,
+            f"a finite height above base_z_m ({scene.base_z_m} m)")
     validate_heightmap(scene.heightmap, f"{label}.heightmap")
-    _positive(f"{label}.node_mass_kg", scene.node_mass_kg)
-    _positive(f"{label}.link_stiffness_n_per_m", scene.link_stiffness_n_per_m)
-    _nonnegative(f"{label}.link_damping_n_s_per_m", scene.link_damping_n_s_per_m)
-    _require(scene.integrator in INTEGRATORS, f"{label}.integrator", scene.integrator,
-             f"one of {', '.join(INTEGRATORS)}")
-    _require(isinstance(scene.substeps, int) and scene.substeps >= 1, f"{label}.substeps",
-             scene.substeps, "an integer >= 1")
-    _positive(f"{label}.cg_tolerance", scene.cg_tolerance)
-    _require(isinstance(scene.cg_max_iterations, int) and scene.cg_max_iterations >= 1,
-             f"{label}.cg_max_iterations", scene.cg_max_iterations, "an integer >= 1")
-    _vector(f"{label}.gravity_m_s2", scene.gravity_m_s2)
+    positive(f"{label}.node_mass_kg", scene.node_mass_kg)
+    positive(f"{label}.link_stiffness_n_per_m", scene.link_stiffness_n_per_m)
+    nonnegative(f"{label}.link_damping_n_s_per_m", scene.link_damping_n_s_per_m)
+    require(scene.integrator in INTEGRATORS, f"{label}.integrator", scene.integrator,
+            f"one of {', '.join(INTEGRATORS)}")
+    require(isinstance(scene.substeps, int) and scene.substeps >= 1, f"{label}.substeps",
+            scene.substeps, "an integer >= 1")
+    positive(f"{label}.cg_tolerance", scene.cg_tolerance)
+    require(isinstance(scene.cg_max_iterations, int) and scene.cg_max_iterations >= 1,
+            f"{label}.cg_max_iterations", scene.cg_max_iterations, "an integer >= 1")
+    vector(f"{label}.gravity_m_s2", scene.gravity_m_s2)
     probe = scene.probe
-    _positive(f"{label}.probe.radius_m", probe.radius_m)
-    _positive(f"{label}.probe.stiffness_n_per_m", probe.stiffness_n_per_m)
-    _positive(f"{label}.probe.onset_depth_m", probe.onset_depth_m)
-    _nonnegative(f"{label}.probe.dissipation_s_per_m", probe.dissipation_s_per_m)
-    _nonnegative(f"{label}.probe.friction", probe.friction)
-    _positive(f"{label}.probe.slip_speed_m_s", probe.slip_speed_m_s)
-    _vector(f"{label}.tool_offset_m", scene.tool_offset_m)
-    _positive(f"{label}.tool_mass_kg", scene.tool_mass_kg)
-    _nonnegative(f"{label}.min_inertia_kg_m2", scene.min_inertia_kg_m2)
+    positive(f"{label}.probe.radius_m", probe.radius_m)
+    positive(f"{label}.probe.stiffness_n_per_m", probe.stiffness_n_per_m)
+    positive(f"{label}.probe.onset_depth_m", probe.onset_depth_m)
+    nonnegative(f"{label}.probe.dissipation_s_per_m", probe.dissipation_s_per_m)
+    nonnegative(f"{label}.probe.friction", probe.friction)
+    positive(f"{label}.probe.slip_speed_m_s", probe.slip_speed_m_s)
+    vector(f"{label}.tool_offset_m", scene.tool_offset_m)
+    positive(f"{label}.tool_mass_kg", scene.tool_mass_kg)
+    nonnegative(f"{label}.min_inertia_kg_m2", scene.min_inertia_kg_m2)
 
 
 def probe_tool_sdf(scene: DeformableSurface) -> str:
@@ -203,7 +202,7 @@ def AddDeformableScene(builder: DiagramBuilder, *, scene: DeformableSurface, tim
     Euler cannot step among them), or X_WI_start if the probe would start in or
     under the surface."""
     validate_deformable_surface(scene)
-    _positive("time_step_s", time_step_s)
+    positive("time_step_s", time_step_s)
     lattice = build_scene_lattice(scene)
     check_explicit_stability(scene, lattice, time_step_s)
     X_IT = RigidTransform()

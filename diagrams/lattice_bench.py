@@ -10,7 +10,6 @@ symplectic Euler substep count (the implicit step has no such limit).
 """
 
 import dataclasses
-import time
 from pathlib import Path
 from typing import Dict, Sequence
 
@@ -18,6 +17,7 @@ import matplotlib
 import numpy as np
 
 from maglev_haptics.diagrams.deformable_scene import DeformableSurface, build_scene_lattice
+from maglev_haptics.diagrams.timing import time_per_call_us
 from maglev_haptics.systems.lattice_dynamics import (
     ProbeContact, implicit_workspace, lattice_model, linearly_implicit_tick,
     max_stable_link_stiffness, symplectic_euler_tick)
@@ -29,6 +29,7 @@ LATTICE_SIZES = (1000, 5000, 10000, 20000)  # masses, about
 SUBSTEP_COUNTS = (1, 2, 4)
 TICK_S = 1e-3
 BUDGET_US = 1000.0  # one haptic tick (us)
+WINDOWS = 7  # timing windows, the best kept
 
 
 def scene_with_masses(target_masses: int, base: DeformableSurface = None) -> DeformableSurface:
@@ -42,18 +43,6 @@ def scene_with_masses(target_masses: int, base: DeformableSurface = None) -> Def
     ny = max(3, int(round(columns / nx)))
     return dataclasses.replace(base, size_m=[(nx - 1) * base.column_spacing_m,
                                              (ny - 1) * base.column_spacing_m])
-
-
-def _time_us(step, repeats: int) -> float:
-    """Best over 7 windows of ``repeats`` calls (us a call): this host's load comes and goes."""
-    step()  # compiled and warm
-    best = np.inf
-    for _ in range(7):
-        start = time.perf_counter()
-        for _ in range(repeats):
-            step()
-        best = min(best, (time.perf_counter() - start) / repeats)
-    return 1e6 * best
 
 
 def lattice_costs(scene: DeformableSurface) -> Dict:
@@ -85,15 +74,17 @@ def lattice_costs(scene: DeformableSurface) -> Dict:
     repeats = max(3, int(2e5 / lattice.num_links))
     forces = np.zeros((lattice.num_masses, 3))
     explicit = arguments(scene.link_stiffness_n_per_m)
-    costs = {f"symplectic_euler_{n}_us": _time_us(
-        lambda n=n: symplectic_euler_tick(*explicit, n, forces), repeats) for n in (1, 4)}
+    costs = {f"symplectic_euler_{n}_us": time_per_call_us(
+        lambda n=n: symplectic_euler_tick(*explicit, n, forces), repeats, WINDOWS)
+        for n in (1, 4)}
     stiff = 10.0 * limits["1"]
     implicit = arguments(stiff)
     workspace = implicit_workspace(lattice.num_masses, lattice.num_links)
     iterations = linearly_implicit_tick(*implicit, scene.cg_tolerance, scene.cg_max_iterations,
                                         *workspace)[2]
-    costs["linearly_implicit_us"] = _time_us(lambda: linearly_implicit_tick(
-        *implicit, scene.cg_tolerance, scene.cg_max_iterations, *workspace), max(2, repeats // 8))
+    costs["linearly_implicit_us"] = time_per_call_us(lambda: linearly_implicit_tick(
+        *implicit, scene.cg_tolerance, scene.cg_max_iterations, *workspace),
+        max(2, repeats // 8), WINDOWS)
     return {"masses": lattice.num_masses, "links": lattice.num_links, **costs,
             "linearly_implicit_link_stiffness_n_per_m": stiff,
             "linearly_implicit_cg_iterations": int(iterations),

@@ -9,7 +9,6 @@ values are range-checked the same way.
 """
 
 import dataclasses
-import math
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -19,13 +18,14 @@ import yaml
 from pydrake.common.yaml import yaml_load_typed
 from pydrake.multibody.plant import MultibodyPlantConfig
 
-from maglev_haptics.diagrams.hand_script import MeshcatHand, ScriptedHand, validate_hand
 from maglev_haptics.diagrams.deformable_scene import (
     DeformableSurface, validate_deformable_surface)
+from maglev_haptics.diagrams.hand_script import MeshcatHand, ScriptedHand, validate_hand
 from maglev_haptics.diagrams.scene import HangingBall, PaddleBall, PegInHole, validate_scene
 from maglev_haptics.diagrams.waypoints import Waypoint
 from maglev_haptics.hardware.device import INSTRUMENT_KINDS, DeviceConfig
 from maglev_haptics.hardware.limits import LIMIT_KINDS
+from maglev_haptics.systems.config_checks import each, nonnegative, positive, require, vector
 from maglev_haptics.systems.haptic_coupling import CouplingConfig
 from maglev_haptics.systems.haptic_supervisor import SupervisorConfig
 from maglev_haptics.systems.levitation_controller import ControllerConfig
@@ -235,99 +235,81 @@ def _check_value(value, schema, path: str) -> None:
     # Drake's own config dataclasses check their fields in yaml_load_typed.
 
 
-def _require(ok: bool, path: str, value, allowed: str) -> None:
-    if not ok:
-        raise ScenarioError(f"{path} = {value!r}: {allowed}")
-
-
-def _positive(path: str, value) -> None:
-    _require(isinstance(value, (int, float)) and math.isfinite(value) and value > 0,
-             path, value, "must be a finite number > 0")
-
-
-def _nonnegative(path: str, value) -> None:
-    _require(isinstance(value, (int, float)) and math.isfinite(value) and value >= 0,
-             path, value, "must be a finite number >= 0")
-
-
-def _vector(path: str, value, size: int) -> None:
-    _require(isinstance(value, list) and len(value) == size
-             and all(isinstance(v, (int, float)) and math.isfinite(v) for v in value),
-             path, value, f"must be a list of {size} finite numbers")
-
-
-def _each(path: str, value, size: int, check) -> None:
-    """A list of ``size`` finite numbers, each passing ``check`` (path[i], v)."""
-    _vector(path, value, size)
-    for i, v in enumerate(value):
-        check(f"{path}[{i}]", v)
-
-
 def validate_scenario(s: Scenario, label: str) -> None:
-    """Range checks; each error names the field, its value and what is allowed."""
+    """Range checks; each error, a ScenarioError, names the field, its value and what
+    is allowed."""
+    try:
+        _check_scenario(s, label)
+    except ScenarioError:
+        raise
+    except ValueError as error:
+        raise ScenarioError(str(error)) from None
+
+
+def _check_scenario(s: Scenario, label: str) -> None:
     d = s.device
     p = f"{label}: device"
-    _require(d.instrument in INSTRUMENT_KINDS, f"{p}.instrument", d.instrument,
-             f"must be one of {', '.join(INSTRUMENT_KINDS)}")
+    require(d.instrument in INSTRUMENT_KINDS, f"{p}.instrument", d.instrument,
+            f"must be one of {', '.join(INSTRUMENT_KINDS)}")
     if d.instrument_mass_kg is not None:
-        _positive(f"{p}.instrument_mass_kg", d.instrument_mass_kg)
+        positive(f"{p}.instrument_mass_kg", d.instrument_mass_kg)
     if d.magnet is not None:
         for name in ("diameter_m", "height_m", "remanence_t", "density_kg_m3"):
-            _positive(f"{p}.magnet.{name}", getattr(d.magnet, name))
+            positive(f"{p}.magnet.{name}", getattr(d.magnet, name))
     for name in ("outer_diameter_m", "height_m", "resistance_ohm", "inductance_h"):
-        _positive(f"{p}.coil.{name}", getattr(d.coil, name))
-    _nonnegative(f"{p}.coil.inner_diameter_m", d.coil.inner_diameter_m)
-    _require(d.coil.inner_diameter_m < d.coil.outer_diameter_m, f"{p}.coil.inner_diameter_m",
-             d.coil.inner_diameter_m, f"must be < outer_diameter_m ({d.coil.outer_diameter_m})")
-    _require(isinstance(d.coil.turns, int) and d.coil.turns > 0, f"{p}.coil.turns",
-             d.coil.turns, "must be a positive integer")
-    _positive(f"{p}.array.pitch_m", d.array.pitch_m)
-    _positive(f"{p}.array.row_spacing_m", d.array.row_spacing_m)
-    _require(len(d.array.row_counts) > 0 and all(c > 0 for c in d.array.row_counts),
-             f"{p}.array.row_counts", d.array.row_counts, "must be a non-empty list of positive counts")
-    _require(d.array.pitch_m >= d.coil.outer_diameter_m, f"{p}.array.pitch_m", d.array.pitch_m,
-             f"must be >= the coil's outer diameter ({d.coil.outer_diameter_m} m): coils cannot overlap")
-    _positive(f"{p}.amplifier.current_limit_a", d.amplifier.current_limit_a)
-    _positive(f"{p}.amplifier.bandwidth_hz", d.amplifier.bandwidth_hz)
-    _positive(f"{p}.display.thickness_m", d.display.thickness_m)
-    _positive(f"{p}.tracker.rate_hz", d.tracker.rate_hz)
-    _nonnegative(f"{p}.tracker.noise_m", d.tracker.noise_m)
-    _nonnegative(f"{p}.tracker.latency_s", d.tracker.latency_s)
+        positive(f"{p}.coil.{name}", getattr(d.coil, name))
+    nonnegative(f"{p}.coil.inner_diameter_m", d.coil.inner_diameter_m)
+    require(d.coil.inner_diameter_m < d.coil.outer_diameter_m, f"{p}.coil.inner_diameter_m",
+            d.coil.inner_diameter_m, f"must be < outer_diameter_m ({d.coil.outer_diameter_m})")
+    require(isinstance(d.coil.turns, int) and d.coil.turns > 0, f"{p}.coil.turns",
+            d.coil.turns, "must be a positive integer")
+    positive(f"{p}.array.pitch_m", d.array.pitch_m)
+    positive(f"{p}.array.row_spacing_m", d.array.row_spacing_m)
+    require(len(d.array.row_counts) > 0 and all(c > 0 for c in d.array.row_counts),
+            f"{p}.array.row_counts", d.array.row_counts, "must be a non-empty list of positive counts")
+    require(d.array.pitch_m >= d.coil.outer_diameter_m, f"{p}.array.pitch_m", d.array.pitch_m,
+            f"must be >= the coil's outer diameter ({d.coil.outer_diameter_m} m): coils cannot overlap")
+    positive(f"{p}.amplifier.current_limit_a", d.amplifier.current_limit_a)
+    positive(f"{p}.amplifier.bandwidth_hz", d.amplifier.bandwidth_hz)
+    positive(f"{p}.display.thickness_m", d.display.thickness_m)
+    positive(f"{p}.tracker.rate_hz", d.tracker.rate_hz)
+    nonnegative(f"{p}.tracker.noise_m", d.tracker.noise_m)
+    nonnegative(f"{p}.tracker.latency_s", d.tracker.latency_s)
 
     c = s.controller
     for name in ("natural_frequency_hz", "damping_ratio"):
-        _each(f"{label}: controller.{name}", getattr(c, name), 6, _positive)
+        each(f"{label}: controller.{name}", getattr(c, name), 6, positive)
     for name in ("kp", "kd"):
         if getattr(c, name) is not None:
-            _each(f"{label}: controller.{name}", getattr(c, name), 6, _nonnegative)
-    _nonnegative(f"{label}: controller.lost_grace_s", c.lost_grace_s)
+            each(f"{label}: controller.{name}", getattr(c, name), 6, nonnegative)
+    nonnegative(f"{label}: controller.lost_grace_s", c.lost_grace_s)
 
     m = s.motion
-    _vector(f"{label}: motion.start_xy_yaw", m.start_xy_yaw, 3)
-    _positive(f"{label}: motion.takeoff_at_s", m.takeoff_at_s)
+    vector(f"{label}: motion.start_xy_yaw", m.start_xy_yaw, 3)
+    positive(f"{label}: motion.takeoff_at_s", m.takeoff_at_s)
     for name in ("force_ramp_s", "landing_s"):
-        _positive(f"{label}: motion.{name}", getattr(m, name))
-    _nonnegative(f"{label}: motion.settle_s", m.settle_s)
-    _require(len(m.waypoints) > 0, f"{label}: motion.waypoints", m.waypoints,
-             "must hold at least one pose to hover at")
+        positive(f"{label}: motion.{name}", getattr(m, name))
+    nonnegative(f"{label}: motion.settle_s", m.settle_s)
+    require(len(m.waypoints) > 0, f"{label}: motion.waypoints", m.waypoints,
+            "must hold at least one pose to hover at")
     for i, w in enumerate(m.waypoints):
-        _vector(f"{label}: motion.waypoints[{i}].pose", w.pose, 6)
-        _positive(f"{label}: motion.waypoints[{i}].move_s", w.move_s)
-        _nonnegative(f"{label}: motion.waypoints[{i}].hold_s", w.hold_s)
+        vector(f"{label}: motion.waypoints[{i}].pose", w.pose, 6)
+        positive(f"{label}: motion.waypoints[{i}].move_s", w.move_s)
+        nonnegative(f"{label}: motion.waypoints[{i}].hold_s", w.hold_s)
 
     for i, o in enumerate(s.occlusions):
         n_markers = len(d.instrument_spec().p_IK_m)
-        _require(o.marker is None or 0 <= o.marker < n_markers, f"{label}: occlusions[{i}].marker",
-                 o.marker, f"must be null (all markers) or a marker index 0..{n_markers - 1}")
-        _require(0 <= o.start_s <= o.end_s, f"{label}: occlusions[{i}]",
-                 (o.start_s, o.end_s), "needs 0 <= start_s <= end_s")
-    _require(0.0 <= s.marker_dropout_probability <= 1.0, f"{label}: marker_dropout_probability",
-             s.marker_dropout_probability, "must be in [0, 1]")
-    _positive(f"{label}: control_rate_hz", s.control_rate_hz)
-    _positive(f"{label}: log_rate_hz", s.log_rate_hz)
-    _positive(f"{label}: plant_config.time_step", s.plant_config.time_step)
+        require(o.marker is None or 0 <= o.marker < n_markers, f"{label}: occlusions[{i}].marker",
+                o.marker, f"must be null (all markers) or a marker index 0..{n_markers - 1}")
+        require(0 <= o.start_s <= o.end_s, f"{label}: occlusions[{i}]",
+                (o.start_s, o.end_s), "needs 0 <= start_s <= end_s")
+    require(0.0 <= s.marker_dropout_probability <= 1.0, f"{label}: marker_dropout_probability",
+            s.marker_dropout_probability, "must be in [0, 1]")
+    positive(f"{label}: control_rate_hz", s.control_rate_hz)
+    positive(f"{label}: log_rate_hz", s.log_rate_hz)
+    positive(f"{label}: plant_config.time_step", s.plant_config.time_step)
     if s.duration_s is not None:
-        _positive(f"{label}: duration_s", s.duration_s)
+        positive(f"{label}: duration_s", s.duration_s)
     if s.haptics is not None:
         _validate_haptics(s.haptics, label)
     if s.haptics is not None and s.hand is None:
@@ -335,40 +317,34 @@ def validate_scenario(s: Scenario, label: str) -> None:
                             "(hand: !ScriptedHand {...} or !MeshcatHand {...}), whose grip "
                             "engages haptics")
     if s.hand is not None:
-        try:
-            validate_hand(s.hand, label)
-        except ValueError as error:
-            raise ScenarioError(str(error)) from None
-    _require(s.hardware == "sim", f"{label}: hardware", s.hardware,
-             "must be 'sim' (the real-hardware station is not part of this release)")
+        validate_hand(s.hand, label)
+    require(s.hardware == "sim", f"{label}: hardware", s.hardware,
+            "must be 'sim' (the real-hardware station is not part of this release)")
 
 
 def _validate_haptics(h: Haptics, label: str) -> None:
     p = f"{label}: haptics"
-    try:
-        if isinstance(h.scene, DeformableSurface):
-            validate_deformable_surface(h.scene, f"{p}.scene")
-        else:
-            validate_scene(h.scene, f"{p}.scene")
-    except ValueError as error:
-        raise ScenarioError(str(error)) from None
-    _nonnegative(f"{p}.enable_at_s", h.enable_at_s)
+    if isinstance(h.scene, DeformableSurface):
+        validate_deformable_surface(h.scene, f"{p}.scene")
+    else:
+        validate_scene(h.scene, f"{p}.scene")
+    nonnegative(f"{p}.enable_at_s", h.enable_at_s)
     if h.disable_at_s is not None:
-        _require(isinstance(h.disable_at_s, (int, float)) and h.disable_at_s > h.enable_at_s,
-                 f"{p}.disable_at_s", h.disable_at_s,
-                 f"must be after enable_at_s ({h.enable_at_s} s), or null")
+        require(isinstance(h.disable_at_s, (int, float)) and h.disable_at_s > h.enable_at_s,
+                f"{p}.disable_at_s", h.disable_at_s,
+                f"must be after enable_at_s ({h.enable_at_s} s), or null")
     c = h.coupling
     for name in ("translational_stiffness", "translational_damping"):
-        _each(f"{p}.coupling.{name}", getattr(c, name), 3, _positive)
+        each(f"{p}.coupling.{name}", getattr(c, name), 3, positive)
     for name in ("rotational_stiffness", "rotational_damping"):
         if getattr(c, name) is not None:
-            _each(f"{p}.coupling.{name}", getattr(c, name), 3, _positive)
-    _positive(f"{p}.coupling.velocity_filter_hz", c.velocity_filter_hz)
-    _nonnegative(f"{p}.coupling.ramp_s", c.ramp_s)
+            each(f"{p}.coupling.{name}", getattr(c, name), 3, positive)
+    positive(f"{p}.coupling.velocity_filter_hz", c.velocity_filter_hz)
+    nonnegative(f"{p}.coupling.ramp_s", c.ramp_s)
     for name in ("max_force_n", "max_torque_nm"):
         if getattr(c, name) is not None:
-            _positive(f"{p}.coupling.{name}", getattr(c, name))
-    _require(c.device_limit in LIMIT_KINDS, f"{p}.coupling.device_limit", c.device_limit,
-             f"must be one of {', '.join(LIMIT_KINDS)}")
+            positive(f"{p}.coupling.{name}", getattr(c, name))
+    require(c.device_limit in LIMIT_KINDS, f"{p}.coupling.device_limit", c.device_limit,
+            f"must be one of {', '.join(LIMIT_KINDS)}")
     for f in dataclasses.fields(h.supervisor):
-        _nonnegative(f"{p}.supervisor.{f.name}", getattr(h.supervisor, f.name))
+        nonnegative(f"{p}.supervisor.{f.name}", getattr(h.supervisor, f.name))

@@ -65,7 +65,6 @@ Models are generated SDFormat text, so every size and contact property comes
 from the scenario; nothing is read from files.
 """
 
-import math
 from dataclasses import dataclass, field
 from typing import List, NamedTuple, Optional, Sequence, Union
 
@@ -82,6 +81,7 @@ from pydrake.multibody.tree import LinearSpringDamper, RigidBody
 from pydrake.systems.framework import DiagramBuilder, InputPort, OutputPort
 from pydrake.systems.primitives import Demultiplexer, MatrixGain, ZeroOrderHold
 
+from maglev_haptics.systems.config_checks import finite, nonnegative, positive, require, vector
 from maglev_haptics.systems.tool_contact import ToolContactSensor
 
 GRAVITY_M_S2 = 9.81  # magnitude of the scene plant's default gravity (m/s^2)
@@ -355,81 +355,57 @@ def wrench_to_generalized_force(velocity_start: int, num_velocities: int) -> np.
 
 # --- validation -----------------------------------------------------------------------
 
-def _require(ok: bool, path: str, value, allowed: str) -> None:
-    if not ok:
-        raise ValueError(f"{path} = {value!r}: {allowed}")
-
-
-def _finite(value) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-
-
-def _positive(path: str, value) -> None:
-    _require(_finite(value) and value > 0, path, value, "must be a finite number > 0")
-
-
-def _nonnegative(path: str, value) -> None:
-    _require(_finite(value) and value >= 0, path, value, "must be a finite number >= 0")
-
-
-def _vector(path: str, value, positive: bool = False, length: int = 3, meaning: str = "") -> None:
-    _require(isinstance(value, (list, tuple)) and len(value) == length
-             and all(map(_finite, value)) and (not positive or all(v > 0 for v in value)),
-             path, value,
-             f"must be a list of {length} finite numbers{' > 0' if positive else ''}{meaning}")
-
-
 def _validate_contact(c: ContactProperties, path: str) -> None:
-    _positive(f"{path}.hydroelastic_modulus_pa", c.hydroelastic_modulus_pa)
-    _nonnegative(f"{path}.hunt_crossley_dissipation_s_per_m", c.hunt_crossley_dissipation_s_per_m)
-    _nonnegative(f"{path}.friction", c.friction)
-    _positive(f"{path}.resolution_hint_m", c.resolution_hint_m)
+    positive(f"{path}.hydroelastic_modulus_pa", c.hydroelastic_modulus_pa)
+    nonnegative(f"{path}.hunt_crossley_dissipation_s_per_m", c.hunt_crossley_dissipation_s_per_m)
+    nonnegative(f"{path}.friction", c.friction)
+    positive(f"{path}.resolution_hint_m", c.resolution_hint_m)
 
 
 def validate_scene(scene: SceneConfig, label: str = "scene") -> None:
     """Range checks; a ValueError names ``label.field``, its value and what is allowed."""
-    _require(isinstance(scene, (PegInHole, HangingBall, PaddleBall)), label, scene,
-             "must be a PegInHole, HangingBall or PaddleBall")
-    _nonnegative(f"{label}.min_inertia_kg_m2", scene.min_inertia_kg_m2)
-    _vector(f"{label}.tool_offset_m", scene.tool_offset_m)
+    require(isinstance(scene, (PegInHole, HangingBall, PaddleBall)), label, scene,
+            "must be a PegInHole, HangingBall or PaddleBall")
+    nonnegative(f"{label}.min_inertia_kg_m2", scene.min_inertia_kg_m2)
+    vector(f"{label}.tool_offset_m", scene.tool_offset_m)
     if not isinstance(scene, PegInHole) and scene.table_z_m is not None:
-        _require(_finite(scene.table_z_m), f"{label}.table_z_m", scene.table_z_m,
-                 "must be a finite number or null")
+        require(finite(scene.table_z_m), f"{label}.table_z_m", scene.table_z_m,
+                "must be a finite number or null")
     _validate_contact(scene.contact, f"{label}.contact")
     if isinstance(scene, PegInHole):
-        _vector(f"{label}.peg_size_m", scene.peg_size_m, positive=True)
-        _positive(f"{label}.peg_mass_kg", scene.peg_mass_kg)
-        _vector(f"{label}.hole_size_m", scene.hole_size_m, positive=True)
-        _vector(f"{label}.hole_center_m", scene.hole_center_m)
-        _vector(f"{label}.block_size_m", scene.block_size_m, positive=True, length=2,
-                meaning=": the plate's outer x, y (its thickness is the hole's depth, "
-                "hole_size_m[2])")
+        vector(f"{label}.peg_size_m", scene.peg_size_m, positive=True)
+        positive(f"{label}.peg_mass_kg", scene.peg_mass_kg)
+        vector(f"{label}.hole_size_m", scene.hole_size_m, positive=True)
+        vector(f"{label}.hole_center_m", scene.hole_center_m)
+        vector(f"{label}.block_size_m", scene.block_size_m, positive=True, length=2,
+               meaning=": the plate's outer x, y (its thickness is the hole's depth, "
+               "hole_size_m[2])")
         for i, axis in enumerate("xy"):
-            _require(scene.peg_size_m[i] < scene.hole_size_m[i], f"{label}.peg_size_m[{i}]",
-                     scene.peg_size_m[i], f"the peg must be narrower than the hole in {axis} "
-                     f"(hole_size_m[{i}] = {scene.hole_size_m[i]})")
-            _require(scene.hole_size_m[i] < scene.block_size_m[i], f"{label}.hole_size_m[{i}]",
-                     scene.hole_size_m[i], f"the hole must be narrower than the plate in {axis} "
-                     f"(block_size_m[{i}] = {scene.block_size_m[i]})")
+            require(scene.peg_size_m[i] < scene.hole_size_m[i], f"{label}.peg_size_m[{i}]",
+                    scene.peg_size_m[i], f"the peg must be narrower than the hole in {axis} "
+                    f"(hole_size_m[{i}] = {scene.hole_size_m[i]})")
+            require(scene.hole_size_m[i] < scene.block_size_m[i], f"{label}.hole_size_m[{i}]",
+                    scene.hole_size_m[i], f"the hole must be narrower than the plate in {axis} "
+                    f"(block_size_m[{i}] = {scene.block_size_m[i]})")
     elif isinstance(scene, HangingBall):
-        _positive(f"{label}.anchor_radius_m", scene.anchor_radius_m)
-        _positive(f"{label}.anchor_mass_kg", scene.anchor_mass_kg)
-        _positive(f"{label}.ball_radius_m", scene.ball_radius_m)
-        _positive(f"{label}.ball_mass_kg", scene.ball_mass_kg)
-        _positive(f"{label}.spring_stiffness_n_per_m", scene.spring_stiffness_n_per_m)
-        _nonnegative(f"{label}.spring_damping_n_s_per_m", scene.spring_damping_n_s_per_m)
-        _positive(f"{label}.spring_rest_length_m", scene.spring_rest_length_m)
+        positive(f"{label}.anchor_radius_m", scene.anchor_radius_m)
+        positive(f"{label}.anchor_mass_kg", scene.anchor_mass_kg)
+        positive(f"{label}.ball_radius_m", scene.ball_radius_m)
+        positive(f"{label}.ball_mass_kg", scene.ball_mass_kg)
+        positive(f"{label}.spring_stiffness_n_per_m", scene.spring_stiffness_n_per_m)
+        nonnegative(f"{label}.spring_damping_n_s_per_m", scene.spring_damping_n_s_per_m)
+        positive(f"{label}.spring_rest_length_m", scene.spring_rest_length_m)
         gap = scene.anchor_radius_m + scene.ball_radius_m
-        _require(hanging_drop_m(scene) > gap, f"{label}.spring_rest_length_m",
-                 scene.spring_rest_length_m, f"the ball must hang clear of the anchor: rest "
-                 f"length + m g / k = {hanging_drop_m(scene):.4g} m must exceed "
-                 f"anchor_radius_m + ball_radius_m = {gap:.4g} m")
+        require(hanging_drop_m(scene) > gap, f"{label}.spring_rest_length_m",
+                scene.spring_rest_length_m, f"the ball must hang clear of the anchor: rest "
+                f"length + m g / k = {hanging_drop_m(scene):.4g} m must exceed "
+                f"anchor_radius_m + ball_radius_m = {gap:.4g} m")
     else:
-        _vector(f"{label}.paddle_size_m", scene.paddle_size_m, positive=True)
-        _positive(f"{label}.paddle_mass_kg", scene.paddle_mass_kg)
-        _positive(f"{label}.ball_radius_m", scene.ball_radius_m)
-        _positive(f"{label}.ball_mass_kg", scene.ball_mass_kg)
-        _vector(f"{label}.ball_start_m", scene.ball_start_m)
+        vector(f"{label}.paddle_size_m", scene.paddle_size_m, positive=True)
+        positive(f"{label}.paddle_mass_kg", scene.paddle_mass_kg)
+        positive(f"{label}.ball_radius_m", scene.ball_radius_m)
+        positive(f"{label}.ball_mass_kg", scene.ball_mass_kg)
+        vector(f"{label}.ball_start_m", scene.ball_start_m)
 
 
 # --- SDFormat -------------------------------------------------------------------------
@@ -569,7 +545,7 @@ def AddScene(builder: DiagramBuilder, *, scene: SceneConfig, time_step_s: float,
     the contact flag at that period instead of every step.
     """
     validate_scene(scene)
-    _positive("time_step_s", time_step_s)
+    positive("time_step_s", time_step_s)
     X_IT = RigidTransform()
     X_WT = X_WI_start @ X_IT
     overlap = start_overlap(scene, X_WT @ RigidTransform(np.asarray(scene.tool_offset_m, float)))

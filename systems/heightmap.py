@@ -27,6 +27,8 @@ from typing import List, Union
 import numpy as np
 from scipy.ndimage import gaussian_filter
 
+from maglev_haptics.systems.config_checks import finite, require
+
 # Relative deviation of a grid's spacings from their mean still called uniform:
 # np.linspace's spacings differ by a few ulps.
 UNIFORM_SPACING_RTOL = 1e-6
@@ -119,35 +121,25 @@ def validate_grid_axis(name: str, values, min_points: int) -> np.ndarray:
 
 # --- validation -----------------------------------------------------------------------
 
-def _require(ok: bool, path: str, value, allowed: str) -> None:
-    if not ok:
-        raise ValueError(f"{path} = {value!r}: {allowed}")
-
-
-def _finite(value) -> bool:
-    return (isinstance(value, (int, float, np.integer, np.floating))
-            and not isinstance(value, bool) and math.isfinite(value))
-
-
 def _pair(path: str, values, minimum: float, strict: bool, meaning: str) -> None:
     ok = (isinstance(values, (list, tuple)) and len(values) == 2
-          and all(_finite(v) and (v > minimum if strict else v >= minimum) for v in values))
+          and all(finite(v) and (v > minimum if strict else v >= minimum) for v in values))
     bound = "" if minimum == -math.inf else f" {'>' if strict else '>='} {minimum:g}"
-    _require(ok, path, values, f"must be a list of 2 finite numbers{bound} ({meaning})")
+    require(ok, path, values, f"must be a list of 2 finite numbers{bound} ({meaning})")
 
 
 def validate_heightmap(config: Heightmap, path: str) -> None:
     """Range checks; a ValueError names ``path.field``, its value and what is allowed."""
-    _require(isinstance(config, (RandomHeightmap, SineHeightmap)), path, config,
-             "must be a RandomHeightmap or a SineHeightmap")
+    require(isinstance(config, (RandomHeightmap, SineHeightmap)), path, config,
+            "must be a RandomHeightmap or a SineHeightmap")
     if isinstance(config, RandomHeightmap):
-        _require(isinstance(config.seed, (int, np.integer)) and not isinstance(config.seed, bool)
-                 and config.seed >= 0, f"{path}.seed", config.seed, "must be an integer >= 0")
-        _require(_finite(config.amplitude_m) and config.amplitude_m >= 0, f"{path}.amplitude_m",
-                 config.amplitude_m, "must be a finite RMS height >= 0 (m)")
-        _require(_finite(config.correlation_length_m) and config.correlation_length_m > 0,
-                 f"{path}.correlation_length_m", config.correlation_length_m,
-                 "must be a finite length > 0 (m)")
+        require(isinstance(config.seed, (int, np.integer)) and not isinstance(config.seed, bool)
+                and config.seed >= 0, f"{path}.seed", config.seed, "must be an integer >= 0")
+        require(finite(config.amplitude_m) and config.amplitude_m >= 0, f"{path}.amplitude_m",
+                config.amplitude_m, "must be a finite RMS height >= 0 (m)")
+        require(finite(config.correlation_length_m) and config.correlation_length_m > 0,
+                f"{path}.correlation_length_m", config.correlation_length_m,
+                "must be a finite length > 0 (m)")
         return
     _pair(f"{path}.amplitude_m", config.amplitude_m, 0.0, False, "x and y amplitudes, m")
     _pair(f"{path}.wavelength_m", config.wavelength_m, 0.0, True, "x and y wavelengths, m")
