@@ -171,6 +171,39 @@ class DisplaySpec:
 
     thickness_m: float = 0.010  # paper: "under 10 mm" with the backlight
     size_m: List[float] = field(default_factory=lambda: [0.4738, 0.2961])  # 22" 16:10 active area
+    resolution_px: List[int] = field(default_factory=lambda: [1680, 1050])  # width, height
+    refresh_hz: float = 120.0  # frames a second, alternating eyes behind the shutter glasses
+    # Pose of the active area's centre D in W, [x, y, z, roll, pitch, yaw] (m, rad): zero
+    # by W's definition; set it to model a display that sits off its calibrated place.
+    # Its x runs along the long edge (the image's rows), its y to the image's top edge.
+    pose_W: List[float] = field(default_factory=lambda: [0.0] * 6)
+
+
+def _glasses_markers() -> List[List[float]]:
+    """Four reflective markers on the left temple of the glasses, in G (m): a flat,
+    asymmetric star as on a Polaris passive tool, facing the tracker at the user's left."""
+    return [[-0.078, -0.010, 0.010], [-0.078, 0.015, 0.045],
+            [-0.078, -0.020, 0.070], [-0.078, 0.010, 0.095]]
+
+
+@dataclass
+class GlassesSpec:
+    """The shutter glasses: frame G has its origin midway between the eyes, x towards
+    the right eye, y down the face, z along the line of sight (a camera's axes)."""
+
+    ipd_m: float = 0.063  # interpupillary distance, the adult mean (m)
+    p_GK_m: List[List[float]] = field(default_factory=_glasses_markers)  # tracker markers (m)
+
+
+@dataclass
+class HeadTrackerSpec:
+    """Optical tracker of the glasses (NDI Polaris Vicra by default)."""
+
+    rate_hz: float = 10.0  # the paper's head tracker: ~10 Hz
+    noise_m: float = 1.0e-4  # standard deviation per marker coordinate (paper: ~0.1 mm)
+    # Capture to availability (s). Assumed: the paper gives none, only a "noticeable
+    # lag"; a Polaris over a serial link reports tens of ms.
+    latency_s: float = 0.030
 
 
 @dataclass
@@ -224,6 +257,8 @@ class DeviceConfig:
     amplifier: AmplifierSpec = field(default_factory=AmplifierSpec)
     display: DisplaySpec = field(default_factory=DisplaySpec)
     tracker: TrackerSpec = field(default_factory=TrackerSpec)
+    glasses: GlassesSpec = field(default_factory=GlassesSpec)
+    head_tracker: HeadTrackerSpec = field(default_factory=HeadTrackerSpec)
     thermal: ThermalSpec = field(default_factory=ThermalSpec)
 
     def instrument_spec(self) -> InstrumentSpec:

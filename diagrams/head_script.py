@@ -1,0 +1,107 @@
+"""Scenario schema of the user's head (wearing the tracked shutter glasses), and
+its scripted plan: like the hand, it holds a start pose, then moves through
+waypoints by minimum-jerk moves.
+
+A head pose is where the eyes are and what they look at (``systems/head_sensor.py``
+turns it into the glasses' pose): ``position_m`` is the eyes' midpoint in W,
+``look_at_m`` the point looked at, ``heading_rad`` the direction of the eye axis
+(0: the user sits at the display's near, -y, edge, so the eyes lie along W's x),
+``roll_rad`` the head's tilt about the line of sight.
+"""
+
+from dataclasses import dataclass, field
+from typing import List
+
+import numpy as np
+from pydrake.trajectories import PiecewisePolynomial
+
+from maglev_haptics.diagrams.hand_script import TAIL_S
+from maglev_haptics.systems.blends import minimum_jerk_samples
+from maglev_haptics.systems.config_checks import (
+    finite, nonnegative, positive, require, vector)
+from maglev_haptics.systems.head_sensor import glasses_pose
+from maglev_haptics.systems.stereo import MIN_EYE_DISTANCE_M, eye_distance_m, eye_positions_W
+
+
+@dataclass
+class HeadPose:
+    # Seated at the near edge, eyes 0.30 m back and 0.45 m above the display's
+    # centre (0.54 m away), looking at it: the paper's "from above and the side".
+    position_m: List[float] = field(default_factory=lambda: [0.0, -0.30, 0.45])  # (m)
+    look_at_m: List[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])  # (m)
+    heading_rad: float = 0.0  # (rad)
+    roll_rad: float = 0.0  # (rad)
+
+    def vector(self) -> np.ndarray:
+        """The ``head_pose`` vector [position, look-at, heading, roll]."""
+        return np.array([*self.position_m, *self.look_at_m, self.heading_rad, self.roll_rad],
+                        dtype=float)
+
+
+@dataclass
+class HeadWaypoint(HeadPose):
+    move_s: float = 1.0  # duration of the minimum-jerk move into this pose (s)
+    hold_s: float = 0.0  # time held there (s)
+
+
+@dataclass
+class HeadScript:
+    start: HeadPose = field(default_factory=HeadPose)
+    start_s: float = 0.0  # the first move starts here (s)
+    waypoints: List[HeadWaypoint] = field(default_factory=list)
+
+
+def head_plan(script: HeadScript) -> PiecewisePolynomial:
+    """The ``head_pose`` trajectory (8 rows) of ``script``: a cubic Hermite fit of
+    minimum-jerk moves between held poses, with exact rates at the samples."""
+    pose = script.start.vector()
+    times, values, rates = [0.0], [pose], [np.zeros(8)]
+
+    def hold_until(t):
+        if t > times[-1]:
+            times.append(t)
+            values.append(pose)
+            rates.append(np.zeros(8))
+
+    t = script.start_s
+    for waypoint in script.waypoints:
+        hold_until(t)
+        goal = waypoint.vector()
+        for samples, new in zip((times, values, rates),
+                                minimum_jerk_samples(pose, goal, t, waypoint.move_s)):
+            samples.extend(new)
+        pose = goal
+        t += waypoint.move_s + waypoint.hold_s
+    hold_until(max(t, times[-1]) + TAIL_S)
+    return PiecewisePolynomial.CubicHermite(np.array(times), np.array(values).T,
+                                            np.array(rates).T)
+
+
+def validate_head_script(script: HeadScript, *, screen, ipd_m: float, path: str) -> None:
+    """ValueError naming the field for a pose that is not finite, whose line of sight
+    is degenerate, or that puts an eye less than MIN_EYE_DISTANCE_M in front of the
+    display (behind it, the display cannot be seen)."""
+    poses = [(f"{path}.start", script.start)] + [
+        (f"{path}.waypoints[{i}]", w) for i, w in enumerate(script.waypoints)]
+    nonnegative(f"{path}.start_s", script.start_s)
+    for name, pose in poses:
+        vector(f"{name}.position_m", pose.position_m, 3)
+        vector(f"{name}.look_at_m", pose.look_at_m, 3)
+        for angle in ("heading_rad", "roll_rad"):
+            require(finite(getattr(pose, angle)), f"{name}.{angle}", getattr(pose, angle),
+                    "must be a finite angle (rad)")
+        if isinstance(pose, HeadWaypoint):
+            positive(f"{name}.move_s", pose.move_s)
+            nonnegative(f"{name}.hold_s", pose.hold_s)
+        try:
+            q_WG, p_WG = glasses_pose(pose.vector())
+        except ValueError as error:
+            raise ValueError(f"{name}: {error}") from None
+        for side, eye in zip(("left", "right"), eye_positions_W(q_WG, p_WG, ipd_m)):
+            distance = eye_distance_m(screen.pa, screen.pb, screen.pc, eye)
+            if distance < MIN_EYE_DISTANCE_M:
+                raise ValueError(
+                    f"{name}.position_m = {pose.position_m}: the {side} eye would be "
+                    f"{distance * 1e3:.1f} mm in front of the display plane (negative: behind "
+                    f"it); eyes must be at least {MIN_EYE_DISTANCE_M * 1e3:.0f} mm above the "
+                    "screen to see it")

@@ -1,0 +1,160 @@
+"""Head sensor (station): a simulated optical tracker of the shutter glasses
+(Polaris-like, paper Section IV).
+
+The user's head comes in as a look-at description, ``head_pose`` = [p_WG (3),
+look-at point (3), heading, roll] (m, rad): the eyes' midpoint, the point they
+look at, the direction the user faces (0: the user sits at the display's -y edge
+facing +y, so G's x, the eye axis, is W's x) and the head's tilt about the line
+of sight. ``glasses_pose`` turns it into X_WG.
+
+Each capture (``rate_hz``) measures the glasses' markers with Gaussian noise per
+coordinate and fits the glasses' pose to them (as the tracker does, Kabsch);
+the result is published ``latency_s`` after its capture, so a sample always
+shows the head as it was that long ago. ``glasses_measured`` is [capture time
+(s), qw, qx, qy, qz, x, y, z, ok]; ok = 0 (and the pose NaN) while the glasses
+are hidden (scripted occlusions) or the head input is not finite.
+
+Randomness: sample k's noise is a pure function of (seed, k).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from pydrake.systems.framework import LeafSystem
+
+from maglev_haptics.systems.pose_estimator import MarkerModel, fit_pose
+from maglev_haptics.systems.rotations import (
+    quaternion_from_rotation_matrix, rotation_from_quaternion)
+
+HEAD_POSE_SIZE = 8
+MEASUREMENT_SIZE = 9  # [t_capture, q (4), p (3), ok]
+# A tracked tool's fit is rejected above this RMS marker residual (m), as a
+# Polaris rejects a tool whose markers do not match its definition.
+RESIDUAL_LIMIT_M = 1.0e-3
+
+
+@dataclass
+class HeadOcclusion:
+    """The glasses are out of the head tracker's view for capture times in
+    [start_s, end_s) (s)."""
+
+    start_s: float = 0.0
+    end_s: float = math.inf
+
+
+def glasses_rotation(p_WG, look_at_W, heading_rad: float, roll_rad: float) -> np.ndarray:
+    """R_WG: z along the line of sight, x the eye axis (towards the right eye)
+    turned ``heading_rad`` about W's z and kept square to the line of sight, y down
+    the face; then tilted ``roll_rad`` about the line of sight.
+
+    Looking straight down works (the eye axis stays the heading's); ValueError for
+    a line of sight along the eye axis or of zero length.
+    """
+    sight = np.asarray(look_at_W, float) - np.asarray(p_WG, float)
+    length = np.linalg.norm(sight)
+    z = sight / length if length > 0 else sight
+    heading_axis = np.array([math.cos(heading_rad), math.sin(heading_rad), 0.0])
+    x = heading_axis - np.dot(heading_axis, z) * z
+    if not (length > 1e-6 and np.linalg.norm(x) > 1e-3):
+        raise ValueError(
+            f"head at {np.asarray(p_WG).tolist()} looking at {np.asarray(look_at_W).tolist()} "
+            f"with heading {heading_rad} rad: the line of sight must have length and not run "
+            "along the eye axis")
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    c, s = math.cos(roll_rad), math.sin(roll_rad)
+    return np.column_stack([c * x + s * y, -s * x + c * y, z])
+
+
+def glasses_pose(head_pose) -> tuple:
+    """(q_WG, p_WG) of a ``head_pose`` vector [p_WG, look-at, heading, roll]."""
+    head_pose = np.asarray(head_pose, float)
+    R_WG = glasses_rotation(head_pose[0:3], head_pose[3:6], head_pose[6], head_pose[7])
+    return quaternion_from_rotation_matrix(R_WG), head_pose[0:3].copy()
+
+
+def measure_glasses(head_pose, p_GK: np.ndarray, noise_m: float, rng) -> np.ndarray:
+    """One noisy capture: the pose vector [q, p] fitted to the markers, or NaN (7)
+    when the head input is not finite or the fit is rejected."""
+    if not np.all(np.isfinite(head_pose)):
+        return np.full(7, np.nan)
+    q_WG, p_WG = glasses_pose(head_pose)
+    R_WG = rotation_from_quaternion(q_WG)
+    p_WK = p_WG + p_GK @ R_WG.T + rng.normal(0.0, noise_m, p_GK.shape)
+    x_WG, rms_m = fit_pose(MarkerModel(p_GK), p_WK)
+    if not rms_m <= RESIDUAL_LIMIT_M:
+        return np.full(7, np.nan)
+    if np.dot(x_WG[0:4], q_WG) < 0:
+        x_WG[0:4] = -x_WG[0:4]  # the same rotation, the hemisphere of the truth
+    return x_WG
+
+
+class HeadSensor(LeafSystem):
+    """The glasses' tracker: captures at ``rate_hz``, publishes each capture
+    ``latency_s`` later.
+
+    .. pydrake_system::
+
+        name: HeadSensor
+        input_ports:
+        - head_pose
+        output_ports:
+        - glasses_measured
+
+    Captures wait in a queue (state) until their latency has passed, so any
+    latency works, longer than the period too.
+    """
+
+    def __init__(self, *, tracker, glasses, occlusions=(), seed: int = 0):
+        super().__init__()
+        self._p_GK = np.asarray(glasses.p_GK_m, float)
+        self._noise_m = tracker.noise_m
+        self._latency_s = tracker.latency_s
+        self._rate_hz = tracker.rate_hz
+        self._occlusions = list(occlusions)
+        self._seed = seed
+        period_s = 1.0 / tracker.rate_hz
+        self._slots = int(math.floor(tracker.latency_s * tracker.rate_hz + 1e-9)) + 1
+        self._head_pose = self.DeclareVectorInputPort("head_pose", HEAD_POSE_SIZE)
+        empty = np.tile(_EMPTY_MEASUREMENT, self._slots)
+        self._queue = self.DeclareDiscreteState(empty)
+        self._published = self.DeclareDiscreteState(_EMPTY_MEASUREMENT.copy())
+        self.DeclarePeriodicDiscreteUpdateEvent(period_s, 0.0, self._capture)
+        release_offset_s = tracker.latency_s % period_s
+        if release_offset_s > 1e-9 and period_s - release_offset_s > 1e-9:
+            self.DeclarePeriodicDiscreteUpdateEvent(period_s, release_offset_s, self._release)
+        self.DeclareStateOutputPort("glasses_measured", self._published)
+
+    def _hidden(self, t_s: float) -> bool:
+        return any(o.start_s <= t_s < o.end_s for o in self._occlusions)
+
+    def _capture(self, context, discrete_state):
+        t = context.get_time()
+        k = round(t * self._rate_hz)
+        if self._hidden(t):
+            measurement = np.concatenate([[t], np.full(7, np.nan), [0.0]])
+        else:
+            rng = np.random.default_rng((self._seed, k))
+            x_WG = measure_glasses(self._head_pose.Eval(context), self._p_GK, self._noise_m, rng)
+            measurement = np.concatenate([[t], x_WG, [float(np.all(np.isfinite(x_WG)))]])
+        queue = context.get_discrete_state(self._queue).value().reshape(self._slots, -1).copy()
+        queue = np.vstack([queue[1:], measurement])  # oldest first
+        discrete_state.get_mutable_vector(self._queue).SetFromVector(queue.ravel())
+        self._publish_due(t, queue, discrete_state)
+
+    def _release(self, context, discrete_state):
+        queue = context.get_discrete_state(self._queue).value().reshape(self._slots, -1)
+        self._publish_due(context.get_time(), queue, discrete_state)
+
+    def _publish_due(self, t_s: float, queue: np.ndarray, discrete_state) -> None:
+        """Publish the newest capture whose latency has passed by t_s."""
+        due = np.flatnonzero(queue[:, 0] + self._latency_s <= t_s + 1e-9)
+        if len(due):
+            discrete_state.get_mutable_vector(self._published).SetFromVector(queue[due[-1]])
+
+
+# Nothing captured yet: capture time -inf, no pose, not ok.
+_EMPTY_MEASUREMENT = np.array([-np.inf] + [np.nan] * 7 + [0.0])
