@@ -26,6 +26,8 @@ python=$(command -v python3.11 || command -v python3)
   || { echo "run.sh: needs Python 3.11 (drake 1.51.1 wheels); found $("$python" --version)"; exit 1; }
 # graphviz draws `maglev diagram`; python3-venv is not in Debian's base python3.
 apt_install graphviz
+# Drake's VTK renderer draws the stereo display headless through EGL (Mesa llvmpipe).
+apt_install libegl1 libgl1-mesa-dri
 "$python" -m venv --help >/dev/null 2>&1 && "$python" -c 'import ensurepip' 2>/dev/null \
   || apt_install python3-venv
 if [ ! -x .venv/bin/python ]; then "$python" -m venv .venv; fi

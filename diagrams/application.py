@@ -3,8 +3,9 @@
 ``BuildDiagram(scenario)`` adds the station, the pose estimator, the scripted
 setpoint and enable ramps, the levitation controller, the current allocator,
 with haptics the scene, coupling and supervisor (``diagrams/haptics.py``),
-with a hand its commands, a logger at ``log_rate_hz`` and, when given a
-Meshcat, the visualizers.
+with a hand its commands, with the stereo display its predictor, views and
+renderer (``diagrams/stereo_display.py``), a logger at ``log_rate_hz`` and, when
+given a Meshcat, the visualizers.
 """
 
 from __future__ import annotations
@@ -23,12 +24,14 @@ from maglev_haptics.diagrams.haptics import AddHandCommands, AddHaptics
 from maglev_haptics.diagrams.motion import FlightPlan, check_waypoints_reachable, flight_plan
 from maglev_haptics.diagrams.scenario import Scenario
 from maglev_haptics.diagrams.station import MakeStation
+from maglev_haptics.diagrams.stereo_display import AddStereoDisplay
 from maglev_haptics.hardware.magnetics import load_magnetics
 from maglev_haptics.systems.current_allocator import CurrentAllocator
 from maglev_haptics.systems.device_visualizer import DeviceVisualizer
 from maglev_haptics.systems.lattice_visualizer import LatticeVisualizer
 from maglev_haptics.systems.levitation_controller import LevitationController
 from maglev_haptics.systems.pose_estimator import PoseEstimator
+from maglev_haptics.systems.stereo_renderer import AddStereoRenderer
 
 MESHCAT_PERIOD_S = 1 / 30
 
@@ -42,11 +45,16 @@ class BuiltDiagram:
     magnetics: object
     haptics: Optional[object] = None  # diagrams.haptics.HapticParts
     meshcat_hand: Optional[object] = None  # the MeshcatHandInput whose controls to delete
+    stereo: Optional[object] = None  # diagrams.stereo_display.StereoParts
 
 
 def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
-                 label: str = "scenario") -> BuiltDiagram:
-    """The whole diagram for ``scenario``; ``label`` names it in error messages."""
+                 label: str = "scenario", frame_sink=None, realtime: bool = False) -> BuiltDiagram:
+    """The whole diagram for ``scenario``; ``label`` names it in error messages.
+
+    With the stereo display, ``frame_sink(t, left, right)`` receives the rendered
+    eye images (none rendered without it); ``realtime`` lets rendering skip frames.
+    """
     device = scenario.device
     spec = device.instrument_spec()
     magnetics = load_magnetics(device)
@@ -119,6 +127,24 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
         logged_ports["hand_state"] = station.GetOutputPort("hand_state")
         logged_ports["hand_wrench_on_instrument_W"] = station.GetOutputPort(
             "hand_wrench_on_instrument_W")
+    stereo = None
+    if scenario.stereo is not None:
+        if haptics is not None:
+            AddStereoRenderer(haptics.scene.scene_graph)
+            virtual_world = haptics.scene.scene_graph.get_query_output_port()
+        else:
+            # No virtual scene: the display draws the instrument where it is tracked,
+            # which should sit exactly on the real one.
+            virtual_world = station.GetOutputPort("query_object")
+        stereo = AddStereoDisplay(builder, scenario=scenario, station=station,
+                                  query_object_port=virtual_world, meshcat=meshcat,
+                                  frame_sink=frame_sink, realtime=realtime)
+        logged_ports["head_pose"] = station.GetOutputPort("head_pose")
+        logged_ports["glasses_measured"] = station.GetOutputPort("glasses_measured")
+        for name in ("X_WG_predicted", "X_WG_latest"):
+            logged_ports[name] = stereo.predictor.GetOutputPort(name)
+        for name in ("eye_positions_W", "view_ok"):
+            logged_ports[name] = stereo.view.GetOutputPort(name)
     if haptics is not None:
         logged_ports["X_WT"] = haptics.scene.X_WT_output
         logged_ports["tool_contact_wrench_W"] = haptics.scene.contact_wrench_output
@@ -183,4 +209,5 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
     diagram = builder.Build()
     diagram.set_name("maglev_haptics")
     return BuiltDiagram(diagram=diagram, plan=plan, logger=logger, log_layout=log_layout,
-                        magnetics=magnetics, haptics=haptics, meshcat_hand=meshcat_hand)
+                        magnetics=magnetics, haptics=haptics, meshcat_hand=meshcat_hand,
+                        stereo=stereo)

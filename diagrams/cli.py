@@ -30,11 +30,14 @@ def _load(args):
 def _cmd_run(args) -> int:
     from maglev_haptics.diagrams.haptics import interactive_variant
     from maglev_haptics.diagrams.runner import run_scenario
+    from maglev_haptics.diagrams.scenario import with_stereo
 
     if args.duration is not None and not args.duration > 0:
         raise ScenarioError(f"--duration = {args.duration}: must be > 0 simulated seconds")
     scenario, label = _load(args)
     duration = args.duration
+    if args.stereo and scenario.stereo is None:
+        scenario = with_stereo(scenario, label)
     if args.interactive:
         if args.no_meshcat:
             raise ScenarioError("--interactive drives the hand from Meshcat: drop --no-meshcat")
@@ -50,7 +53,10 @@ def _cmd_run(args) -> int:
     printed = {k: v for k, v in result.summary.items() if k != "holds"}
     print(json.dumps(printed, indent=2))
     plots = "levitation.png" + (", haptics.png" if scenario.haptics is not None else "")
+    plots += ", stereo.png" if scenario.stereo is not None else ""
     print(f"wrote {out}/log.npz, {out}/summary.json, {out}/{plots}")
+    for name in result.summary.get("stereo", {}).get("video", {}).get("files", []):
+        print(f"wrote {out}/{name}")
     if result.meshcat is not None:
         replay = "" if args.interactive else " (the run's recording is replayable there)"
         print(f"Meshcat: {result.meshcat.web_url()}{replay}")
@@ -99,6 +105,10 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--interactive", action="store_true",
                      help="drive the simulated hand from Meshcat (sliders, grip button) in "
                      "real time instead of its script; haptic scenarios only")
+    run.add_argument("--stereo", action="store_true",
+                     help="turn on the head-tracked stereo display (the scenario's stereo: "
+                     "block, or the defaults): per-eye views, rendered side-by-side and "
+                     "anaglyph video, co-location errors, glasses and frusta in Meshcat")
     run.add_argument("--realtime", type=float,
                      help="target real-time rate (default 1 with Meshcat, else 0 = as fast as possible)")
     run.set_defaults(func=_cmd_run)

@@ -87,7 +87,7 @@ def log_arrays(logger, log_layout, context, device) -> Dict[str, np.ndarray]:
 
 
 def _optional_arrays(data) -> Dict[str, np.ndarray]:
-    """The hand's and the scene's logs, where the scenario has them."""
+    """The hand's, the scene's and the stereo display's logs, where the scenario has them."""
     arrays = {}
     if "handle_gripped" in data:
         arrays["handle_gripped"] = data["handle_gripped"][:, 0]
@@ -100,6 +100,13 @@ def _optional_arrays(data) -> Dict[str, np.ndarray]:
         arrays["tool_in_contact"] = data["tool_in_contact"][:, 0]
         arrays["haptic_mode"] = data["haptic_mode"][:, 0]
         arrays["coupling_clamped"] = data["coupling_clamped"][:, 0]
+    if "head_pose" in data:
+        arrays["head_pose"] = data["head_pose"]
+        arrays["glasses_measured"] = data["glasses_measured"]
+        arrays["X_WG_predicted"] = data["X_WG_predicted"]
+        arrays["X_WG_latest"] = data["X_WG_latest"]
+        arrays["eye_positions_W"] = data["eye_positions_W"]
+        arrays["view_ok"] = data["view_ok"][:, 0]
     return arrays
 
 

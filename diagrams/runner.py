@@ -19,6 +19,8 @@ from maglev_haptics.diagrams.haptic_metrics import haptic_summary
 from maglev_haptics.diagrams.run_metrics import log_arrays, summarize
 from maglev_haptics.diagrams.run_plots import plot_haptics, plot_run
 from maglev_haptics.diagrams.scenario import Scenario
+from maglev_haptics.diagrams.stereo_metrics import plot_colocation, stereo_summary
+from maglev_haptics.diagrams.stereo_video import StereoVideoWriter
 from maglev_haptics.hardware.thermal import coil_thermal
 from maglev_haptics.systems.device_visualizer import aim_camera_at_device
 
@@ -64,7 +66,13 @@ def run_scenario(scenario: Scenario, *, label: str, out_dir: Optional[Path] = No
                  duration_s: Optional[float] = None, progress: bool = True) -> RunResult:
     """Simulate ``scenario``; write ``log.npz``, ``summary.json`` and plots to ``out_dir``."""
     viewer = StartMeshcat() if meshcat else None
-    built = BuildDiagram(scenario, meshcat=viewer, label=label)
+    video = None
+    if scenario.stereo is not None and out_dir is not None and scenario.stereo.images.rate_hz > 0:
+        video = StereoVideoWriter(Path(out_dir), frame_rate_hz=scenario.stereo.images.rate_hz,
+                                  encoder=scenario.stereo.images.encoder)
+    built = BuildDiagram(scenario, meshcat=viewer, label=label,
+                         frame_sink=video.add if video is not None else None,
+                         realtime=realtime_rate > 0)
     if duration_s is None:
         duration_s = scenario.duration_s if scenario.duration_s is not None else built.plan.end_s
     # An interactive run is watched live; a recording would only grow.
@@ -78,6 +86,7 @@ def run_scenario(scenario: Scenario, *, label: str, out_dir: Optional[Path] = No
     finally:
         if built.meshcat_hand is not None:
             built.meshcat_hand.Delete()
+        video_summary = video.close() if video is not None else None
     if record:
         viewer.StopRecording()
         viewer.PublishRecording()
@@ -98,6 +107,8 @@ def run_scenario(scenario: Scenario, *, label: str, out_dir: Optional[Path] = No
                                     if scenario.haptics is not None else None)),
         **haptic_summary(log, scenario, rest_height_m=spec.rest_height_m),
     }
+    if scenario.stereo is not None:
+        summary["stereo"] = stereo_summary(log, scenario, built.stereo, video_summary)
     if built.haptics is not None:
         config = built.haptics.coupling_config
         summary["coupling_limits"] = {"max_force_n": config.max_force_n,
@@ -112,4 +123,6 @@ def run_scenario(scenario: Scenario, *, label: str, out_dir: Optional[Path] = No
                  current_limit_a=scenario.device.amplifier.current_limit_a)
         if scenario.haptics is not None:
             plot_haptics(log, out_dir, title=label)
+        if scenario.stereo is not None:
+            plot_colocation(log, scenario, out_dir, title=label)
     return RunResult(summary=summary, log=log, meshcat=viewer)

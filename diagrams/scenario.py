@@ -22,6 +22,7 @@ from maglev_haptics.diagrams.deformable_scene import (
     DeformableSurface, validate_deformable_surface)
 from maglev_haptics.diagrams.hand_script import MeshcatHand, ScriptedHand, validate_hand
 from maglev_haptics.diagrams.scene import HangingBall, PaddleBall, PegInHole, validate_scene
+from maglev_haptics.diagrams.stereo_display import StereoConfig, validate_stereo
 from maglev_haptics.diagrams.waypoints import Waypoint
 from maglev_haptics.hardware.device import INSTRUMENT_KINDS, DeviceConfig
 from maglev_haptics.hardware.limits import LIMIT_KINDS
@@ -91,6 +92,8 @@ class Scenario:
     # The simulated user's hand (station), scripted or driven from Meshcat; null: none.
     hand: Optional[Union[ScriptedHand, MeshcatHand]] = None
     haptics: Optional[Haptics] = None  # null: levitation only
+    # The head-tracked stereo display; null: none (``maglev run --stereo`` turns it on).
+    stereo: Optional[StereoConfig] = None
     duration_s: Optional[float] = None  # None: the motion script's length
     random_seed: int = 0
     hardware: str = "sim"  # only the simulated station exists so far
@@ -169,6 +172,13 @@ def load_scenario(name_or_path: str, name: Optional[str] = None,
     scenario = yaml_load_typed(schema=Scenario, data=path.read_text(),
                                child_name=name, defaults=Scenario())
     scenario = yaml_load_typed(schema=Scenario, data=scenario_text, defaults=scenario)
+    validate_scenario(scenario, label)
+    return scenario
+
+
+def with_stereo(scenario: Scenario, label: str) -> Scenario:
+    """``scenario`` with the stereo display at its defaults (``maglev run --stereo``)."""
+    scenario = dataclasses.replace(scenario, stereo=StereoConfig())
     validate_scenario(scenario, label)
     return scenario
 
@@ -318,6 +328,8 @@ def _check_scenario(s: Scenario, label: str) -> None:
                             "engages haptics")
     if s.hand is not None:
         validate_hand(s.hand, label)
+    if s.stereo is not None:
+        validate_stereo(s.stereo, d, label)
     require(s.hardware == "sim", f"{label}: hardware", s.hardware,
             "must be 'sim' (the real-hardware station is not part of this release)")
 

@@ -15,6 +15,12 @@ With a hand in the scenario (the simulated user), also:
 - outputs ``handle_gripped`` (1: the handle's grip sensor), ``hand_state`` (13)
   and ``hand_wrench_on_instrument_W`` (6: [f; tau] in W about I's origin, N,
   N*m; simulation only).
+
+With the stereo display in the scenario, the user's head and the glasses' tracker:
+
+- outputs ``glasses_measured`` (9: [capture time, qw, qx, qy, qz, x, y, z, ok]
+  of the glasses in W, s and m; ``systems/head_sensor.py``) and ``head_pose``
+  (8: the scripted head, simulation only).
 """
 
 from __future__ import annotations
@@ -24,13 +30,17 @@ from pydrake.math import RigidTransform, RollPitchYaw
 from pydrake.multibody.parsing import Parser
 from pydrake.multibody.plant import AddMultibodyPlant
 from pydrake.systems.framework import Diagram, DiagramBuilder
-from pydrake.systems.primitives import Adder, LinearSystem, MatrixGain, Saturation
+from pydrake.systems.primitives import (
+    Adder, LinearSystem, MatrixGain, Saturation, TrajectorySource)
 
+from maglev_haptics.diagrams.head_script import head_plan
 from maglev_haptics.diagrams.scenario import Scenario, ScenarioError
 from maglev_haptics.plant_models import PACKAGE_XML
 from maglev_haptics.systems.hand import HAND_MODEL_URL, SimulatedHand
+from maglev_haptics.systems.head_sensor import HeadSensor
 from maglev_haptics.systems.magnetic_actuation import MagneticActuation
 from maglev_haptics.systems.marker_sensor import MarkerSensor
+from maglev_haptics.systems.stereo_renderer import AddStereoRenderer
 
 DISPLAY_MODEL_URL = "package://maglev_haptics/display.sdf"
 DISPLAY_MODEL_THICKNESS_M = 0.010
@@ -146,9 +156,23 @@ def MakeStation(scenario: Scenario, *, magnetics) -> Diagram:
     builder.ExportOutput(scene_graph.get_query_output_port(), "query_object")
     if hand is not None:
         _add_hand(builder, scenario, plant, hand, body, actuation_force=placement.get_output_port())
+    if scenario.stereo is not None:
+        _add_head(builder, scenario)
+        AddStereoRenderer(scene_graph)
     station = builder.Build()
     station.set_name("station")
     return station
+
+
+def _add_head(builder, scenario: Scenario):
+    """The user's scripted head and the tracker of the glasses, and their ports."""
+    head = builder.AddNamedSystem("head", TrajectorySource(head_plan(scenario.stereo.head)))
+    sensor = builder.AddNamedSystem("head_sensor", HeadSensor(
+        tracker=scenario.device.head_tracker, glasses=scenario.device.glasses,
+        occlusions=scenario.stereo.occlusions, seed=scenario.random_seed))
+    builder.Connect(head.get_output_port(), sensor.GetInputPort("head_pose"))
+    builder.ExportOutput(head.get_output_port(), "head_pose")
+    builder.ExportOutput(sensor.GetOutputPort("glasses_measured"), "glasses_measured")
 
 
 def _add_hand(builder, scenario: Scenario, plant, hand, instrument_body, *, actuation_force):

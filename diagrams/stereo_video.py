@@ -211,12 +211,9 @@ class StereoVideoWriter:
         return (t_s - self._t0_s) * self._frame_rate_hz
 
     def _start(self, t_s: float, left: np.ndarray, right: np.ndarray) -> None:
-        self._frame_shape = left.shape
-        self._t0_s = t_s
         sbs, red_cyan = side_by_side(left, right), anaglyph(left, right)
         for name, image in ((FIRST_SBS_FILE, sbs), (FIRST_ANAGLYPH_FILE, red_cyan)):
             matplotlib.image.imsave(self._out_dir / name, image)
-            self._first_files.append(name)
         if self._format == "mp4":
             started = []
             try:
@@ -236,6 +233,10 @@ class StereoVideoWriter:
         if self._format == "png":
             self._sinks = (_PngSequence(self._out_dir, SBS_NAME),
                            _PngSequence(self._out_dir, ANAGLYPH_NAME))
+        # Only once all is in place, so a failure above (a full disk) leaves a retry possible.
+        self._first_files = [FIRST_SBS_FILE, FIRST_ANAGLYPH_FILE]
+        self._frame_shape = left.shape
+        self._t0_s = t_s
 
     def _write_held_until(self, end_frame: int) -> None:
         """Write the held pair into video frames up to, not including, ``end_frame``; on an

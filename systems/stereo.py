@@ -229,6 +229,7 @@ class StereoView(LeafSystem):
         check_ipd(ipd_m)
         check_clipping(near_m, far_m)
         self._screen = screen
+        self.view_period_s = period_s
         self._ipd_m = ipd_m
         self._near_m = near_m
         self._far_m = far_m

@@ -1,0 +1,145 @@
+"""The co-located stereo display in the diagram: its scenario schema and builder.
+
+The station (``diagrams/station.py``) holds the user's scripted head and the head
+sensor; the application, built here, holds the head pose predictor, the per-eye
+views at the display's refresh rate, the rendered frames at ``images.rate_hz``
+and the Meshcat drawing of the glasses and the frusta.
+"""
+
+from dataclasses import dataclass, field
+from typing import List, Optional
+
+from pydrake.systems.framework import DiagramBuilder
+
+from maglev_haptics.diagrams.head_script import HeadScript, validate_head_script
+from maglev_haptics.systems.config_checks import nonnegative, positive, require, vector
+from maglev_haptics.systems.head_predictor import (
+    PREDICTOR_MODES, HeadPosePredictor, HeadPredictorConfig)
+from maglev_haptics.systems.head_sensor import HeadOcclusion
+from maglev_haptics.systems.stereo import (
+    StereoView, check_clipping, check_ipd, display_rectangle)
+from maglev_haptics.systems.stereo_renderer import StereoRenderer
+from maglev_haptics.systems.stereo_visualizer import StereoVisualizer
+
+ENCODERS = ("auto", "png")
+MESHCAT_PERIOD_S = 1 / 30
+
+
+@dataclass
+class StereoImages:
+    """Rendered eye images, written as side-by-side and anaglyph video."""
+
+    rate_hz: float = 30.0  # frames a second; 0: views only, no images
+    size_px: List[int] = field(default_factory=lambda: [560, 350])  # per eye: a third of the panel
+    encoder: str = "auto"  # auto: MP4 where ffmpeg runs, else PNG sequences; png: always PNGs
+    # In real-time runs frames are skipped while rendering has taken more than this
+    # share of the wall clock; offline runs render every frame.
+    realtime_wall_share: float = 0.3
+
+
+@dataclass
+class StereoConfig:
+    head: HeadScript = field(default_factory=HeadScript)
+    predictor: HeadPredictorConfig = field(default_factory=HeadPredictorConfig)
+    occlusions: List[HeadOcclusion] = field(default_factory=list)  # the glasses unseen
+    view_rate_hz: Optional[float] = None  # None: the display's refresh rate (Hz)
+    near_m: float = 0.05  # clipping planes, from the eye along the screen normal (m)
+    far_m: float = 2.0
+    images: StereoImages = field(default_factory=StereoImages)
+    # Virtual points whose co-location error is reported (m, W); default: the centre of
+    # the paper's ball, 2 cm in diameter and 4 cm below the display.
+    colocation_points_m: List[List[float]] = field(default_factory=lambda: [[0.0, 0.0, -0.04]])
+
+
+def view_period_s(stereo: StereoConfig, display) -> float:
+    return 1.0 / (stereo.view_rate_hz if stereo.view_rate_hz is not None else display.refresh_hz)
+
+
+def validate_stereo(stereo: StereoConfig, device, label: str) -> None:
+    """ValueError naming the field, its value and what is allowed."""
+    p = f"{label}: stereo"
+    screen = display_rectangle(device.display)
+    positive(f"{label}: device.display.refresh_hz", device.display.refresh_hz)
+    vector(f"{label}: device.display.pose_W", device.display.pose_W, 6)
+    check_ipd(device.glasses.ipd_m, f"{label}: device.glasses.ipd_m")
+    t = device.head_tracker
+    positive(f"{label}: device.head_tracker.rate_hz", t.rate_hz)
+    nonnegative(f"{label}: device.head_tracker.noise_m", t.noise_m)
+    nonnegative(f"{label}: device.head_tracker.latency_s", t.latency_s)
+    markers = device.glasses.p_GK_m
+    require(isinstance(markers, list) and len(markers) >= 3, f"{label}: device.glasses.p_GK_m",
+            markers, "needs at least 3 markers for the tracker's pose fit")
+    for i, marker in enumerate(markers):
+        vector(f"{label}: device.glasses.p_GK_m[{i}]", marker, 3)
+    validate_head_script(stereo.head, screen=screen, ipd_m=device.glasses.ipd_m,
+                         path=f"{p}.head")
+    c = stereo.predictor
+    require(c.mode in PREDICTOR_MODES, f"{p}.predictor.mode", c.mode,
+            f"must be one of {', '.join(PREDICTOR_MODES)}")
+    positive(f"{p}.predictor.bandwidth_hz", c.bandwidth_hz)
+    require(c.bandwidth_hz < t.rate_hz / 2, f"{p}.predictor.bandwidth_hz", c.bandwidth_hz,
+            f"must be below the head tracker's Nyquist rate ({t.rate_hz / 2} Hz)")
+    if c.display_delay_s is not None:
+        nonnegative(f"{p}.predictor.display_delay_s", c.display_delay_s)
+    positive(f"{p}.predictor.max_extrapolation_s", c.max_extrapolation_s)
+    for i, o in enumerate(stereo.occlusions):
+        require(0 <= o.start_s <= o.end_s, f"{p}.occlusions[{i}]", (o.start_s, o.end_s),
+                "needs 0 <= start_s <= end_s")
+    if stereo.view_rate_hz is not None:
+        positive(f"{p}.view_rate_hz", stereo.view_rate_hz)
+    check_clipping(stereo.near_m, stereo.far_m, f"{p}.near_m, far_m")
+    i = stereo.images
+    nonnegative(f"{p}.images.rate_hz", i.rate_hz)
+    require(isinstance(i.size_px, list) and len(i.size_px) == 2
+            and all(isinstance(v, int) and 2 <= v <= 4096 for v in i.size_px),
+            f"{p}.images.size_px", i.size_px, "must be [width, height], integers 2-4096")
+    require(i.encoder in ENCODERS, f"{p}.images.encoder", i.encoder,
+            f"must be one of {', '.join(ENCODERS)}")
+    require(0 < i.realtime_wall_share <= 1, f"{p}.images.realtime_wall_share",
+            i.realtime_wall_share, "must be in (0, 1]")
+    for k, point in enumerate(stereo.colocation_points_m):
+        vector(f"{p}.colocation_points_m[{k}]", point, 3)
+
+
+@dataclass
+class StereoParts:
+    predictor: HeadPosePredictor
+    view: StereoView
+    renderer: Optional[StereoRenderer]
+
+
+def AddStereoDisplay(builder: DiagramBuilder, *, scenario, station, query_object_port,
+                     meshcat=None, frame_sink=None, realtime: bool = False) -> StereoParts:
+    """Predictor, views and (given a ``frame_sink(t, left, right)`` and images on)
+    the renderer of the virtual world behind ``query_object_port`` (its SceneGraph
+    must have the stereo renderer, ``AddStereoRenderer``)."""
+    stereo, device = scenario.stereo, scenario.device
+    period_s = view_period_s(stereo, device.display)
+    screen = display_rectangle(device.display)
+    predictor = builder.AddNamedSystem("head_pose_predictor", HeadPosePredictor(
+        config=stereo.predictor, tracker_rate_hz=device.head_tracker.rate_hz, period_s=period_s))
+    view = builder.AddNamedSystem("stereo_view", StereoView(
+        screen=screen, ipd_m=device.glasses.ipd_m, period_s=period_s,
+        near_m=stereo.near_m, far_m=stereo.far_m))
+    builder.Connect(station.GetOutputPort("glasses_measured"),
+                    predictor.GetInputPort("glasses_measured"))
+    builder.Connect(predictor.GetOutputPort("X_WG_predicted"), view.GetInputPort("X_WG"))
+    renderer = None
+    if frame_sink is not None and stereo.images.rate_hz > 0:
+        renderer = builder.AddNamedSystem("stereo_renderer", StereoRenderer(
+            rate_hz=stereo.images.rate_hz, image_px=stereo.images.size_px,
+            display_px=(screen.width_px, screen.height_px), near_m=stereo.near_m,
+            far_m=stereo.far_m, sink=frame_sink,
+            max_wall_share=stereo.images.realtime_wall_share if realtime else None))
+        builder.Connect(query_object_port, renderer.GetInputPort("query_object"))
+        for name in ("camera_left", "camera_right", "view_ok"):
+            builder.Connect(view.GetOutputPort(name), renderer.GetInputPort(name))
+    if meshcat is not None:
+        visualizer = builder.AddNamedSystem("stereo_visualizer", StereoVisualizer(
+            meshcat=meshcat, display_corners_W=screen.corners_W,
+            p_GK_m=device.glasses.p_GK_m, period_s=MESHCAT_PERIOD_S))
+        builder.Connect(predictor.GetOutputPort("X_WG_predicted"),
+                        visualizer.GetInputPort("X_WG"))
+        builder.Connect(view.GetOutputPort("eye_positions_W"),
+                        visualizer.GetInputPort("eye_positions_W"))
+    return StereoParts(predictor=predictor, view=view, renderer=renderer)

@@ -1,0 +1,156 @@
+"""Co-location error of the stereo display under head motion, from a run's log.
+
+A virtual point P is drawn for each eye where the line from the eye the view was
+computed for (``X_WG_predicted``, or the latest tracker sample for the
+"hold" baseline) through P meets the display. The real eye, elsewhere by the
+tracking error, sees that spot; the screen-space error is its distance (mm) from
+where the real eye needed it. The two real eyes' lines through their spots come
+closest at the perceived point; its distance from P is the perceived error (mm).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Dict
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from maglev_haptics.systems.head_sensor import glasses_pose  # noqa: E402
+from maglev_haptics.systems.rotations import rotation_from_quaternion  # noqa: E402
+from maglev_haptics.systems.stereo import display_rectangle, screen_axes  # noqa: E402
+
+MOVING_SPEED_M_S = 0.05  # the head counts as moving above this eye-midpoint speed (m/s)
+
+
+def eyes_from_poses(poses: np.ndarray, ipd_m: float) -> np.ndarray:
+    """(N, 2, 3) left and right eyes (m) of glasses pose vectors (N, 7) [q, p]."""
+    x_G = np.array([rotation_from_quaternion(q)[:, 0] if np.all(np.isfinite(q))
+                    else np.full(3, np.nan) for q in poses[:, 0:4]])
+    half = x_G * ipd_m / 2
+    return np.stack([poses[:, 4:7] - half, poses[:, 4:7] + half], axis=1)
+
+
+def screen_points(screen, eyes: np.ndarray, p_W: np.ndarray) -> np.ndarray:
+    """Where the lines from ``eyes`` (..., 3) through p_W (3,) meet the display (..., 3)."""
+    _, _, vn = screen_axes(screen.pa, screen.pb, screen.pc)
+    ray = p_W - eyes
+    scale = ((screen.pa - eyes) @ vn) / (ray @ vn)
+    return eyes + ray * scale[..., None]
+
+
+def closest_point_of_rays(a, u, b, w) -> np.ndarray:
+    """Midpoint of the shortest segment between the lines a + s u and b + t w (..., 3)."""
+    r = a - b
+    uu, uw, ww = (u * u).sum(-1), (u * w).sum(-1), (w * w).sum(-1)
+    ur, wr = (u * r).sum(-1), (w * r).sum(-1)
+    det = uu * ww - uw**2
+    s = (uw * wr - ww * ur) / det
+    t = (uu * wr - uw * ur) / det
+    return ((a + s[..., None] * u) + (b + t[..., None] * w)) / 2
+
+
+def colocation_errors(screen, eyes_true: np.ndarray, eyes_drawn: np.ndarray,
+                      p_W: np.ndarray) -> Dict[str, np.ndarray]:
+    """Screen-space error (N, 2) per eye and perceived 3-D error (N,) of the point p_W,
+    in mm, for true and drawn eyes (N, 2, 3)."""
+    p_W = np.asarray(p_W, float)
+    drawn = screen_points(screen, eyes_drawn, p_W)
+    needed = screen_points(screen, eyes_true, p_W)
+    perceived = closest_point_of_rays(eyes_true[:, 0], drawn[:, 0] - eyes_true[:, 0],
+                                      eyes_true[:, 1], drawn[:, 1] - eyes_true[:, 1])
+    return {"screen_mm": 1e3 * np.linalg.norm(drawn - needed, axis=-1),
+            "perceived_mm": 1e3 * np.linalg.norm(perceived - p_W, axis=-1)}
+
+
+def _statistics(values: np.ndarray) -> Dict[str, float]:
+    return {"mean": float(np.mean(values)), "p95": float(np.percentile(values, 95)),
+            "max": float(np.max(values))}
+
+
+def colocation_summary(log: Dict[str, np.ndarray], scenario) -> Dict:
+    """The co-location errors of the run, with prediction and holding the latest
+    sample, over the samples where both views exist; also the head's speed."""
+    stereo, device = scenario.stereo, scenario.device
+    screen = display_rectangle(device.display)
+    ipd_m = device.glasses.ipd_m
+    true_poses = np.array([np.concatenate(glasses_pose(h)) for h in log["head_pose"]])
+    eyes_true = eyes_from_poses(true_poses, ipd_m)
+    drawn = {"predicted": eyes_from_poses(log["X_WG_predicted"], ipd_m),
+             "held": eyes_from_poses(log["X_WG_latest"], ipd_m)}
+    valid = np.all(np.isfinite(drawn["predicted"]), axis=(1, 2)) & np.all(
+        np.isfinite(drawn["held"]), axis=(1, 2))
+    t = log["t"]
+    speed = np.linalg.norm(np.gradient(log["head_pose"][:, 0:3], t, axis=0), axis=1)
+    moving = valid & (speed > MOVING_SPEED_M_S)
+    summary = {"points_m": stereo.colocation_points_m,
+               "samples": int(valid.sum()),
+               "head_speed_m_s": {"mean_moving": float(speed[moving].mean()) if moving.any()
+                                  else 0.0, "max": float(speed.max())},
+               "moving_share": float(moving.sum() / max(valid.sum(), 1))}
+    if not valid.any():
+        return summary
+    for name, eyes in drawn.items():
+        errors = [colocation_errors(screen, eyes_true[valid], eyes[valid], np.asarray(p, float))
+                  for p in stereo.colocation_points_m]
+        screen_mm = np.concatenate([e["screen_mm"].ravel() for e in errors])
+        perceived_mm = np.concatenate([e["perceived_mm"] for e in errors])
+        summary[name] = {"screen_error_mm": _statistics(screen_mm),
+                         "perceived_error_mm": _statistics(perceived_mm)}
+    summary["mean_screen_error_ratio"] = (summary["predicted"]["screen_error_mm"]["mean"]
+                                          / max(summary["held"]["screen_error_mm"]["mean"],
+                                                1e-12))
+    return summary
+
+
+def stereo_summary(log, scenario, parts, video_summary) -> Dict:
+    """summary.json's ``stereo``: co-location errors, and the frames rendered and written."""
+    summary = {"colocation": colocation_summary(log, scenario),
+               "view_rate_hz": 1.0 / parts.view.view_period_s}
+    renderer = parts.renderer
+    if renderer is not None:
+        summary["images"] = {
+            "rendered_pairs": renderer.frames_rendered, "skipped_pairs": renderer.frames_skipped,
+            "render_ms_per_pair": (1e3 * renderer.render_wall_s / renderer.frames_rendered
+                                   if renderer.frames_rendered else None),
+            "size_px": scenario.stereo.images.size_px}
+    if video_summary is not None:
+        summary["video"] = video_summary
+    return summary
+
+
+def plot_colocation(log: Dict[str, np.ndarray], scenario, out_dir: Path, title: str) -> Path:
+    """stereo.png: head speed, and the first point's screen-space error (mean of the
+    eyes) with prediction and holding the latest sample, against time."""
+    device = scenario.device
+    screen = display_rectangle(device.display)
+    ipd_m = device.glasses.ipd_m
+    t = log["t"]
+    true_poses = np.array([np.concatenate(glasses_pose(h)) for h in log["head_pose"]])
+    eyes_true = eyes_from_poses(true_poses, ipd_m)
+    point = np.asarray(scenario.stereo.colocation_points_m[0], float)
+    speed = np.linalg.norm(np.gradient(log["head_pose"][:, 0:3], t, axis=0), axis=1)
+    figure, (top, bottom) = plt.subplots(2, 1, sharex=True, figsize=(9, 6))
+    top.plot(t, speed, color="0.3")
+    top.set_ylabel("head speed (m/s)")
+    top.set_title(f"{title}: co-location of a virtual point at {np.round(1e3 * point).tolist()} mm")
+    for key, label, color in (("X_WG_latest", "latest 10 Hz sample (no prediction)", "tab:red"),
+                              ("X_WG_predicted", "predicted (Kalman, constant velocity)",
+                               "tab:blue")):
+        eyes = eyes_from_poses(log[key], ipd_m)
+        valid = np.all(np.isfinite(eyes), axis=(1, 2))
+        error = np.full(len(t), np.nan)
+        error[valid] = colocation_errors(screen, eyes_true[valid], eyes[valid],
+                                         point)["screen_mm"].mean(axis=1)
+        bottom.plot(t, error, color=color, label=label)
+    bottom.set_ylabel("screen-space error (mm)")
+    bottom.set_xlabel("time (s)")
+    bottom.legend(loc="upper right")
+    figure.tight_layout()
+    path = Path(out_dir) / "stereo.png"
+    figure.savefig(path, dpi=110)
+    plt.close(figure)
+    return path
