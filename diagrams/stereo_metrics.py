@@ -73,7 +73,8 @@ def _statistics(values: np.ndarray) -> Dict[str, float]:
 
 def colocation_summary(log: Dict[str, np.ndarray], scenario) -> Dict:
     """The co-location errors of the run, with prediction and holding the latest
-    sample, over the samples where both views exist; also the head's speed."""
+    sample, over the samples where both views exist and the head moves faster than
+    MOVING_SPEED_M_S (over all of them if it never does); also the head's speed."""
     stereo, device = scenario.stereo, scenario.device
     screen = display_rectangle(device.display)
     ipd_m = device.glasses.ipd_m
@@ -93,8 +94,11 @@ def colocation_summary(log: Dict[str, np.ndarray], scenario) -> Dict:
                "moving_share": float(moving.sum() / max(valid.sum(), 1))}
     if not valid.any():
         return summary
+    # While the head moves, where the errors are; a still head has only tracker noise.
+    used = moving if moving.any() else valid
+    summary["over"] = "head moving" if moving.any() else "whole run (the head never moved)"
     for name, eyes in drawn.items():
-        errors = [colocation_errors(screen, eyes_true[valid], eyes[valid], np.asarray(p, float))
+        errors = [colocation_errors(screen, eyes_true[used], eyes[used], np.asarray(p, float))
                   for p in stereo.colocation_points_m]
         screen_mm = np.concatenate([e["screen_mm"].ravel() for e in errors])
         perceived_mm = np.concatenate([e["perceived_mm"] for e in errors])

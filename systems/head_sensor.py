@@ -17,7 +17,6 @@ are hidden (scripted occlusions) or the head input is not finite.
 Randomness: sample k's noise is a pure function of (seed, k).
 """
 
-from __future__ import annotations
 
 import math
 from dataclasses import dataclass
@@ -34,6 +33,7 @@ MEASUREMENT_SIZE = 9  # [t_capture, q (4), p (3), ok]
 # A tracked tool's fit is rejected above this RMS marker residual (m), as a
 # Polaris rejects a tool whose markers do not match its definition.
 RESIDUAL_LIMIT_M = 1.0e-3
+RELEASE_GUARD_S = 1e-7
 
 
 @dataclass
@@ -125,7 +125,11 @@ class HeadSensor(LeafSystem):
         self.DeclarePeriodicDiscreteUpdateEvent(period_s, 0.0, self._capture)
         release_offset_s = tracker.latency_s % period_s
         if release_offset_s > 1e-9 and period_s - release_offset_s > 1e-9:
-            self.DeclarePeriodicDiscreteUpdateEvent(period_s, release_offset_s, self._release)
+            # Released RELEASE_GUARD_S late: Drake finds a periodic event's next time
+            # by division, and skips one that lands an ulp after another system's
+            # tick (0.03 + 3 x 0.1 > 330 x 0.001 by 7e-17 s).
+            self.DeclarePeriodicDiscreteUpdateEvent(
+                period_s, release_offset_s + RELEASE_GUARD_S, self._release)
         self.DeclareStateOutputPort("glasses_measured", self._published)
 
     def _hidden(self, t_s: float) -> bool:
