@@ -124,7 +124,7 @@ def test_colocation_error_geometry():
     # Similar triangles: a sideways eye error e moves the spot by e d / (h + d).
     np.testing.assert_allclose(moved["screen_mm"], 1e3 * shift * 0.04 / 0.49, rtol=1e-9)
     a, b = np.array([0.0, 0, 1]), np.array([1.0, 0, 1])
-    np.testing.assert_allclose(closest_point_of_rays(a, [0.5, 0, -1], b, [-0.5, 0, -1]),
+    np.testing.assert_allclose(closest_point_of_rays(a, np.array([0.5, 0, -1]), b, np.array([-0.5, 0, -1])),
                                [0.5, 0, 0])
 
 
