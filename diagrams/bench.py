@@ -11,7 +11,8 @@ Four kinds of numbers:
   cost of one update (discrete update plus output evaluation), with inputs fixed
   to their values in the running diagram and re-fixed every call so nothing is
   served from the cache;
-- the electromagnetic model (a full 6 x n wrench matrix) and the allocation.
+- the electromagnetic model (a full 6 x n wrench matrix) and the allocation;
+- the stereo display: view matrices per frame and a rendered frame pair.
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ from maglev_haptics.diagrams.lattice_bench import (
     LATTICE_SIZES, format_lattice_report, lattice_scaling, plot_lattice_scaling)
 from maglev_haptics.diagrams.runner import simulate
 from maglev_haptics.diagrams.scenario import SCENARIO_DIR, load_scenario, scenario_names
+from maglev_haptics.diagrams.stereo_bench import format_stereo_report, stereo_costs
 from maglev_haptics.diagrams.timing import time_per_call_us
 from maglev_haptics.diagrams.station import add_station_models, rest_transform
 from maglev_haptics.hardware.device import DeviceConfig
@@ -43,7 +45,8 @@ from maglev_haptics.systems.levitation_controller import GRAVITY_M_S2
 
 LEVITATE_FILE = SCENARIO_DIR / "levitate.yaml"
 HAPTIC_FILES = [SCENARIO_DIR / f"{name}.yaml" for name in ("hanging_ball", "paddle_ball",
-                                                            "peg_in_hole", "deformable_surface")]
+                                                            "peg_in_hole", "deformable_surface",
+                                                            "stereo_display")]
 HOVER_TIME_S = 1.5  # operating point for the per-system costs (s into takeoff_hover_land)
 
 
@@ -165,6 +168,7 @@ def run_benchmarks(duration_s: Optional[float] = None, progress: bool = True,
         config = DeviceConfig(instrument=kind)
         results["wrench_matrix_us"][kind] = bench_wrench_matrix(config)
         results["allocation"][kind] = allocation_cost_us(config)
+    results["stereo"] = stereo_costs()
     with tqdm(total=len(LATTICE_SIZES), desc="lattice sizes", disable=not progress) as bar:
         results["lattice"] = lattice_scaling(progress=lambda _: bar.update(1))
     results["report"] = format_report(results)
@@ -191,5 +195,6 @@ def format_report(results: Dict) -> str:
     for kind, r in results["allocation"].items():
         lines.append(f"  {kind:<14} within limits {r['within_limits_us']:.1f}  "
                      f"saturating {r['saturating_us']:.1f}")
+    lines.append(format_stereo_report(results["stereo"]))
     lines.append(format_lattice_report(results["lattice"]))
     return "\n".join(lines)
