@@ -5,8 +5,6 @@ full resolution."""
 
 from typing import Dict
 
-import numpy as np
-
 from maglev_haptics.diagrams.application import BuildDiagram
 from maglev_haptics.diagrams.runner import simulate
 from maglev_haptics.diagrams.scenario import load_scenario, with_stereo

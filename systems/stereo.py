@@ -20,7 +20,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from pydrake.systems.framework import BasicVector, LeafSystem
+from pydrake.systems.framework import LeafSystem
 
 from maglev_haptics.systems.rotations import (
     quaternion_from_rotation_matrix, rotation_from_quaternion, rotation_from_rpy)
