@@ -23,10 +23,10 @@ from pathlib import Path
 from typing import Dict, Optional
 
 import numpy as np
-from pydrake.multibody.plant import AddMultibodyPlant, MultibodyPlant
+from pydrake.multibody.plant import AddMultibodyPlant
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
-from pydrake.systems.primitives import ConstantVectorSource, VectorLogSink
+from pydrake.systems.primitives import ConstantVectorSource
 
 from tqdm import tqdm
 
@@ -36,7 +36,7 @@ from maglev_haptics.diagrams.lattice_bench import (
 from maglev_haptics.diagrams.runner import simulate
 from maglev_haptics.diagrams.scenario import SCENARIO_DIR, load_scenario, scenario_names
 from maglev_haptics.diagrams.stereo_bench import format_stereo_report, stereo_costs
-from maglev_haptics.diagrams.timing import time_per_call_us
+from maglev_haptics.diagrams.timing import leaf_system_costs, time_per_call_us
 from maglev_haptics.diagrams.station import add_station_models, rest_transform
 from maglev_haptics.hardware.device import DeviceConfig
 from maglev_haptics.hardware.magnetics import bench_wrench_matrix, load_magnetics
@@ -48,54 +48,6 @@ HAPTIC_FILES = [SCENARIO_DIR / f"{name}.yaml" for name in ("hanging_ball", "padd
                                                             "peg_in_hole", "deformable_surface",
                                                             "stereo_display")]
 HOVER_TIME_S = 1.5  # operating point for the per-system costs (s into takeoff_hover_land)
-
-
-def leaf_system_costs(built, context, n: int = 300) -> Dict[str, float]:
-    """Microseconds for one update of each leaf system with vector inputs.
-
-    One update = its outputs evaluated and its periodic discrete update computed,
-    with the inputs re-fixed first so nothing comes from the cache (the time to
-    re-fix them is measured apart and subtracted). Loggers and the plant
-    (abstract geometry input) are left out; see plant_step_cost_us.
-    """
-    costs = {}
-    for system in _leaf_systems(built.diagram):
-        if isinstance(system, (VectorLogSink, MultibodyPlant)):
-            continue
-        sub = system.GetMyContextFromRoot(context)
-        own = system.CreateDefaultContext()
-        own.SetTimeStateAndParametersFrom(sub)
-        inputs = []
-        for i in range(system.num_input_ports()):
-            port = system.get_input_port(i)
-            if port.get_data_type().name != "kVectorValued":
-                break
-            inputs.append((port, port.Eval(sub).copy()))
-        else:
-            periodic = own.num_discrete_state_groups() > 0
-
-            def fix_inputs(inputs=inputs, own=own):
-                for port, value in inputs:
-                    port.FixValue(own, value)
-
-            def one_update(system=system, own=own, periodic=periodic, fix_inputs=fix_inputs):
-                fix_inputs()
-                for j in range(system.num_output_ports()):
-                    system.get_output_port(j).Eval(own)
-                if periodic:
-                    system.EvalUniquePeriodicDiscreteUpdate(own)
-            # Re-fixing the inputs is the harness's cost, not the system's.
-            costs[system.get_name()] = max(
-                0.0, time_per_call_us(one_update, n) - time_per_call_us(fix_inputs, n))
-    return costs
-
-
-def _leaf_systems(diagram):
-    for system in diagram.GetSystems():
-        if hasattr(system, "GetSystems"):
-            yield from _leaf_systems(system)
-        else:
-            yield system
 
 
 def plant_step_cost_us(scenario, *, hovering: bool, n_steps: int = 1000) -> float:

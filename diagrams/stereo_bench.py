@@ -1,5 +1,5 @@
 """``maglev bench``'s stereo display numbers: the per-eye view matrices per frame,
-the head predictor's update, and a rendered stereo frame pair (the peg-in-hole
+the head predictor's and the view system's updates, and a rendered stereo frame pair (the peg-in-hole
 scene through Drake's VTK renderer) at the default image size and at the panel's
 full resolution."""
 
@@ -8,7 +8,7 @@ from typing import Dict
 from maglev_haptics.diagrams.application import BuildDiagram
 from maglev_haptics.diagrams.runner import simulate
 from maglev_haptics.diagrams.scenario import load_scenario, with_stereo
-from maglev_haptics.diagrams.timing import time_per_call_us
+from maglev_haptics.diagrams.timing import leaf_system_costs, time_per_call_us
 from maglev_haptics.systems.head_sensor import glasses_pose
 from maglev_haptics.systems.stereo_renderer import StereoRenderer
 
@@ -19,15 +19,14 @@ def stereo_costs() -> Dict:
     scenario = with_stereo(load_scenario("peg_in_hole"), "peg_in_hole --stereo")
     built = BuildDiagram(scenario, frame_sink=lambda *frame: None)
     simulator, _ = simulate(built, 0.2, progress=False)
-    view, predictor = built.stereo.view, built.stereo.predictor
+    view = built.stereo.view
     q_WG, p_WG = glasses_pose(scenario.stereo.head.start.vector())
     context = simulator.get_context()
-    predictor_context = predictor.GetMyContextFromRoot(context)
-    updated = predictor.AllocateDiscreteVariables()
     results = {
         "view_matrices_both_eyes_us": time_per_call_us(lambda: view.view_vector(q_WG, p_WG), 2000),
-        "predictor_update_us": time_per_call_us(
-            lambda: predictor.CalcForcedDiscreteVariableUpdate(predictor_context, updated), 2000),
+        # One update each (outputs and discrete update, inputs re-fixed), as for the loop.
+        "systems_us": leaf_system_costs(built, context, n=1000,
+                                        only={"head_pose_predictor", "stereo_view"}),
         "render_pair_ms": {},
     }
     renderer = built.stereo.renderer
@@ -50,8 +49,9 @@ def stereo_costs() -> Dict:
 
 def format_stereo_report(results: Dict) -> str:
     lines = ["Stereo display:",
-             f"  view matrices, both eyes (projection + camera) {results['view_matrices_both_eyes_us']:.1f} us a frame",
-             f"  head predictor update                          {results['predictor_update_us']:.1f} us a frame"]
+             f"  view matrices, both eyes (projection + camera) {results['view_matrices_both_eyes_us']:.1f} us a frame"]
+    for name, us in results["systems_us"].items():
+        lines.append(f"  {name + ' update':<47}{us:.1f} us a frame")
     for size, ms in results["render_pair_ms"].items():
         lines.append(f"  rendered stereo pair {size:<26}{ms:.1f} ms")
     return "\n".join(lines)

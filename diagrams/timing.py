@@ -1,6 +1,10 @@
-"""Wall-clock cost of a call, for the benchmarks."""
+"""Wall-clock cost of a call and of a leaf system's update, for the benchmarks."""
 
 import time
+from typing import Dict
+
+from pydrake.multibody.plant import MultibodyPlant
+from pydrake.systems.primitives import VectorLogSink
 
 
 def time_per_call_us(function, n: int, windows: int = 1) -> float:
@@ -14,3 +18,53 @@ def time_per_call_us(function, n: int, windows: int = 1) -> float:
             function()
         best = min(best, time.perf_counter() - start)
     return 1e6 * best / n
+
+
+def leaf_system_costs(built, context, n: int = 300, only=None) -> Dict[str, float]:
+    """Microseconds for one update of each leaf system with vector inputs (or of
+    those named in ``only``).
+
+    One update = its outputs evaluated and its periodic discrete update computed,
+    with the inputs re-fixed first so nothing comes from the cache (the time to
+    re-fix them is measured apart and subtracted). Loggers and the plant
+    (abstract geometry input) are left out; see plant_step_cost_us.
+    """
+    costs = {}
+    for system in _leaf_systems(built.diagram):
+        if (isinstance(system, (VectorLogSink, MultibodyPlant))
+                or (only is not None and system.get_name() not in only)):
+            continue
+        sub = system.GetMyContextFromRoot(context)
+        own = system.CreateDefaultContext()
+        own.SetTimeStateAndParametersFrom(sub)
+        inputs = []
+        for i in range(system.num_input_ports()):
+            port = system.get_input_port(i)
+            if port.get_data_type().name != "kVectorValued":
+                break
+            inputs.append((port, port.Eval(sub).copy()))
+        else:
+            periodic = own.num_discrete_state_groups() > 0
+
+            def fix_inputs(inputs=inputs, own=own):
+                for port, value in inputs:
+                    port.FixValue(own, value)
+
+            def one_update(system=system, own=own, periodic=periodic, fix_inputs=fix_inputs):
+                fix_inputs()
+                for j in range(system.num_output_ports()):
+                    system.get_output_port(j).Eval(own)
+                if periodic:
+                    system.EvalUniquePeriodicDiscreteUpdate(own)
+            # Re-fixing the inputs is the harness's cost, not the system's.
+            costs[system.get_name()] = max(
+                0.0, time_per_call_us(one_update, n) - time_per_call_us(fix_inputs, n))
+    return costs
+
+
+def _leaf_systems(diagram):
+    for system in diagram.GetSystems():
+        if hasattr(system, "GetSystems"):
+            yield from _leaf_systems(system)
+        else:
+            yield system
