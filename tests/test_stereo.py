@@ -7,6 +7,7 @@ from pydrake.math import RigidTransform
 from pydrake.multibody.plant import AddMultibodyPlantSceneGraph
 from pydrake.multibody.tree import SpatialInertia
 from pydrake.geometry import Sphere
+from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 
 from maglev_haptics.hardware.device import DisplaySpec, GlassesSpec
@@ -129,9 +130,9 @@ def test_stereo_view_outputs_and_freezes_on_a_bad_pose():
         np.testing.assert_array_equal(view.GetOutputPort("camera_right").Eval(context), good)
 
 
-@pytest.fixture(scope="module")
-def sphere_scene():
-    """A small bright sphere (4 mm radius) on a free body, and the stereo display's renderer."""
+def sphere_diagram(max_wall_share=None, sink=lambda *frame: None):
+    """A small bright sphere (4 mm radius) on a free body, and the stereo display's
+    renderer (cameras and view_ok exported as inputs)."""
     builder = DiagramBuilder()
     plant, scene_graph = AddMultibodyPlantSceneGraph(builder, 0.0)
     body = plant.AddRigidBody("marker", SpatialInertia.SolidSphereWithMass(0.01, 0.002))
@@ -142,13 +143,18 @@ def sphere_scene():
     image_px = (SCREEN.width_px // 2, SCREEN.height_px // 2)
     renderer = builder.AddSystem(StereoRenderer(
         rate_hz=30.0, image_px=image_px, display_px=(SCREEN.width_px, SCREEN.height_px),
-        near_m=0.05, far_m=2.0, sink=lambda *args: None))
+        near_m=0.05, far_m=2.0, sink=sink, max_wall_share=max_wall_share))
     builder.Connect(scene_graph.get_query_output_port(), renderer.GetInputPort("query_object"))
     builder.ExportInput(renderer.GetInputPort("camera_left"), "camera_left")
     builder.ExportInput(renderer.GetInputPort("camera_right"), "camera_right")
     builder.ExportInput(renderer.GetInputPort("view_ok"), "view_ok")
     diagram = builder.Build()
     return diagram, plant, body, renderer, image_px
+
+
+@pytest.fixture(scope="module")
+def sphere_scene():
+    return sphere_diagram()
 
 
 def test_rendered_sphere_lies_where_the_eye_ray_meets_the_display(sphere_scene):
@@ -174,3 +180,22 @@ def test_rendered_sphere_lies_where_the_eye_ray_meets_the_display(sphere_scene):
             expected = (through_display_pixel(eye, p_W) + 0.5) * scale - 0.5
             centroid = np.array([columns.mean(), rows.mean()])
             assert np.linalg.norm(centroid - expected) < 0.5, (eye, p_W, centroid, expected)
+
+
+def test_real_time_rendering_skips_frames_within_its_share_of_the_wall_clock():
+    frames = []
+    diagram, plant, body, renderer, _ = sphere_diagram(
+        max_wall_share=0.01, sink=lambda t, left, right: frames.append(t))
+    simulator = Simulator(diagram)
+    context = simulator.get_mutable_context()
+    view = StereoView(screen=SCREEN, ipd_m=IPD_M, period_s=1 / 120, near_m=0.05, far_m=2.0)
+    q_WG, p_WG = glasses_pose([0.0, -0.3, 0.45, 0.0, 0.0, 0.0, 0.0, 0.0])
+    view_context = _view_context(view, np.concatenate([q_WG, p_WG]))
+    for name in ("camera_left", "camera_right"):
+        diagram.GetInputPort(name).FixValue(context, view.GetOutputPort(name).Eval(view_context))
+    diagram.GetInputPort("view_ok").FixValue(context, [1.0])
+    simulator.AdvanceTo(1.0)  # 31 frames due at 30 Hz; simulating takes far less than 1 s
+    assert renderer.frames_rendered + renderer.frames_skipped == 31
+    assert len(frames) == renderer.frames_rendered >= 1
+    # Rendering took at most ~1% of the wall clock, give or take the frame that crossed it.
+    assert renderer.frames_skipped > 20
