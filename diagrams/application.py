@@ -28,10 +28,10 @@ from maglev_haptics.diagrams.stereo_display import AddStereoDisplay
 from maglev_haptics.hardware.magnetics import load_magnetics
 from maglev_haptics.systems.current_allocator import CurrentAllocator
 from maglev_haptics.systems.device_visualizer import DeviceVisualizer
-from maglev_haptics.systems.lattice_visualizer import LatticeVisualizer
+from maglev_haptics.systems.lattice_visualizer import JELLY_RGBA, LatticeVisualizer, surface_faces
 from maglev_haptics.systems.levitation_controller import LevitationController
 from maglev_haptics.systems.pose_estimator import PoseEstimator
-from maglev_haptics.systems.stereo_renderer import AddStereoRenderer
+from maglev_haptics.systems.stereo_renderer import AddStereoRenderer, SurfaceLayer
 
 MESHCAT_PERIOD_S = 1 / 30
 
@@ -129,16 +129,23 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
             "hand_wrench_on_instrument_W")
     stereo = None
     if scenario.stereo is not None:
+        surface = None
         if haptics is not None:
             AddStereoRenderer(haptics.scene.scene_graph)
             virtual_world = haptics.scene.scene_graph.get_query_output_port()
+            if haptics.scene.surface is not None:
+                lattice = haptics.scene.lattice
+                surface = (SurfaceLayer(
+                    surface_faces(lattice.surface, lattice.surface_triangles).T,
+                    (JELLY_RGBA.r(), JELLY_RGBA.g(), JELLY_RGBA.b(), JELLY_RGBA.a())),
+                    haptics.scene.surface.GetOutputPort("surface_positions_m"))
         else:
             # No virtual scene: the display draws the instrument where it is tracked,
             # which should sit exactly on the real one.
             virtual_world = station.GetOutputPort("query_object")
         stereo = AddStereoDisplay(builder, scenario=scenario, station=station,
                                   query_object_port=virtual_world, meshcat=meshcat,
-                                  frame_sink=frame_sink, realtime=realtime)
+                                  frame_sink=frame_sink, realtime=realtime, surface=surface)
         logged_ports["head_pose"] = station.GetOutputPort("head_pose")
         logged_ports["glasses_measured"] = station.GetOutputPort("glasses_measured")
         for name in ("X_WG_predicted", "X_WG_latest"):

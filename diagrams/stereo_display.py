@@ -109,10 +109,12 @@ class StereoParts:
 
 
 def AddStereoDisplay(builder: DiagramBuilder, *, scenario, station, query_object_port,
-                     meshcat=None, frame_sink=None, realtime: bool = False) -> StereoParts:
+                     meshcat=None, frame_sink=None, realtime: bool = False,
+                     surface=None) -> StereoParts:
     """Predictor, views and (given a ``frame_sink(t, left, right)`` and images on)
     the renderer of the virtual world behind ``query_object_port`` (its SceneGraph
-    must have the stereo renderer, ``AddStereoRenderer``)."""
+    must have the stereo renderer, ``AddStereoRenderer``). ``surface``: a
+    (SurfaceLayer, output port of its vertex positions) drawn over that world."""
     stereo, device = scenario.stereo, scenario.device
     period_s = view_period_s(stereo, device.display)
     screen = display_rectangle(device.display)
@@ -130,8 +132,11 @@ def AddStereoDisplay(builder: DiagramBuilder, *, scenario, station, query_object
             rate_hz=stereo.images.rate_hz, image_px=stereo.images.size_px,
             display_px=(screen.width_px, screen.height_px), near_m=stereo.near_m,
             far_m=stereo.far_m, sink=frame_sink,
-            max_wall_share=stereo.images.realtime_wall_share if realtime else None))
+            max_wall_share=stereo.images.realtime_wall_share if realtime else None,
+            surface=surface[0] if surface is not None else None))
         builder.Connect(query_object_port, renderer.GetInputPort("query_object"))
+        if surface is not None:
+            builder.Connect(surface[1], renderer.GetInputPort("surface_positions_m"))
         for name in ("camera_left", "camera_right", "view_ok"):
             builder.Connect(view.GetOutputPort(name), renderer.GetInputPort(name))
     if meshcat is not None:

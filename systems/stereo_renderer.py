@@ -16,13 +16,15 @@ from typing import Callable, Optional
 
 import numpy as np
 from pydrake.common.eigen_geometry import Quaternion
+from pydrake.common import MemoryFile
 from pydrake.common.value import AbstractValue
 from pydrake.geometry import (
-    ClippingRange, ColorRenderCamera, LightParameter, MakeRenderEngineVtk, QueryObject, RenderCameraCore,
-    RenderEngineVtkParams)
+    ClippingRange, ColorRenderCamera, DepthRange, DepthRenderCamera, GeometryId, InMemoryMesh,
+    LightParameter, MakeRenderEngineVtk, Mesh, PerceptionProperties, QueryObject,
+    RenderCameraCore, RenderEngineVtkParams, Rgba)
 from pydrake.math import RigidTransform, RotationMatrix
 from pydrake.systems.framework import LeafSystem
-from pydrake.systems.sensors import CameraInfo
+from pydrake.systems.sensors import CameraInfo, ImageDepth32F, ImageRgba8U
 
 from maglev_haptics.systems.stereo import CAMERA_SIZE
 
@@ -42,9 +44,7 @@ def AddStereoRenderer(scene_graph, background_rgb=BACKGROUND_RGB) -> None:
     axis, which for an off-axis eye is the screen's normal, not the line of sight, and
     would leave the side of an object the eye sees obliquely in the dark.
     """
-    scene_graph.AddRenderer(RENDERER_NAME, MakeRenderEngineVtk(RenderEngineVtkParams(
-        default_clear_color=list(background_rgb),
-        lights=[LightParameter(type="point", frame="camera", position=[0.0, 0.0, 0.0])])))
+    scene_graph.AddRenderer(RENDERER_NAME, _make_engine(background_rgb))
 
 
 def canvas_extent(center_px: float, size_px: int):
@@ -71,6 +71,75 @@ def render_camera(camera: np.ndarray, display_px, image_px, near_m: float, far_m
     return ColorRenderCamera(core, False), X_WC, (column, row)
 
 
+def vertex_normals(positions: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Unit normals (n, 3) of a triangle mesh's vertices: the area-weighted sum of
+    their triangles' normals (counter-clockwise faces point out)."""
+    a, b, c = (positions[triangles[:, k]] for k in range(3))
+    face = np.cross(b - a, c - a)  # |face| = twice the area
+    normals = np.zeros_like(positions)
+    for k in range(3):
+        np.add.at(normals, triangles[:, k], face)
+    return normals / np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-30)
+
+
+class SurfaceLayer:
+    """A deformable surface drawn into the stereo images: it is no SceneGraph geometry
+    (the lattice moves its vertices every tick), so it lives in a VTK engine of its
+    own, re-registered as a mesh each frame, rendered with each eye's camera and laid
+    over the scene's image wherever it is nearer (by depth).
+
+    ``triangles`` (T, 3) index the rows of the surface's vertex positions (n, 3).
+    """
+
+    def __init__(self, triangles: np.ndarray, rgba):
+        self._triangles = np.asarray(triangles, dtype=np.int64)
+        self.vertex_count = int(self._triangles.max()) + 1
+        self._engine = _make_engine(BACKGROUND_RGB)
+        self._properties = PerceptionProperties()
+        self._properties.AddProperty("phong", "diffuse", Rgba(*rgba))
+        faces = self._triangles + 1  # OBJ counts from 1
+        self._face_text = "".join(f"f {a}//{a} {b}//{b} {c}//{c}\n" for a, b, c in faces)
+        self._geometry = None
+
+    def update(self, positions: np.ndarray) -> None:
+        """Replace the mesh by one with these vertex positions (n, 3) (m, W)."""
+        positions = np.asarray(positions, float).reshape(-1, 3)
+        normals = vertex_normals(positions, self._triangles)
+        n = len(positions)
+        text = (("v %.6f %.6f %.6f\n" * n) % tuple(positions.ravel())
+                + ("vn %.4f %.4f %.4f\n" * n) % tuple(normals.ravel()) + self._face_text)
+        if self._geometry is not None:
+            self._engine.RemoveGeometry(self._geometry)
+        self._geometry = GeometryId.get_new_id()
+        mesh = Mesh(InMemoryMesh(mesh_file=MemoryFile(text, ".obj", "deformable_surface")))
+        self._engine.RegisterVisual(self._geometry, mesh, self._properties, RigidTransform(),
+                                    False)
+
+    def overlay(self, color: np.ndarray, depth: np.ndarray, camera, X_WC) -> None:
+        """Draw the surface into ``color`` (canvas RGBA, in place) where it is nearer than
+        the scene's ``depth`` (canvas, m)."""
+        core = camera.core()
+        info = core.intrinsics()
+        own_color = ImageRgba8U(info.width(), info.height())
+        own_depth = ImageDepth32F(info.width(), info.height())
+        self._engine.UpdateViewpoint(X_WC)
+        self._engine.RenderColorImage(camera, own_color)
+        self._engine.RenderDepthImage(_depth_camera(core), own_depth)
+        nearer = own_depth.data[:, :, 0] < depth
+        color[nearer] = own_color.data[nearer]
+
+
+def _make_engine(background_rgb):
+    return MakeRenderEngineVtk(RenderEngineVtkParams(
+        default_clear_color=list(background_rgb),
+        lights=[LightParameter(type="point", frame="camera", position=[0.0, 0.0, 0.0])]))
+
+
+def _depth_camera(core) -> DepthRenderCamera:
+    near, far = core.clipping().near(), core.clipping().far()
+    return DepthRenderCamera(core, DepthRange(near, far))
+
+
 class StereoRenderer(LeafSystem):
     """Renders both eyes at ``rate_hz`` and passes them to ``sink(t, left, right)``
     (uint8 RGB arrays, height x width x 3).
@@ -92,7 +161,8 @@ class StereoRenderer(LeafSystem):
 
     def __init__(self, *, rate_hz: float, image_px, display_px, near_m: float, far_m: float,
                  sink: Callable[[float, np.ndarray, np.ndarray], None],
-                 max_wall_share: Optional[float] = None):
+                 max_wall_share: Optional[float] = None,
+                 surface: Optional[SurfaceLayer] = None):
         super().__init__()
         self._image_px = (int(image_px[0]), int(image_px[1]))
         self._display_px = tuple(display_px)
@@ -104,6 +174,10 @@ class StereoRenderer(LeafSystem):
         self._cameras = [self.DeclareVectorInputPort(f"camera_{eye}", CAMERA_SIZE)
                          for eye in ("left", "right")]
         self._view_ok = self.DeclareVectorInputPort("view_ok", 1)
+        self._surface = surface
+        if surface is not None:
+            self._surface_positions = self.DeclareVectorInputPort(
+                "surface_positions_m", 3 * surface.vertex_count)
         self.DeclarePeriodicPublishEvent(1.0 / rate_hz, 0.0, self._publish)
         self.frames_rendered = 0
         self.frames_skipped = 0
@@ -114,11 +188,17 @@ class StereoRenderer(LeafSystem):
         """(left, right) RGB images of the current views."""
         query = self._query.Eval(context)
         world = query.inspector().world_frame_id()
+        if self._surface is not None:
+            self._surface.update(self._surface_positions.Eval(context))
         images = []
         for port in self._cameras:
             camera, X_WC, (column, row) = render_camera(
                 port.Eval(context), self._display_px, self._image_px, self._near_m, self._far_m)
             canvas = query.RenderColorImage(camera, world, X_WC).data
+            if self._surface is not None:
+                canvas = canvas.copy()
+                depth = query.RenderDepthImage(_depth_camera(camera.core()), world, X_WC).data
+                self._surface.overlay(canvas, depth[:, :, 0], camera, X_WC)
             width, height = self._image_px
             images.append(np.array(canvas[row:row + height, column:column + width, 0:3]))
         return images

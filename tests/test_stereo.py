@@ -15,7 +15,8 @@ from maglev_haptics.systems.head_sensor import glasses_pose
 from maglev_haptics.systems.stereo import (
     StereoView, display_rectangle, eye_camera, eye_positions_W, off_axis_projection,
     projected_pixel, screen_pixel, screen_point)
-from maglev_haptics.systems.stereo_renderer import AddStereoRenderer, StereoRenderer
+from maglev_haptics.systems.stereo_renderer import (
+    AddStereoRenderer, StereoRenderer, SurfaceLayer, vertex_normals)
 
 SCREEN = display_rectangle(DisplaySpec())
 # Grey, so that a pixel of the sphere tells from the background however dark its shading.
@@ -130,7 +131,7 @@ def test_stereo_view_outputs_and_freezes_on_a_bad_pose():
         np.testing.assert_array_equal(view.GetOutputPort("camera_right").Eval(context), good)
 
 
-def sphere_diagram(max_wall_share=None, sink=lambda *frame: None):
+def sphere_diagram(max_wall_share=None, sink=lambda *frame: None, surface=None):
     """A small bright sphere (4 mm radius) on a free body, and the stereo display's
     renderer (cameras and view_ok exported as inputs)."""
     builder = DiagramBuilder()
@@ -143,7 +144,9 @@ def sphere_diagram(max_wall_share=None, sink=lambda *frame: None):
     image_px = (SCREEN.width_px // 2, SCREEN.height_px // 2)
     renderer = builder.AddSystem(StereoRenderer(
         rate_hz=30.0, image_px=image_px, display_px=(SCREEN.width_px, SCREEN.height_px),
-        near_m=0.05, far_m=2.0, sink=sink, max_wall_share=max_wall_share))
+        near_m=0.05, far_m=2.0, sink=sink, max_wall_share=max_wall_share, surface=surface))
+    if surface is not None:
+        builder.ExportInput(renderer.GetInputPort("surface_positions_m"), "surface_positions_m")
     builder.Connect(scene_graph.get_query_output_port(), renderer.GetInputPort("query_object"))
     builder.ExportInput(renderer.GetInputPort("camera_left"), "camera_left")
     builder.ExportInput(renderer.GetInputPort("camera_right"), "camera_right")
@@ -199,3 +202,42 @@ def test_real_time_rendering_skips_frames_within_its_share_of_the_wall_clock():
     assert len(frames) == renderer.frames_rendered >= 1
     # Rendering took at most ~1% of the wall clock, give or take the frame that crossed it.
     assert renderer.frames_skipped > 20
+
+
+def square_mesh(half_width_m: float, z_m: float):
+    """Two counter-clockwise triangles: a horizontal square (4 vertices, 2 faces)."""
+    h = half_width_m
+    positions = np.array([[-h, -h, z_m], [h, -h, z_m], [h, h, z_m], [-h, h, z_m]])
+    return positions, np.array([[0, 1, 2], [0, 2, 3]])
+
+
+def test_vertex_normals_of_a_flat_square_point_up():
+    positions, triangles = square_mesh(0.01, 0.0)
+    np.testing.assert_allclose(vertex_normals(positions, triangles), np.tile([0, 0, 1.0], (4, 1)))
+
+
+@pytest.mark.parametrize("surface_z_m, sphere_hidden", [(-0.02, False), (0.02, True)])
+def test_surface_layer_is_drawn_where_it_is_nearer(surface_z_m, sphere_hidden):
+    """A green square under the sphere leaves it seen; over it, hides it."""
+    positions, triangles = square_mesh(0.03, surface_z_m)
+    layer = SurfaceLayer(triangles, (0.0, 1.0, 0.0, 1.0))
+    diagram, plant, body, renderer, image_px = sphere_diagram(surface=layer)
+    context = diagram.CreateDefaultContext()
+    plant.SetFreeBodyPose(plant.GetMyMutableContextFromRoot(context), body, RigidTransform())
+    view = StereoView(screen=SCREEN, ipd_m=IPD_M, period_s=1 / 120, near_m=0.05, far_m=2.0)
+    q_WG, p_WG = glasses_pose([0.0, -0.3, 0.45, 0.0, 0.0, 0.0, 0.0, 0.0])
+    view_context = _view_context(view, np.concatenate([q_WG, p_WG]))
+    for name in ("camera_left", "camera_right"):
+        diagram.GetInputPort(name).FixValue(context, view.GetOutputPort(name).Eval(view_context))
+    diagram.GetInputPort("view_ok").FixValue(context, [1.0])
+    diagram.GetInputPort("surface_positions_m").FixValue(context, positions.ravel())
+    eye = view.GetOutputPort("eye_positions_W").Eval(view_context)[0:3]
+    left, _ = renderer.render(renderer.GetMyContextFromRoot(context))
+    scale = image_px[0] / SCREEN.width_px
+    u, v = np.round((through_display_pixel(eye, np.zeros(3)) + 0.5) * scale - 0.5).astype(int)
+    sphere_pixel = left[v, u].astype(int)
+    green = sphere_pixel[1] > 100 and sphere_pixel[0] < 40 and sphere_pixel[2] < 40
+    assert green == sphere_hidden, sphere_pixel
+    corner = (through_display_pixel(eye, [0.025, 0.025, surface_z_m]) + 0.5) * scale - 0.5
+    u, v = np.round(corner).astype(int)
+    assert left[v, u, 1] > 100 and left[v, u, 0] < 40  # the square shows off the sphere
