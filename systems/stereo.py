@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from pydrake.systems.framework import LeafSystem
@@ -41,6 +42,16 @@ class DisplayRectangle:
     pc: np.ndarray
     width_px: int
     height_px: int
+
+    @cached_property
+    def axes(self):
+        """(vr, vu, vn): unit vectors right, up and out of the screen."""
+        return screen_axes(self.pa, self.pb, self.pc)
+
+    @cached_property
+    def size_m(self):
+        """(width, height) of the active area (m)."""
+        return float(np.linalg.norm(self.pb - self.pa)), float(np.linalg.norm(self.pc - self.pa))
 
     @property
     def corners_W(self) -> np.ndarray:
@@ -90,8 +101,8 @@ def eye_distance_m(pa, pb, pc, pe) -> float:
     return float(np.dot(np.asarray(pe, float) - pa, vn))
 
 
-def _check_eye(pa, pb, pc, pe) -> float:
-    distance = eye_distance_m(pa, pb, pc, pe)
+def _check_distance(distance: float, pe) -> float:
+    """``distance`` (m) of the eye pe in front of the display, if it can see it."""
     if not distance >= MIN_EYE_DISTANCE_M:
         raise ValueError(
             f"eye at {np.round(np.asarray(pe, float), 4).tolist()} m is {distance * 1e3:.1f} mm "
@@ -116,8 +127,8 @@ def off_axis_projection(pa, pb, pc, pe, near, far) -> np.ndarray:
     """
     check_clipping(near, far)
     pa, pb, pc, pe = (np.asarray(v, float) for v in (pa, pb, pc, pe))
-    distance = _check_eye(pa, pb, pc, pe)
     vr, vu, vn = screen_axes(pa, pb, pc)
+    distance = _check_distance(float(np.dot(pe - pa, vn)), pe)
     va, vb, vc = pa - pe, pb - pe, pc - pe
     scale = near / distance
     left, right = np.dot(vr, va) * scale, np.dot(vr, vb) * scale
@@ -142,12 +153,10 @@ def eye_camera(screen: DisplayRectangle, pe, width_px: int, height_px: int):
     (Cz = -vn), its x along the screen's right, y along its down; the principal
     point is the foot of the eye's perpendicular on the screen, off centre.
     """
-    pa, pb, pc = screen.pa, screen.pb, screen.pc
+    pa, (vr, vu, vn) = screen.pa, screen.axes
     pe = np.asarray(pe, float)
-    distance = _check_eye(pa, pb, pc, pe)
-    vr, vu, vn = screen_axes(pa, pb, pc)
-    width_m = np.linalg.norm(pb - pa)
-    height_m = np.linalg.norm(pc - pa)
+    distance = _check_distance(float(np.dot(pe - pa, vn)), pe)
+    width_m, height_m = screen.size_m
     fx = distance * width_px / width_m
     fy = distance * height_px / height_m
     cx = np.dot(pe - pa, vr) / width_m * width_px - 0.5
@@ -172,7 +181,7 @@ def projected_pixel(projection: np.ndarray, p_W, width_px: int, height_px: int) 
 def screen_point(screen: DisplayRectangle, pe, p_W) -> np.ndarray:
     """Where the line from the eye pe through p_W meets the display plane (W, m)."""
     pe, p_W = np.asarray(pe, float), np.asarray(p_W, float)
-    _, _, vn = screen_axes(screen.pa, screen.pb, screen.pc)
+    _, _, vn = screen.axes
     ray = p_W - pe
     along = np.dot(ray, vn)
     if abs(along) < 1e-12:
@@ -183,9 +192,8 @@ def screen_point(screen: DisplayRectangle, pe, p_W) -> np.ndarray:
 
 def screen_pixel(screen: DisplayRectangle, p_S) -> np.ndarray:
     """(u, v) pixel of a point p_S on the display plane, at the display's resolution."""
-    vr, vu, _ = screen_axes(screen.pa, screen.pb, screen.pc)
-    width_m = np.linalg.norm(screen.pb - screen.pa)
-    height_m = np.linalg.norm(screen.pc - screen.pa)
+    vr, vu, _ = screen.axes
+    width_m, height_m = screen.size_m
     offset = np.asarray(p_S, float) - screen.pa
     return np.array([np.dot(offset, vr) / width_m * screen.width_px - 0.5,
                      (height_m - np.dot(offset, vu)) / height_m * screen.height_px - 0.5])
