@@ -35,8 +35,10 @@ import scipy.signal
 class LoopParameters:
     mass_kg: float = 0.375  # instrument (0.125) and hand (0.25) moving together (kg)
     device_damping: float = 0.0  # N s/m: a levitated instrument has none to speak of
-    hand_damping: float = 2.0  # N s/m: a relaxed grip (Hogan; Kuchenbecker: 1-10)
-    hand_stiffness: float = 50.0  # N/m: the arm's posture stiffness along the axis
+    # The simulated hand's arm (systems/hand.py HandImpedanceConfig); its grip, 2000 N/m,
+    # is taken as rigid: its 25 Hz mode is far above the loop's.
+    hand_damping: float = 8.0  # N s/m
+    hand_stiffness: float = 300.0  # N/m
     stiffness: float = 400.0  # K of the virtual environment (N/m)
     damping: float = 5.0  # B (N s/m)
     period_s: float = 1e-3  # T

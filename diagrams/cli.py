@@ -92,6 +92,24 @@ def _cmd_bench(args) -> int:
     return 0
 
 
+def _cmd_analyze(args) -> int:
+    from maglev_haptics.analysis.studies import run_study
+
+    scenario, label = _load(args)
+    out = Path(args.out) if args.out else Path("out") / "analyze" / label.replace(":", "-")
+    results = run_study(args.study, scenario, label=label, out_dir=out, quick=args.quick,
+                        show_progress=not args.json)
+    if args.json:
+        print(json.dumps(results, indent=2))
+    else:
+        headline = {key: value for key, value in results.items()
+                    if not isinstance(value, (list, dict)) or key in ("parameters",)}
+        print(json.dumps(headline, indent=2))
+        files = [f"{args.study.replace('-', '_')}.json"] + results["plots"]
+        print("wrote " + ", ".join(f"{out}/{name}" for name in files))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="maglev", description="Simulate, drive and analyse the co-located maglev haptic display.")
@@ -126,6 +144,20 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--out", default="out/bench",
                        help="folder for bench.json and lattice_scaling.png (default: out/bench)")
     bench.set_defaults(func=_cmd_bench)
+
+    from maglev_haptics.analysis.studies import study_names
+    analyze = commands.add_parser(
+        "analyze", help="offline analysis of a scenario's loop; writes JSON and plots",
+        description="Studies: passivity (Colgate-Schenkel margin of the coupling, and the "
+        "damping a maglev device must get from the hand or controller), zwidth (the "
+        "stiffness-damping range renderable stably and passively), stability-map (largest "
+        "stable stiffness against damping over sample rates and delays, with closed forms).")
+    analyze.add_argument("study", choices=study_names())
+    _add_scenario_arguments(analyze)
+    analyze.add_argument("--out", help="output folder (default: out/analyze/<file>-<name>)")
+    analyze.add_argument("--json", action="store_true", help="print the whole result as JSON")
+    analyze.add_argument("--quick", action="store_true", help="coarse settings (seconds)")
+    analyze.set_defaults(func=_cmd_analyze)
     return parser
 
 

@@ -1,0 +1,256 @@
+"""The haptic loop's passivity, Z-width and stability map for a scenario, from the
+exactly discretized 1-DOF loop (``haptic_loop.py``) along one axis.
+
+The scenario gives the loop's numbers: the instrument's and the hand's mass, the
+hand's arm impedance, the coupling's stiffness, damping and velocity filter, the
+control period, and the delay from a sample to the force it causes:
+
+    tracker latency + half a tracker period (the mean wait of an 860 Hz sample
+    for the 1 kHz tick) + one control period (the currents computed at a tick
+    flow from the next) + the amplifiers' lag 1 / (2 pi bandwidth).
+
+The estimator's own filtering (its 50 Hz alpha-beta filter) is left out: the
+coupling's 30 Hz filter dominates it.
+"""
+
+import math
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Callable, Dict, List, Optional
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from maglev_haptics.analysis.haptic_loop import (  # noqa: E402
+    LoopParameters, critical_stiffness, environment_impedance, is_stable)
+from maglev_haptics.analysis.passivity import passivity_bound, passivity_margin  # noqa: E402
+
+
+class StudyNotApplicable(ValueError):
+    """The study does not apply to this scenario; the message says why."""
+
+
+def loop_parameters(scenario, axis: int = 0) -> LoopParameters:
+    """The 1-DOF loop along W's ``axis`` (0 x, 1 y, 2 z) of a haptic scenario."""
+    if scenario.haptics is None:
+        raise StudyNotApplicable(
+            "it has no haptic coupling (haptics: null): there is no rendered environment "
+            "whose loop to analyse; the levitation loop's own analysis is `linearize`")
+    device = scenario.device
+    coupling = scenario.haptics.coupling
+    hand = scenario.hand.impedance
+    tracker = device.tracker
+    period_s = 1.0 / scenario.control_rate_hz
+    delay_s = (tracker.latency_s + 0.5 / tracker.rate_hz + period_s
+               + 1.0 / (2 * math.pi * device.amplifier.bandwidth_hz))
+    return LoopParameters(
+        mass_kg=device.instrument_spec().mass_kg + hand.mass_kg, device_damping=0.0,
+        hand_damping=hand.arm_translational_damping[axis],
+        hand_stiffness=hand.arm_translational_stiffness[axis],
+        stiffness=coupling.translational_stiffness[axis],
+        damping=coupling.translational_damping[axis], period_s=period_s, delay_s=delay_s,
+        velocity_filter_hz=coupling.velocity_filter_hz)
+
+
+def _parameters_dict(p: LoopParameters) -> Dict:
+    return {name: getattr(p, name) for name in p.__dataclass_fields__}
+
+
+# --- passivity -------------------------------------------------------------------
+
+def passivity_study(scenario) -> Dict:
+    """The coupling's passivity margin with the device's own damping (zero for a
+    maglev device), the damping it needs over frequency, and whether the hand's
+    damping covers it."""
+    p = loop_parameters(scenario)
+    H = environment_impedance(p)
+    needed = -passivity_margin(H, 0.0)
+    frequencies_hz = np.linspace(1.0, 0.5 / p.period_s, 400)
+    bound = passivity_bound(H, 2 * np.pi * frequencies_hz * p.period_s)
+    wall = environment_impedance(replace(p, delay_s=0.0, velocity_filter_hz=math.inf))
+    return {
+        "parameters": _parameters_dict(p),
+        "margin_device_only_n_s_m": passivity_margin(H, p.device_damping),
+        "damping_needed_n_s_m": needed,
+        "margin_with_hand_n_s_m": passivity_margin(H, p.device_damping + p.hand_damping),
+        "ideal_wall_damping_needed_n_s_m": -passivity_margin(wall, 0.0),
+        "closed_form_ideal_wall_n_s_m": p.stiffness * p.period_s / 2 + abs(p.damping),
+        "frequencies_hz": frequencies_hz.tolist(),
+        "damping_needed_by_frequency_n_s_m": bound.tolist(),
+        "meaning": (
+            f"A maglev device has no damping of its own, so the rendered coupling "
+            f"(K {p.stiffness:g} N/m, B {p.damping:g} N s/m, velocity filtered at "
+            f"{p.velocity_filter_hz:g} Hz, {1e3 * p.delay_s:.2f} ms delay rounded up to whole "
+            f"{1e3 * p.period_s:g} ms periods) is passive only if the hand or the controller "
+            f"supplies {needed:.2f} N s/m of damping; the simulated hand's arm gives "
+            f"{p.hand_damping:g} N s/m."),
+    }
+
+
+def plot_passivity(results: Dict, out_dir: Path, title: str) -> Path:
+    p = results["parameters"]
+    figure, axes = plt.subplots(figsize=(8, 4.5))
+    axes.plot(results["frequencies_hz"], results["damping_needed_by_frequency_n_s_m"],
+              label="damping the environment needs at each frequency")
+    axes.axhline(p["device_damping"] + p["hand_damping"], color="tab:green", ls="--",
+                 label="device + hand damping")
+    axes.axhline(p["device_damping"], color="tab:red", ls=":", label="device damping (maglev)")
+    axes.set_xlabel("frequency (Hz)")
+    axes.set_ylabel("damping (N s/m)")
+    axes.set_title(f"{title}: passivity (Colgate and Schenkel), needs "
+                   f"{results['damping_needed_n_s_m']:.2f} N s/m")
+    axes.legend()
+    figure.tight_layout()
+    path = Path(out_dir) / "passivity.png"
+    figure.savefig(path, dpi=110)
+    plt.close(figure)
+    return path
+
+
+# --- Z-width ----------------------------------------------------------------------
+
+@dataclass
+class ZWidthSettings:
+    stiffness_n_m: List[float]  # K grid (N/m)
+    damping_n_s_m: List[float]  # B grid (N s/m)
+
+    @classmethod
+    def full(cls):
+        return cls(np.geomspace(10, 2e4, 60).tolist(), np.linspace(-5, 40, 46).tolist())
+
+    @classmethod
+    def quick(cls):
+        return cls(np.geomspace(10, 2e4, 12).tolist(), np.linspace(-5, 40, 10).tolist())
+
+
+def zwidth_study(scenario, settings: ZWidthSettings,
+                 progress: Optional[Callable[[int, int], None]] = None) -> Dict:
+    """Colgate and Brown's Z-width: over a grid of the rendered stiffness K and
+    damping B, each point is passive with the device's damping alone, passive with the
+    hand's as well, stable in closed loop with the hand (but not passive), or unstable.
+    Region codes: 3 passive (device), 2 passive with the hand, 1 stable, 0 unstable."""
+    p = loop_parameters(scenario)
+    K, B = np.asarray(settings.stiffness_n_m), np.asarray(settings.damping_n_s_m)
+    region = np.zeros((len(B), len(K)), dtype=int)
+    for i, damping in enumerate(B):
+        for j, stiffness in enumerate(K):
+            q = replace(p, stiffness=float(stiffness), damping=float(damping))
+            H = environment_impedance(q)
+            if passivity_margin(H, q.device_damping) > 0:
+                region[i, j] = 3
+            elif passivity_margin(H, q.device_damping + q.hand_damping) > 0:
+                region[i, j] = 2
+            elif is_stable(q):
+                region[i, j] = 1
+        if progress is not None:
+            progress(i + 1, len(B))
+    stable_K = [float(K[row >= 1].max()) if (row >= 1).any() else None for row in region]
+    return {"parameters": _parameters_dict(p), "stiffness_n_m": K.tolist(),
+            "damping_n_s_m": B.tolist(), "region": region.tolist(),
+            "region_codes": {"3": "passive with the device's damping alone",
+                             "2": "passive with the hand's damping",
+                             "1": "stable with the hand, not passive", "0": "unstable"},
+            "largest_stable_stiffness_by_damping_n_m": stable_K,
+            "scenario_point": {"stiffness_n_m": p.stiffness, "damping_n_s_m": p.damping}}
+
+
+def plot_zwidth(results: Dict, out_dir: Path, title: str) -> Path:
+    K, B = np.array(results["stiffness_n_m"]), np.array(results["damping_n_s_m"])
+    region = np.array(results["region"])
+    colors = matplotlib.colors.ListedColormap(["#d9534f", "#f0ad4e", "#5bc0de", "#5cb85c"])
+    figure, axes = plt.subplots(figsize=(8, 5.5))
+    mesh = axes.pcolormesh(K, B, region, cmap=colors, vmin=-0.5, vmax=3.5, shading="nearest")
+    bar = figure.colorbar(mesh, ticks=[0, 1, 2, 3])
+    bar.ax.set_yticklabels(["unstable", "stable (hand)", "passive (hand)", "passive (device)"])
+    point = results["scenario_point"]
+    axes.plot(point["stiffness_n_m"], point["damping_n_s_m"], "k*", ms=14,
+              label="the scenario's coupling")
+    axes.set_xscale("log")
+    axes.set_xlabel("rendered stiffness K (N/m)")
+    axes.set_ylabel("rendered damping B (N s/m)")
+    axes.set_title(f"{title}: Z-width")
+    axes.legend(loc="upper left")
+    figure.tight_layout()
+    path = Path(out_dir) / "zwidth.png"
+    figure.savefig(path, dpi=110)
+    plt.close(figure)
+    return path
+
+
+# --- stability map ----------------------------------------------------------------
+
+@dataclass
+class StabilityMapSettings:
+    rates_hz: List[float]  # control rates swept (Hz)
+    delays_s: List[float]  # delays swept (s)
+    damping_n_s_m: List[float]  # B axis (N s/m)
+
+    @classmethod
+    def full(cls):
+        return cls([500.0, 860.0, 1000.0, 2000.0], [0.0, 1e-3, 2.5e-3, 5e-3],
+                   np.linspace(0.0, 30.0, 31).tolist())
+
+    @classmethod
+    def quick(cls):
+        return cls([860.0, 1000.0], [0.0, 2.5e-3], [0.0, 5.0, 10.0])
+
+
+def stability_map_study(scenario, settings: StabilityMapSettings,
+                        progress: Optional[Callable[[int, int], None]] = None) -> Dict:
+    """The largest stable coupling stiffness against damping, for each control rate
+    and delay, from the linear model with the scenario's hand; with the closed form
+    2 (b + B) / (T + 2 tau) it must reproduce in its limit (a heavy, damped mass with
+    no hand stiffness and no filter, b the hand's damping) beside each curve."""
+    p = loop_parameters(scenario)
+    curves = []
+    total = len(settings.rates_hz) * len(settings.delays_s)
+    for rate in settings.rates_hz:
+        for delay in settings.delays_s:
+            q = replace(p, period_s=1.0 / rate, delay_s=delay)
+            model = [critical_stiffness(replace(q, damping=float(b)))
+                     for b in settings.damping_n_s_m]
+            limit = replace(q, mass_kg=50.0, hand_stiffness=0.0, velocity_filter_hz=math.inf)
+            limit_model = [critical_stiffness(replace(limit, damping=float(b)))
+                           for b in settings.damping_n_s_m]
+            closed_form = [2 * (q.hand_damping + b) / (q.period_s + 2 * delay)
+                           for b in settings.damping_n_s_m]
+            curves.append({"rate_hz": rate, "delay_s": delay,
+                           "critical_stiffness_n_m": model,
+                           "limit_model_critical_stiffness_n_m": limit_model,
+                           "closed_form_limit_n_m": closed_form})
+            if progress is not None:
+                progress(len(curves), total)
+    return {"parameters": _parameters_dict(p), "damping_n_s_m": settings.damping_n_s_m,
+            "curves": curves,
+            "scenario_critical_stiffness_n_m": critical_stiffness(p)}
+
+
+def plot_stability_map(results: Dict, out_dir: Path, title: str) -> Path:
+    B = results["damping_n_s_m"]
+    curves = results["curves"]
+    rates = sorted({c["rate_hz"] for c in curves})
+    figure, panels = plt.subplots(1, len(rates), figsize=(4.2 * len(rates), 4.5), sharey=True,
+                                  squeeze=False)
+    for panel, rate in zip(panels[0], rates):
+        for index, curve in enumerate(c for c in curves if c["rate_hz"] == rate):
+            color = f"C{index}"
+            label = f"delay {1e3 * curve['delay_s']:g} ms"
+            panel.plot(B, curve["critical_stiffness_n_m"], color=color, label=label)
+            panel.plot(B, curve["closed_form_limit_n_m"], color=color, ls=":", lw=1)
+            panel.plot(B, curve["limit_model_critical_stiffness_n_m"], color=color, ls="none",
+                       marker=".", ms=4)
+        panel.set_title(f"{rate:g} Hz")
+        panel.set_xlabel("coupling damping B (N s/m)")
+        panel.set_yscale("log")
+    panels[0][0].set_ylabel("largest stable stiffness K (N/m)")
+    panels[0][0].legend(title="solid: with the hand; dots: heavy-mass limit;\n"
+                        "dotted: 2(b+B)/(T+2 tau)", fontsize=8, title_fontsize=7)
+    figure.suptitle(f"{title}: stability map")
+    figure.tight_layout()
+    path = Path(out_dir) / "stability_map.png"
+    figure.savefig(path, dpi=110)
+    plt.close(figure)
+    return path

@@ -1,0 +1,81 @@
+"""``maglev analyze``: each study on a scenario, writing ``<study>.json`` and its plots.
+
+Every study is also a Python function in its module; this one only dispatches,
+shows progress and writes the files.
+"""
+
+import json
+import math
+from pathlib import Path
+from typing import Callable, Dict, List
+
+from tqdm import tqdm
+
+from maglev_haptics.analysis import loop_studies
+from maglev_haptics.analysis.loop_studies import StudyNotApplicable
+
+
+def _passivity(scenario, label, out_dir, quick, progress):
+    results = loop_studies.passivity_study(scenario)
+    return results, [loop_studies.plot_passivity(results, out_dir, label)]
+
+
+def _zwidth(scenario, label, out_dir, quick, progress):
+    settings = (loop_studies.ZWidthSettings.quick() if quick
+                else loop_studies.ZWidthSettings.full())
+    results = loop_studies.zwidth_study(scenario, settings, progress)
+    return results, [loop_studies.plot_zwidth(results, out_dir, label)]
+
+
+def _stability_map(scenario, label, out_dir, quick, progress):
+    settings = (loop_studies.StabilityMapSettings.quick() if quick
+                else loop_studies.StabilityMapSettings.full())
+    results = loop_studies.stability_map_study(scenario, settings, progress)
+    return results, [loop_studies.plot_stability_map(results, out_dir, label)]
+
+
+STUDIES: Dict[str, Callable] = {
+    "passivity": _passivity,
+    "zwidth": _zwidth,
+    "stability-map": _stability_map,
+}
+
+
+def _json_ready(value):
+    """NaN and infinities as null (JSON has neither)."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {key: _json_ready(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_ready(item) for item in value]
+    return value
+
+
+def run_study(study: str, scenario, *, label: str, out_dir: Path, quick: bool = False,
+              show_progress: bool = True) -> Dict:
+    """Run ``study`` on ``scenario``; write ``<study>.json`` and its plots into
+    ``out_dir``. Raises StudyNotApplicable (a ValueError) saying why it does not apply."""
+    if study not in STUDIES:
+        raise ValueError(f"study {study!r}: unknown; the studies are {', '.join(STUDIES)}")
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    with tqdm(total=1, desc=f"{study} {label}", disable=not show_progress,
+              bar_format="{l_bar}{bar}| {n}/{total} [{elapsed}]") as bar:
+        def progress(done: int, total: int) -> None:
+            bar.total = total
+            bar.n = done
+            bar.refresh()
+        try:
+            results, plots = STUDIES[study](scenario, label, out_dir, quick, progress)
+        except StudyNotApplicable as reason:
+            raise StudyNotApplicable(f"{study} does not apply to {label}: {reason}") from None
+    results = {"study": study, "scenario": label, "quick": quick, **results,
+               "plots": [str(path.name) for path in plots]}
+    results = _json_ready(results)
+    (out_dir / f"{study.replace('-', '_')}.json").write_text(json.dumps(results, indent=2))
+    return results
+
+
+def study_names() -> List[str]:
+    return list(STUDIES)

@@ -1,0 +1,549 @@
+"""Workspace study: what the coils can do over the instrument's motion range.
+
+For each instrument and each pose of a grid over x, y, height, tilt and yaw:
+
+- the condition number of the 6 x 27 wrench matrix A (``magnetics``), with
+  its torque rows divided by the instrument's lever length L (the RMS distance
+  of the magnet centres from I: 20 mm for the 2-magnet, 28.3 mm for the 4-magnet
+  instrument) so that they read as the force pair at the magnets that makes the
+  same torque, in N/A like the force rows;
+- the hover current of the busiest coil [A] and the hover power [W] (sum of
+  I_j^2 R at the coils' 20 C resistance) of the minimum-norm allocation
+  I = A^+ w_weight, the allocator's solution whenever no coil saturates;
+- the smallest possible busiest-coil current that carries the weight [A]
+  (``hardware.limits.hover_current_a``, a linear program), which decides
+  whether the instrument can hover there within a current limit;
+- the largest extra force along +-x, +-y, +-z [N] and torque about +-x, +-y,
+  +-z [N m] (W axes, about I's origin) on top of the weight, within the
+  amplifiers' peak current and within the coils' continuous thermal limit
+  (``hardware.limits.max_added_wrench``).
+
+Every quantity but ``base_clearance_m`` is NaN where the instrument's base would
+be inside the display glass or the weight is out of the coils' reach (the
+magnets beyond the wrench table, or A losing rank); everything but that and
+``hover_current_minmax_a`` is NaN where no allocation within the peak limit
+carries the weight, and the thermal-limit force and torque are NaN where none
+within the continuous limit does. ``workspace_study`` returns plain lists and
+dicts with every NaN or infinity written as ``None``, so ``json.dumps`` (even
+with ``allow_nan=False``) writes standard JSON; ``plot_workspace`` reads them
+back as NaN.
+
+The slices (each pose a separate linear-program set, ~15 ms):
+
+- ``xy``: level, yaw 0, an x-y grid at a few heights of I above W's z = 0;
+- ``height``: level over the array centre, a range of heights;
+- ``tilt``: over the centre, tilted about W's x (roll) or y (pitch), times heights;
+- ``yaw``: level over the centre, yawed 0..90 deg, times heights. The array
+  is mirror-symmetric in x and in y and both instruments are symmetric under
+  a half turn, so over the centre 0..90 deg covers every yaw (and 0..35 deg
+  every tilt of up to 35 deg about x or y).
+
+The default study (2 instruments, 3,000 poses) takes ~60 s on the 2-core
+development machine once the wrench tables are cached (``WorkspaceSettings.quick()``
+~2 s).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Optional, Tuple
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from matplotlib.colors import LogNorm  # noqa: E402
+from matplotlib.patches import Circle, Rectangle  # noqa: E402
+
+from maglev_haptics.diagrams.motion import MAX_TILT_DEG, base_clearance_m  # noqa: E402
+from maglev_haptics.hardware.device import INSTRUMENT_KINDS, DeviceConfig  # noqa: E402
+from maglev_haptics.hardware.limits import (  # noqa: E402
+    AXIS_DIRECTIONS, LIMIT_KINDS, coil_current_limit_a, hover_current_a, hover_workspace_A,
+    max_added_wrench, weight_wrench)
+from maglev_haptics.hardware.magnetics import MagneticsModel, load_magnetics  # noqa: E402
+from maglev_haptics.hardware.thermal import coil_thermal, winding_resistance_ohm  # noqa: E402
+from maglev_haptics.systems.current_allocator import minimum_norm_currents  # noqa: E402
+from maglev_haptics.systems.rotations import rotation_from_rpy, rpy_from_rotation  # noqa: E402
+
+# Labels of the six axis directions, in hardware.limits.AXIS_DIRECTIONS' order.
+DIRECTIONS = ("+x", "+y", "+z", "-x", "-y", "-z")
+POWER_TEMPERATURE_C = 20.0  # the winding temperature the hover power is quoted at [deg C]
+# The paper's horizontal motion range, a square centred on W's origin [m].
+PAPER_RANGE_M = 0.100
+# Below this smallest-to-largest singular value ratio A has lost rank: the
+# magnets are out of the coils' reach.
+_RANK_TOLERANCE = 1e-9
+_WRENCH_DIRECTIONS = np.zeros((12, 6))
+_WRENCH_DIRECTIONS[:6, :3] = AXIS_DIRECTIONS
+_WRENCH_DIRECTIONS[6:, 3:] = AXIS_DIRECTIONS
+
+
+@dataclass
+class WorkspaceSettings:
+    """The grids of the study. Heights are of I's origin above W's z = 0 [m]."""
+
+    instruments: Tuple[str, ...] = INSTRUMENT_KINDS
+    x_range_m: Tuple[float, float] = (-0.06, 0.06)  # x of I in W for the x-y maps [m]
+    y_range_m: Tuple[float, float] = (-0.06, 0.06)  # y of I in W for the x-y maps [m]
+    xy_steps: int = 25  # grid points along x and along y (5 mm apart by default)
+    map_heights_m: Tuple[float, ...] = (0.010, 0.020, 0.030, 0.040)  # heights of the x-y maps [m]
+    height_range_m: Tuple[float, float] = (0.005, 0.060)  # heights of the profiles [m]
+    height_steps: int = 23  # (2.5 mm apart by default)
+    tilt_range_deg: Tuple[float, float] = (0.0, 35.0)  # about W's x and about its y [deg]
+    tilt_steps: int = 8
+    yaw_range_deg: Tuple[float, float] = (0.0, 90.0)  # [deg]
+    yaw_steps: int = 13
+
+    @classmethod
+    def quick(cls) -> "WorkspaceSettings":
+        """Coarse grids for tests (~2 s for both instruments)."""
+        return cls(xy_steps=5, map_heights_m=(0.015, 0.030), height_steps=4, tilt_steps=3,
+                   yaw_steps=3)
+
+    def check(self) -> None:
+        """ValueError naming the first bad field."""
+        for kind in self.instruments:
+            if kind not in INSTRUMENT_KINDS:
+                raise ValueError(f"instruments: {kind!r} must be one of {', '.join(INSTRUMENT_KINDS)}")
+        for name in ("xy_steps", "height_steps", "tilt_steps", "yaw_steps"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"{name} = {getattr(self, name)!r}: must be at least 1")
+        if not self.map_heights_m:
+            raise ValueError("map_heights_m: must name at least one height [m]")
+        if max(abs(t) for t in self.tilt_range_deg) > MAX_TILT_DEG:
+            raise ValueError(f"tilt_range_deg = {self.tilt_range_deg!r}: beyond the "
+                             f"{MAX_TILT_DEG:.0f} deg the electromagnetic model is validated for")
+
+
+def lever_length_m(config: DeviceConfig) -> float:
+    """L [m]: RMS distance of the magnet centres from I, the torque rows' scale."""
+    p_IM = config.instrument_spec().p_IM
+    return float(np.sqrt(np.mean(np.sum(p_IM**2, axis=1))))
+
+
+def scaled_condition_number(A: np.ndarray, lever_m: float) -> float:
+    """cond(diag(1, 1, 1, 1/L, 1/L, 1/L) A) for the (6, n) wrench matrix A and
+    lever length L [m]; inf where A has lost rank."""
+    singular = np.linalg.svd(np.vstack([A[:3], A[3:] / lever_m]), compute_uv=False)
+    if singular[-1] <= _RANK_TOLERANCE * singular[0]:
+        return math.inf
+    return float(singular[0] / singular[-1])
+
+
+def _nan_metrics(clearance_m: float) -> dict:
+    nan_directions = {label: math.nan for label in DIRECTIONS}
+    return {
+        "base_clearance_m": clearance_m,
+        "condition_number": math.nan,
+        "hover_current_a": math.nan,
+        "hover_current_minmax_a": math.nan,
+        "hover_power_w": math.nan,
+        "max_force_n": {limit: dict(nan_directions) for limit in LIMIT_KINDS},
+        "max_torque_nm": {limit: dict(nan_directions) for limit in LIMIT_KINDS},
+    }
+
+
+def pose_metrics(magnetics: MagneticsModel, config: DeviceConfig, p_WI, R_WI) -> dict:
+    """The study's numbers for the instrument of ``config`` at p_WI (3,) [m], R_WI (3, 3).
+
+    Keys (NaN as the module docstring says): base_clearance_m [m] (lowest corner
+    of the instrument's base above the glass), condition_number (torque rows
+    scaled by ``lever_length_m``), hover_current_a [A] and hover_power_w [W]
+    (minimum-norm allocation), hover_current_minmax_a [A] (smallest possible
+    busiest coil), and max_force_n [N] / max_torque_nm [N m], each
+    {limit: {direction: value}} for limit in LIMIT_KINDS and direction in DIRECTIONS.
+    """
+    p_WI = np.asarray(p_WI, dtype=float)
+    R_WI = np.asarray(R_WI, dtype=float)
+    spec = config.instrument_spec()
+    clearance = base_clearance_m(np.r_[p_WI, rpy_from_rotation(R_WI)], spec)
+    metrics = _nan_metrics(clearance)
+    if clearance < 0:
+        return metrics
+    # A's axes are W's (DESIGN.md 3), so R_AI = R_WI.
+    A = magnetics.wrench_matrix_from(p_WI - config.p_WA, R_WI)
+    condition = scaled_condition_number(A, lever_length_m(config))
+    if not math.isfinite(condition):
+        return metrics
+    weight = weight_wrench(config)
+    minmax = hover_current_a(A, weight)
+    if not math.isfinite(minmax):
+        return metrics
+    metrics["hover_current_minmax_a"] = minmax
+    if minmax > coil_current_limit_a(config, "peak"):
+        return metrics
+    currents = minimum_norm_currents(A, weight)
+    resistance = float(winding_resistance_ohm(coil_thermal(config), POWER_TEMPERATURE_C))
+    metrics.update(condition_number=condition,
+                   hover_current_a=float(np.max(np.abs(currents))),
+                   hover_power_w=float(np.sum(currents**2) * resistance))
+    for limit in LIMIT_KINDS:
+        current_limit = coil_current_limit_a(config, limit)
+        if minmax > current_limit:
+            continue
+        try:
+            added, _ = max_added_wrench(A, weight, _WRENCH_DIRECTIONS, current_limit)
+        except ValueError:  # at the limit to within the LP's tolerance: treat as out of reach
+            continue
+        metrics["max_force_n"][limit] = dict(zip(DIRECTIONS, added[:6].tolist()))
+        metrics["max_torque_nm"][limit] = dict(zip(DIRECTIONS, added[6:].tolist()))
+    return metrics
+
+
+def _slices(settings: WorkspaceSettings) -> dict:
+    """name -> (coordinates, poses): the maps' axes in order (name -> values, in
+    m or deg) and the poses (p_WI, R_WI) of the grid in C order."""
+    def line(span, steps):
+        return np.linspace(span[0], span[1], int(steps))
+
+    xs, ys = line(settings.x_range_m, settings.xy_steps), line(settings.y_range_m, settings.xy_steps)
+    map_heights = np.asarray(settings.map_heights_m, dtype=float)
+    heights = line(settings.height_range_m, settings.height_steps)
+    tilts = line(settings.tilt_range_deg, settings.tilt_steps)
+    yaws = line(settings.yaw_range_deg, settings.yaw_steps)
+    level = np.eye(3)
+
+    def rotation(roll_deg=0.0, pitch_deg=0.0, yaw_deg=0.0):
+        return rotation_from_rpy(np.radians([roll_deg, pitch_deg, yaw_deg]))
+
+    return {
+        "xy": ({"height_m": map_heights, "y_m": ys, "x_m": xs},
+               [(np.array([x, y, h]), level) for h in map_heights for y in ys for x in xs]),
+        "height": ({"height_m": heights}, [(np.array([0.0, 0.0, h]), level) for h in heights]),
+        "tilt": ({"tilt_axis": np.array(["x", "y"]), "height_m": heights, "tilt_deg": tilts},
+                 [(np.array([0.0, 0.0, h]), rotation(t, 0.0) if axis == "x" else rotation(0.0, t))
+                  for axis in ("x", "y") for h in heights for t in tilts]),
+        "yaw": ({"height_m": heights, "yaw_deg": yaws},
+                [(np.array([0.0, 0.0, h]), rotation(yaw_deg=yaw)) for h in heights for yaw in yaws]),
+    }
+
+
+def _stack(per_pose: list, shape: tuple):
+    """The per-pose metric dicts as one dict of the same keys holding arrays of ``shape``."""
+    first = per_pose[0]
+    if isinstance(first, dict):
+        return {key: _stack([m[key] for m in per_pose], shape) for key in first}
+    return np.asarray(per_pose, dtype=float).reshape(shape)
+
+
+def _finite_range(values) -> dict:
+    finite = np.asarray(values, dtype=float)
+    finite = finite[np.isfinite(finite)]
+    if finite.size == 0:
+        return {"min": math.nan, "max": math.nan}
+    return {"min": float(finite.min()), "max": float(finite.max())}
+
+
+def _summary(config: DeviceConfig, magnetics: MagneticsModel, slices: dict) -> dict:
+    """Headline numbers of one instrument's slices (SI units; see the keys)."""
+    xy = slices["xy"]["maps"]
+    ceilings = {}
+    for limit in LIMIT_KINDS:
+        _, upper = hover_workspace_A(config, coil_current_limit_a(config, limit), magnetics)
+        ceilings[limit] = float(upper[2] + config.p_WA[2])
+    worst = {"value": math.nan}
+    for name, data in slices.items():
+        condition = data["maps"]["condition_number"]
+        if np.isfinite(condition).any() and not worst["value"] >= np.nanmax(condition):
+            index = np.unravel_index(np.nanargmax(condition), condition.shape)
+            worst = {"value": float(condition[index]), "slice": name,
+                     "at": {axis: values[i].item()
+                            for (axis, values), i in zip(data["coordinates"].items(), index)}}
+    every = {key: np.concatenate([d["maps"][key].ravel() for d in slices.values()])
+             for key in ("hover_current_a", "hover_power_w", "condition_number")}
+    return {
+        # Highest level hover over the array centre [m above W's z = 0].
+        "hover_ceiling_m": ceilings,
+        # Share of the x-y grid points, per map height, where the weight can be carried.
+        "hover_fraction_xy": {
+            limit: np.isfinite(xy["max_force_n"][limit]["+z"]).mean(axis=(1, 2)).tolist()
+            for limit in LIMIT_KINDS},
+        "hover_current_a": _finite_range(every["hover_current_a"]),
+        "hover_power_w": _finite_range(every["hover_power_w"]),
+        "condition_number": {"best": _finite_range(every["condition_number"])["min"],
+                             "worst": worst},
+        # Per map height, the smallest over the x-y grid points where it hovers of
+        # the largest extra force [N] / torque [N m] in each direction.
+        "min_max_force_xy_n": {
+            limit: {d: _nanmin_per_height(xy["max_force_n"][limit][d]) for d in DIRECTIONS}
+            for limit in LIMIT_KINDS},
+        "min_max_torque_xy_nm": {
+            limit: {d: _nanmin_per_height(xy["max_torque_nm"][limit][d]) for d in DIRECTIONS}
+            for limit in LIMIT_KINDS},
+    }
+
+
+def _nanmin_per_height(maps: np.ndarray) -> list:
+    return [float(np.min(m[np.isfinite(m)])) if np.isfinite(m).any() else math.nan for m in maps]
+
+
+def _json_ready(value):
+    """Arrays to lists, numpy scalars to floats, NaN and infinities to None."""
+    if isinstance(value, dict):
+        return {key: _json_ready(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple, np.ndarray)):
+        return [_json_ready(item) for item in (value.tolist() if isinstance(value, np.ndarray)
+                                               else value)]
+    if isinstance(value, (float, np.floating)):
+        return float(value) if math.isfinite(value) else None
+    if isinstance(value, np.integer):
+        return int(value)
+    return value
+
+
+def workspace_study(settings: WorkspaceSettings, *,
+                    progress: Optional[Callable[[int, int], None]] = None) -> dict:
+    """The study (module docstring) over ``settings``' grids, as JSON-ready data.
+
+    Returns {"study", "settings", "units", "instruments": {kind: {"mass_kg",
+    "lever_length_m", "current_limit_a": {limit: A}, "summary", "slices":
+    {name: {"coordinates": {axis: values}, "maps": {metric: nested lists}}}}}}.
+    Each map's nesting follows its slice's coordinates in order (e.g. xy:
+    [height][y][x]); metrics are those of ``pose_metrics``. NaN is None.
+    ``progress(n_done, n_total)``, if given, is called after every pose.
+    """
+    settings.check()
+    slice_grids = _slices(settings)
+    n_total = len(settings.instruments) * sum(len(poses) for _, poses in slice_grids.values())
+    n_done = 0
+    instruments = {}
+    for kind in settings.instruments:
+        config = DeviceConfig(instrument=kind)
+        magnetics = load_magnetics(config)
+        slices = {}
+        for name, (coordinates, poses) in slice_grids.items():
+            per_pose = []
+            for p_WI, R_WI in poses:
+                per_pose.append(pose_metrics(magnetics, config, p_WI, R_WI))
+                n_done += 1
+                if progress is not None:
+                    progress(n_done, n_total)
+            shape = tuple(len(values) for values in coordinates.values())
+            slices[name] = {"coordinates": coordinates, "maps": _stack(per_pose, shape)}
+        instruments[kind] = {
+            "mass_kg": config.instrument_spec().mass_kg,
+            "lever_length_m": lever_length_m(config),
+            "current_limit_a": {limit: coil_current_limit_a(config, limit) for limit in LIMIT_KINDS},
+            "summary": _summary(config, magnetics, slices),
+            "slices": slices,
+        }
+    return _json_ready({
+        "study": "workspace",
+        "settings": dataclasses.asdict(settings),
+        "units": {"m": "positions, heights", "deg": "angles", "A": "currents", "W": "power",
+                  "N": "forces", "N m": "torques (about I's origin, W axes)",
+                  "condition_number": "of A with its torque rows divided by lever_length_m",
+                  "null": "NaN: inside the glass, out of reach, or over the current limit"},
+        "instruments": instruments,
+    })
+
+
+# --- plots ---------------------------------------------------------------------
+
+_NAN_NOTE = "grey: cannot hover (out of reach, over the limit, or inside the glass)"
+
+
+def _array(values) -> np.ndarray:
+    """JSON lists (None for NaN) as a float array."""
+    return np.array(values, dtype=float)
+
+
+def _title(kind: str) -> str:
+    return kind.replace("_", "-") + " instrument"
+
+
+def _weakest(maps: dict, directions) -> np.ndarray:
+    """Elementwise minimum over ``directions`` of the per-direction maps."""
+    return np.min([_array(maps[d]) for d in directions], axis=0)
+
+
+def _style(ax) -> None:
+    ax.set_facecolor("0.85")
+
+
+def _norm(stack, log: bool):
+    finite = stack[np.isfinite(stack)]
+    if finite.size == 0:
+        return None
+    low, high = float(finite.min()), float(finite.max())
+    if log and low > 0 and high > 3 * low:
+        return LogNorm(vmin=low, vmax=high)
+    return plt.Normalize(vmin=0.0 if not log else low, vmax=max(high, low + 1e-12))
+
+
+def _xy_figure(kind: str, xy: dict, rows: list, heading: str, path: Path) -> Path:
+    """Rows of x-y maps, one column per height, one shared colour bar per row.
+    ``rows``: (label with units, (n_heights, ny, nx) array, log colour scale)."""
+    heights_mm = 1e3 * _array(xy["coordinates"]["height_m"])
+    x_mm, y_mm = 1e3 * _array(xy["coordinates"]["x_m"]), 1e3 * _array(xy["coordinates"]["y_m"])
+    coils = DeviceConfig(instrument=kind)
+    centres_mm = 1e3 * coils.array.coil_positions_A()[:, :2]
+    radius_mm = 1e3 * coils.coil.outer_diameter_m / 2
+    n_cols = len(heights_mm)
+    fig, axes = plt.subplots(len(rows), n_cols, figsize=(3.6 * n_cols + 1.6, 3.3 * len(rows)),
+                             squeeze=False, layout="constrained")
+    for row, (label, stack, log) in enumerate(rows):
+        norm = _norm(stack, log)
+        for col in range(n_cols):
+            ax = axes[row, col]
+            _style(ax)
+            mesh = ax.pcolormesh(x_mm, y_mm, stack[col], shading="nearest", cmap="viridis",
+                                 norm=norm)
+            for centre in centres_mm:
+                ax.add_patch(Circle(centre, radius_mm, fill=False, lw=0.4, color="w", alpha=0.6))
+            half = 1e3 * PAPER_RANGE_M / 2
+            ax.add_patch(Rectangle((-half, -half), 2 * half, 2 * half, fill=False, ls="--",
+                                   lw=0.8, color="tab:red"))
+            ax.set_aspect("equal")
+            ax.set_xlim(x_mm[0] - 2.5, x_mm[-1] + 2.5)
+            ax.set_ylim(y_mm[0] - 2.5, y_mm[-1] + 2.5)
+            if row == 0:
+                ax.set_title(f"height {heights_mm[col]:.0f} mm")
+            if row == len(rows) - 1:
+                ax.set_xlabel("x [mm]")
+            if col == 0:
+                ax.set_ylabel("y [mm]")
+        fig.colorbar(mesh, ax=axes[row, :], label=label, shrink=0.9)
+    fig.suptitle(f"{_title(kind)}: {heading}\nlevel, yaw 0; white circles: coils; red dashed: "
+                 f"the paper's 100 x 100 mm range; {_NAN_NOTE}", fontsize=10)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
+
+
+def _heat_figure(kind: str, grids: list, angle_label: str, heading: str, path: Path) -> Path:
+    """Heat maps over (angle, height): ``grids`` rows of (row label, angles [deg],
+    heights [m], [(panel label with units, (n_heights, n_angles) array, log)])."""
+    n_rows, n_cols = len(grids), len(grids[0][3])
+    fig, axes = plt.subplots(n_rows, n_cols, figsize=(4.0 * n_cols, 3.4 * n_rows), squeeze=False,
+                             layout="constrained")
+    for row, (row_label, angles, heights, panels) in enumerate(grids):
+        for col, (label, values, log) in enumerate(panels):
+            ax = axes[row, col]
+            _style(ax)
+            mesh = ax.pcolormesh(angles, 1e3 * heights, values, shading="nearest", cmap="viridis",
+                                 norm=_norm(values, log))
+            fig.colorbar(mesh, ax=ax, label=label)
+            ax.set_title(f"{row_label}", fontsize=9)
+            ax.set_xlabel(angle_label)
+            if col == 0:
+                ax.set_ylabel("height of I above the glass [mm]")
+    fig.suptitle(f"{_title(kind)}: {heading}\n{_NAN_NOTE}", fontsize=10)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
+
+
+def _height_figure(kind: str, data: dict, limits: dict, path: Path) -> Path:
+    heights_mm = 1e3 * _array(data["slices"]["height"]["coordinates"]["height_m"])
+    maps = data["slices"]["height"]["maps"]
+    fig, axes = plt.subplots(2, 2, figsize=(12, 8), sharex=True, layout="constrained")
+    ax = axes[0, 0]
+    ax.plot(heights_mm, _array(maps["hover_current_a"]), color="tab:purple",
+            label="busiest coil, minimum-norm allocation")
+    ax.plot(heights_mm, _array(maps["hover_current_minmax_a"]), color="tab:purple", ls="--",
+            label="busiest coil, best allocation (LP)")
+    for limit, style in zip(LIMIT_KINDS, (":", "-.")):
+        ax.axhline(limits[limit], color="k", ls=style, lw=1, label=f"{limit} limit")
+    ax.set_ylabel("hover current [A]")
+    power = ax.twinx()
+    power.plot(heights_mm, _array(maps["hover_power_w"]), color="tab:orange")
+    power.set_ylabel("hover power at 20 C [W] (orange)", color="tab:orange")
+    ax.legend(fontsize=8, loc="upper left")
+    ax = axes[0, 1]
+    ax.semilogy(heights_mm, _array(maps["condition_number"]), color="k")
+    ax.set_ylabel("condition number of A (torques / lever)")
+    for col, (key, unit, scale) in enumerate((("max_force_n", "N", 1.0),
+                                              ("max_torque_nm", "N mm", 1e3))):
+        ax = axes[1, col]
+        for i, direction in enumerate(DIRECTIONS):
+            color = ("tab:red", "tab:green", "tab:blue")[i % 3]
+            line = "-" if direction[0] == "+" else "--"
+            ax.plot(heights_mm, scale * _array(maps[key]["thermal"][direction]), color=color,
+                    ls=line, lw=1.6, label=f"{direction} thermal")
+            ax.plot(heights_mm, scale * _array(maps[key]["peak"][direction]), color=color,
+                    ls=line, lw=0.7, alpha=0.6, label=f"{direction} peak")
+        noun = "force along" if key == "max_force_n" else "torque about"
+        ax.set_ylabel(f"largest extra {noun} [{unit}]")
+        ax.set_xlabel("height of I above the glass [mm]")
+        ax.legend(fontsize=7, ncol=2, loc="upper right",
+                  title="thick: thermal limit, thin: peak", title_fontsize=7)
+    for ax in axes.ravel():
+        ax.grid(alpha=0.3)
+    fig.suptitle(f"{_title(kind)}: level over the array centre, versus height "
+                 "(gaps: cannot hover or inside the glass)", fontsize=10)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
+
+
+def plot_workspace(results: dict, out_dir: Path) -> list[Path]:
+    """Write the study's PNG maps into ``out_dir`` (made if missing); return their paths.
+
+    Per instrument: ``workspace_<kind>_xy_hover.png`` (condition number, hover
+    current and power per map height), ``workspace_<kind>_xy_force_<limit>.png``
+    (largest force up, down and in the weakest horizontal direction, and the
+    weakest torque, per map height), ``workspace_<kind>_height.png`` (profiles
+    over the centre), ``workspace_<kind>_tilt.png`` and ``workspace_<kind>_yaw.png``
+    (heat maps over angle and height).
+    """
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for kind, data in results["instruments"].items():
+        xy = data["slices"]["xy"]
+        maps = xy["maps"]
+        stem = f"workspace_{kind}"
+        paths.append(_xy_figure(kind, xy, [
+            ("condition number of A\n(torques / lever)", _array(maps["condition_number"]), True),
+            ("hover current, busiest coil [A]\n(minimum-norm allocation)",
+             _array(maps["hover_current_a"]), False),
+            ("hover power at 20 C [W]", _array(maps["hover_power_w"]), False),
+        ], "conditioning and hover current", out_dir / f"{stem}_xy_hover.png"))
+        for limit in LIMIT_KINDS:
+            force, torque = maps["max_force_n"][limit], maps["max_torque_nm"][limit]
+            amps = data["current_limit_a"][limit]
+            paths.append(_xy_figure(kind, xy, [
+                ("largest extra force up (+z) [N]", _array(force["+z"]), False),
+                ("largest extra force down (-z) [N]", _array(force["-z"]), False),
+                ("largest extra force sideways [N]\n(weakest of +-x, +-y)",
+                 _weakest(force, ("+x", "-x", "+y", "-y")), False),
+                ("largest extra torque [N mm]\n(weakest axis)", 1e3 * _weakest(torque, DIRECTIONS),
+                 False),
+            ], f"largest extra force and torque within the {limit} current limit ({amps:.2f} A)",
+                out_dir / f"{stem}_xy_force_{limit}.png"))
+        paths.append(_height_figure(kind, data, data["current_limit_a"], out_dir / f"{stem}_height.png"))
+
+        def panels(maps):
+            return [
+                ("condition number", _array(maps["condition_number"]), True),
+                ("hover current [A]", _array(maps["hover_current_a"]), False),
+                ("extra force up, thermal [N]", _array(maps["max_force_n"]["thermal"]["+z"]), False),
+                ("extra force sideways, thermal [N]\n(weakest of +-x, +-y)",
+                 _weakest(maps["max_force_n"]["thermal"], ("+x", "-x", "+y", "-y")), False),
+            ]
+
+        tilt = data["slices"]["tilt"]
+        tilts, heights = _array(tilt["coordinates"]["tilt_deg"]), _array(tilt["coordinates"]["height_m"])
+        tilt_maps = [{key: _index(value, i) for key, value in tilt["maps"].items()} for i in (0, 1)]
+        paths.append(_heat_figure(kind, [
+            (f"tilt about {axis}", tilts, heights, panels(m))
+            for axis, m in zip(tilt["coordinates"]["tilt_axis"], tilt_maps)],
+            "tilt [deg]", "tilted over the array centre", out_dir / f"{stem}_tilt.png"))
+        yaw = data["slices"]["yaw"]
+        paths.append(_heat_figure(kind, [
+            ("yawed", _array(yaw["coordinates"]["yaw_deg"]), _array(yaw["coordinates"]["height_m"]),
+             panels(yaw["maps"]))], "yaw [deg]", "level, yawed over the array centre",
+            out_dir / f"{stem}_yaw.png"))
+    return paths
+
+
+def _index(value, i):
+    """value[i] through the nested metric dicts (the tilt slice's axis i)."""
+    if isinstance(value, dict):
+        return {key: _index(item, i) for key, item in value.items()}
+    return value[i]

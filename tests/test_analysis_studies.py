@@ -1,0 +1,60 @@
+"""Every study on every shipped scenario where it applies (quick settings), from the
+CLI; a study that does not apply says why."""
+
+import json
+
+import numpy as np
+import pytest
+
+from maglev_haptics.analysis.loop_studies import ZWidthSettings, loop_parameters, zwidth_study
+from maglev_haptics.analysis.studies import study_names
+from maglev_haptics.diagrams.cli import main
+from maglev_haptics.diagrams.scenario import load_scenario, scenario_names, shipped_scenario_files
+
+SCENARIOS = [(path.stem, name) for path in shipped_scenario_files()
+             for name in scenario_names(path)]
+LOOP_STUDIES = ("passivity", "zwidth", "stability-map")
+
+
+@pytest.mark.parametrize("study", LOOP_STUDIES)
+@pytest.mark.parametrize("file, name", SCENARIOS)
+def test_loop_study_runs_or_says_why(study, file, name, tmp_path, capsys):
+    code = main(["analyze", study, file, "--name", name, "--quick", "--json",
+                 "--out", str(tmp_path)])
+    scenario = load_scenario(file, name)
+    if scenario.haptics is None:
+        assert code == 2
+        assert "does not apply" in capsys.readouterr().err
+        return
+    assert code == 0
+    results = json.loads((tmp_path / f"{study.replace('-', '_')}.json").read_text())
+    assert results["scenario"] == f"{file}:{name}"
+    for plot in results["plots"]:
+        assert (tmp_path / plot).stat().st_size > 10_000
+
+
+def test_peg_loop_numbers(tmp_path):
+    """The peg scene's coupling needs 3.3 N s/m it does not have, and the hand gives 8."""
+    scenario = load_scenario("peg_in_hole")
+    p = loop_parameters(scenario)
+    assert p.mass_kg == pytest.approx(0.375)
+    assert p.delay_s == pytest.approx(1.5e-3 + 0.5 / 860 + 1e-3 + 1 / (2 * np.pi * 1000))
+    assert main(["analyze", "passivity", "peg_in_hole", "--quick", "--out", str(tmp_path)]) == 0
+    results = json.loads((tmp_path / "passivity.json").read_text())
+    assert results["margin_device_only_n_s_m"] < 0 < results["margin_with_hand_n_s_m"]
+    assert results["ideal_wall_damping_needed_n_s_m"] == pytest.approx(
+        results["closed_form_ideal_wall_n_s_m"], rel=0.01)
+
+
+def test_zwidth_regions_are_nested():
+    """Passive with the device implies passive with the hand implies stable: along
+    each damping row, the region code never rises with stiffness."""
+    scenario = load_scenario("peg_in_hole")
+    results = zwidth_study(scenario, ZWidthSettings.quick())
+    region = np.array(results["region"])
+    assert np.all(np.diff(region, axis=1) <= 0)
+    assert (region == 0).any() and (region == 2).any()
+
+
+def test_study_names():
+    assert set(LOOP_STUDIES) <= set(study_names())
