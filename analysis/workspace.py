@@ -57,6 +57,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.colors import LogNorm  # noqa: E402
+from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter  # noqa: E402
 from matplotlib.patches import Circle, Rectangle  # noqa: E402
 
 from maglev_haptics.diagrams.motion import MAX_TILT_DEG, base_clearance_m  # noqa: E402
@@ -344,7 +345,18 @@ def workspace_study(settings: WorkspaceSettings, *,
 
 # --- plots ---------------------------------------------------------------------
 
-_NAN_NOTE = "grey: cannot hover (out of reach, over the limit, or inside the glass)"
+_NAN_NOTE = "grey: cannot hover (out of reach, over the current limit, or inside the glass)"
+_OVER_COLOUR = "magenta"
+
+
+@dataclass
+class _Panel:
+    """One quantity to draw: its label with units, values, and colour scale."""
+
+    label: str
+    values: np.ndarray
+    log: bool = False
+    limit: Optional[float] = None  # top of the colour scale; larger values drawn magenta
 
 
 def _array(values) -> np.ndarray:
@@ -361,124 +373,193 @@ def _weakest(maps: dict, directions) -> np.ndarray:
     return np.min([_array(maps[d]) for d in directions], axis=0)
 
 
-def _style(ax) -> None:
-    ax.set_facecolor("0.85")
-
-
-def _norm(stack, log: bool):
-    finite = stack[np.isfinite(stack)]
+def _colour_scale(panel: _Panel):
+    """(norm, colour map, colour bar's extend) for ``panel``; NaN cells stay
+    transparent over the axes' grey."""
+    cmap = plt.get_cmap("viridis").copy()
+    cmap.set_over(_OVER_COLOUR)
+    finite = panel.values[np.isfinite(panel.values)]
     if finite.size == 0:
-        return None
+        return plt.Normalize(0.0, 1.0), cmap, "neither"
     low, high = float(finite.min()), float(finite.max())
-    if log and low > 0 and high > 3 * low:
-        return LogNorm(vmin=low, vmax=high)
-    return plt.Normalize(vmin=0.0 if not log else low, vmax=max(high, low + 1e-12))
+    extend = "neither"
+    if panel.limit is not None and high > panel.limit:
+        high, extend = panel.limit, "max"
+    if panel.log and low > 0 and high > low:
+        return LogNorm(low, high), cmap, extend
+    return plt.Normalize(0.0, max(high, 1e-12)), cmap, extend
+
+
+def _colour_bar(fig, mesh, ax, panel: _Panel, extend: str) -> None:
+    bar = fig.colorbar(mesh, ax=ax, label=panel.label, extend=extend, shrink=0.95)
+    if isinstance(mesh.norm, LogNorm):
+        # Plain numbers (3, 5, 10, 20) rather than 3 x 10^0.
+        bar.ax.yaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 3.0, 5.0)))
+        bar.ax.yaxis.set_major_formatter(FuncFormatter(lambda value, _: f"{value:g}"))
+        bar.ax.yaxis.set_minor_formatter(NullFormatter())
 
 
 def _xy_figure(kind: str, xy: dict, rows: list, heading: str, path: Path) -> Path:
-    """Rows of x-y maps, one column per height, one shared colour bar per row.
-    ``rows``: (label with units, (n_heights, ny, nx) array, log colour scale)."""
+    """Rows of x-y maps (each a _Panel of (n_heights, ny, nx) values), one column
+    per height, one shared colour scale per row."""
     heights_mm = 1e3 * _array(xy["coordinates"]["height_m"])
     x_mm, y_mm = 1e3 * _array(xy["coordinates"]["x_m"]), 1e3 * _array(xy["coordinates"]["y_m"])
-    coils = DeviceConfig(instrument=kind)
-    centres_mm = 1e3 * coils.array.coil_positions_A()[:, :2]
-    radius_mm = 1e3 * coils.coil.outer_diameter_m / 2
+    device = DeviceConfig(instrument=kind)
+    centres_mm = 1e3 * device.array.coil_positions_A()[:, :2]
+    radius_mm = 1e3 * device.coil.outer_diameter_m / 2
+    half_range_mm = 1e3 * PAPER_RANGE_M / 2
+    pad_mm = (x_mm[-1] - x_mm[0]) / max(len(x_mm) - 1, 1) / 2
     n_cols = len(heights_mm)
-    fig, axes = plt.subplots(len(rows), n_cols, figsize=(3.6 * n_cols + 1.6, 3.3 * len(rows)),
+    fig, axes = plt.subplots(len(rows), n_cols, figsize=(3.4 * n_cols + 2.2, 3.2 * len(rows) + 0.6),
                              squeeze=False, layout="constrained")
-    for row, (label, stack, log) in enumerate(rows):
-        norm = _norm(stack, log)
+    for row, panel in enumerate(rows):
+        norm, cmap, extend = _colour_scale(panel)
         for col in range(n_cols):
             ax = axes[row, col]
-            _style(ax)
-            mesh = ax.pcolormesh(x_mm, y_mm, stack[col], shading="nearest", cmap="viridis",
+            ax.set_facecolor("0.85")
+            mesh = ax.pcolormesh(x_mm, y_mm, panel.values[col], shading="nearest", cmap=cmap,
                                  norm=norm)
             for centre in centres_mm:
                 ax.add_patch(Circle(centre, radius_mm, fill=False, lw=0.4, color="w", alpha=0.6))
-            half = 1e3 * PAPER_RANGE_M / 2
-            ax.add_patch(Rectangle((-half, -half), 2 * half, 2 * half, fill=False, ls="--",
-                                   lw=0.8, color="tab:red"))
+            ax.add_patch(Rectangle((-half_range_mm, -half_range_mm), 2 * half_range_mm,
+                                   2 * half_range_mm, fill=False, ls="--", lw=0.8, color="tab:red"))
             ax.set_aspect("equal")
-            ax.set_xlim(x_mm[0] - 2.5, x_mm[-1] + 2.5)
-            ax.set_ylim(y_mm[0] - 2.5, y_mm[-1] + 2.5)
+            ax.set_xlim(x_mm[0] - pad_mm, x_mm[-1] + pad_mm)
+            ax.set_ylim(y_mm[0] - pad_mm, y_mm[-1] + pad_mm)
             if row == 0:
-                ax.set_title(f"height {heights_mm[col]:.0f} mm")
+                ax.set_title(f"height of I {heights_mm[col]:.0f} mm")
             if row == len(rows) - 1:
                 ax.set_xlabel("x [mm]")
             if col == 0:
                 ax.set_ylabel("y [mm]")
-        fig.colorbar(mesh, ax=axes[row, :], label=label, shrink=0.9)
+        _colour_bar(fig, mesh, axes[row, :], panel, extend)
     fig.suptitle(f"{_title(kind)}: {heading}\nlevel, yaw 0; white circles: coils; red dashed: "
-                 f"the paper's 100 x 100 mm range; {_NAN_NOTE}", fontsize=10)
+                 f"the paper's 100 x 100 mm range\n{_NAN_NOTE}", fontsize=10)
     fig.savefig(path, dpi=90)
     plt.close(fig)
     return path
 
 
-def _heat_figure(kind: str, grids: list, angle_label: str, heading: str, path: Path) -> Path:
-    """Heat maps over (angle, height): ``grids`` rows of (row label, angles [deg],
-    heights [m], [(panel label with units, (n_heights, n_angles) array, log)])."""
-    n_rows, n_cols = len(grids), len(grids[0][3])
-    fig, axes = plt.subplots(n_rows, n_cols, figsize=(4.0 * n_cols, 3.4 * n_rows), squeeze=False,
-                             layout="constrained")
-    for row, (row_label, angles, heights, panels) in enumerate(grids):
-        for col, (label, values, log) in enumerate(panels):
+def _tilt_figure(kind: str, tilt: dict, panels, path: Path) -> Path:
+    """Heat maps over (tilt, height), one row per tilt axis; ``panels(maps)``
+    gives the row's _Panels of (n_heights, n_tilts) values."""
+    tilts = _array(tilt["coordinates"]["tilt_deg"])
+    heights_mm = 1e3 * _array(tilt["coordinates"]["height_m"])
+    axes_names = tilt["coordinates"]["tilt_axis"]
+    rows = [panels({key: _index(value, i) for key, value in tilt["maps"].items()})
+            for i in range(len(axes_names))]
+    fig, axes = plt.subplots(len(rows), len(rows[0]), figsize=(4.2 * len(rows[0]), 3.4 * len(rows)),
+                             squeeze=False, layout="constrained")
+    for row, (axis, row_panels) in enumerate(zip(axes_names, rows)):
+        for col, panel in enumerate(row_panels):
             ax = axes[row, col]
-            _style(ax)
-            mesh = ax.pcolormesh(angles, 1e3 * heights, values, shading="nearest", cmap="viridis",
-                                 norm=_norm(values, log))
-            fig.colorbar(mesh, ax=ax, label=label)
-            ax.set_title(f"{row_label}", fontsize=9)
-            ax.set_xlabel(angle_label)
+            ax.set_facecolor("0.85")
+            norm, cmap, extend = _colour_scale(panel)
+            mesh = ax.pcolormesh(tilts, heights_mm, panel.values, shading="nearest", cmap=cmap,
+                                 norm=norm)
+            _colour_bar(fig, mesh, ax, panel, extend)
+            ax.set_title(f"tilted about W's {axis}", fontsize=9)
+            ax.set_xlabel(f"tilt about {axis} [deg]")
             if col == 0:
                 ax.set_ylabel("height of I above the glass [mm]")
-    fig.suptitle(f"{_title(kind)}: {heading}\n{_NAN_NOTE}", fontsize=10)
+    fig.suptitle(f"{_title(kind)}: tilted over the array centre, yaw 0\n{_NAN_NOTE}", fontsize=10)
     fig.savefig(path, dpi=90)
     plt.close(fig)
     return path
 
 
-def _height_figure(kind: str, data: dict, limits: dict, path: Path) -> Path:
+def _yaw_figure(kind: str, yaw: dict, panels, path: Path, n_lines: int = 5) -> Path:
+    """Lines versus yaw, one per height (up to ``n_lines`` of the heights where
+    the instrument hovers); ``panels(maps)`` gives _Panels of (n_heights, n_yaws)."""
+    yaws = _array(yaw["coordinates"]["yaw_deg"])
+    heights_mm = 1e3 * _array(yaw["coordinates"]["height_m"])
+    row_panels = panels(yaw["maps"])
+    hovering = np.flatnonzero(np.isfinite(row_panels[1].values).any(axis=1))
+    chosen = hovering[np.unique(np.linspace(0, len(hovering) - 1, min(n_lines, len(hovering)))
+                                .round().astype(int))] if len(hovering) else hovering
+    colours = plt.get_cmap("plasma")(np.linspace(0.0, 0.85, max(len(chosen), 1)))
+    fig, axes = plt.subplots(1, len(row_panels), figsize=(4.2 * len(row_panels), 4.0),
+                             squeeze=False, layout="constrained")
+    for ax, panel in zip(axes[0], row_panels):
+        for colour, i in zip(colours, chosen):
+            ax.plot(yaws, panel.values[i], color=colour, marker=".", ms=4,
+                    label=f"height {heights_mm[i]:.1f} mm")
+        if panel.log:
+            ax.set_yscale("log")
+            ax.yaxis.set_major_formatter(FuncFormatter(lambda value, _: f"{value:g}"))
+            ax.yaxis.set_minor_formatter(FuncFormatter(lambda value, _: f"{value:g}"))
+        if panel.limit is not None:
+            ax.axhline(panel.limit, color="k", ls=":", lw=1)
+        ax.set_ylabel(panel.label)
+        ax.set_xlabel("yaw [deg]")
+        ax.set_ylim(bottom=None if panel.log else 0.0)
+        ax.grid(alpha=0.3)
+    axes[0, 0].legend(fontsize=8)
+    fig.suptitle(f"{_title(kind)}: level over the array centre, versus yaw "
+                 "(no line or gaps: cannot hover within the limit)", fontsize=10)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
+
+
+def _height_figure(kind: str, data: dict, path: Path) -> Path:
     heights_mm = 1e3 * _array(data["slices"]["height"]["coordinates"]["height_m"])
     maps = data["slices"]["height"]["maps"]
-    fig, axes = plt.subplots(2, 2, figsize=(12, 8), sharex=True, layout="constrained")
-    ax = axes[0, 0]
+    limits = data["current_limit_a"]
+    fig, axes = plt.subplot_mosaic([["current", "current", "power", "power", "cond", "cond"],
+                                    ["force", "force", "force", "torque", "torque", "torque"]],
+                                   figsize=(14, 8.5), layout="constrained")
+    ax = axes["current"]
     ax.plot(heights_mm, _array(maps["hover_current_a"]), color="tab:purple",
-            label="busiest coil, minimum-norm allocation")
+            label="minimum-norm allocation")
     ax.plot(heights_mm, _array(maps["hover_current_minmax_a"]), color="tab:purple", ls="--",
-            label="busiest coil, best allocation (LP)")
+            label="best allocation (LP)")
     for limit, style in zip(LIMIT_KINDS, (":", "-.")):
         ax.axhline(limits[limit], color="k", ls=style, lw=1, label=f"{limit} limit")
-    ax.set_ylabel("hover current [A]")
-    power = ax.twinx()
-    power.plot(heights_mm, _array(maps["hover_power_w"]), color="tab:orange")
-    power.set_ylabel("hover power at 20 C [W] (orange)", color="tab:orange")
-    ax.legend(fontsize=8, loc="upper left")
-    ax = axes[0, 1]
-    ax.semilogy(heights_mm, _array(maps["condition_number"]), color="k")
-    ax.set_ylabel("condition number of A (torques / lever)")
-    for col, (key, unit, scale) in enumerate((("max_force_n", "N", 1.0),
-                                              ("max_torque_nm", "N mm", 1e3))):
-        ax = axes[1, col]
-        for i, direction in enumerate(DIRECTIONS):
-            color = ("tab:red", "tab:green", "tab:blue")[i % 3]
-            line = "-" if direction[0] == "+" else "--"
-            ax.plot(heights_mm, scale * _array(maps[key]["thermal"][direction]), color=color,
-                    ls=line, lw=1.6, label=f"{direction} thermal")
-            ax.plot(heights_mm, scale * _array(maps[key]["peak"][direction]), color=color,
-                    ls=line, lw=0.7, alpha=0.6, label=f"{direction} peak")
-        noun = "force along" if key == "max_force_n" else "torque about"
+    ax.set_ylabel("hover current, busiest coil [A]")
+    ax.legend(fontsize=8)
+    ax = axes["power"]
+    ax.plot(heights_mm, _array(maps["hover_power_w"]), color="tab:orange")
+    ax.set_ylabel("hover power at 20 C [W]\n(minimum-norm allocation)")
+    ax = axes["cond"]
+    ax.plot(heights_mm, _array(maps["condition_number"]), color="k")
+    ax.set_ylabel("condition number of A\n(torque rows / lever length)")
+    colours = {"x": "tab:red", "y": "tab:green", "z": "tab:blue"}
+    for key, unit, scale, noun in (("max_force_n", "N", 1.0, "force along"),
+                                   ("max_torque_nm", "N mm", 1e3, "torque about")):
+        ax = axes["force" if key == "max_force_n" else "torque"]
+        for direction in DIRECTIONS:
+            style = "-" if direction[0] == "+" else "--"
+            for limit, width in (("thermal", 2.0), ("peak", 0.8)):
+                ax.plot(heights_mm, scale * _array(maps[key][limit][direction]),
+                        color=colours[direction[1]], ls=style, lw=width,
+                        label=f"{direction} {limit}")
         ax.set_ylabel(f"largest extra {noun} [{unit}]")
-        ax.set_xlabel("height of I above the glass [mm]")
+        ax.set_ylim(bottom=0.0)
         ax.legend(fontsize=7, ncol=2, loc="upper right",
                   title="thick: thermal limit, thin: peak", title_fontsize=7)
-    for ax in axes.ravel():
+    for name, ax in axes.items():
         ax.grid(alpha=0.3)
-    fig.suptitle(f"{_title(kind)}: level over the array centre, versus height "
-                 "(gaps: cannot hover or inside the glass)", fontsize=10)
+        ax.set_xlabel("height of I above the glass [mm]")
+    fig.suptitle(f"{_title(kind)}: level over the array centre, versus height\n"
+                 "(gaps: inside the glass or cannot hover within that limit)", fontsize=10)
     fig.savefig(path, dpi=90)
     plt.close(fig)
     return path
+
+
+def _angle_panels(peak_a: float):
+    def panels(maps: dict) -> list:
+        thermal = maps["max_force_n"]["thermal"]
+        return [
+            _Panel("condition number of A", _array(maps["condition_number"]), log=True),
+            _Panel("hover current, busiest coil [A]\n(magenta: over the peak limit)",
+                   _array(maps["hover_current_a"]), limit=peak_a),
+            _Panel("extra force up, thermal limit [N]", _array(thermal["+z"])),
+            _Panel("extra force sideways, thermal [N]\n(weakest of +-x, +-y)",
+                   _weakest(thermal, ("+x", "-x", "+y", "-y"))),
+        ]
+    return panels
 
 
 def plot_workspace(results: dict, out_dir: Path) -> list[Path]:
@@ -486,59 +567,44 @@ def plot_workspace(results: dict, out_dir: Path) -> list[Path]:
 
     Per instrument: ``workspace_<kind>_xy_hover.png`` (condition number, hover
     current and power per map height), ``workspace_<kind>_xy_force_<limit>.png``
-    (largest force up, down and in the weakest horizontal direction, and the
-    weakest torque, per map height), ``workspace_<kind>_height.png`` (profiles
-    over the centre), ``workspace_<kind>_tilt.png`` and ``workspace_<kind>_yaw.png``
-    (heat maps over angle and height).
+    (largest extra force up, down and in the weakest horizontal direction, and
+    the weakest torque, per map height, within the peak or thermal limit),
+    ``workspace_<kind>_height.png`` (profiles over the centre),
+    ``workspace_<kind>_tilt.png`` (heat maps over tilt and height) and
+    ``workspace_<kind>_yaw.png`` (lines versus yaw at several heights).
     """
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = []
     for kind, data in results["instruments"].items():
-        xy = data["slices"]["xy"]
-        maps = xy["maps"]
+        maps = data["slices"]["xy"]["maps"]
         stem = f"workspace_{kind}"
-        paths.append(_xy_figure(kind, xy, [
-            ("condition number of A\n(torques / lever)", _array(maps["condition_number"]), True),
-            ("hover current, busiest coil [A]\n(minimum-norm allocation)",
-             _array(maps["hover_current_a"]), False),
-            ("hover power at 20 C [W]", _array(maps["hover_power_w"]), False),
-        ], "conditioning and hover current", out_dir / f"{stem}_xy_hover.png"))
+        peak_a = data["current_limit_a"]["peak"]
+        paths.append(_xy_figure(kind, data["slices"]["xy"], [
+            _Panel("condition number of A\n(torque rows / lever length)",
+                   _array(maps["condition_number"]), log=True),
+            _Panel(f"hover current, busiest coil [A]\n(minimum-norm; magenta: > {peak_a:g} A peak)",
+                   _array(maps["hover_current_a"]), limit=peak_a),
+            _Panel("hover power at 20 C [W]\n(minimum-norm allocation)",
+                   _array(maps["hover_power_w"]), log=True),
+        ], "conditioning, hover current and power", out_dir / f"{stem}_xy_hover.png"))
         for limit in LIMIT_KINDS:
             force, torque = maps["max_force_n"][limit], maps["max_torque_nm"][limit]
-            amps = data["current_limit_a"][limit]
-            paths.append(_xy_figure(kind, xy, [
-                ("largest extra force up (+z) [N]", _array(force["+z"]), False),
-                ("largest extra force down (-z) [N]", _array(force["-z"]), False),
-                ("largest extra force sideways [N]\n(weakest of +-x, +-y)",
-                 _weakest(force, ("+x", "-x", "+y", "-y")), False),
-                ("largest extra torque [N mm]\n(weakest axis)", 1e3 * _weakest(torque, DIRECTIONS),
-                 False),
-            ], f"largest extra force and torque within the {limit} current limit ({amps:.2f} A)",
+            paths.append(_xy_figure(kind, data["slices"]["xy"], [
+                _Panel("largest extra force up (+z) [N]", _array(force["+z"])),
+                _Panel("largest extra force down (-z) [N]", _array(force["-z"])),
+                _Panel("largest extra force sideways [N]\n(weakest of +-x, +-y)",
+                       _weakest(force, ("+x", "-x", "+y", "-y"))),
+                _Panel("largest extra torque [N mm]\n(weakest of the six)",
+                       1e3 * _weakest(torque, DIRECTIONS)),
+            ], f"largest extra force and torque within the {limit} current limit "
+               f"({data['current_limit_a'][limit]:.2f} A a coil)",
                 out_dir / f"{stem}_xy_force_{limit}.png"))
-        paths.append(_height_figure(kind, data, data["current_limit_a"], out_dir / f"{stem}_height.png"))
-
-        def panels(maps):
-            return [
-                ("condition number", _array(maps["condition_number"]), True),
-                ("hover current [A]", _array(maps["hover_current_a"]), False),
-                ("extra force up, thermal [N]", _array(maps["max_force_n"]["thermal"]["+z"]), False),
-                ("extra force sideways, thermal [N]\n(weakest of +-x, +-y)",
-                 _weakest(maps["max_force_n"]["thermal"], ("+x", "-x", "+y", "-y")), False),
-            ]
-
-        tilt = data["slices"]["tilt"]
-        tilts, heights = _array(tilt["coordinates"]["tilt_deg"]), _array(tilt["coordinates"]["height_m"])
-        tilt_maps = [{key: _index(value, i) for key, value in tilt["maps"].items()} for i in (0, 1)]
-        paths.append(_heat_figure(kind, [
-            (f"tilt about {axis}", tilts, heights, panels(m))
-            for axis, m in zip(tilt["coordinates"]["tilt_axis"], tilt_maps)],
-            "tilt [deg]", "tilted over the array centre", out_dir / f"{stem}_tilt.png"))
-        yaw = data["slices"]["yaw"]
-        paths.append(_heat_figure(kind, [
-            ("yawed", _array(yaw["coordinates"]["yaw_deg"]), _array(yaw["coordinates"]["height_m"]),
-             panels(yaw["maps"]))], "yaw [deg]", "level, yawed over the array centre",
-            out_dir / f"{stem}_yaw.png"))
+        paths.append(_height_figure(kind, data, out_dir / f"{stem}_height.png"))
+        paths.append(_tilt_figure(kind, data["slices"]["tilt"], _angle_panels(peak_a),
+                                  out_dir / f"{stem}_tilt.png"))
+        paths.append(_yaw_figure(kind, data["slices"]["yaw"], _angle_panels(peak_a),
+                                 out_dir / f"{stem}_yaw.png"))
     return paths
 
 

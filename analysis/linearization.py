@@ -1,0 +1,176 @@
+"""Linearizing a diagram's loop over a period: the Jacobian of the map that takes
+the whole state at t0 to the state one period later (the monodromy matrix when
+the period is the loop's hyperperiod). Stable iff its spectral radius is < 1.
+
+Two ways to get it, the same map:
+- AutoDiff: the diagram converted to AutoDiffXd and simulated from a state
+  seeded with the identity (every system must support AutoDiffXd);
+- central differences: the float diagram simulated from the state perturbed
+  up and down along each coordinate (any diagram; randomness that is a pure
+  function of the seed and the sample, as in the tracker, cancels).
+
+Abstract states (discrete modes, flags) are held as they are: the
+linearization is about a fixed mode.
+"""
+
+import math
+from dataclasses import dataclass
+from fractions import Fraction
+from typing import Callable, Iterable, List, Optional
+
+import numpy as np
+from pydrake.autodiffutils import AutoDiffXd, ExtractGradient, ExtractValue, InitializeAutoDiff
+from pydrake.systems.analysis import InitializeParams, Simulator, Simulator_
+
+# Central differences step, relative to each coordinate's magnitude with this floor
+# (state units: m, rad, m/s, A, ...): the map's curvature error goes as the step
+# squared, round-off as 1e-16 over the step.
+RELATIVE_STEP = 1e-6
+ABSOLUTE_STEP = 1e-7
+
+
+def hyperperiod_s(periods_s: Iterable[float], max_denominator: int = 1_000_000) -> float:
+    """The least common multiple of sample periods (s), as exact fractions:
+    1/860 and 1/1000 give 0.05 s."""
+    fractions = [Fraction(p).limit_denominator(max_denominator) for p in periods_s]
+    numerator = math.lcm(*(f.numerator * (math.lcm(*(g.denominator for g in fractions))
+                                          // f.denominator) for f in fractions))
+    return float(Fraction(numerator, math.lcm(*(f.denominator for f in fractions))))
+
+
+def state_vector(context) -> np.ndarray:
+    """The continuous state, then every discrete state group, as one vector."""
+    parts = [context.get_continuous_state_vector().CopyToVector()]
+    parts += [context.get_discrete_state(i).CopyToVector() for i in
+              range(context.num_discrete_state_groups())]
+    return np.concatenate(parts) if parts else np.zeros(0)
+
+
+def set_state_vector(context, x) -> None:
+    """Inverse of ``state_vector`` (x may hold float or AutoDiffXd)."""
+    n = context.num_continuous_states()
+    if n:
+        context.SetContinuousState(x[0:n])
+    start = n
+    for i in range(context.num_discrete_state_groups()):
+        size = context.get_discrete_state(i).size()
+        context.SetDiscreteState(i, x[start:start + size])
+        start += size
+
+
+def state_names(diagram) -> List[str]:
+    """A name for each coordinate of ``state_vector``: system path, then the
+    continuous index or the discrete group and index."""
+    context = diagram.CreateDefaultContext()
+    continuous, discrete = [], []
+    for system in _leaf_systems(diagram):
+        sub = system.GetMyContextFromRoot(context)
+        # The path below the root diagram: "::root::station::plant" -> "station/plant".
+        path = "/".join(system.GetSystemPathname().split("::")[2:])
+        continuous += [f"{path}/x[{k}]" for k in range(sub.num_continuous_states())]
+        for group in range(sub.num_discrete_state_groups()):
+            size = sub.get_discrete_state(group).size()
+            discrete += [f"{path}/d{group}[{k}]" if sub.num_discrete_state_groups() > 1
+                         else f"{path}[{k}]" for k in range(size)]
+    names = continuous + discrete
+    if len(names) != len(state_vector(context)):
+        raise RuntimeError("state names do not cover the state vector")
+    return names
+
+
+def _leaf_systems(diagram):
+    for system in diagram.GetSystems():
+        if hasattr(system, "GetSystems"):
+            yield from _leaf_systems(system)
+        else:
+            yield system
+
+
+def _advance(simulator, context, duration_s: float, configure=None) -> None:
+    if configure is not None:
+        configure(simulator)
+    simulator.Initialize(InitializeParams(suppress_initialization_events=True))
+    simulator.AdvanceTo(context.get_time() + duration_s)
+
+
+def monodromy_central(diagram, context, period_s: float,
+                      progress: Optional[Callable[[int, int], None]] = None,
+                      configure: Optional[Callable] = None) -> np.ndarray:
+    """d x(t0 + period) / d x(t0) by central differences from ``context`` (at t0).
+    ``configure(simulator)`` sets up each simulator (e.g. its integrator)."""
+    x0 = state_vector(context)
+    n = len(x0)
+    M = np.zeros((n, n))
+    for j in range(n):
+        step = max(RELATIVE_STEP * abs(x0[j]), ABSOLUTE_STEP)
+        ends = []
+        for sign in (1.0, -1.0):
+            trial = context.Clone()
+            x = x0.copy()
+            x[j] += sign * step
+            set_state_vector(trial, x)
+            simulator = Simulator(diagram, trial)
+            _advance(simulator, trial, period_s, configure)
+            ends.append(state_vector(simulator.get_context()))
+        M[:, j] = (ends[0] - ends[1]) / (2 * step)
+        if progress is not None:
+            progress(j + 1, n)
+    return M
+
+
+def monodromy_autodiff(diagram, context, period_s: float,
+                       configure: Optional[Callable] = None) -> np.ndarray:
+    """d x(t0 + period) / d x(t0) by simulating the AutoDiffXd diagram; every system
+    in it must convert (``ToAutoDiffXd``)."""
+    diagram_ad = diagram.ToAutoDiffXd()
+    context_ad = diagram_ad.CreateDefaultContext()
+    context_ad.SetTimeStateAndParametersFrom(context)
+    x0 = state_vector(context)
+    set_state_vector(context_ad, InitializeAutoDiff(x0).ravel())
+    simulator = Simulator_[AutoDiffXd](diagram_ad, context_ad)
+    _advance(simulator, context_ad, period_s, configure)
+    end = np.array(state_vector(simulator.get_context()), dtype=object).reshape(-1, 1)
+    gradient = ExtractGradient(end)
+    if gradient.shape[1] == 0:  # nothing depended on the state
+        return np.zeros((len(x0), len(x0)))
+    return gradient
+
+
+def autodiff_state_values(context_ad) -> np.ndarray:
+    return ExtractValue(np.array(state_vector(context_ad), dtype=object).reshape(-1, 1)).ravel()
+
+
+@dataclass
+class Mode:
+    multiplier: complex  # eigenvalue of the map over period_s
+    frequency_hz: float  # |Im s| / 2 pi, s = ln(multiplier) / period (aliased above 1/(2 period))
+    damping_ratio: float  # -Re s / |s|
+    time_constant_s: float  # -1 / Re s (inf for a marginal mode)
+    states: List[str]  # the coordinates that carry most of the mode
+
+
+def modes(M: np.ndarray, period_s: float, names: List[str], top: int = 3,
+          scale: Optional[np.ndarray] = None) -> List[Mode]:
+    """The map's eigenvalues as continuous-time modes, largest multiplier first, each
+    with the ``top`` states of largest share in its eigenvector (components divided
+    by ``scale``, each state's typical size, when given)."""
+    values, vectors = np.linalg.eig(M)
+    order = np.argsort(-np.abs(values))
+    result = []
+    for index in order:
+        mu = complex(values[index])
+        if abs(mu) < 1e-12:
+            s = complex(-math.inf, 0.0)
+        else:
+            s = complex(np.log(mu)) / period_s
+        frequency = abs(s.imag) / (2 * math.pi) if math.isfinite(s.real) else 0.0
+        magnitude = abs(s) if math.isfinite(s.real) else math.inf
+        damping = -s.real / magnitude if magnitude and math.isfinite(magnitude) else 1.0
+        time_constant = -1.0 / s.real if s.real < 0 and math.isfinite(s.real) else (
+            0.0 if not math.isfinite(s.real) else math.inf)
+        share = np.abs(vectors[:, index])
+        if scale is not None:
+            share = share / scale
+        leading = [names[k] for k in np.argsort(-share)[:top]]
+        result.append(Mode(mu, frequency, damping, time_constant, leading))
+    return result
