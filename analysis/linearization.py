@@ -149,12 +149,13 @@ class Mode:
     states: List[str]  # the coordinates that carry most of the mode
 
 
-def modes(M: np.ndarray, period_s: float, names: List[str], top: int = 3,
-          scale: Optional[np.ndarray] = None) -> List[Mode]:
+def modes(M: np.ndarray, period_s: float, names: List[str], top: int = 3) -> List[Mode]:
     """The map's eigenvalues as continuous-time modes, largest multiplier first, each
-    with the ``top`` states of largest share in its eigenvector (components divided
-    by ``scale``, each state's typical size, when given)."""
+    with the ``top`` states of largest participation factor |v_k w_k| (right and
+    left eigenvector components: unlike the eigenvector alone, independent of the
+    states' units)."""
     values, vectors = np.linalg.eig(M)
+    left = np.linalg.pinv(vectors)
     order = np.argsort(-np.abs(values))
     result = []
     for index in order:
@@ -168,9 +169,7 @@ def modes(M: np.ndarray, period_s: float, names: List[str], top: int = 3,
         damping = -s.real / magnitude if magnitude and math.isfinite(magnitude) else 1.0
         time_constant = -1.0 / s.real if s.real < 0 and math.isfinite(s.real) else (
             0.0 if not math.isfinite(s.real) else math.inf)
-        share = np.abs(vectors[:, index])
-        if scale is not None:
-            share = share / scale
+        share = np.abs(vectors[:, index] * left[index, :])
         leading = [names[k] for k in np.argsort(-share)[:top]]
         result.append(Mode(mu, frequency, damping, time_constant, leading))
     return result

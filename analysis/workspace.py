@@ -57,8 +57,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.colors import LogNorm  # noqa: E402
-from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter  # noqa: E402
 from matplotlib.patches import Circle, Rectangle  # noqa: E402
+from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter  # noqa: E402
 
 from maglev_haptics.diagrams.motion import MAX_TILT_DEG, base_clearance_m  # noqa: E402
 from maglev_haptics.hardware.device import INSTRUMENT_KINDS, DeviceConfig  # noqa: E402
@@ -239,9 +239,22 @@ def _finite_range(values) -> dict:
     return {"min": float(finite.min()), "max": float(finite.max())}
 
 
+def _per_height(maps: np.ndarray, centre: tuple) -> dict:
+    """min, median and max over each height's x-y grid points where the value is
+    finite, and the value at the grid point nearest the centre; lists, one per height."""
+    def over(reduce):
+        return [float(reduce(m[np.isfinite(m)])) if np.isfinite(m).any() else math.nan
+                for m in maps]
+    return {"min": over(np.min), "median": over(np.median), "max": over(np.max),
+            "centre": [float(m[centre]) for m in maps]}
+
+
 def _summary(config: DeviceConfig, magnetics: MagneticsModel, slices: dict) -> dict:
     """Headline numbers of one instrument's slices (SI units; see the keys)."""
-    xy = slices["xy"]["maps"]
+    xy = slices["xy"]
+    maps = xy["maps"]
+    centre = (int(np.argmin(np.abs(xy["coordinates"]["y_m"]))),
+              int(np.argmin(np.abs(xy["coordinates"]["x_m"]))))
     ceilings = {}
     for limit in LIMIT_KINDS:
         _, upper = hover_workspace_A(config, coil_current_limit_a(config, limit), magnetics)
@@ -257,29 +270,25 @@ def _summary(config: DeviceConfig, magnetics: MagneticsModel, slices: dict) -> d
     every = {key: np.concatenate([d["maps"][key].ravel() for d in slices.values()])
              for key in ("hover_current_a", "hover_power_w", "condition_number")}
     return {
-        # Highest level hover over the array centre [m above W's z = 0].
+        # Highest level hover over the array centre, per current limit [m above W's z = 0].
         "hover_ceiling_m": ceilings,
         # Share of the x-y grid points, per map height, where the weight can be carried.
         "hover_fraction_xy": {
-            limit: np.isfinite(xy["max_force_n"][limit]["+z"]).mean(axis=(1, 2)).tolist()
+            limit: np.isfinite(maps["max_force_n"][limit]["+z"]).mean(axis=(1, 2)).tolist()
             for limit in LIMIT_KINDS},
+        # Over every pose of every slice where the instrument hovers.
         "hover_current_a": _finite_range(every["hover_current_a"]),
         "hover_power_w": _finite_range(every["hover_power_w"]),
         "condition_number": {"best": _finite_range(every["condition_number"])["min"],
                              "worst": worst},
-        # Per map height, the smallest over the x-y grid points where it hovers of
-        # the largest extra force [N] / torque [N m] in each direction.
-        "min_max_force_xy_n": {
-            limit: {d: _nanmin_per_height(xy["max_force_n"][limit][d]) for d in DIRECTIONS}
-            for limit in LIMIT_KINDS},
-        "min_max_torque_xy_nm": {
-            limit: {d: _nanmin_per_height(xy["max_torque_nm"][limit][d]) for d in DIRECTIONS}
-            for limit in LIMIT_KINDS},
+        # Per map height over the x-y grid (see _per_height): [A], [W], [N], [N m].
+        "hover_current_xy_a": _per_height(maps["hover_current_a"], centre),
+        "hover_power_xy_w": _per_height(maps["hover_power_w"], centre),
+        "max_force_xy_n": {limit: {d: _per_height(maps["max_force_n"][limit][d], centre)
+                                   for d in DIRECTIONS} for limit in LIMIT_KINDS},
+        "max_torque_xy_nm": {limit: {d: _per_height(maps["max_torque_nm"][limit][d], centre)
+                                     for d in DIRECTIONS} for limit in LIMIT_KINDS},
     }
-
-
-def _nanmin_per_height(maps: np.ndarray) -> list:
-    return [float(np.min(m[np.isfinite(m)])) if np.isfinite(m).any() else math.nan for m in maps]
 
 
 def _json_ready(value):
