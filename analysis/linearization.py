@@ -20,6 +20,7 @@ from typing import Callable, Iterable, List, Optional
 
 import numpy as np
 from pydrake.autodiffutils import AutoDiffXd, ExtractGradient, ExtractValue, InitializeAutoDiff
+from pydrake.multibody.plant import MultibodyPlant
 from pydrake.systems.analysis import InitializeParams, Simulator, Simulator_
 
 # Central differences step, relative to each coordinate's magnitude with this floor
@@ -68,6 +69,10 @@ def state_names(diagram) -> List[str]:
         # The path below the root diagram: "::root::station::plant" -> "station/plant".
         path = "/".join(system.GetSystemPathname().split("::")[2:])
         continuous += [f"{path}/x[{k}]" for k in range(sub.num_continuous_states())]
+        if isinstance(system, MultibodyPlant) and sub.num_discrete_state_groups() == 1:
+            # Its own names: body and coordinate ("instrument_qw", "hand_vx", ...).
+            discrete += [f"{path}/{name}" for name in system.GetStateNames(False)]
+            continue
         for group in range(sub.num_discrete_state_groups()):
             size = sub.get_discrete_state(group).size()
             discrete += [f"{path}/d{group}[{k}]" if sub.num_discrete_state_groups() > 1
@@ -95,13 +100,17 @@ def _advance(simulator, context, duration_s: float, configure=None) -> None:
 
 def monodromy_central(diagram, context, period_s: float,
                       progress: Optional[Callable[[int, int], None]] = None,
-                      configure: Optional[Callable] = None) -> np.ndarray:
+                      configure: Optional[Callable] = None,
+                      coordinates: Optional[List[int]] = None) -> np.ndarray:
     """d x(t0 + period) / d x(t0) by central differences from ``context`` (at t0).
-    ``configure(simulator)`` sets up each simulator (e.g. its integrator)."""
+    ``configure(simulator)`` sets up each simulator (e.g. its integrator);
+    ``coordinates``: only these state coordinates (rows and columns), e.g. without
+    states that only record (a logger's hold) and feed nothing back."""
     x0 = state_vector(context)
-    n = len(x0)
+    kept = list(range(len(x0))) if coordinates is None else list(coordinates)
+    n = len(kept)
     M = np.zeros((n, n))
-    for j in range(n):
+    for column, j in enumerate(kept):
         step = max(RELATIVE_STEP * abs(x0[j]), ABSOLUTE_STEP)
         ends = []
         for sign in (1.0, -1.0):
@@ -111,10 +120,10 @@ def monodromy_central(diagram, context, period_s: float,
             set_state_vector(trial, x)
             simulator = Simulator(diagram, trial)
             _advance(simulator, trial, period_s, configure)
-            ends.append(state_vector(simulator.get_context()))
-        M[:, j] = (ends[0] - ends[1]) / (2 * step)
+            ends.append(state_vector(simulator.get_context())[kept])
+        M[:, column] = (ends[0] - ends[1]) / (2 * step)
         if progress is not None:
-            progress(j + 1, n)
+            progress(column + 1, n)
     return M
 
 

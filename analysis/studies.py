@@ -11,7 +11,7 @@ from typing import Callable, Dict, List
 
 from tqdm import tqdm
 
-from maglev_haptics.analysis import loop_studies
+from maglev_haptics.analysis import loop_linearization, loop_studies
 from maglev_haptics.analysis.loop_studies import StudyNotApplicable
 
 
@@ -34,7 +34,19 @@ def _stability_map(scenario, label, out_dir, quick, progress):
     return results, [loop_studies.plot_stability_map(results, out_dir, label)]
 
 
+def _linearize(scenario, label, out_dir, quick, progress):
+    results = loop_linearization.linearize_study(scenario, progress)
+    return results, [loop_linearization.plot_multipliers(results, out_dir, label, "linearize")]
+
+
+def _multirate(scenario, label, out_dir, quick, progress):
+    results = loop_linearization.multirate_study(scenario, progress)
+    return results, [loop_linearization.plot_multipliers(results, out_dir, label, "multirate")]
+
+
 STUDIES: Dict[str, Callable] = {
+    "linearize": _linearize,
+    "multirate": _multirate,
     "passivity": _passivity,
     "zwidth": _zwidth,
     "stability-map": _stability_map,

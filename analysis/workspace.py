@@ -28,7 +28,7 @@ dicts with every NaN or infinity written as ``None``, so ``json.dumps`` (even
 with ``allow_nan=False``) writes standard JSON; ``plot_workspace`` reads them
 back as NaN.
 
-The slices (each pose a separate linear-program set, ~15 ms):
+The slices (each pose three small linear programs, ~8 ms):
 
 - ``xy``: level, yaw 0, an x-y grid at a few heights of I above W's z = 0;
 - ``height``: level over the array centre, a range of heights;
@@ -136,6 +136,7 @@ def scaled_condition_number(A: np.ndarray, lever_m: float) -> float:
 
 
 def _nan_metrics(clearance_m: float) -> dict:
+    """pose_metrics' dict with every entry NaN but the base clearance [m]."""
     nan_directions = {label: math.nan for label in DIRECTIONS}
     return {
         "base_clearance_m": clearance_m,
@@ -364,7 +365,7 @@ class _Panel:
 
     label: str
     values: np.ndarray
-    log: bool = False
+    log: bool = False  # a ratio-like quantity: scale from its least value, log if over a decade
     limit: Optional[float] = None  # top of the colour scale; larger values drawn magenta
 
 
@@ -385,8 +386,7 @@ def _weakest(maps: dict, directions) -> np.ndarray:
 def _colour_scale(panel: _Panel):
     """(norm, colour map, colour bar's extend) for ``panel``; NaN cells stay
     transparent over the axes' grey."""
-    cmap = plt.get_cmap("viridis").copy()
-    cmap.set_over(_OVER_COLOUR)
+    cmap = plt.get_cmap("viridis").with_extremes(over=_OVER_COLOUR)
     finite = panel.values[np.isfinite(panel.values)]
     if finite.size == 0:
         return plt.Normalize(0.0, 1.0), cmap, "neither"
@@ -394,8 +394,10 @@ def _colour_scale(panel: _Panel):
     extend = "neither"
     if panel.limit is not None and high > panel.limit:
         high, extend = panel.limit, "max"
-    if panel.log and low > 0 and high > low:
+    if panel.log and low > 0 and high > 10 * low:
         return LogNorm(low, high), cmap, extend
+    if panel.log and high > low:
+        return plt.Normalize(low, high), cmap, extend
     return plt.Normalize(0.0, max(high, 1e-12)), cmap, extend
 
 
@@ -420,7 +422,7 @@ def _xy_figure(kind: str, xy: dict, rows: list, heading: str, path: Path) -> Pat
     pad_mm = (x_mm[-1] - x_mm[0]) / max(len(x_mm) - 1, 1) / 2
     n_cols = len(heights_mm)
     fig, axes = plt.subplots(len(rows), n_cols, figsize=(3.4 * n_cols + 2.2, 3.2 * len(rows) + 0.6),
-                             squeeze=False, layout="constrained")
+                             sharex=True, sharey=True, squeeze=False, layout="constrained")
     for row, panel in enumerate(rows):
         norm, cmap, extend = _colour_scale(panel)
         for col in range(n_cols):
@@ -437,10 +439,9 @@ def _xy_figure(kind: str, xy: dict, rows: list, heading: str, path: Path) -> Pat
             ax.set_ylim(y_mm[0] - pad_mm, y_mm[-1] + pad_mm)
             if row == 0:
                 ax.set_title(f"height of I {heights_mm[col]:.0f} mm")
-            if row == len(rows) - 1:
-                ax.set_xlabel("x [mm]")
-            if col == 0:
-                ax.set_ylabel("y [mm]")
+            ax.set_xlabel("x [mm]")
+            ax.set_ylabel("y [mm]")
+            ax.label_outer()
         _colour_bar(fig, mesh, axes[row, :], panel, extend)
     fig.suptitle(f"{_title(kind)}: {heading}\nlevel, yaw 0; white circles: coils; red dashed: "
                  f"the paper's 100 x 100 mm range\n{_NAN_NOTE}", fontsize=10)
@@ -471,7 +472,8 @@ def _tilt_figure(kind: str, tilt: dict, panels, path: Path) -> Path:
             ax.set_xlabel(f"tilt about {axis} [deg]")
             if col == 0:
                 ax.set_ylabel("height of I above the glass [mm]")
-    fig.suptitle(f"{_title(kind)}: tilted over the array centre, yaw 0\n{_NAN_NOTE}", fontsize=10)
+    fig.suptitle(f"{_title(kind)}: tilted over the array centre, yaw 0\n{_NAN_NOTE}; "
+                 f"{_OVER_COLOUR}: hover current over the peak limit", fontsize=10)
     fig.savefig(path, dpi=90)
     plt.close(fig)
     return path
@@ -493,17 +495,14 @@ def _yaw_figure(kind: str, yaw: dict, panels, path: Path, n_lines: int = 5) -> P
         for colour, i in zip(colours, chosen):
             ax.plot(yaws, panel.values[i], color=colour, marker=".", ms=4,
                     label=f"height {heights_mm[i]:.1f} mm")
-        if panel.log:
-            ax.set_yscale("log")
-            ax.yaxis.set_major_formatter(FuncFormatter(lambda value, _: f"{value:g}"))
-            ax.yaxis.set_minor_formatter(FuncFormatter(lambda value, _: f"{value:g}"))
         if panel.limit is not None:
-            ax.axhline(panel.limit, color="k", ls=":", lw=1)
+            ax.axhline(panel.limit, color="k", ls=":", lw=1, label="peak limit")
+        top = np.nanmax(panel.values[chosen]) if np.isfinite(panel.values[chosen]).any() else 1.0
+        ax.set_ylim(0.0, 1.1 * max(top, panel.limit or 0.0))
         ax.set_ylabel(panel.label)
         ax.set_xlabel("yaw [deg]")
-        ax.set_ylim(bottom=None if panel.log else 0.0)
         ax.grid(alpha=0.3)
-    axes[0, 0].legend(fontsize=8)
+    axes[0, 1].legend(fontsize=8)
     fig.suptitle(f"{_title(kind)}: level over the array centre, versus yaw "
                  "(no line or gaps: cannot hover within the limit)", fontsize=10)
     fig.savefig(path, dpi=90)
@@ -517,7 +516,7 @@ def _height_figure(kind: str, data: dict, path: Path) -> Path:
     limits = data["current_limit_a"]
     fig, axes = plt.subplot_mosaic([["current", "current", "power", "power", "cond", "cond"],
                                     ["force", "force", "force", "torque", "torque", "torque"]],
-                                   figsize=(14, 8.5), layout="constrained")
+                                   figsize=(14, 8.5), sharex=True, layout="constrained")
     ax = axes["current"]
     ax.plot(heights_mm, _array(maps["hover_current_a"]), color="tab:purple",
             label="minimum-norm allocation")
@@ -547,8 +546,9 @@ def _height_figure(kind: str, data: dict, path: Path) -> Path:
         ax.set_ylim(bottom=0.0)
         ax.legend(fontsize=7, ncol=2, loc="upper right",
                   title="thick: thermal limit, thin: peak", title_fontsize=7)
-    for name, ax in axes.items():
+    for ax in axes.values():
         ax.grid(alpha=0.3)
+        ax.tick_params(labelbottom=True)  # sharex hides them on the top row
         ax.set_xlabel("height of I above the glass [mm]")
     fig.suptitle(f"{_title(kind)}: level over the array centre, versus height\n"
                  "(gaps: inside the glass or cannot hover within that limit)", fontsize=10)
@@ -562,7 +562,7 @@ def _angle_panels(peak_a: float):
         thermal = maps["max_force_n"]["thermal"]
         return [
             _Panel("condition number of A", _array(maps["condition_number"]), log=True),
-            _Panel("hover current, busiest coil [A]\n(magenta: over the peak limit)",
+            _Panel("hover current, busiest coil [A]\n(minimum-norm allocation)",
                    _array(maps["hover_current_a"]), limit=peak_a),
             _Panel("extra force up, thermal limit [N]", _array(thermal["+z"])),
             _Panel("extra force sideways, thermal [N]\n(weakest of +-x, +-y)",

@@ -148,7 +148,10 @@ def build_parser() -> argparse.ArgumentParser:
     from maglev_haptics.analysis.studies import study_names
     analyze = commands.add_parser(
         "analyze", help="offline analysis of a scenario's loop; writes JSON and plots",
-        description="Studies: passivity (Colgate-Schenkel margin of the coupling, and the "
+        description="Studies: linearize (the single-rate loop's state map over a period at "
+        "an operating point: A, spectral radius, modes with frequency, damping and states), "
+        "multirate (the true 860 Hz / 1 kHz loop's monodromy over its 50 ms hyperperiod, "
+        "against the single-rate loop), passivity (Colgate-Schenkel margin of the coupling, and the "
         "damping a maglev device must get from the hand or controller), zwidth (the "
         "stiffness-damping range renderable stably and passively), stability-map (largest "
         "stable stiffness against damping over sample rates and delays, with closed forms).")

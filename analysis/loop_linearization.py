@@ -1,0 +1,266 @@
+"""The scenario's whole loop, linearized: the Jacobian of its state map over one
+hyperperiod at an operating point, from the very diagram ``maglev run`` simulates
+(station with the hand, tracker, estimator, controller, allocator, coupling, scene).
+
+- ``linearize``: the single-rate loop (the tracker at the control rate, as the
+  scenario switch ``control_rate_hz: 860`` does the other way round);
+- ``multirate``: the true loop (an 860 Hz tracker against a 1 kHz controller:
+  a 50 ms hyperperiod), compared with the single-rate one over the same time.
+
+The map comes from central differences: not every system of the loop converts to
+AutoDiffXd (the numba-compiled tracker, estimator and allocator), and
+``linearization.py``'s tests show the two agree on the systems that do. States
+that only record or display (the logger's hold, the stereo display) feed nothing
+back and are left out.
+"""
+
+import dataclasses
+import math
+import time
+from fractions import Fraction
+from pathlib import Path
+from typing import Callable, Dict, List, Optional
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from pydrake.multibody.plant import MultibodyPlant  # noqa: E402
+
+from maglev_haptics.analysis.linearization import (  # noqa: E402
+    _leaf_systems, hyperperiod_s, modes, monodromy_central, state_names, state_vector)
+from maglev_haptics.analysis.loop_studies import StudyNotApplicable  # noqa: E402
+from maglev_haptics.diagrams.application import BuildDiagram  # noqa: E402
+from maglev_haptics.diagrams.hand_script import ScriptedHand, hand_plan  # noqa: E402
+from maglev_haptics.diagrams.runner import simulate  # noqa: E402
+from maglev_haptics.diagrams.station import hand_start_pose  # noqa: E402
+
+# Systems whose states feed nothing back into the loop (name prefixes).
+RECORDING_ONLY = ("log_sample", "station/head", "head_pose_predictor", "stereo_view")
+# Discrete modes, compared exactly (a nudge would switch the mode): held, as the
+# linearization is about a fixed mode.
+MODE_COORDINATES = ("haptic_supervisor/d0[0]",)
+SETTLE_S = 0.3  # after haptics is fully on, before the operating point (s)
+MODES_SHOWN = 12
+HELD_TOLERANCE = 1e-6  # a row of the map this close to a unit vector is a held state
+
+
+def check_applies(scenario) -> None:
+    """StudyNotApplicable for a loop whose state is too big for central differences."""
+    from maglev_haptics.diagrams.deformable_scene import DeformableSurface
+    if scenario.haptics is not None and isinstance(scenario.haptics.scene, DeformableSurface):
+        raise StudyNotApplicable(
+            "its lattice has tens of thousands of states: central differences would take two "
+            "runs per state; the lattice's own stability is max_stable_link_stiffness's "
+            "(systems/lattice_dynamics.py), and the coupling's loop is in `passivity`, "
+            "`zwidth` and `stability-map`")
+
+
+def operating_point_s(scenario) -> float:
+    """A time (s) at which the loop holds still: haptics engaged and the scripted
+    hand at rest for a hyperperiod and more (haptic scenes), or the middle of the
+    first hover (levitation)."""
+    if scenario.haptics is None:
+        from maglev_haptics.diagrams.motion import flight_plan
+        plan = flight_plan(scenario.motion, scenario.device.instrument_spec().rest_height_m)
+        start, end = plan.holds[0]
+        return 0.5 * (start + end)
+    if not isinstance(scenario.hand, ScriptedHand):
+        raise StudyNotApplicable(
+            "its hand is driven from Meshcat: there is no scripted operating point")
+    engaged = scenario.haptics.enable_at_s + scenario.haptics.coupling.ramp_s + SETTLE_S
+    target, _ = hand_plan(scenario.hand, hand_start_pose(scenario))
+    rate = target.derivative(1)
+    for t in np.arange(engaged, target.end_time() - 0.2, 0.01):
+        if all(np.abs(rate.value(t + dt)).max() < 1e-9 for dt in np.linspace(0, 0.2, 21)):
+            return float(t)
+    raise StudyNotApplicable("its scripted hand never rests for 0.2 s once haptics is on")
+
+
+def _periods(diagram, kept_names) -> List[float]:
+    """The update periods of the systems that own the kept states (s)."""
+    context = diagram.CreateDefaultContext()
+    periods = []
+    for system in _leaf_systems(diagram):
+        path = "/".join(system.GetSystemPathname().split("::")[2:])
+        if system.GetMyContextFromRoot(context).num_discrete_state_groups() == 0:
+            continue
+        if not any(name.startswith((path + "[", path + "/")) for name in kept_names):
+            continue
+        attribute = system.GetUniquePeriodicDiscreteUpdateAttribute()
+        if attribute is None:
+            raise RuntimeError(f"{path}: no unique periodic update; its period is unknown")
+        periods.append(attribute.period_sec())
+    return periods
+
+
+def quaternion_coordinates(diagram) -> List[List[str]]:
+    """The state names of each free body's quaternion, in every MultibodyPlant."""
+    blocks = []
+    for system in _leaf_systems(diagram):
+        if not isinstance(system, MultibodyPlant):
+            continue
+        path = "/".join(system.GetSystemPathname().split("::")[2:])
+        names = system.GetStateNames(False)
+        for index in system.GetFloatingBaseBodies():
+            start = system.get_body(index).floating_positions_start()
+            blocks.append([f"{path}/{names[start + k]}" for k in range(4)])
+    return blocks
+
+
+def reduce_map(M: np.ndarray, names: List[str], x0: np.ndarray, quaternions) -> Dict:
+    """M without what is not dynamics at a fixed mode:
+    - held coordinates (latched setpoints, stored poses: a row of M that is a unit
+      vector), parameters of the operating point, each a multiplier of exactly 1;
+    - the norm of each free body's quaternion, which the dynamics carry unchanged (a
+      multiplier of exactly 1): its three tangent directions are kept.
+    Returns the reduced map, its coordinate names and what was removed."""
+    n = len(names)
+    # Central differences leave ~1e-9 of noise on a unit row.
+    held = [j for j in range(n) if np.max(np.abs(M[j] - np.eye(n)[j])) < HELD_TOLERANCE]
+    index = {name: j for j, name in enumerate(names)}
+    columns, reduced_names = [], []
+    in_quaternion = {}
+    for block in quaternions:
+        if all(name in index for name in block):
+            for name in block:
+                in_quaternion[index[name]] = block
+    done = set()
+    for j in range(n):
+        if j in held or j in done:
+            continue
+        if j in in_quaternion:
+            block = [index[name] for name in in_quaternion[j]]
+            q0 = x0[block] / np.linalg.norm(x0[block])
+            # An orthonormal basis of the tangent space at q0 (the complement of q0).
+            tangent = np.linalg.svd(np.eye(4) - np.outer(q0, q0))[0][:, 0:3]
+            for k in range(3):
+                column = np.zeros(n)
+                column[block] = tangent[:, k]
+                columns.append(column)
+                reduced_names.append(f"{names[block[0]].rsplit('_', 1)[0]}_rotation{k}")
+            done.update(block)
+        else:
+            column = np.zeros(n)
+            column[j] = 1.0
+            columns.append(column)
+            reduced_names.append(names[j])
+    T = np.array(columns).T  # reduced -> full coordinates, orthonormal columns
+    return {"M": T.T @ M @ T, "names": reduced_names,
+            "held": [names[j] for j in held],
+            "quaternion_norms": len([b for b in quaternions if all(n_ in index for n_ in b)])}
+
+
+def loop_map(scenario, *, progress: Optional[Callable[[int, int], None]] = None) -> Dict:
+    """The loop's hyperperiod map at the operating point, reduced (``reduce_map``): M,
+    its state names, the hyperperiod, the operating point and how long it took."""
+    start = time.perf_counter()
+    check_applies(scenario)
+    t0 = operating_point_s(scenario)
+    built = BuildDiagram(scenario)
+    names = state_names(built.diagram)
+    kept = [i for i, name in enumerate(names)
+            if not name.startswith(RECORDING_ONLY) and name not in MODE_COORDINATES]
+    kept_names = [names[i] for i in kept]
+    period = hyperperiod_s(_periods(built.diagram, kept_names))
+    # Start on a hyperperiod boundary, so the map is the one the loop repeats.
+    t0 = float(Fraction(t0).limit_denominator(10**6) // Fraction(period).limit_denominator(10**6)
+               * Fraction(period).limit_denominator(10**6))
+    simulator, _ = simulate(built, t0, progress=False)
+    context = simulator.get_context()
+    M = monodromy_central(built.diagram, context, period, progress=progress,
+                          coordinates=kept)
+    reduced = reduce_map(M, kept_names, state_vector(context)[kept],
+                         quaternion_coordinates(built.diagram))
+    return {**reduced, "hyperperiod_s": period, "operating_point_s": t0,
+            "wall_s": time.perf_counter() - start}
+
+
+def _mode_rows(M, period_s, names) -> List[Dict]:
+    rows = []
+    for mode in modes(M, period_s, names)[:MODES_SHOWN]:
+        rows.append({"multiplier_abs": abs(mode.multiplier),
+                     "multiplier_angle_rad": math.atan2(mode.multiplier.imag, mode.multiplier.real),
+                     "frequency_hz": mode.frequency_hz, "damping_ratio": mode.damping_ratio,
+                     "time_constant_s": mode.time_constant_s, "states": mode.states})
+    return rows
+
+
+def _radius(M) -> float:
+    return float(np.max(np.abs(np.linalg.eigvals(M)))) if len(M) else 0.0
+
+
+def single_rate(scenario):
+    """The scenario with its tracker at the control rate (one loop rate)."""
+    tracker = dataclasses.replace(scenario.device.tracker, rate_hz=scenario.control_rate_hz)
+    return dataclasses.replace(scenario, device=dataclasses.replace(scenario.device,
+                                                                    tracker=tracker))
+
+
+def linearize_study(scenario, progress=None) -> Dict:
+    """The single-rate loop's map over its hyperperiod, its spectral radius and modes."""
+    result = loop_map(single_rate(scenario), progress=progress)
+    M, period = result["M"], result["hyperperiod_s"]
+    return {"operating_point_s": result["operating_point_s"], "period_s": period,
+            "states": result["names"], "A": M.tolist(), "spectral_radius": _radius(M),
+            "stable": _radius(M) < 1.0, "modes": _mode_rows(M, period, result["names"]),
+            "wall_s": result["wall_s"],
+            "note": ("A maps the whole state (every system's discrete state, the logger's "
+                     "excepted) over one period at the operating point; modes above "
+                     f"{0.5 / period:g} Hz alias in frequency (their decay is exact).")}
+
+
+def multirate_study(scenario, progress=None) -> Dict:
+    """The true multirate loop's monodromy, against the single-rate loop over the same
+    time (its map raised to the power that spans the multirate hyperperiod)."""
+    true = loop_map(scenario, progress=progress)
+    single = loop_map(single_rate(scenario))
+    M, period = true["M"], true["hyperperiod_s"]
+    steps = round(period / single["hyperperiod_s"])
+    single_radius_over_period = _radius(single["M"]) ** steps
+    return {"operating_point_s": true["operating_point_s"], "hyperperiod_s": period,
+            "states": true["names"], "spectral_radius": _radius(M), "stable": _radius(M) < 1.0,
+            "decay_per_s": _radius(M) ** (1.0 / period),
+            "single_rate": {"hyperperiod_s": single["hyperperiod_s"],
+                            "periods_per_hyperperiod": steps,
+                            "spectral_radius": _radius(single["M"]),
+                            "spectral_radius_over_multirate_hyperperiod":
+                                single_radius_over_period,
+                            "decay_per_s": _radius(single["M"]) ** (1.0 / single["hyperperiod_s"])},
+            "modes": _mode_rows(M, period, true["names"]),
+            "single_rate_modes": _mode_rows(single["M"], single["hyperperiod_s"], single["names"]),
+            "wall_s": true["wall_s"] + single["wall_s"],
+            "multiplier_magnitudes": sorted(np.abs(np.linalg.eigvals(M)).tolist(), reverse=True),
+            "single_rate_magnitudes_over_hyperperiod": sorted(
+                (np.abs(np.linalg.eigvals(single["M"])) ** steps).tolist(), reverse=True)}
+
+
+def plot_multipliers(results: Dict, out_dir: Path, title: str, name: str) -> Path:
+    """The map's eigenvalues in the unit circle (and the single-rate loop's, for the
+    multirate study)."""
+    figure, axes = plt.subplots(figsize=(6, 6))
+    circle = np.linspace(0, 2 * np.pi, 400)
+    axes.plot(np.cos(circle), np.sin(circle), color="0.6", lw=1)
+    # The single-rate loop's multipliers over the multirate hyperperiod: raised to the
+    # number of its periods in it.
+    steps = results.get("single_rate", {}).get("periods_per_hyperperiod", 1)
+    for label, rows, marker, power in (
+            ("loop", results["modes"], "o", 1),
+            ("single-rate loop, over the same time", results.get("single_rate_modes"), "x", steps)):
+        if not rows:
+            continue
+        values = [(row["multiplier_abs"] * np.exp(1j * row["multiplier_angle_rad"])) ** power
+                  for row in rows]
+        axes.plot(np.real(values), np.imag(values), marker, ls="none", label=label)
+    axes.set_aspect("equal")
+    axes.set_xlabel("Re")
+    axes.set_ylabel("Im")
+    axes.set_title(f"{title}: {name}, spectral radius {results['spectral_radius']:.4f}")
+    axes.legend(loc="lower left")
+    figure.tight_layout()
+    path = Path(out_dir) / f"{name}.png"
+    figure.savefig(path, dpi=110)
+    plt.close(figure)
+    return path
