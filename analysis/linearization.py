@@ -26,8 +26,8 @@ from pydrake.systems.analysis import InitializeParams, Simulator, Simulator_
 # Central differences step, relative to each coordinate's magnitude with this floor
 # (state units: m, rad, m/s, A, ...): the map's curvature error goes as the step
 # squared, round-off as 1e-16 over the step.
-RELATIVE_STEP = 1e-6
-ABSOLUTE_STEP = 1e-7
+RELATIVE_STEP = 1e-5
+ABSOLUTE_STEP = 1e-6
 
 
 def hyperperiod_s(periods_s: Iterable[float], max_denominator: int = 1_000_000) -> float:

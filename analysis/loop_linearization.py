@@ -45,6 +45,8 @@ MODE_COORDINATES = ("haptic_supervisor/d0[0]",)
 SETTLE_S = 0.3  # after haptics is fully on, before the operating point (s)
 MODES_SHOWN = 12
 HELD_TOLERANCE = 1e-6  # a row of the map this close to a unit vector is a held state
+NEUTRAL_TOLERANCE = 1e-4  # |multiplier| this close to 1 over the period: a neutral mode
+PHASE_S = 1e-6  # the map starts this long after a hyperperiod boundary (s): before any offset event
 
 
 def check_applies(scenario) -> None:
@@ -165,11 +167,19 @@ def loop_map(scenario, *, progress: Optional[Callable[[int, int], None]] = None)
             if not name.startswith(RECORDING_ONLY) and name not in MODE_COORDINATES]
     kept_names = [names[i] for i in kept]
     period = hyperperiod_s(_periods(built.diagram, kept_names))
-    # Start on a hyperperiod boundary, so the map is the one the loop repeats.
+    # Just after a hyperperiod boundary: the boundary's updates are done and the
+    # next ones unambiguous. Exactly on it, whether a fresh simulator redoes an
+    # update at its start time hangs on the rounding of t0 / period, system by
+    # system (a 1 kHz loop at 5.4 s: 5400.000000000001 periods), and the map
+    # would skip an update of some systems and not of others.
     t0 = float(Fraction(t0).limit_denominator(10**6) // Fraction(period).limit_denominator(10**6)
-               * Fraction(period).limit_denominator(10**6))
+               * Fraction(period).limit_denominator(10**6)) + PHASE_S
     simulator, _ = simulate(built, t0, progress=False)
     context = simulator.get_context()
+    # A coordinate at +-inf (a "never yet" time stamp) cannot be nudged: held.
+    x0 = state_vector(context)
+    kept = [i for i in kept if np.isfinite(x0[i])]
+    kept_names = [names[i] for i in kept]
     M = monodromy_central(built.diagram, context, period, progress=progress,
                           coordinates=kept)
     reduced = reduce_map(M, kept_names, state_vector(context)[kept],
@@ -189,7 +199,26 @@ def _mode_rows(M, period_s, names) -> List[Dict]:
 
 
 def _radius(M) -> float:
-    return float(np.max(np.abs(np.linalg.eigvals(M)))) if len(M) else 0.0
+    """The spectral radius without neutral multipliers (``stability``)."""
+    return stability(M)["spectral_radius"]
+
+
+def stability(M, names=None, period_s=None) -> Dict:
+    """Spectral radius of the map without its neutral multipliers (within
+    NEUTRAL_TOLERANCE of the unit circle: symmetries such as a ball's orientation,
+    which nothing in the scene depends on), and those neutral modes. Stable: every
+    other multiplier inside the unit circle, none outside it."""
+    values = np.linalg.eigvals(M) if len(M) else np.zeros(0)
+    magnitudes = np.abs(values)
+    neutral = np.abs(magnitudes - 1.0) < NEUTRAL_TOLERANCE
+    rest = magnitudes[~neutral]
+    result = {"spectral_radius": float(rest.max()) if len(rest) else 0.0,
+              "neutral_multipliers": int(neutral.sum())}
+    result["stable"] = bool(result["spectral_radius"] < 1.0)
+    if names is not None and neutral.any():
+        result["neutral_modes"] = [m.states for m in modes(M, period_s, names)
+                                   if abs(abs(m.multiplier) - 1.0) < NEUTRAL_TOLERANCE]
+    return result
 
 
 def single_rate(scenario):
@@ -204,12 +233,15 @@ def linearize_study(scenario, progress=None) -> Dict:
     result = loop_map(single_rate(scenario), progress=progress)
     M, period = result["M"], result["hyperperiod_s"]
     return {"operating_point_s": result["operating_point_s"], "period_s": period,
-            "states": result["names"], "A": M.tolist(), "spectral_radius": _radius(M),
-            "stable": _radius(M) < 1.0, "modes": _mode_rows(M, period, result["names"]),
+            "states": result["names"], "A": M.tolist(),
+            **stability(M, result["names"], period), "held_states": result["held"],
+            "modes": _mode_rows(M, period, result["names"]),
             "wall_s": result["wall_s"],
             "note": ("A maps the whole state (every system's discrete state, the logger's "
-                     "excepted) over one period at the operating point; modes above "
-                     f"{0.5 / period:g} Hz alias in frequency (their decay is exact).")}
+                     "excepted) over one period at the operating point; held states (latched "
+                     "setpoints, timers) are taken out, and each quaternion is reduced to its "
+                     f"three rotations. Modes above {0.5 / period:g} Hz alias in frequency "
+                     "(their decay is exact). The spectral radius leaves neutral modes out.")}
 
 
 def multirate_study(scenario, progress=None) -> Dict:
@@ -221,8 +253,8 @@ def multirate_study(scenario, progress=None) -> Dict:
     steps = round(period / single["hyperperiod_s"])
     single_radius_over_period = _radius(single["M"]) ** steps
     return {"operating_point_s": true["operating_point_s"], "hyperperiod_s": period,
-            "states": true["names"], "spectral_radius": _radius(M), "stable": _radius(M) < 1.0,
-            "decay_per_s": _radius(M) ** (1.0 / period),
+            "states": true["names"], **stability(M, true["names"], period),
+            "held_states": true["held"], "decay_per_s": _radius(M) ** (1.0 / period),
             "single_rate": {"hyperperiod_s": single["hyperperiod_s"],
                             "periods_per_hyperperiod": steps,
                             "spectral_radius": _radius(single["M"]),

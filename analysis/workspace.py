@@ -38,18 +38,18 @@ The slices (each pose three small linear programs, ~8 ms):
   a half turn, so over the centre 0..90 deg covers every yaw (and 0..35 deg
   every tilt of up to 35 deg about x or y).
 
-The default study (2 instruments, 3,000 poses) takes ~60 s on the 2-core
-development machine once the wrench tables are cached (``WorkspaceSettings.quick()``
-~2 s).
+Measured on the 2-core development machine with the wrench tables cached: the
+default study (2 instruments x 3,190 poses) takes 55 s and its plots 14 s;
+``WorkspaceSettings.quick()`` (2 x 90 poses) 2 s and its plots ~10 s.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Optional, Tuple
 
 import matplotlib
 
@@ -87,20 +87,20 @@ _WRENCH_DIRECTIONS[6:, 3:] = AXIS_DIRECTIONS
 class WorkspaceSettings:
     """The grids of the study. Heights are of I's origin above W's z = 0 [m]."""
 
-    instruments: Tuple[str, ...] = INSTRUMENT_KINDS
-    x_range_m: Tuple[float, float] = (-0.06, 0.06)  # x of I in W for the x-y maps [m]
-    y_range_m: Tuple[float, float] = (-0.06, 0.06)  # y of I in W for the x-y maps [m]
+    instruments: tuple[str, ...] = INSTRUMENT_KINDS
+    x_range_m: tuple[float, float] = (-0.06, 0.06)  # x of I in W for the x-y maps [m]
+    y_range_m: tuple[float, float] = (-0.06, 0.06)  # y of I in W for the x-y maps [m]
     xy_steps: int = 25  # grid points along x and along y (5 mm apart by default)
-    map_heights_m: Tuple[float, ...] = (0.010, 0.020, 0.030, 0.040)  # heights of the x-y maps [m]
-    height_range_m: Tuple[float, float] = (0.005, 0.060)  # heights of the profiles [m]
+    map_heights_m: tuple[float, ...] = (0.010, 0.020, 0.030, 0.040)  # heights of the x-y maps [m]
+    height_range_m: tuple[float, float] = (0.005, 0.060)  # heights of the profiles [m]
     height_steps: int = 23  # (2.5 mm apart by default)
-    tilt_range_deg: Tuple[float, float] = (0.0, 35.0)  # about W's x and about its y [deg]
+    tilt_range_deg: tuple[float, float] = (0.0, 35.0)  # about W's x and about its y [deg]
     tilt_steps: int = 8
-    yaw_range_deg: Tuple[float, float] = (0.0, 90.0)  # [deg]
+    yaw_range_deg: tuple[float, float] = (0.0, 90.0)  # [deg]
     yaw_steps: int = 13
 
     @classmethod
-    def quick(cls) -> "WorkspaceSettings":
+    def quick(cls) -> WorkspaceSettings:
         """Coarse grids for tests (~2 s for both instruments)."""
         return cls(xy_steps=5, map_heights_m=(0.015, 0.030), height_steps=4, tilt_steps=3,
                    yaw_steps=3)
@@ -109,7 +109,8 @@ class WorkspaceSettings:
         """ValueError naming the first bad field."""
         for kind in self.instruments:
             if kind not in INSTRUMENT_KINDS:
-                raise ValueError(f"instruments: {kind!r} must be one of {', '.join(INSTRUMENT_KINDS)}")
+                raise ValueError(f"instruments: {kind!r} must be one of "
+                                 f"{', '.join(INSTRUMENT_KINDS)}")
         for name in ("xy_steps", "height_steps", "tilt_steps", "yaw_steps"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"{name} = {getattr(self, name)!r}: must be at least 1")
@@ -202,7 +203,8 @@ def _slices(settings: WorkspaceSettings) -> dict:
     def line(span, steps):
         return np.linspace(span[0], span[1], int(steps))
 
-    xs, ys = line(settings.x_range_m, settings.xy_steps), line(settings.y_range_m, settings.xy_steps)
+    xs = line(settings.x_range_m, settings.xy_steps)
+    ys = line(settings.y_range_m, settings.xy_steps)
     map_heights = np.asarray(settings.map_heights_m, dtype=float)
     heights = line(settings.height_range_m, settings.height_steps)
     tilts = line(settings.tilt_range_deg, settings.tilt_steps)
@@ -220,7 +222,8 @@ def _slices(settings: WorkspaceSettings) -> dict:
                  [(np.array([0.0, 0.0, h]), rotation(t, 0.0) if axis == "x" else rotation(0.0, t))
                   for axis in ("x", "y") for h in heights for t in tilts]),
         "yaw": ({"height_m": heights, "yaw_deg": yaws},
-                [(np.array([0.0, 0.0, h]), rotation(yaw_deg=yaw)) for h in heights for yaw in yaws]),
+                [(np.array([0.0, 0.0, h]), rotation(yaw_deg=yaw))
+                 for h in heights for yaw in yaws]),
     }
 
 
@@ -307,7 +310,7 @@ def _json_ready(value):
 
 
 def workspace_study(settings: WorkspaceSettings, *,
-                    progress: Optional[Callable[[int, int], None]] = None) -> dict:
+                    progress: Callable[[int, int], None] | None = None) -> dict:
     """The study (module docstring) over ``settings``' grids, as JSON-ready data.
 
     Returns {"study", "settings", "units", "instruments": {kind: {"mass_kg",
@@ -338,7 +341,8 @@ def workspace_study(settings: WorkspaceSettings, *,
         instruments[kind] = {
             "mass_kg": config.instrument_spec().mass_kg,
             "lever_length_m": lever_length_m(config),
-            "current_limit_a": {limit: coil_current_limit_a(config, limit) for limit in LIMIT_KINDS},
+            "current_limit_a": {limit: coil_current_limit_a(config, limit)
+                                for limit in LIMIT_KINDS},
             "summary": _summary(config, magnetics, slices),
             "slices": slices,
         }
@@ -366,7 +370,7 @@ class _Panel:
     label: str
     values: np.ndarray
     log: bool = False  # a ratio-like quantity: scale from its least value, log if over a decade
-    limit: Optional[float] = None  # top of the colour scale; larger values drawn magenta
+    limit: float | None = None  # top of the colour scale; larger values drawn magenta
 
 
 def _array(values) -> np.ndarray:

@@ -18,7 +18,7 @@ LOOP_STUDIES = ("passivity", "zwidth", "stability-map")
 
 @pytest.mark.parametrize("study", LOOP_STUDIES)
 @pytest.mark.parametrize("file, name", SCENARIOS)
-def test_loop_study_runs_or_says_why(study, file, name, tmp_path, capsys):
+def test_coupling_study_runs_or_says_why(study, file, name, tmp_path, capsys):
     code = main(["analyze", study, file, "--name", name, "--quick", "--json",
                  "--out", str(tmp_path)])
     scenario = load_scenario(file, name)
@@ -58,3 +58,31 @@ def test_zwidth_regions_are_nested():
 
 def test_study_names():
     assert set(LOOP_STUDIES) <= set(study_names())
+
+
+@pytest.mark.parametrize("study", ["linearize", "multirate"])
+@pytest.mark.parametrize("file, name", SCENARIOS)
+def test_loop_linearization_runs_or_says_why(study, file, name, tmp_path, capsys):
+    """Every shipped scenario's loop is stable at its operating point, the deformable
+    one is refused with the reason."""
+    code = main(["analyze", study, file, "--name", name, "--quick", "--json",
+                 "--out", str(tmp_path)])
+    if file == "deformable_surface":
+        assert code == 2
+        assert "tens of thousands of states" in capsys.readouterr().err
+        return
+    assert code == 0
+    results = json.loads((tmp_path / f"{study}.json").read_text())
+    assert results["stable"] and 0.0 < results["spectral_radius"] < 1.0
+    assert results["modes"][0]["states"]
+
+
+def test_peg_multirate_against_single_rate(tmp_path):
+    """The true 860 Hz / 1 kHz loop and the single-rate one agree on the slowest mode
+    over the 50 ms hyperperiod (the hand on the arm, ~4 Hz)."""
+    assert main(["analyze", "multirate", "peg_in_hole", "--json", "--out", str(tmp_path)]) == 0
+    results = json.loads((tmp_path / "multirate.json").read_text())
+    assert results["hyperperiod_s"] == pytest.approx(0.05)
+    assert results["spectral_radius"] == pytest.approx(
+        results["single_rate"]["spectral_radius_over_multirate_hyperperiod"], rel=0.02)
+    assert results["wall_s"] < 60.0

@@ -161,7 +161,8 @@ def test_quick_study_covers_both_instruments_and_writes_plots(quick, tmp_path):
                                           summary["hover_fraction_xy"]["peak"]))
         # The height slice starts below the resting height: inside the glass.
         assert data["slices"]["height"]["maps"]["hover_current_a"][0] is None
-        assert summary["condition_number"]["worst"]["value"] >= summary["condition_number"]["best"] > 1
+        condition = summary["condition_number"]
+        assert condition["worst"]["value"] >= condition["best"] > 1
     paths = plot_workspace(loaded, tmp_path)
     assert len(paths) == 2 * 6
     for path in paths:
