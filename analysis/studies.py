@@ -11,7 +11,7 @@ from typing import Callable, Dict, List
 
 from tqdm import tqdm
 
-from maglev_haptics.analysis import loop_linearization, loop_studies
+from maglev_haptics.analysis import loop_linearization, loop_studies, workspace
 from maglev_haptics.analysis.loop_studies import StudyNotApplicable
 
 
@@ -44,7 +44,14 @@ def _multirate(scenario, label, out_dir, quick, progress):
     return results, [loop_linearization.plot_multipliers(results, out_dir, label, "multirate")]
 
 
+def _workspace(scenario, label, out_dir, quick, progress):
+    settings = workspace.WorkspaceSettings.quick() if quick else workspace.WorkspaceSettings()
+    results = workspace.workspace_study(settings, device=scenario.device, progress=progress)
+    return results, workspace.plot_workspace(results, out_dir)
+
+
 STUDIES: Dict[str, Callable] = {
+    "workspace": _workspace,
     "linearize": _linearize,
     "multirate": _multirate,
     "passivity": _passivity,

@@ -309,7 +309,7 @@ def _json_ready(value):
     return value
 
 
-def workspace_study(settings: WorkspaceSettings, *,
+def workspace_study(settings: WorkspaceSettings, *, device: DeviceConfig | None = None,
                     progress: Callable[[int, int], None] | None = None) -> dict:
     """The study (module docstring) over ``settings``' grids, as JSON-ready data.
 
@@ -319,6 +319,8 @@ def workspace_study(settings: WorkspaceSettings, *,
     Each map's nesting follows its slice's coordinates in order (e.g. xy:
     [height][y][x]); metrics are those of ``pose_metrics``. NaN is None.
     ``progress(n_done, n_total)``, if given, is called after every pose.
+    ``device``: the coils, amplifiers and thermal model to use (a scenario's); its
+    own instrument keeps its magnet and mass overrides, the other kind its defaults.
     """
     settings.check()
     slice_grids = _slices(settings)
@@ -326,7 +328,9 @@ def workspace_study(settings: WorkspaceSettings, *,
     n_done = 0
     instruments = {}
     for kind in settings.instruments:
-        config = DeviceConfig(instrument=kind)
+        base = device if device is not None else DeviceConfig()
+        config = (dataclasses.replace(base, instrument=kind) if kind == base.instrument else
+                  dataclasses.replace(base, instrument=kind, magnet=None, instrument_mass_kg=None))
         magnetics = load_magnetics(config)
         slices = {}
         for name, (coordinates, poses) in slice_grids.items():

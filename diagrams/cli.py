@@ -154,7 +154,10 @@ def build_parser() -> argparse.ArgumentParser:
         "against the single-rate loop), passivity (Colgate-Schenkel margin of the coupling, and the "
         "damping a maglev device must get from the hand or controller), zwidth (the "
         "stiffness-damping range renderable stably and passively), stability-map (largest "
-        "stable stiffness against damping over sample rates and delays, with closed forms).")
+        "stable stiffness against damping over sample rates and delays, with closed forms), "
+        "workspace (over x, y, height, tilt and yaw, for both instruments: the wrench matrix's "
+        "condition number, hover current and power, the largest force and torque each way "
+        "within the peak and thermal current limits).")
     analyze.add_argument("study", choices=study_names())
     _add_scenario_arguments(analyze)
     analyze.add_argument("--out", help="output folder (default: out/analyze/<file>-<name>)")

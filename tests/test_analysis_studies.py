@@ -57,7 +57,30 @@ def test_zwidth_regions_are_nested():
 
 
 def test_study_names():
-    assert set(LOOP_STUDIES) <= set(study_names())
+    assert set(LOOP_STUDIES) | {"linearize", "multirate", "workspace"} == set(study_names())
+
+
+def test_workspace_runs_on_every_scenario(tmp_path):
+    """The workspace applies to every scenario: it depends on the scenario's device
+    only, so each distinct device of the shipped scenarios gets one run (quick grids;
+    tests/test_workspace.py checks the numbers)."""
+    devices = []
+    for file, name in SCENARIOS:
+        device = load_scenario(file, name).device
+        if device not in [d for d, _ in devices]:
+            devices.append((device, (file, name)))
+    assert len(devices) >= 2  # the 2- and the 4-magnet instrument's scenarios
+    for device, (file, name) in devices:
+        out = tmp_path / f"{file}-{name}"
+        assert main(["analyze", "workspace", file, "--name", name, "--quick", "--json",
+                     "--out", str(out)]) == 0
+        results = json.loads((out / "workspace.json").read_text())
+        _check_workspace(results, out)
+
+
+def _check_workspace(results, tmp_path):
+    assert set(results["instruments"]) == {"two_magnet", "four_magnet"}
+    assert all((tmp_path / plot).stat().st_size > 10_000 for plot in results["plots"])
 
 
 @pytest.mark.parametrize("study", ["linearize", "multirate"])
