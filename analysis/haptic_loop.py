@@ -25,6 +25,7 @@ the loop stable is the hand's damping and the controller's.
 
 import math
 from dataclasses import dataclass, replace
+from typing import Optional
 
 import numpy as np
 import scipy.linalg
@@ -39,6 +40,13 @@ class LoopParameters:
     # is taken as rigid: its 25 Hz mode is far above the loop's.
     hand_damping: float = 8.0  # N s/m
     hand_stiffness: float = 300.0  # N/m
+    # The grip between them (N/m, N s/m) and the hand's own mass (kg): when set, the
+    # instrument (mass_kg alone then) hangs on the grip from the hand, which hangs on
+    # the arm; the grip's mode decides the loop's stability at high stiffness. None:
+    # hand and instrument move as one body of mass_kg.
+    grip_stiffness: Optional[float] = None
+    grip_damping: float = 0.0
+    hand_mass_kg: float = 0.25
     stiffness: float = 400.0  # K of the virtual environment (N/m)
     damping: float = 5.0  # B (N s/m)
     period_s: float = 1e-3  # T
@@ -53,23 +61,39 @@ def filter_coefficient(parameters: LoopParameters) -> float:
     return math.exp(-2 * math.pi * parameters.velocity_filter_hz * parameters.period_s)
 
 
+def plant_matrices(p: LoopParameters):
+    """(A, B) of the continuous side, x' = A x + B f: state [x, x'] of the instrument
+    (and hand) or, with a grip, [x, x', x_hand, x_hand']; f on the instrument."""
+    if p.grip_stiffness is None:
+        A = np.array([[0.0, 1.0],
+                      [-p.hand_stiffness / p.mass_kg,
+                       -(p.device_damping + p.hand_damping) / p.mass_kg]])
+        return A, np.array([0.0, 1.0 / p.mass_kg])
+    m, mh = p.mass_kg, p.hand_mass_kg
+    kg, bg = p.grip_stiffness, p.grip_damping
+    A = np.array([
+        [0.0, 1.0, 0.0, 0.0],
+        [-kg / m, -(bg + p.device_damping) / m, kg / m, bg / m],
+        [0.0, 0.0, 0.0, 1.0],
+        [kg / mh, bg / mh, -(kg + p.hand_stiffness) / mh, -(bg + p.hand_damping) / mh]])
+    return A, np.array([0.0, 1.0 / m, 0.0, 0.0])
+
+
 def _plant_blocks(p: LoopParameters):
     """(Phi, Gamma_early, Gamma_late, n): over one period the plant state [x, x'] maps
     by Phi, the force sampled n periods ago adds Gamma_early, the one before it
     Gamma_late (the delay is (n - 1 + f) T with 0 < f <= 1, or n = 0 for none)."""
-    A = np.array([[0.0, 1.0],
-                  [-p.hand_stiffness / p.mass_kg,
-                   -(p.device_damping + p.hand_damping) / p.mass_kg]])
-    B = np.array([0.0, 1.0 / p.mass_kg])
+    A, B = plant_matrices(p)
+    n = len(A)
     T = p.period_s
 
     def exp_and_integral(duration):
         # [[A, B], [0, 0]] exponentiated gives e^{A t} and int_0^t e^{A s} B ds together.
-        M = np.zeros((3, 3))
-        M[0:2, 0:2] = A
-        M[0:2, 2] = B
+        M = np.zeros((n + 1, n + 1))
+        M[0:n, 0:n] = A
+        M[0:n, n] = B
         E = scipy.linalg.expm(M * duration)
-        return E[0:2, 0:2], E[0:2, 2]
+        return E[0:n, 0:n], E[0:n, n]
 
     Phi, _ = exp_and_integral(T)
     samples = p.delay_s / T
@@ -85,32 +109,35 @@ def _plant_blocks(p: LoopParameters):
 
 
 def closed_loop_matrix(p: LoopParameters) -> np.ndarray:
-    """The loop's one-period map (square matrix) for the state
-    [x, x', x_{k-1}, v, f_{k-1}, ..., f_{k-n-1}]."""
+    """The loop's one-period map (square matrix) for the state [plant (x first),
+    x_{k-1}, v, f_{k-1}, ..., f_{k-n-1}]."""
     Phi, Gamma_early, Gamma_late, whole = _plant_blocks(p)
     T, K, B = p.period_s, p.stiffness, p.damping
     a = filter_coefficient(p)
+    n = len(Phi)  # plant states, x first
     n_forces = whole + 1  # f_{k-1} .. f_{k-whole-1}
-    size = 4 + n_forces
+    size = n + 2 + n_forces
+    previous, filtered, forces = n, n + 1, n + 2  # where x_{k-1}, v and f_{k-1} sit
     # The force computed this period from the state (x_k and the filter's inputs):
     # v_k = a v_{k-1} + (1 - a)(x_k - x_{k-1}) / T, f_k = -(K x_k + B v_k).
     v_row = np.zeros(size)
     v_row[0] = (1 - a) / T
-    v_row[2] = -(1 - a) / T
-    v_row[3] = a
+    v_row[previous] = -(1 - a) / T
+    v_row[filtered] = a
     f_row = -K * np.eye(size)[0] - B * v_row
+
     def force(age):
-        """The row giving the force of this age: f_k (0) is f_row, f_{k-j} is state 3 + j."""
-        return f_row if age == 0 else np.eye(size)[4 + age - 1]
+        """The row giving the force of this age: f_k (0) is f_row, f_{k-j} a state."""
+        return f_row if age == 0 else np.eye(size)[forces + age - 1]
 
     M = np.zeros((size, size))
-    M[0:2, 0:2] = Phi
-    M[0:2] += np.outer(Gamma_early, force(whole)) + np.outer(Gamma_late, force(whole + 1))
-    M[2, 0] = 1.0  # x_{k-1} <- x_k
-    M[3] = v_row
-    M[4] = f_row  # f_{k-1} <- f_k
+    M[0:n, 0:n] = Phi
+    M[0:n] += np.outer(Gamma_early, force(whole)) + np.outer(Gamma_late, force(whole + 1))
+    M[previous, 0] = 1.0  # x_{k-1} <- x_k
+    M[filtered] = v_row
+    M[forces] = f_row  # f_{k-1} <- f_k
     for j in range(1, n_forces):
-        M[4 + j, 4 + j - 1] = 1.0
+        M[forces + j, forces + j - 1] = 1.0
     return M
 
 

@@ -155,9 +155,14 @@ def reduce_map(M: np.ndarray, names: List[str], x0: np.ndarray, quaternions) -> 
             "quaternion_norms": len([b for b in quaternions if all(n_ in index for n_ in b)])}
 
 
-def loop_map(scenario, *, progress: Optional[Callable[[int, int], None]] = None) -> Dict:
+def loop_map(scenario, *, progress: Optional[Callable[[int, int], None]] = None,
+             operating_point_from=None) -> Dict:
     """The loop's hyperperiod map at the operating point, reduced (``reduce_map``): M,
-    its state names, the hyperperiod, the operating point and how long it took."""
+    its state names, the hyperperiod, the operating point and how long it took.
+
+    ``operating_point_from``: a scenario of the same diagram structure (other gains)
+    whose simulation gives the operating point's state: an unstable loop's own
+    simulation would have left the equilibrium before it is linearized there."""
     start = time.perf_counter()
     check_applies(scenario)
     t0 = operating_point_s(scenario)
@@ -174,8 +179,13 @@ def loop_map(scenario, *, progress: Optional[Callable[[int, int], None]] = None)
     # would skip an update of some systems and not of others.
     t0 = float(Fraction(t0).limit_denominator(10**6) // Fraction(period).limit_denominator(10**6)
                * Fraction(period).limit_denominator(10**6)) + PHASE_S
-    simulator, _ = simulate(built, t0, progress=False)
-    context = simulator.get_context()
+    if operating_point_from is None:
+        simulator, _ = simulate(built, t0, progress=False)
+        context = simulator.get_context()
+    else:
+        reference, _ = simulate(BuildDiagram(operating_point_from), t0, progress=False)
+        context = built.diagram.CreateDefaultContext()
+        context.SetTimeStateAndParametersFrom(reference.get_context())
     # A coordinate at +-inf (a "never yet" time stamp) cannot be nudged: held.
     x0 = state_vector(context)
     kept = [i for i in kept if np.isfinite(x0[i])]

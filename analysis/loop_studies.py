@@ -1,9 +1,10 @@
 """The haptic loop's passivity, Z-width and stability map for a scenario, from the
-exactly discretized 1-DOF loop (``haptic_loop.py``) along one axis.
+exactly discretized loop along one axis (``haptic_loop.py``).
 
-The scenario gives the loop's numbers: the instrument's and the hand's mass, the
-hand's arm impedance, the coupling's stiffness, damping and velocity filter, the
-control period, and the delay from a sample to the force it causes:
+The scenario gives the loop's numbers: the instrument's mass, the hand's grip and
+arm impedances and its mass (the instrument hangs on the grip, the hand on the
+arm), the coupling's stiffness, damping and velocity filter, the control period,
+and the delay from a sample to the force it causes:
 
     tracker latency + half a tracker period (the mean wait of an 860 Hz sample
     for the 1 kHz tick) + one control period (the currents computed at a tick
@@ -47,9 +48,11 @@ def loop_parameters(scenario, axis: int = 0) -> LoopParameters:
     delay_s = (tracker.latency_s + 0.5 / tracker.rate_hz + period_s
                + 1.0 / (2 * math.pi * device.amplifier.bandwidth_hz))
     return LoopParameters(
-        mass_kg=device.instrument_spec().mass_kg + hand.mass_kg, device_damping=0.0,
+        mass_kg=device.instrument_spec().mass_kg, device_damping=0.0,
         hand_damping=hand.arm_translational_damping[axis],
         hand_stiffness=hand.arm_translational_stiffness[axis],
+        grip_stiffness=hand.grip_translational_stiffness[axis],
+        grip_damping=hand.grip_translational_damping[axis], hand_mass_kg=hand.mass_kg,
         stiffness=coupling.translational_stiffness[axis],
         damping=coupling.translational_damping[axis], period_s=period_s, delay_s=delay_s,
         velocity_filter_hz=coupling.velocity_filter_hz)
@@ -201,9 +204,11 @@ class StabilityMapSettings:
 def stability_map_study(scenario, settings: StabilityMapSettings,
                         progress: Optional[Callable[[int, int], None]] = None) -> Dict:
     """The largest stable coupling stiffness against damping, for each control rate
-    and delay, from the linear model with the scenario's hand; with the closed form
-    2 (b + B) / (T + 2 tau) it must reproduce in its limit (a heavy, damped mass with
-    no hand stiffness and no filter, b the hand's damping) beside each curve."""
+    and delay, from the linear model of the instrument against a wall with the
+    scenario's hand; with the closed form 2 (b + B) / (T + 2 tau) it must reproduce in
+    its limit (a heavy, damped mass with no hand stiffness and no filter, b the hand's
+    damping) beside each curve. ``maglev analyze stability-map`` adds the whole loop's
+    onset in free space, linearized and simulated (``onset.py``)."""
     p = loop_parameters(scenario)
     curves = []
     total = len(settings.rates_hz) * len(settings.delays_s)
@@ -212,7 +217,8 @@ def stability_map_study(scenario, settings: StabilityMapSettings,
             q = replace(p, period_s=1.0 / rate, delay_s=delay)
             model = [critical_stiffness(replace(q, damping=float(b)))
                      for b in settings.damping_n_s_m]
-            limit = replace(q, mass_kg=50.0, hand_stiffness=0.0, velocity_filter_hz=math.inf)
+            limit = replace(q, mass_kg=50.0, hand_stiffness=0.0, grip_stiffness=None,
+                            velocity_filter_hz=math.inf)
             limit_model = [critical_stiffness(replace(limit, damping=float(b)))
                            for b in settings.damping_n_s_m]
             closed_form = [2 * (q.hand_damping + b) / (q.period_s + 2 * delay)
@@ -242,12 +248,24 @@ def plot_stability_map(results: Dict, out_dir: Path, title: str) -> Path:
             panel.plot(B, curve["closed_form_limit_n_m"], color=color, ls=":", lw=1)
             panel.plot(B, curve["limit_model_critical_stiffness_n_m"], color=color, ls="none",
                        marker=".", ms=4)
+        for point in results.get("onset", []):
+            if point["control_rate_hz"] != rate:
+                continue
+            for key, marker, name in (("linear_critical_stiffness_n_m", "*", "linearized"),
+                                      ("simulated_critical_stiffness_n_m", "X", "simulated")):
+                panel.plot(point["damping_n_s_m"], point[key], marker, color="k", ms=10,
+                           mfc="none" if marker == "X" else "k",
+                           label=f"whole loop, {name}: {point['label']}")
         panel.set_title(f"{rate:g} Hz")
         panel.set_xlabel("coupling damping B (N s/m)")
         panel.set_yscale("log")
     panels[0][0].set_ylabel("largest stable stiffness K (N/m)")
-    panels[0][0].legend(title="solid: with the hand; dots: heavy-mass limit;\n"
-                        "dotted: 2(b+B)/(T+2 tau)", fontsize=8, title_fontsize=7)
+    panels[0][0].legend(title="solid: against a wall, with the hand; dots: heavy-mass\n"
+                        "limit; dotted: 2(b+B)/(T+2 tau)", fontsize=7, title_fontsize=7)
+    for panel in panels[0][1:]:
+        if panel.get_legend_handles_labels()[0][4 * 3:]:
+            handles, labels = panel.get_legend_handles_labels()
+            panel.legend(handles[-2:], labels[-2:], fontsize=7, loc="lower right")
     figure.suptitle(f"{title}: stability map")
     figure.tight_layout()
     path = Path(out_dir) / "stability_map.png"

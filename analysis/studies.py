@@ -11,7 +11,7 @@ from typing import Callable, Dict, List
 
 from tqdm import tqdm
 
-from maglev_haptics.analysis import loop_linearization, loop_studies, workspace
+from maglev_haptics.analysis import loop_linearization, loop_studies, onset, workspace
 from maglev_haptics.analysis.loop_studies import StudyNotApplicable
 
 
@@ -31,6 +31,10 @@ def _stability_map(scenario, label, out_dir, quick, progress):
     settings = (loop_studies.StabilityMapSettings.quick() if quick
                 else loop_studies.StabilityMapSettings.full())
     results = loop_studies.stability_map_study(scenario, settings, progress)
+    if not quick:
+        # The whole loop's onset, linearized and simulated (minutes: each step of the
+        # searches is a full linearization or a run; each is reported as it ends).
+        results["onset"] = onset.onset_study(scenario, progress=tqdm.write)
     return results, [loop_studies.plot_stability_map(results, out_dir, label)]
 
 

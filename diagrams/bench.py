@@ -12,7 +12,8 @@ Four kinds of numbers:
   to their values in the running diagram and re-fixed every call so nothing is
   served from the cache;
 - the electromagnetic model (a full 6 x n wrench matrix) and the allocation;
-- the stereo display: view matrices per frame and a rendered frame pair.
+- the stereo display: view matrices per frame and a rendered frame pair;
+- the offline analysis: the loop studies' wall time on the peg-in-hole scene.
 """
 
 from __future__ import annotations
@@ -121,6 +122,7 @@ def run_benchmarks(duration_s: Optional[float] = None, progress: bool = True,
         results["wrench_matrix_us"][kind] = bench_wrench_matrix(config)
         results["allocation"][kind] = allocation_cost_us(config)
     results["stereo"] = stereo_costs()
+    results["analysis"] = analysis_costs()
     with tqdm(total=len(LATTICE_SIZES), desc="lattice sizes", disable=not progress) as bar:
         results["lattice"] = lattice_scaling(progress=lambda _: bar.update(1))
     results["report"] = format_report(results)
@@ -129,6 +131,23 @@ def run_benchmarks(duration_s: Optional[float] = None, progress: bool = True,
         (out_dir / "bench.json").write_text(json.dumps(results, indent=2))
         plot_lattice_scaling(results["lattice"], out_dir / "lattice_scaling.png")
     return results
+
+
+def analysis_costs() -> Dict[str, float]:
+    """Wall seconds of the loop studies on peg_in_hole (the multirate one must take
+    under a minute)."""
+    from maglev_haptics.analysis.loop_linearization import linearize_study, multirate_study
+    from maglev_haptics.analysis.loop_studies import ZWidthSettings, zwidth_study
+
+    scenario = load_scenario("peg_in_hole")
+    costs = {}
+    for name, study in (("peg_in_hole multirate", multirate_study),
+                        ("peg_in_hole linearize", linearize_study),
+                        ("peg_in_hole zwidth", lambda s: zwidth_study(s, ZWidthSettings.full()))):
+        start = time.perf_counter()
+        study(scenario)
+        costs[name] = time.perf_counter() - start
+    return costs
 
 
 def format_report(results: Dict) -> str:
@@ -148,5 +167,7 @@ def format_report(results: Dict) -> str:
         lines.append(f"  {kind:<14} within limits {r['within_limits_us']:.1f}  "
                      f"saturating {r['saturating_us']:.1f}")
     lines.append(format_stereo_report(results["stereo"]))
+    lines.append("Offline analysis (wall s): " + ", ".join(
+        f"{name} {seconds:.1f}" for name, seconds in results["analysis"].items()))
     lines.append(format_lattice_report(results["lattice"]))
     return "\n".join(lines)

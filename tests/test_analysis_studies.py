@@ -37,7 +37,7 @@ def test_peg_loop_numbers(tmp_path):
     """The peg scene's coupling needs 3.3 N s/m it does not have, and the hand gives 8."""
     scenario = load_scenario("peg_in_hole")
     p = loop_parameters(scenario)
-    assert p.mass_kg == pytest.approx(0.375)
+    assert p.mass_kg == pytest.approx(0.125) and p.grip_stiffness == pytest.approx(2000.0)
     assert p.delay_s == pytest.approx(1.5e-3 + 0.5 / 860 + 1e-3 + 1 / (2 * np.pi * 1000))
     assert main(["analyze", "passivity", "peg_in_hole", "--quick", "--out", str(tmp_path)]) == 0
     results = json.loads((tmp_path / "passivity.json").read_text())
@@ -109,3 +109,12 @@ def test_peg_multirate_against_single_rate(tmp_path):
     assert results["spectral_radius"] == pytest.approx(
         results["single_rate"]["spectral_radius_over_multirate_hyperperiod"], rel=0.02)
     assert results["wall_s"] < 60.0
+
+
+@pytest.mark.slow
+def test_whole_loop_onset_linearized_matches_simulation():
+    """At the three operating points (the scenario, an 860 Hz loop, doubled coupling
+    damping), the linearized critical stiffness is within 10% of the simulated onset."""
+    from maglev_haptics.analysis.onset import onset_study
+    for point in onset_study(load_scenario("peg_in_hole")):
+        assert point["relative_difference"] < 0.10, point

@@ -9,7 +9,7 @@ import pytest
 
 from maglev_haptics.analysis.haptic_loop import (
     LoopParameters, closed_loop_matrix, critical_stiffness, environment_impedance,
-    filter_coefficient, is_stable)
+    filter_coefficient, is_stable, plant_matrices)
 from maglev_haptics.analysis.passivity import passivity_margin
 
 
@@ -33,13 +33,13 @@ def simulate_loop(p: LoopParameters, x0: float, periods: int, substeps: int = 20
     T = p.period_s
     h = T / substeps
     a = filter_coefficient(p)
-    c = p.device_damping + p.hand_damping
+    A, B = plant_matrices(p)
 
     def derivative(state, force):
-        x, v = state
-        return np.array([v, (-c * v - p.hand_stiffness * x + force) / p.mass_kg])
+        return A @ state + B * force
 
-    state = np.array([x0, 0.0])
+    state = np.zeros(len(A))
+    state[0] = x0
     x_previous, filtered = x0, 0.0
     forces = []  # (time it starts acting, value)
     positions = []
@@ -61,14 +61,18 @@ def simulate_loop(p: LoopParameters, x0: float, periods: int, substeps: int = 20
     return np.array(positions)
 
 
+@pytest.mark.parametrize("grip", [False, True])
 @pytest.mark.parametrize("delay_s", [0.0, 0.4e-3, 2.5e-3])
-def test_one_period_map_matches_a_fine_step_simulation(delay_s):
+def test_one_period_map_matches_a_fine_step_simulation(delay_s, grip):
     p = replace(LoopParameters(), delay_s=delay_s, period_s=1e-3)
+    if grip:  # the instrument on the grip, the hand on the arm
+        p = replace(p, mass_kg=0.125, grip_stiffness=2000.0, grip_damping=12.0)
     periods = 40
     simulated = simulate_loop(p, x0=0.01, periods=periods, substeps=400)
     M = closed_loop_matrix(p)
     state = np.zeros(len(M))
-    state[0] = state[2] = 0.01  # at rest at x0: x_{k-1} = x0, no velocity, no force yet
+    previous = len(plant_matrices(p)[0])
+    state[0] = state[previous] = 0.01  # at rest at x0: x_{k-1} = x0, no velocity or force yet
     mapped = []
     for _ in range(periods):
         mapped.append(state[0])
