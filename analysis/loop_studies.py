@@ -249,7 +249,7 @@ def plot_stability_map(results: Dict, out_dir: Path, title: str) -> Path:
             panel.plot(B, curve["limit_model_critical_stiffness_n_m"], color=color, ls="none",
                        marker=".", ms=4)
         for point in results.get("onset", []):
-            if point["control_rate_hz"] != rate:
+            if point.get("control_rate_hz") != rate:
                 continue
             for key, marker, name in (("linear_critical_stiffness_n_m", "*", "linearized"),
                                       ("simulated_critical_stiffness_n_m", "X", "simulated")):
