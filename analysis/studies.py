@@ -100,5 +100,17 @@ def run_study(study: str, scenario, *, label: str, out_dir: Path, quick: bool = 
     return results
 
 
+def format_modes(rows: List[Dict]) -> str:
+    """The modes of a linearization as a table: multiplier, frequency, damping, time
+    constant, and the states that take part most."""
+    lines = [f"{'|multiplier|':>12} {'Hz':>8} {'damping':>8} {'tau (s)':>9}  states"]
+    for row in rows:
+        tau = row["time_constant_s"]
+        tau_text = "inf" if tau is None or tau > 1e6 else f"{tau:.4f}"
+        lines.append(f"{row['multiplier_abs']:>12.6f} {row['frequency_hz']:>8.2f} "
+                     f"{row['damping_ratio']:>8.3f} {tau_text:>9}  {', '.join(row['states'])}")
+    return "\n".join(lines)
+
+
 def study_names() -> List[str]:
     return list(STUDIES)

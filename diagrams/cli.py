@@ -93,7 +93,7 @@ def _cmd_bench(args) -> int:
 
 
 def _cmd_analyze(args) -> int:
-    from maglev_haptics.analysis.studies import run_study
+    from maglev_haptics.analysis.studies import format_modes, run_study
 
     scenario, label = _load(args)
     out = Path(args.out) if args.out else Path("out") / "analyze" / label.replace(":", "-")
@@ -105,6 +105,8 @@ def _cmd_analyze(args) -> int:
         headline = {key: value for key, value in results.items()
                     if not isinstance(value, (list, dict)) or key in ("parameters",)}
         print(json.dumps(headline, indent=2))
+        if "modes" in results:
+            print(format_modes(results["modes"]))
         files = [f"{args.study.replace('-', '_')}.json"] + results["plots"]
         print("wrote " + ", ".join(f"{out}/{name}" for name in files))
     return 0
