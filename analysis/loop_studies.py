@@ -263,9 +263,10 @@ def plot_stability_map(results: Dict, out_dir: Path, title: str) -> Path:
     panels[0][0].legend(title="solid: against a wall, with the hand; dots: heavy-mass\n"
                         "limit; dotted: 2(b+B)/(T+2 tau)", fontsize=7, title_fontsize=7)
     for panel in panels[0][1:]:
-        if panel.get_legend_handles_labels()[0][4 * 3:]:
-            handles, labels = panel.get_legend_handles_labels()
-            panel.legend(handles[-2:], labels[-2:], fontsize=7, loc="lower right")
+        handles, labels = panel.get_legend_handles_labels()
+        onset = [(h, label) for h, label in zip(handles, labels) if label.startswith("whole loop")]
+        if onset:
+            panel.legend(*zip(*onset), fontsize=7, loc="upper right")
     figure.suptitle(f"{title}: stability map")
     figure.tight_layout()
     path = Path(out_dir) / "stability_map.png"
