@@ -29,12 +29,14 @@ import numpy as np  # noqa: E402
 
 from pydrake.multibody.plant import MultibodyPlant  # noqa: E402
 
+from pydrake.systems.analysis import InitializeParams, Simulator  # noqa: E402
+
 from maglev_haptics.analysis.linearization import (  # noqa: E402
-    _leaf_systems, hyperperiod_s, modes, monodromy_central, state_names, state_vector)
+    ABSOLUTE_STEP, RELATIVE_STEP, _leaf_systems, hyperperiod_s, modes, monodromy_central,
+    set_state_vector, state_names, state_vector)
 from maglev_haptics.analysis.loop_studies import StudyNotApplicable  # noqa: E402
 from maglev_haptics.diagrams.application import BuildDiagram  # noqa: E402
 from maglev_haptics.diagrams.hand_script import ScriptedHand, hand_plan  # noqa: E402
-from maglev_haptics.diagrams.runner import simulate  # noqa: E402
 from maglev_haptics.diagrams.station import hand_start_pose  # noqa: E402
 
 # Systems whose states feed nothing back into the loop (name prefixes).
@@ -150,7 +152,7 @@ def reduce_map(M: np.ndarray, names: List[str], x0: np.ndarray, quaternions) -> 
             columns.append(column)
             reduced_names.append(names[j])
     T = np.array(columns).T  # reduced -> full coordinates, orthonormal columns
-    return {"M": T.T @ M @ T, "names": reduced_names,
+    return {"M": T.T @ M @ T, "names": reduced_names, "basis": T,
             "held": [names[j] for j in held],
             "quaternion_norms": len([b for b in quaternions if all(n_ in index for n_ in b)])}
 
@@ -166,7 +168,8 @@ def loop_map(scenario, *, progress: Optional[Callable[[int, int], None]] = None,
     start = time.perf_counter()
     check_applies(scenario)
     t0 = operating_point_s(scenario)
-    built = BuildDiagram(scenario)
+    with_hand = isinstance(scenario.hand, ScriptedHand)
+    built = BuildDiagram(scenario, hand_target_offset_input=with_hand)
     names = state_names(built.diagram)
     kept = [i for i, name in enumerate(names)
             if not name.startswith(RECORDING_ONLY) and name not in MODE_COORDINATES]
@@ -180,12 +183,12 @@ def loop_map(scenario, *, progress: Optional[Callable[[int, int], None]] = None,
     t0 = float(Fraction(t0).limit_denominator(10**6) // Fraction(period).limit_denominator(10**6)
                * Fraction(period).limit_denominator(10**6)) + PHASE_S
     if operating_point_from is None:
-        simulator, _ = simulate(built, t0, progress=False)
-        context = simulator.get_context()
+        context = _operating_context(built.diagram, t0)
     else:
-        reference, _ = simulate(BuildDiagram(operating_point_from), t0, progress=False)
+        reference = BuildDiagram(operating_point_from, hand_target_offset_input=with_hand)
         context = built.diagram.CreateDefaultContext()
-        context.SetTimeStateAndParametersFrom(reference.get_context())
+        _fix_inputs(built.diagram, context)
+        context.SetTimeStateAndParametersFrom(_operating_context(reference.diagram, t0))
     # A coordinate at +-inf (a "never yet" time stamp) cannot be nudged: held.
     x0 = state_vector(context)
     kept = [i for i in kept if np.isfinite(x0[i])]
@@ -194,8 +197,74 @@ def loop_map(scenario, *, progress: Optional[Callable[[int, int], None]] = None,
                           coordinates=kept)
     reduced = reduce_map(M, kept_names, state_vector(context)[kept],
                          quaternion_coordinates(built.diagram))
-    return {**reduced, "hyperperiod_s": period, "operating_point_s": t0,
-            "wall_s": time.perf_counter() - start}
+    result = {**reduced, "hyperperiod_s": period, "operating_point_s": t0}
+    if with_hand:
+        result.update(_input_output(built.diagram, context, period, kept, reduced["basis"]))
+    result["wall_s"] = time.perf_counter() - start
+    return result
+
+
+def _fix_inputs(diagram, context) -> None:
+    """Zero on every exported input (the hand target's offset)."""
+    for i in range(diagram.num_input_ports()):
+        diagram.get_input_port(i).FixValue(context, np.zeros(diagram.get_input_port(i).size()))
+
+
+def _operating_context(diagram, t0: float):
+    """The diagram's context simulated from its start to t0, its inputs at zero."""
+    context = diagram.CreateDefaultContext()
+    _fix_inputs(diagram, context)
+    simulator = Simulator(diagram, context)
+    simulator.Initialize()
+    simulator.AdvanceTo(t0)
+    return simulator.get_context()
+
+
+def _input_output(diagram, context, period_s: float, kept: List[int], basis) -> Dict:
+    """B, C, D of the loop at the operating point (reduced coordinates): input the
+    hand target's position offset [x, y, z] (m), held over the period; output the
+    wrench rendered on the hand [tau; f] (N m, N) at the period's start."""
+    port = diagram.GetInputPort("hand_target_offset")
+    controller = diagram.GetSubsystemByName("levitation_controller")
+    output = controller.GetOutputPort("wrench_rendered_W")
+
+    def rendered(trial):
+        return output.Eval(controller.GetMyContextFromRoot(trial)).copy()
+
+    x0 = state_vector(context)
+    B = np.zeros((len(kept), 3))
+    D = np.zeros((6, 3))
+    step = 1e-6  # m of the hand target
+    for k in range(3):
+        ends, outputs = [], []
+        for sign in (1.0, -1.0):
+            trial = context.Clone()
+            offset = np.zeros(port.size())
+            offset[k] = sign * step
+            port.FixValue(trial, offset)
+            outputs.append(rendered(trial))
+            simulator = Simulator(diagram, trial)
+            simulator.Initialize(InitializeParams(suppress_initialization_events=True))
+            simulator.AdvanceTo(trial.get_time() + period_s)
+            ends.append(state_vector(simulator.get_context())[kept])
+        B[:, k] = (ends[0] - ends[1]) / (2 * step)
+        D[:, k] = (outputs[0] - outputs[1]) / (2 * step)
+    C = np.zeros((6, len(kept)))
+    for column, j in enumerate(kept):
+        step_j = max(RELATIVE_STEP * abs(x0[j]), ABSOLUTE_STEP)
+        outputs = []
+        for sign in (1.0, -1.0):
+            trial = context.Clone()
+            x = x0.copy()
+            x[j] += sign * step_j
+            set_state_vector(trial, x)
+            outputs.append(rendered(trial))
+        C[:, column] = (outputs[0] - outputs[1]) / (2 * step_j)
+    return {"B": basis.T @ B, "C": C @ basis, "D": D,
+            "inputs": ["hand target x (m)", "hand target y (m)", "hand target z (m)"],
+            "outputs": ["rendered torque x (N m)", "rendered torque y (N m)",
+                        "rendered torque z (N m)", "rendered force x (N)",
+                        "rendered force y (N)", "rendered force z (N)"]}
 
 
 def _mode_rows(M, period_s, names) -> List[Dict]:
@@ -244,6 +313,8 @@ def linearize_study(scenario, progress=None) -> Dict:
     M, period = result["M"], result["hyperperiod_s"]
     return {"operating_point_s": result["operating_point_s"], "period_s": period,
             "states": result["names"], "A": M.tolist(),
+            **{key: result[key].tolist() if hasattr(result.get(key), "tolist") else result[key]
+               for key in ("B", "C", "D", "inputs", "outputs") if key in result},
             **stability(M, result["names"], period), "held_states": result["held"],
             "modes": _mode_rows(M, period, result["names"]),
             "wall_s": result["wall_s"],

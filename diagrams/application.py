@@ -49,11 +49,14 @@ class BuiltDiagram:
 
 
 def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
-                 label: str = "scenario", frame_sink=None, realtime: bool = False) -> BuiltDiagram:
+                 label: str = "scenario", frame_sink=None, realtime: bool = False,
+                 hand_target_offset_input: bool = False) -> BuiltDiagram:
     """The whole diagram for ``scenario``; ``label`` names it in error messages.
 
     With the stereo display, ``frame_sink(t, left, right)`` receives the rendered
     eye images (none rendered without it); ``realtime`` lets rendering skip frames.
+    ``hand_target_offset_input``: export ``hand_target_offset`` (analysis only; the
+    caller must fix it).
     """
     device = scenario.device
     spec = device.instrument_spec()
@@ -103,7 +106,8 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
     meshcat_hand = None
     if scenario.hand is not None:
         meshcat_hand = AddHandCommands(builder, scenario=scenario, station=station,
-                                       meshcat=meshcat)
+                                       meshcat=meshcat,
+                                       target_offset_input=hand_target_offset_input)
     builder.Connect(controller.GetOutputPort("wrench_commanded_W"),
                     allocator.GetInputPort("wrench_commanded_W"))
     builder.Connect(estimator.GetOutputPort("X_WI_measured"),

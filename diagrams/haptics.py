@@ -22,7 +22,7 @@ from typing import Optional
 import numpy as np
 from pydrake.geometry import Meshcat
 from pydrake.math import RigidTransform, RollPitchYaw
-from pydrake.systems.primitives import TrajectorySource
+from pydrake.systems.primitives import Adder, TrajectorySource
 from pydrake.trajectories import PiecewisePolynomial
 
 from maglev_haptics.diagrams.hand_script import MeshcatHand, hand_plan
@@ -166,8 +166,13 @@ def interactive_variant(scenario: Scenario, duration_s: Optional[float]) -> Scen
         duration_s=duration_s)
 
 
-def AddHandCommands(builder, *, scenario: Scenario, station, meshcat: Optional[Meshcat]):
+def AddHandCommands(builder, *, scenario: Scenario, station, meshcat: Optional[Meshcat],
+                    target_offset_input: bool = False):
     """The hand's target and grip: from its script, or from Meshcat's controls.
+
+    ``target_offset_input``: a scripted hand's target gets an offset (12: pose and
+    rates) from an exported input ``hand_target_offset``, for the analysis's input
+    matrix (the user's motion as the loop's input).
 
     Returns the MeshcatHandInput (whose controls the caller deletes after the
     run), or None for a scripted hand.
@@ -188,6 +193,12 @@ def AddHandCommands(builder, *, scenario: Scenario, station, meshcat: Optional[M
     target_source = builder.AddNamedSystem(
         "hand_target", TrajectorySource(target, output_derivative_order=1))
     grip_source = builder.AddNamedSystem("hand_grip", TrajectorySource(grip))
-    builder.Connect(target_source.get_output_port(), station.GetInputPort("hand_target"))
+    target_port = target_source.get_output_port()
+    if target_offset_input:
+        offset = builder.AddNamedSystem("hand_target_offset", Adder(2, target_port.size()))
+        builder.Connect(target_port, offset.get_input_port(0))
+        builder.ExportInput(offset.get_input_port(1), "hand_target_offset")
+        target_port = offset.get_output_port()
+    builder.Connect(target_port, station.GetInputPort("hand_target"))
     builder.Connect(grip_source.get_output_port(), station.GetInputPort("hand_grip"))
     return None

@@ -98,6 +98,16 @@ def test_loop_linearization_runs_or_says_why(study, file, name, tmp_path, capsys
     results = json.loads((tmp_path / f"{study}.json").read_text())
     assert results["stable"] and 0.0 < results["spectral_radius"] < 1.0
     assert results["modes"][0]["states"]
+    if study == "linearize" and load_scenario(file, name).hand is not None:
+        n = len(results["states"])
+        B, C, D = (np.array(results[key]) for key in ("B", "C", "D"))
+        assert B.shape == (n, 3) and C.shape == (6, n) and D.shape == (6, 3)
+        # The arm pulls the hand toward its target: a 1 m offset held over the period
+        # gives the hand ~ k_arm T / m_hand of velocity along it, next to nothing across.
+        z_velocity = results["states"].index("station/plant/hand_vz")
+        assert 2.0 < B[z_velocity, 2] < 20.0
+        assert abs(B[z_velocity, 0]) < 0.05 * B[z_velocity, 2]
+        assert np.abs(D).max() == 0.0  # the rendered wrench is a held state
 
 
 def test_peg_multirate_against_single_rate(tmp_path):
