@@ -1,1 +1,1 @@
-"""Offline studies of the haptic loop (linearization, stability, passivity): to come."""
+"""Offline studies of the haptic loop: `maglev analyze` (studies.py) and one module per study."""

@@ -64,7 +64,7 @@ def state_names(diagram) -> List[str]:
     continuous index or the discrete group and index."""
     context = diagram.CreateDefaultContext()
     continuous, discrete = [], []
-    for system in _leaf_systems(diagram):
+    for system in leaf_systems(diagram):
         sub = system.GetMyContextFromRoot(context)
         # The path below the root diagram: "::root::station::plant" -> "station/plant".
         path = "/".join(system.GetSystemPathname().split("::")[2:])
@@ -83,10 +83,11 @@ def state_names(diagram) -> List[str]:
     return names
 
 
-def _leaf_systems(diagram):
+def leaf_systems(diagram):
+    """Every leaf system of ``diagram``, nested diagrams opened, in subsystem order."""
     for system in diagram.GetSystems():
         if hasattr(system, "GetSystems"):
-            yield from _leaf_systems(system)
+            yield from leaf_systems(system)
         else:
             yield system
 
@@ -96,6 +97,27 @@ def _advance(simulator, context, duration_s: float, configure=None) -> None:
         configure(simulator)
     simulator.Initialize(InitializeParams(suppress_initialization_events=True))
     simulator.AdvanceTo(context.get_time() + duration_s)
+
+
+def state_after(diagram, context, duration_s: float, configure=None) -> np.ndarray:
+    """``state_vector`` ``duration_s`` after ``context`` (which the run takes over)."""
+    simulator = Simulator(diagram, context)
+    _advance(simulator, context, duration_s, configure)
+    return state_vector(simulator.get_context())
+
+
+def nudged(context, x0: np.ndarray, index: int, step: float):
+    """A clone of ``context`` whose state is ``x0`` with coordinate ``index`` moved by ``step``."""
+    trial = context.Clone()
+    x = x0.copy()
+    x[index] += step
+    set_state_vector(trial, x)
+    return trial
+
+
+def difference_step(value: float) -> float:
+    """The central-difference step for a coordinate at ``value``."""
+    return max(RELATIVE_STEP * abs(value), ABSOLUTE_STEP)
 
 
 def monodromy_central(diagram, context, period_s: float,
@@ -111,16 +133,9 @@ def monodromy_central(diagram, context, period_s: float,
     n = len(kept)
     M = np.zeros((n, n))
     for column, j in enumerate(kept):
-        step = max(RELATIVE_STEP * abs(x0[j]), ABSOLUTE_STEP)
-        ends = []
-        for sign in (1.0, -1.0):
-            trial = context.Clone()
-            x = x0.copy()
-            x[j] += sign * step
-            set_state_vector(trial, x)
-            simulator = Simulator(diagram, trial)
-            _advance(simulator, trial, period_s, configure)
-            ends.append(state_vector(simulator.get_context())[kept])
+        step = difference_step(x0[j])
+        ends = [state_after(diagram, nudged(context, x0, j, sign * step), period_s, configure)[kept]
+                for sign in (1.0, -1.0)]
         M[:, column] = (ends[0] - ends[1]) / (2 * step)
         if progress is not None:
             progress(column + 1, n)

@@ -27,13 +27,15 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from maglev_haptics.diagrams.run_plots import save_figure  # noqa: E402
+
 from pydrake.multibody.plant import MultibodyPlant  # noqa: E402
 
-from pydrake.systems.analysis import InitializeParams, Simulator  # noqa: E402
+from pydrake.systems.analysis import Simulator  # noqa: E402
 
 from maglev_haptics.analysis.linearization import (  # noqa: E402
-    ABSOLUTE_STEP, RELATIVE_STEP, _leaf_systems, hyperperiod_s, modes, monodromy_central,
-    set_state_vector, state_names, state_vector)
+    difference_step, hyperperiod_s, leaf_systems, modes, monodromy_central, nudged, state_after,
+    state_names, state_vector)
 from maglev_haptics.analysis.loop_studies import StudyNotApplicable  # noqa: E402
 from maglev_haptics.diagrams.application import BuildDiagram  # noqa: E402
 from maglev_haptics.diagrams.hand_script import ScriptedHand, hand_plan  # noqa: E402
@@ -87,7 +89,7 @@ def _periods(diagram, kept_names) -> List[float]:
     """The update periods of the systems that own the kept states (s)."""
     context = diagram.CreateDefaultContext()
     periods = []
-    for system in _leaf_systems(diagram):
+    for system in leaf_systems(diagram):
         path = "/".join(system.GetSystemPathname().split("::")[2:])
         if system.GetMyContextFromRoot(context).num_discrete_state_groups() == 0:
             continue
@@ -103,7 +105,7 @@ def _periods(diagram, kept_names) -> List[float]:
 def quaternion_coordinates(diagram) -> List[List[str]]:
     """The state names of each free body's quaternion, in every MultibodyPlant."""
     blocks = []
-    for system in _leaf_systems(diagram):
+    for system in leaf_systems(diagram):
         if not isinstance(system, MultibodyPlant):
             continue
         path = "/".join(system.GetSystemPathname().split("::")[2:])
@@ -243,22 +245,13 @@ def _input_output(diagram, context, period_s: float, kept: List[int], basis) -> 
             offset[k] = sign * step
             port.FixValue(trial, offset)
             outputs.append(rendered(trial))
-            simulator = Simulator(diagram, trial)
-            simulator.Initialize(InitializeParams(suppress_initialization_events=True))
-            simulator.AdvanceTo(trial.get_time() + period_s)
-            ends.append(state_vector(simulator.get_context())[kept])
+            ends.append(state_after(diagram, trial, period_s)[kept])
         B[:, k] = (ends[0] - ends[1]) / (2 * step)
         D[:, k] = (outputs[0] - outputs[1]) / (2 * step)
     C = np.zeros((6, len(kept)))
     for column, j in enumerate(kept):
-        step_j = max(RELATIVE_STEP * abs(x0[j]), ABSOLUTE_STEP)
-        outputs = []
-        for sign in (1.0, -1.0):
-            trial = context.Clone()
-            x = x0.copy()
-            x[j] += sign * step_j
-            set_state_vector(trial, x)
-            outputs.append(rendered(trial))
+        step_j = difference_step(x0[j])
+        outputs = [rendered(nudged(context, x0, j, sign * step_j)) for sign in (1.0, -1.0)]
         C[:, column] = (outputs[0] - outputs[1]) / (2 * step_j)
     return {"B": basis.T @ B, "C": C @ basis, "D": D,
             "inputs": ["hand target x (m)", "hand target y (m)", "hand target z (m)"],
@@ -372,8 +365,4 @@ def plot_multipliers(results: Dict, out_dir: Path, title: str, name: str) -> Pat
     axes.set_ylabel("Im")
     axes.set_title(f"{title}: {name}, spectral radius {results['spectral_radius']:.4f}")
     axes.legend(loc="lower left")
-    figure.tight_layout()
-    path = Path(out_dir) / f"{name}.png"
-    figure.savefig(path, dpi=110)
-    plt.close(figure)
-    return path
+    return save_figure(figure, Path(out_dir) / f"{name}.png")

@@ -25,6 +25,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from maglev_haptics.diagrams.run_plots import save_figure  # noqa: E402
+
 from maglev_haptics.analysis.haptic_loop import (  # noqa: E402
     LoopParameters, critical_stiffness, environment_impedance, is_stable)
 from maglev_haptics.analysis.passivity import passivity_bound, passivity_margin  # noqa: E402
@@ -106,11 +108,7 @@ def plot_passivity(results: Dict, out_dir: Path, title: str) -> Path:
     axes.set_title(f"{title}: passivity (Colgate and Schenkel), needs "
                    f"{results['damping_needed_n_s_m']:.2f} N s/m")
     axes.legend()
-    figure.tight_layout()
-    path = Path(out_dir) / "passivity.png"
-    figure.savefig(path, dpi=110)
-    plt.close(figure)
-    return path
+    return save_figure(figure, Path(out_dir) / "passivity.png")
 
 
 # --- Z-width ----------------------------------------------------------------------
@@ -176,11 +174,7 @@ def plot_zwidth(results: Dict, out_dir: Path, title: str) -> Path:
     axes.set_ylabel("rendered damping B (N s/m)")
     axes.set_title(f"{title}: Z-width")
     axes.legend(loc="upper left")
-    figure.tight_layout()
-    path = Path(out_dir) / "zwidth.png"
-    figure.savefig(path, dpi=110)
-    plt.close(figure)
-    return path
+    return save_figure(figure, Path(out_dir) / "zwidth.png")
 
 
 # --- stability map ----------------------------------------------------------------
@@ -268,8 +262,4 @@ def plot_stability_map(results: Dict, out_dir: Path, title: str) -> Path:
         if onset:
             panel.legend(*zip(*onset), fontsize=7, loc="upper right")
     figure.suptitle(f"{title}: stability map")
-    figure.tight_layout()
-    path = Path(out_dir) / "stability_map.png"
-    figure.savefig(path, dpi=110)
-    plt.close(figure)
-    return path
+    return save_figure(figure, Path(out_dir) / "stability_map.png")

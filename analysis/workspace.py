@@ -61,6 +61,7 @@ from matplotlib.patches import Circle, Rectangle  # noqa: E402
 from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter  # noqa: E402
 
 from maglev_haptics.diagrams.motion import MAX_TILT_DEG, base_clearance_m  # noqa: E402
+from maglev_haptics.diagrams.run_plots import save_figure  # noqa: E402
 from maglev_haptics.hardware.device import INSTRUMENT_KINDS, DeviceConfig  # noqa: E402
 from maglev_haptics.hardware.limits import (  # noqa: E402
     AXIS_DIRECTIONS, LIMIT_KINDS, coil_current_limit_a, hover_current_a, hover_workspace_A,
@@ -453,9 +454,7 @@ def _xy_figure(kind: str, xy: dict, rows: list, heading: str, path: Path) -> Pat
         _colour_bar(fig, mesh, axes[row, :], panel, extend)
     fig.suptitle(f"{_title(kind)}: {heading}\nlevel, yaw 0; white circles: coils; red dashed: "
                  f"the paper's 100 x 100 mm range\n{_NAN_NOTE}", fontsize=10)
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=90, tight=False)
 
 
 def _tilt_figure(kind: str, tilt: dict, panels, path: Path) -> Path:
@@ -482,9 +481,7 @@ def _tilt_figure(kind: str, tilt: dict, panels, path: Path) -> Path:
                 ax.set_ylabel("height of I above the glass [mm]")
     fig.suptitle(f"{_title(kind)}: tilted over the array centre, yaw 0\n{_NAN_NOTE}; "
                  f"{_OVER_COLOUR}: hover current over the peak limit", fontsize=10)
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=90, tight=False)
 
 
 def _yaw_figure(kind: str, yaw: dict, panels, path: Path, n_lines: int = 5) -> Path:
@@ -513,9 +510,7 @@ def _yaw_figure(kind: str, yaw: dict, panels, path: Path, n_lines: int = 5) -> P
     axes[0, 1].legend(fontsize=8)
     fig.suptitle(f"{_title(kind)}: level over the array centre, versus yaw "
                  "(no line or gaps: cannot hover within the limit)", fontsize=10)
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=90, tight=False)
 
 
 def _height_figure(kind: str, data: dict, path: Path) -> Path:
@@ -560,9 +555,7 @@ def _height_figure(kind: str, data: dict, path: Path) -> Path:
         ax.set_xlabel("height of I above the glass [mm]")
     fig.suptitle(f"{_title(kind)}: level over the array centre, versus height\n"
                  "(gaps: inside the glass or cannot hover within that limit)", fontsize=10)
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=90, tight=False)
 
 
 def _angle_panels(peak_a: float):

@@ -16,7 +16,7 @@ import numpy as np
 from pydrake.trajectories import PiecewisePolynomial
 
 from maglev_haptics.diagrams.waypoints import Waypoint
-from maglev_haptics.systems.blends import minimum_jerk_samples
+from maglev_haptics.systems.blends import minimum_jerk_plan
 from maglev_haptics.systems.hand import HandImpedanceConfig
 
 # The plans end with this long a hold of their last value (s), so each has a segment
@@ -65,27 +65,8 @@ def hand_plan(script: ScriptedHand, start_pose):
     hold stepping at the event times (later events win at equal times).
     """
 
-    pose = np.asarray(start_pose, dtype=float)
-    times, values, rates = [0.0], [pose], [np.zeros(6)]
-
-    def hold_until(t):
-        if t > times[-1]:
-            times.append(t)
-            values.append(pose)
-            rates.append(np.zeros(6))
-
-    t = script.start_s
-    for waypoint in script.waypoints:
-        hold_until(t)
-        goal = np.asarray(waypoint.pose, dtype=float)
-        for samples, new in zip((times, values, rates), minimum_jerk_samples(
-                pose, goal, t, waypoint.move_s)):
-            samples.extend(new)
-        pose = goal
-        t += waypoint.move_s + waypoint.hold_s
-    hold_until(max(t, times[-1]) + TAIL_S)
-    target = PiecewisePolynomial.CubicHermite(
-        np.array(times), np.array(values).T, np.array(rates).T)
+    target = minimum_jerk_plan(start_pose, script.start_s,
+                               [(w.pose, w.move_s, w.hold_s) for w in script.waypoints], TAIL_S)
 
     grip_times, grips = [0.0], [0.0]
     for event in sorted(script.events, key=lambda e: e.at_s):

@@ -13,10 +13,9 @@ from dataclasses import dataclass, field
 from typing import List
 
 import numpy as np
-from pydrake.trajectories import PiecewisePolynomial
 
 from maglev_haptics.diagrams.hand_script import TAIL_S
-from maglev_haptics.systems.blends import minimum_jerk_samples
+from maglev_haptics.systems.blends import minimum_jerk_plan
 from maglev_haptics.systems.config_checks import (
     finite, nonnegative, positive, require, vector)
 from maglev_haptics.systems.head_sensor import glasses_pose
@@ -51,30 +50,12 @@ class HeadScript:
     waypoints: List[HeadWaypoint] = field(default_factory=list)
 
 
-def head_plan(script: HeadScript) -> PiecewisePolynomial:
+def head_plan(script: HeadScript):
     """The ``head_pose`` trajectory (8 rows) of ``script``: a cubic Hermite fit of
     minimum-jerk moves between held poses, with exact rates at the samples."""
-    pose = script.start.vector()
-    times, values, rates = [0.0], [pose], [np.zeros(8)]
-
-    def hold_until(t):
-        if t > times[-1]:
-            times.append(t)
-            values.append(pose)
-            rates.append(np.zeros(8))
-
-    t = script.start_s
-    for waypoint in script.waypoints:
-        hold_until(t)
-        goal = waypoint.vector()
-        for samples, new in zip((times, values, rates),
-                                minimum_jerk_samples(pose, goal, t, waypoint.move_s)):
-            samples.extend(new)
-        pose = goal
-        t += waypoint.move_s + waypoint.hold_s
-    hold_until(max(t, times[-1]) + TAIL_S)
-    return PiecewisePolynomial.CubicHermite(np.array(times), np.array(values).T,
-                                            np.array(rates).T)
+    return minimum_jerk_plan(
+        script.start.vector(), script.start_s,
+        [(w.vector(), w.move_s, w.hold_s) for w in script.waypoints], TAIL_S)
 
 
 def validate_head_script(script: HeadScript, *, screen, ipd_m: float, path: str) -> None:

@@ -17,6 +17,7 @@ import matplotlib
 import numpy as np
 
 from maglev_haptics.diagrams.deformable_scene import DeformableSurface, build_scene_lattice
+from maglev_haptics.diagrams.run_plots import save_figure
 from maglev_haptics.diagrams.timing import time_per_call_us
 from maglev_haptics.systems.lattice_dynamics import (
     ProbeContact, implicit_workspace, lattice_model, linearly_implicit_tick,
@@ -121,9 +122,7 @@ def plot_lattice_scaling(scaling: Dict, path: Path) -> None:
     axes.set_title("Deformable lattice: one haptic tick, kernel alone (numba, 1 core)")
     axes.grid(True, which="both", alpha=0.3)
     axes.legend(fontsize=8)
-    figure.tight_layout()
-    figure.savefig(path, dpi=110)
-    plt.close(figure)
+    save_figure(figure, path)
 
 
 def format_lattice_report(scaling: Dict) -> str:

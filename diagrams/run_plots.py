@@ -15,6 +15,15 @@ from maglev_haptics.systems.haptic_supervisor import HAPTIC  # noqa: E402
 AXIS_COLORS = ("tab:red", "tab:green", "tab:blue")
 
 
+
+def save_figure(figure, path: Path, *, dpi: int = 110, tight: bool = True) -> Path:
+    """Lay out (unless the figure does its own), write ``path`` and free the figure."""
+    if tight:
+        figure.tight_layout()
+    figure.savefig(path, dpi=dpi)
+    plt.close(figure)
+    return path
+
 def _legend_outside(ax) -> None:
     ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.07, 1.0), borderaxespad=0.0)
 
@@ -89,11 +98,7 @@ def plot_run(log: Dict[str, np.ndarray], out_dir: Path, *, title: str,
     for ax in axes:
         ax.grid(alpha=0.3)
     fig.suptitle(title)
-    fig.tight_layout()
-    path = Path(out_dir) / "levitation.png"
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return save_figure(fig, Path(out_dir) / "levitation.png", dpi=100)
 
 
 def plot_haptics(log: Dict[str, np.ndarray], out_dir: Path, *, title: str) -> Path:
@@ -127,8 +132,4 @@ def plot_haptics(log: Dict[str, np.ndarray], out_dir: Path, *, title: str) -> Pa
                         color="tab:purple", alpha=0.5, lw=0)
     fig.suptitle(f"{title}: position and force rendered on the user\n"
                  "(orange: tool in contact; purple strip: haptics engaged)")
-    fig.tight_layout()
-    path = Path(out_dir) / "haptics.png"
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    return save_figure(fig, Path(out_dir) / "haptics.png", dpi=100)

@@ -19,6 +19,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from maglev_haptics.diagrams.run_plots import save_figure  # noqa: E402
+
 from maglev_haptics.systems.head_sensor import glasses_pose  # noqa: E402
 from maglev_haptics.systems.rotations import rotation_from_quaternion  # noqa: E402
 from maglev_haptics.systems.stereo import display_rectangle, screen_axes  # noqa: E402
@@ -32,6 +34,17 @@ def eyes_from_poses(poses: np.ndarray, ipd_m: float) -> np.ndarray:
                     else np.full(3, np.nan) for q in poses[:, 0:4]])
     half = x_G * ipd_m / 2
     return np.stack([poses[:, 4:7] - half, poses[:, 4:7] + half], axis=1)
+
+
+def true_eyes(log, ipd_m: float) -> np.ndarray:
+    """(N, 2, 3) the real eyes (m) of the logged head (``head_pose``)."""
+    poses = np.array([np.concatenate(glasses_pose(h)) for h in log["head_pose"]])
+    return eyes_from_poses(poses, ipd_m)
+
+
+def head_speed(log) -> np.ndarray:
+    """(N,) speed of the eyes' midpoint (m/s)."""
+    return np.linalg.norm(np.gradient(log["head_pose"][:, 0:3], log["t"], axis=0), axis=1)
 
 
 def screen_points(screen, eyes: np.ndarray, p_W: np.ndarray) -> np.ndarray:
@@ -78,14 +91,12 @@ def colocation_summary(log: Dict[str, np.ndarray], scenario) -> Dict:
     stereo, device = scenario.stereo, scenario.device
     screen = display_rectangle(device.display)
     ipd_m = device.glasses.ipd_m
-    true_poses = np.array([np.concatenate(glasses_pose(h)) for h in log["head_pose"]])
-    eyes_true = eyes_from_poses(true_poses, ipd_m)
+    eyes_true = true_eyes(log, ipd_m)
     drawn = {"predicted": eyes_from_poses(log["X_WG_predicted"], ipd_m),
              "held": eyes_from_poses(log["X_WG_latest"], ipd_m)}
     valid = np.all(np.isfinite(drawn["predicted"]), axis=(1, 2)) & np.all(
         np.isfinite(drawn["held"]), axis=(1, 2))
-    t = log["t"]
-    speed = np.linalg.norm(np.gradient(log["head_pose"][:, 0:3], t, axis=0), axis=1)
+    speed = head_speed(log)
     moving = valid & (speed > MOVING_SPEED_M_S)
     summary = {"points_m": stereo.colocation_points_m,
                "samples": int(valid.sum()),
@@ -133,10 +144,9 @@ def plot_colocation(log: Dict[str, np.ndarray], scenario, out_dir: Path, title: 
     screen = display_rectangle(device.display)
     ipd_m = device.glasses.ipd_m
     t = log["t"]
-    true_poses = np.array([np.concatenate(glasses_pose(h)) for h in log["head_pose"]])
-    eyes_true = eyes_from_poses(true_poses, ipd_m)
+    eyes_true = true_eyes(log, ipd_m)
     point = np.asarray(scenario.stereo.colocation_points_m[0], float)
-    speed = np.linalg.norm(np.gradient(log["head_pose"][:, 0:3], t, axis=0), axis=1)
+    speed = head_speed(log)
     figure, (top, bottom) = plt.subplots(2, 1, sharex=True, figsize=(9, 6))
     top.plot(t, speed, color="0.3")
     top.set_ylabel("head speed (m/s)")
@@ -153,8 +163,4 @@ def plot_colocation(log: Dict[str, np.ndarray], scenario, out_dir: Path, title: 
     bottom.set_ylabel("screen-space error (mm)")
     bottom.set_xlabel("time (s)")
     bottom.legend(loc="upper right")
-    figure.tight_layout()
-    path = Path(out_dir) / "stereo.png"
-    figure.savefig(path, dpi=110)
-    plt.close(figure)
-    return path
+    return save_figure(figure, Path(out_dir) / "stereo.png")

@@ -6,6 +6,8 @@ from typing import Dict
 from pydrake.multibody.plant import MultibodyPlant
 from pydrake.systems.primitives import VectorLogSink
 
+from maglev_haptics.analysis.linearization import leaf_systems
+
 
 def time_per_call_us(function, n: int, windows: int = 1) -> float:
     """Microseconds per call of ``function()`` over ``n`` calls after one warm-up call;
@@ -30,7 +32,7 @@ def leaf_system_costs(built, context, n: int = 300, only=None) -> Dict[str, floa
     (abstract geometry input) are left out; see plant_step_cost_us.
     """
     costs = {}
-    for system in _leaf_systems(built.diagram):
+    for system in leaf_systems(built.diagram):
         if (isinstance(system, (VectorLogSink, MultibodyPlant))
                 or (only is not None and system.get_name() not in only)):
             continue
@@ -61,10 +63,3 @@ def leaf_system_costs(built, context, n: int = 300, only=None) -> Dict[str, floa
                 0.0, time_per_call_us(one_update, n) - time_per_call_us(fix_inputs, n))
     return costs
 
-
-def _leaf_systems(diagram):
-    for system in diagram.GetSystems():
-        if hasattr(system, "GetSystems"):
-            yield from _leaf_systems(system)
-        else:
-            yield system

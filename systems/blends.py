@@ -2,6 +2,9 @@
 
 import math
 
+import numpy as np
+from pydrake.trajectories import PiecewisePolynomial
+
 LANDING_PRESS_M = 0.001  # a landing setpoint ends this far below the rest height (m)
 # Hermite samples per second of a minimum-jerk move: the cubic Hermite fit of
 # the quintic then errs by < 1e-7 of the move's amplitude.
@@ -24,6 +27,34 @@ def minimum_jerk_samples(pose_from, pose_to, t_from_s: float, duration_s: float)
         values.append(pose_from + blend * (pose_to - pose_from))
         rates.append(blend_rate / duration_s * (pose_to - pose_from))
     return times, values, rates
+
+
+def minimum_jerk_plan(start, start_s: float, moves, tail_s: float):
+    """A cubic Hermite fit of a scripted motion: hold ``start`` until ``start_s``, then
+    for each (goal, move_s, hold_s) of ``moves`` a minimum-jerk move into the goal and a
+    hold there; the last pose is held ``tail_s`` more, so the plan always has a segment.
+    Exact rates at the samples (values in the units of ``start``, time in s)."""
+    pose = np.asarray(start, dtype=float)
+    times, values, rates = [0.0], [pose], [np.zeros_like(pose)]
+
+    def hold_until(t):
+        if t > times[-1]:
+            times.append(t)
+            values.append(pose)
+            rates.append(np.zeros_like(pose))
+
+    t = start_s
+    for goal, move_s, hold_s in moves:
+        hold_until(t)
+        goal = np.asarray(goal, dtype=float)
+        for samples, new in zip((times, values, rates),
+                                minimum_jerk_samples(pose, goal, t, move_s)):
+            samples.extend(new)
+        pose = goal
+        t += move_s + hold_s
+    hold_until(max(t, times[-1]) + tail_s)
+    return PiecewisePolynomial.CubicHermite(np.array(times), np.array(values).T,
+                                            np.array(rates).T)
 
 
 def clipped_minimum_jerk(elapsed_s: float, duration_s: float):

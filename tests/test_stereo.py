@@ -114,7 +114,7 @@ def _view_context(view, x_WG):
 
 
 def test_stereo_view_outputs_and_freezes_on_a_bad_pose():
-    view = StereoView(screen=SCREEN, ipd_m=IPD_M, period_s=1 / 120, near_m=0.05, far_m=2.0)
+    view = new_view()
     q_WG, p_WG = glasses_pose([0.05, -0.3, 0.45, 0.0, 0.0, 0.0, 0.1, 0.0])
     context = _view_context(view, np.concatenate([q_WG, p_WG]))
     eyes = view.GetOutputPort("eye_positions_W").Eval(context).reshape(2, 3)
@@ -155,6 +155,25 @@ def sphere_diagram(max_wall_share=None, sink=lambda *frame: None, surface=None):
     return diagram, plant, body, renderer, image_px
 
 
+def new_view():
+    return StereoView(screen=SCREEN, ipd_m=IPD_M, period_s=1 / 120, near_m=0.05, far_m=2.0)
+
+
+SEATED_HEAD = [0.0, -0.3, 0.45, 0.0, 0.0, 0.0, 0.0, 0.0]
+
+
+def fix_views(diagram, context, head):
+    """The renderer diagram's cameras and view_ok fixed to the views for ``head``
+    (a head_pose vector); returns the view system's context."""
+    view = new_view()
+    q_WG, p_WG = glasses_pose(head)
+    view_context = _view_context(view, np.concatenate([q_WG, p_WG]))
+    for name in ("camera_left", "camera_right"):
+        diagram.GetInputPort(name).FixValue(context, view.GetOutputPort(name).Eval(view_context))
+    diagram.GetInputPort("view_ok").FixValue(context, [1.0])
+    return view, view_context
+
+
 @pytest.fixture(scope="module")
 def sphere_scene():
     return sphere_diagram()
@@ -162,19 +181,14 @@ def sphere_scene():
 
 def test_rendered_sphere_lies_where_the_eye_ray_meets_the_display(sphere_scene):
     diagram, plant, body, renderer, image_px = sphere_scene
-    view = StereoView(screen=SCREEN, ipd_m=IPD_M, period_s=1 / 120, near_m=0.05, far_m=2.0)
     scale = image_px[0] / SCREEN.width_px
     rng = np.random.default_rng(4)
     for eye_mid, p_W in zip(random_eyes(rng, 6), random_points(rng, 6)):
-        q_WG, p_WG = glasses_pose(np.concatenate([eye_mid, [0.0, 0.0, 0.0, 0.0, 0.0]]))
-        view_context = _view_context(view, np.concatenate([q_WG, p_WG]))
         context = diagram.CreateDefaultContext()
         plant.SetFreeBodyPose(plant.GetMyMutableContextFromRoot(context), body,
                               RigidTransform(p_W))
-        for name in ("camera_left", "camera_right"):
-            diagram.GetInputPort(name).FixValue(
-                context, view.GetOutputPort(name).Eval(view_context))
-        diagram.GetInputPort("view_ok").FixValue(context, [1.0])
+        view, view_context = fix_views(diagram, context,
+                                       np.concatenate([eye_mid, [0.0, 0.0, 0.0, 0.0, 0.0]]))
         images = renderer.render(renderer.GetMyContextFromRoot(context))
         eyes = view.GetOutputPort("eye_positions_W").Eval(view_context).reshape(2, 3)
         for eye, image in zip(eyes, images):
@@ -190,13 +204,7 @@ def test_real_time_rendering_skips_frames_within_its_share_of_the_wall_clock():
     diagram, plant, body, renderer, _ = sphere_diagram(
         max_wall_share=0.01, sink=lambda t, left, right: frames.append(t))
     simulator = Simulator(diagram)
-    context = simulator.get_mutable_context()
-    view = StereoView(screen=SCREEN, ipd_m=IPD_M, period_s=1 / 120, near_m=0.05, far_m=2.0)
-    q_WG, p_WG = glasses_pose([0.0, -0.3, 0.45, 0.0, 0.0, 0.0, 0.0, 0.0])
-    view_context = _view_context(view, np.concatenate([q_WG, p_WG]))
-    for name in ("camera_left", "camera_right"):
-        diagram.GetInputPort(name).FixValue(context, view.GetOutputPort(name).Eval(view_context))
-    diagram.GetInputPort("view_ok").FixValue(context, [1.0])
+    fix_views(diagram, simulator.get_mutable_context(), SEATED_HEAD)
     simulator.AdvanceTo(1.0)  # 31 frames due at 30 Hz; simulating takes far less than 1 s
     assert renderer.frames_rendered + renderer.frames_skipped == 31
     assert len(frames) == renderer.frames_rendered >= 1
@@ -224,12 +232,7 @@ def test_surface_layer_is_drawn_where_it_is_nearer(surface_z_m, sphere_hidden):
     diagram, plant, body, renderer, image_px = sphere_diagram(surface=layer)
     context = diagram.CreateDefaultContext()
     plant.SetFreeBodyPose(plant.GetMyMutableContextFromRoot(context), body, RigidTransform())
-    view = StereoView(screen=SCREEN, ipd_m=IPD_M, period_s=1 / 120, near_m=0.05, far_m=2.0)
-    q_WG, p_WG = glasses_pose([0.0, -0.3, 0.45, 0.0, 0.0, 0.0, 0.0, 0.0])
-    view_context = _view_context(view, np.concatenate([q_WG, p_WG]))
-    for name in ("camera_left", "camera_right"):
-        diagram.GetInputPort(name).FixValue(context, view.GetOutputPort(name).Eval(view_context))
-    diagram.GetInputPort("view_ok").FixValue(context, [1.0])
+    view, view_context = fix_views(diagram, context, SEATED_HEAD)
     diagram.GetInputPort("surface_positions_m").FixValue(context, positions.ravel())
     eye = view.GetOutputPort("eye_positions_W").Eval(view_context)[0:3]
     left, _ = renderer.render(renderer.GetMyContextFromRoot(context))
