@@ -25,7 +25,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from maglev_haptics.diagrams.run_plots import save_figure  # noqa: E402
+from maglev_haptics.analysis.run_plots import save_figure  # noqa: E402
 
 from maglev_haptics.analysis.haptic_loop import (  # noqa: E402
     LoopParameters, critical_stiffness, environment_impedance, is_stable)

@@ -29,7 +29,7 @@ def _load(args):
 
 def _cmd_run(args) -> int:
     from maglev_haptics.diagrams.haptics import interactive_variant
-    from maglev_haptics.diagrams.runner import run_scenario
+    from maglev_haptics.analysis.run_results import run_scenario
     from maglev_haptics.diagrams.scenario import with_stereo
 
     if args.duration is not None and not args.duration > 0:
@@ -82,7 +82,7 @@ def _cmd_diagram(args) -> int:
 
 
 def _cmd_bench(args) -> int:
-    from maglev_haptics.diagrams.bench import run_benchmarks
+    from maglev_haptics.analysis.bench import run_benchmarks
 
     out_dir = Path(args.out)
     results = run_benchmarks(duration_s=args.duration, progress=not args.json, out_dir=out_dir)

@@ -1,37 +1,15 @@
-"""Run a scenario: build, simulate (optionally in real time, with Meshcat), write results."""
+"""Advance a built diagram: a simulator, optionally paced to the wall clock, with progress."""
 
 from __future__ import annotations
 
 import gc
-import json
 import time
-from dataclasses import dataclass
-from pathlib import Path
-from typing import Dict, Optional
 
 import numpy as np
-from pydrake.geometry import StartMeshcat
 from pydrake.systems.analysis import Simulator
 from tqdm import tqdm
 
-from maglev_haptics.diagrams.application import BuildDiagram
-from maglev_haptics.diagrams.haptic_metrics import haptic_summary
-from maglev_haptics.diagrams.run_metrics import log_arrays, summarize
-from maglev_haptics.diagrams.run_plots import plot_haptics, plot_run
-from maglev_haptics.diagrams.scenario import Scenario
-from maglev_haptics.diagrams.stereo_metrics import plot_colocation, stereo_summary
-from maglev_haptics.diagrams.stereo_video import StereoVideoWriter
-from maglev_haptics.hardware.thermal import coil_thermal
-from maglev_haptics.systems.device_visualizer import aim_camera_at_device
-
 PROGRESS_CHUNK_S = 0.25  # simulated seconds between progress-bar updates
-
-
-@dataclass
-class RunResult:
-    summary: Dict  # what summary.json holds
-    log: Dict[str, np.ndarray]  # what log.npz holds
-    meshcat: Optional[object]  # the Meshcat instance, kept alive for the viewer
 
 
 def simulate(built, duration_s: float, *, realtime_rate: float = 0.0,
@@ -61,68 +39,3 @@ def simulate(built, duration_s: float, *, realtime_rate: float = 0.0,
     return simulator, time.perf_counter() - start
 
 
-def run_scenario(scenario: Scenario, *, label: str, out_dir: Optional[Path] = None,
-                 meshcat: bool = False, realtime_rate: float = 0.0,
-                 duration_s: Optional[float] = None, progress: bool = True) -> RunResult:
-    """Simulate ``scenario``; write ``log.npz``, ``summary.json`` and plots to ``out_dir``."""
-    viewer = StartMeshcat() if meshcat else None
-    video = None
-    if scenario.stereo is not None and out_dir is not None and scenario.stereo.images.rate_hz > 0:
-        video = StereoVideoWriter(Path(out_dir), frame_rate_hz=scenario.stereo.images.rate_hz,
-                                  encoder=scenario.stereo.images.encoder)
-    built = BuildDiagram(scenario, meshcat=viewer, label=label,
-                         frame_sink=video.add if video is not None else None,
-                         realtime=realtime_rate > 0)
-    if duration_s is None:
-        duration_s = scenario.duration_s if scenario.duration_s is not None else built.plan.end_s
-    # An interactive run is watched live; a recording would only grow.
-    record = viewer is not None and built.meshcat_hand is None
-    if record:
-        viewer.StartRecording()
-    try:
-        simulator, wall_s = simulate(built, duration_s, realtime_rate=realtime_rate,
-                                     progress=progress, label=label,
-                                     interruptible=built.meshcat_hand is not None)
-    finally:
-        if built.meshcat_hand is not None:
-            built.meshcat_hand.Delete()
-        video_summary = video.close() if video is not None else None
-    if record:
-        viewer.StopRecording()
-        viewer.PublishRecording()
-        aim_camera_at_device(viewer, close=scenario.haptics is not None)
-    duration_s = simulator.get_context().get_time()
-    log = log_arrays(built.logger, built.log_layout, simulator.get_context(), scenario.device)
-    spec = scenario.device.instrument_spec()
-    summary = {
-        "scenario": label,
-        "instrument": spec.kind,
-        "duration_s": float(duration_s),
-        "wall_time_s": wall_s,
-        "realtime_factor": float(duration_s / wall_s),
-        "control_rate_hz": scenario.control_rate_hz,
-        **summarize(log, built.plan, rest_height_m=spec.rest_height_m,
-                    thermal=coil_thermal(scenario.device),
-                    holds_before_s=(scenario.haptics.enable_at_s
-                                    if scenario.haptics is not None else None)),
-        **haptic_summary(log, scenario, rest_height_m=spec.rest_height_m),
-    }
-    if scenario.stereo is not None:
-        summary["stereo"] = stereo_summary(log, scenario, built.stereo, video_summary)
-    if built.haptics is not None:
-        config = built.haptics.coupling_config
-        summary["coupling_limits"] = {"max_force_n": config.max_force_n,
-                                      "max_torque_nm": config.max_torque_nm,
-                                      "device_limit": config.device_limit}
-    if out_dir is not None:
-        out_dir = Path(out_dir)
-        out_dir.mkdir(parents=True, exist_ok=True)
-        np.savez_compressed(out_dir / "log.npz", **log)
-        (out_dir / "summary.json").write_text(json.dumps(summary, indent=2))
-        plot_run(log, out_dir, title=label,
-                 current_limit_a=scenario.device.amplifier.current_limit_a)
-        if scenario.haptics is not None:
-            plot_haptics(log, out_dir, title=label)
-        if scenario.stereo is not None:
-            plot_colocation(log, scenario, out_dir, title=label)
-    return RunResult(summary=summary, log=log, meshcat=viewer)

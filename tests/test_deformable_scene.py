@@ -9,7 +9,7 @@ from pydrake.systems.analysis import Simulator
 from maglev_haptics.diagrams.application import BuildDiagram
 from maglev_haptics.diagrams.deformable_scene import build_scene_lattice
 from maglev_haptics.diagrams.haptics import interactive_variant
-from maglev_haptics.diagrams.runner import run_scenario
+from maglev_haptics.analysis.run_results import run_scenario
 from maglev_haptics.diagrams.scenario import ScenarioError, load_scenario
 
 FLAT = "{haptics: {scene: !DeformableSurface {heightmap: !SineHeightmap {amplitude_m: [0.0, 0.0]}}}}"

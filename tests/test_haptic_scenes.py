@@ -7,7 +7,7 @@ from pydrake.systems.analysis import Simulator
 
 from maglev_haptics.diagrams.application import BuildDiagram
 from maglev_haptics.diagrams.haptics import interactive_variant
-from maglev_haptics.diagrams.runner import run_scenario
+from maglev_haptics.analysis.run_results import run_scenario
 from maglev_haptics.diagrams.scenario import ScenarioError, load_scenario
 from maglev_haptics.systems.haptic_supervisor import HAPTIC
 from maglev_haptics.systems.meshcat_hand import GRIP_BUTTON

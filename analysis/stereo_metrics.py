@@ -19,7 +19,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from maglev_haptics.diagrams.run_plots import save_figure  # noqa: E402
+from maglev_haptics.analysis.run_plots import save_figure  # noqa: E402
 
 from maglev_haptics.systems.head_sensor import glasses_pose  # noqa: E402
 from maglev_haptics.systems.rotations import rotation_from_quaternion  # noqa: E402

@@ -32,12 +32,12 @@ from pydrake.systems.primitives import ConstantVectorSource
 from tqdm import tqdm
 
 from maglev_haptics.diagrams.application import BuildDiagram
-from maglev_haptics.diagrams.lattice_bench import (
+from maglev_haptics.analysis.lattice_bench import (
     LATTICE_SIZES, format_lattice_report, lattice_scaling, plot_lattice_scaling)
 from maglev_haptics.diagrams.runner import simulate
 from maglev_haptics.diagrams.scenario import SCENARIO_DIR, load_scenario, scenario_names
-from maglev_haptics.diagrams.stereo_bench import format_stereo_report, stereo_costs
-from maglev_haptics.diagrams.timing import leaf_system_costs, time_per_call_us
+from maglev_haptics.analysis.stereo_bench import format_stereo_report, stereo_costs
+from maglev_haptics.analysis.timing import leaf_system_costs, time_per_call_us
 from maglev_haptics.diagrams.station import add_station_models, rest_transform
 from maglev_haptics.hardware.device import DeviceConfig
 from maglev_haptics.hardware.magnetics import bench_wrench_matrix, load_magnetics

@@ -9,7 +9,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from maglev_haptics.diagrams.run_metrics import angle_between_deg  # noqa: E402
+from maglev_haptics.analysis.run_metrics import angle_between_deg  # noqa: E402
 from maglev_haptics.systems.haptic_supervisor import HAPTIC  # noqa: E402
 
 AXIS_COLORS = ("tab:red", "tab:green", "tab:blue")
