@@ -42,7 +42,7 @@ from maglev_haptics.diagrams.station import add_station_models, rest_transform
 from maglev_haptics.hardware.device import DeviceConfig
 from maglev_haptics.hardware.magnetics import bench_wrench_matrix, load_magnetics
 from maglev_haptics.systems.current_allocator import allocate_currents
-from maglev_haptics.systems.levitation_controller import GRAVITY_M_S2
+from maglev_haptics.hardware.constants import GRAVITY_M_S2
 
 LEVITATE_FILE = SCENARIO_DIR / "levitate.yaml"
 HAPTIC_FILES = [SCENARIO_DIR / f"{name}.yaml" for name in ("hanging_ball", "paddle_ball",
@@ -82,7 +82,7 @@ def allocation_cost_us(config: DeviceConfig, n: int = 2000) -> Dict[str, float]:
     magnetics = load_magnetics(config)
     spec = config.instrument_spec()
     A = magnetics.wrench_matrix_from(np.array([0.0, 0.0, 0.028]), np.eye(3))
-    hover = np.array([0, 0, spec.mass_kg * 9.81, 0, 0, 0])
+    hover = np.array([0, 0, spec.mass_kg * GRAVITY_M_S2, 0, 0, 0])
     limit = config.amplifier.current_limit_a
     return {
         "within_limits_us": time_per_call_us(lambda: allocate_currents(A, hover, limit), n),

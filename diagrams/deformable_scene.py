@@ -19,7 +19,9 @@ from pydrake.multibody.plant import AddMultibodyPlant, MultibodyPlantConfig
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import Adder, Demultiplexer, MatrixGain
 
-from maglev_haptics.diagrams.scene import SceneParts, sphere_inertia, wrench_to_generalized_force
+from maglev_haptics.diagrams.scene_builder import SceneParts, wrench_to_generalized_force
+from maglev_haptics.hardware.constants import GRAVITY_M_S2
+from maglev_haptics.plant_models.scene_geometry import sphere_inertia
 from maglev_haptics.systems.config_checks import finite, nonnegative, positive, require, vector
 from maglev_haptics.systems.deformable_surface import DeformableSurface as DeformableSurfaceSystem
 from maglev_haptics.systems.heightmap import (
@@ -65,7 +67,7 @@ class DeformableSurface:
     # Step the lattice one tick ahead on another core, while the rest of the diagram
     # computes (``systems/lattice_worker.py``); false: in the update itself. Same results.
     worker_thread: bool = True
-    gravity_m_s2: List[float] = field(default_factory=lambda: [0.0, 0.0, -9.81])  # on the lattice
+    gravity_m_s2: List[float] = field(default_factory=lambda: [0.0, 0.0, -GRAVITY_M_S2])  # on the lattice
     probe: ProbeContact = field(default_factory=ProbeContact)
     # The probe sphere's centre in I (m): a tip below the instrument.
     tool_offset_m: List[float] = field(default_factory=lambda: [0.0, 0.0, -0.030])

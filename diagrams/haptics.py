@@ -28,7 +28,7 @@ from pydrake.trajectories import PiecewisePolynomial
 from maglev_haptics.diagrams.hand_script import MeshcatHand, hand_plan
 from maglev_haptics.diagrams.scenario import Scenario
 from maglev_haptics.diagrams.deformable_scene import AddDeformableScene, DeformableSurface
-from maglev_haptics.diagrams.scene import AddScene
+from maglev_haptics.diagrams.scene_builder import AddScene
 from maglev_haptics.diagrams.station import hand_start_pose, rest_transform
 from maglev_haptics.hardware.limits import device_limits
 from maglev_haptics.systems.haptic_coupling import (

@@ -21,11 +21,11 @@ import numpy as np
 import scipy.sparse
 from scipy.optimize import linprog
 
+from maglev_haptics.hardware.constants import GRAVITY_M_S2
 from maglev_haptics.hardware.device import DeviceConfig
 from maglev_haptics.hardware.magnetics import MagneticsModel, load_magnetics
 from maglev_haptics.hardware.thermal import coil_thermal, continuous_current_limit_a
 
-GRAVITY_M_S2 = 9.81  # as the levitation controller's gravity compensation
 LIMIT_KINDS = ("peak", "thermal")
 # The six axis directions +x, +y, +z, -x, -y, -z.
 AXIS_DIRECTIONS = np.vstack([np.eye(3), -np.eye(3)])

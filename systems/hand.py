@@ -41,7 +41,7 @@ from pydrake.systems.framework import LeafSystem, ValueProducer
 
 from maglev_haptics.systems.float_twins import float64_twins
 from maglev_haptics.systems.haptic_coupling import coupling_wrenches
-from maglev_haptics.systems.levitation_controller import GRAVITY_M_S2
+from maglev_haptics.hardware.constants import GRAVITY_M_S2
 from maglev_haptics.systems.rotations import (
     angular_velocity_from_rpy_rates, quaternion_from_rotation_matrix, rotation_from_quaternion,
     rotation_from_rpy)

@@ -38,6 +38,8 @@ import numpy as np
 import scipy.sparse
 import scipy.sparse.linalg
 
+from maglev_haptics.hardware.constants import GRAVITY_M_S2
+
 SYMPLECTIC_EULER = "symplectic_euler"
 LINEARLY_IMPLICIT = "linearly_implicit"
 INTEGRATORS = (SYMPLECTIC_EULER, LINEARLY_IMPLICIT)
@@ -70,7 +72,7 @@ class ProbeContact:
 
 def lattice_model(links, rest_lengths_m, fixed, surface, *, node_mass_kg: float,
                   link_stiffness_n_per_m: float, link_damping_n_s_per_m: float,
-                  gravity_m_s2=(0.0, 0.0, -9.81)) -> LatticeModel:
+                  gravity_m_s2=(0.0, 0.0, -GRAVITY_M_S2)) -> LatticeModel:
     """Contiguous kernel arrays: every mass ``node_mass_kg`` (kg), every link the
     same stiffness (N/m) and damping (N*s/m), ``fixed`` (n,) bool masses immobile."""
     n = len(fixed)

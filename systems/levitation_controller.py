@@ -17,11 +17,11 @@ from pydrake.autodiffutils import AutoDiffXd
 from pydrake.systems.framework import LeafSystem_
 from pydrake.systems.scalar_conversion import TemplateSystem
 
+from maglev_haptics.hardware.constants import GRAVITY_M_S2
 from maglev_haptics.systems.float_twins import float64_twins, scalar_value
 from maglev_haptics.systems.rotations import (
     angular_velocity_from_rpy_rates, rotation_error_W, rotation_from_quaternion, rotation_from_rpy)
 
-GRAVITY_M_S2 = 9.81
 
 
 @dataclass

@@ -24,7 +24,7 @@ from maglev_haptics.systems.hand import (
     _FLOAT64, HAND_BODY_NAME, HAND_MODEL_URL, HandImpedanceConfig, SimulatedHand, arm_wrench,
     explicit_step_spectral_radius, grip_update, grip_wrenches, hand_spatial_inertia,
     hand_wrenches, impedance_gains, latch_X_HI)
-from maglev_haptics.systems.levitation_controller import GRAVITY_M_S2
+from maglev_haptics.hardware.constants import GRAVITY_M_S2
 
 CONFIG = HandImpedanceConfig()
 # Distinct per-axis gains so a mixed-up axis shows.

@@ -5,8 +5,9 @@ import pytest
 from pydrake.autodiffutils import AutoDiffXd
 from pydrake.math import RollPitchYaw, RotationMatrix
 
+from maglev_haptics.hardware.constants import GRAVITY_M_S2
 from maglev_haptics.systems.levitation_controller import (
-    GRAVITY_M_S2, ControllerConfig, LevitationController, LevitationController_, pd_gains, pd_wrench)
+    ControllerConfig, LevitationController, LevitationController_, pd_gains, pd_wrench)
 from maglev_haptics.systems.rotations import (
     angular_velocity_from_rpy_rates, rotation_error_W, rotation_from_rpy)
 

@@ -18,10 +18,14 @@ from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import Adder, ConstantVectorSource, Demultiplexer, VectorLogSink
 
 from maglev_haptics.diagrams.scene import (
-    GRAVITY_M_S2, TABLE_RGBA, TABLE_SIZE_M, TABLE_SLAB_M, AddScene, ContactProperties,
-    HangingBall, PaddleBall, PegInHole, SceneConfig, box_inertia, box_overlaps_box,
-    hanging_drop_m, hole_block_boxes, sphere_overlaps_box, start_overlap, table_top_z,
-    validate_scene, wrench_to_generalized_force)
+    ContactProperties, HangingBall, PaddleBall, PegInHole, SceneConfig, hanging_drop_m,
+    table_top_z, validate_scene)
+from maglev_haptics.diagrams.scene_builder import (
+    AddScene, start_overlap, wrench_to_generalized_force)
+from maglev_haptics.hardware.constants import GRAVITY_M_S2
+from maglev_haptics.plant_models.scene_geometry import (
+    box_inertia, box_overlaps_box, hole_block_boxes, sphere_overlaps_box)
+from maglev_haptics.plant_models.scene_sdf import TABLE_RGBA, TABLE_SIZE_M, TABLE_SLAB_M
 from maglev_haptics.systems.haptic_coupling import CouplingConfig, HapticCoupling
 from maglev_haptics.systems.tool_contact import ToolContactSensor, wrench_about_point
 

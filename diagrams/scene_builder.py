@@ -1,0 +1,262 @@
+"""Add a rigid virtual scene (``diagrams/scene.py``) to a diagram: a tool coupled to
+the instrument, and rigid objects it touches.
+
+``AddScene`` adds the scene's own discrete MultibodyPlant ("scene_plant") and
+SceneGraph ("scene_graph"): the physical world (instrument, display glass) lives
+in the station's plant, so virtual and real bodies never collide.
+
+The tool is a free body driven only by an explicit external wrench (the virtual
+coupling's ``wrench_on_tool_W``, [fx, fy, fz, tx, ty, tz] in W, N and N*m about
+the tool's origin); its gravity is off, because the user should not feel the
+virtual tool's weight. The balls keep gravity. Frame T is the tool body's frame:
+it coincides with I when relaxed (X_IT is the identity), so the coupling acts at
+the grip, and the tool's shape and centre of mass sit at ``tool_offset_m`` in T.
+Coupling at the grip rather than at the tool's centre keeps the tracker's
+rotational noise out of the coupling's force: about the 2-magnet instrument's
+long axis the estimated angular velocity carries ~130 mrad/s of noise, which at a
+25 mm lever would be ~3 mm/s of velocity noise in the damper.
+
+Explicit coupling stability: the coupling's wrench is computed from the tool's
+sampled state and held for one step h, so each tool needs k h^2 / m < 1 and
+b h / m < 2 per axis. With the coupling's 400 N/m and 5 N*s/m at h = 1 ms that
+means m >~ 10 g. Its rotational gains follow the instrument's inertia (for the
+2-magnet instrument up to 0.19 N*m/rad and 2.4e-3 N*m*s/rad), so every principal
+moment of inertia about T must be >~ 5e-6 kg*m^2 (b h / I = 0.48). Small tools
+have smaller solid-body moments, so each tool's moments are raised to
+``min_inertia_kg_m2``: added virtual inertia (the user feels it through the
+coupling as a rotational resonance near 31 Hz at 0.19 N*m/rad).
+
+Contact is hydroelastic ("hydroelastic_with_fallback", polygon surfaces, the
+"lagged" discrete approximation, which uses the Hunt-Crossley dissipation; "sap"
+costs about the same but ignores it, "similar" was no faster, triangle surfaces
+cost a third more). The table is a compliant half-space (collision only; Meshcat
+draws a finite thin box of TABLE_SIZE_M): Drake clips a rigid tool's surface mesh
+against its plane, the cheapest hydroelastic contact, and no table edge is ever
+reached. The plate's walls and the balls are compliant too (boxes get Drake's
+coarse 40-44 tetrahedron meshes; a sphere's mesh follows ``resolution_hint_m``);
+the tools are rigid. Drake has no hydroelastic contact between a compliant body
+and a compliant half-space, so under the balls the table is a rigid half-space
+(the ball is the soft side); a rigid tool pushed onto that table would meet it
+in point contact (the "fallback"), which the scripts never do.
+
+Measured cost of one scene plant step on the 2-core reference machine (the
+plant alone, best of several runs): ~15 us free; the peg pressed on the hole's
+floor ~80 us (16 contact polygons; the compliant box floor this table replaced
+made 43 and cost ~230 us), sliding on it ~105 us (11), on the floor and against a
+wall ~230 us (the wall's mesh against the peg's makes ~19 polygons, the table
+~10); the ball on the table ~65 us, on the paddle ~170 us.
+
+Drake 1.51's clipping of a rigid mesh by a half-space fails a check
+("mesh_half_space_intersection.cc ... sgn(s_a) != sgn(s_b)") when two vertices
+of one triangle lie exactly on the plane: a level tool, never perturbed, whose
+bottom lands exactly on the table, which takes round numbers in a noiseless test
+(the tracker's noise keeps the haptic runs off it). Drake also warns once per
+process that half-spaces take no part in deformable contact; the scene has no
+deformable bodies.
+"""
+
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+from pydrake.geometry import SceneGraph
+from pydrake.math import RigidTransform
+from pydrake.multibody.parsing import Parser
+from pydrake.multibody.plant import AddMultibodyPlant, MultibodyPlant, MultibodyPlantConfig
+from pydrake.multibody.tree import LinearSpringDamper, RigidBody
+from pydrake.systems.framework import DiagramBuilder, InputPort, OutputPort
+from pydrake.systems.primitives import Demultiplexer, MatrixGain, ZeroOrderHold
+
+from maglev_haptics.diagrams.scene import (
+    ContactProperties, HangingBall, PaddleBall, PegInHole, SceneConfig, hanging_drop_m,
+    table_top_z, validate_scene)
+from maglev_haptics.plant_models.scene_geometry import (
+    Solid, box_inertia, hole_block_boxes, solid_bottom_z, solid_overlaps_box, sphere_inertia)
+from maglev_haptics.plant_models.scene_sdf import (
+    ANCHOR_RGBA, BALL_RGBA, BLOCK_RGBA, PADDLE_RGBA, PEG_RGBA, Part, box_geometry, model_sdf,
+    register_table, sphere_geometry)
+from maglev_haptics.systems.config_checks import positive
+from maglev_haptics.systems.tool_contact import ToolContactSensor
+
+
+@dataclass
+class SceneParts:
+    """What ``AddScene`` added. Port shapes: wrenches [fx, fy, fz, tx, ty, tz] in W
+    (N, N*m, about the tool's origin); ``X_WT`` [qw, qx, qy, qz, x, y, z] (m);
+    ``V_WT`` [wx, wy, wz, vx, vy, vz] in W (rad/s, m/s)."""
+
+    plant: MultibodyPlant
+    scene_graph: SceneGraph
+    tool_body: RigidBody
+    X_IT: RigidTransform  # the tool's frame T in the instrument frame I
+    ball_body: Optional[RigidBody]  # None for PegInHole
+    wrench_on_tool_input: InputPort  # the coupling's wrench on the tool
+    X_WT_output: OutputPort
+    V_WT_output: OutputPort
+    contact_wrench_output: OutputPort  # total contact wrench on the tool (sampled)
+    in_contact_output: OutputPort  # 1.0 while anything touches the tool (sampled)
+    surface: Optional[object] = None  # the DeformableSurface system of a deformable scene
+    lattice: Optional[object] = None  # its Lattice at rest
+
+
+
+def start_overlap(scene: SceneConfig, X_WA: RigidTransform) -> Optional[str]:
+    """What the tool's shape at X_WA (its centre frame, m) or the ball at its start
+    would start inside, or None. The table is a half-space: anything reaching below
+    its top starts inside it."""
+    boxes = []
+    if isinstance(scene, PegInHole):
+        boxes = [Solid(f"the block's {name.replace('_', ' ')}", RigidTransform(centre), size)
+                 for name, centre, size in hole_block_boxes(
+                     scene.block_size_m, scene.hole_size_m, scene.hole_center_m)]
+        moving = [Solid("peg", X_WA, scene.peg_size_m)]
+    elif isinstance(scene, HangingBall):
+        p_WB = X_WA.translation() - [0.0, 0.0, hanging_drop_m(scene)]
+        moving = [Solid("anchor", X_WA, radius_m=scene.anchor_radius_m),
+                  Solid("ball", RigidTransform(p_WB), radius_m=scene.ball_radius_m)]
+    else:
+        ball = Solid("ball", RigidTransform(np.asarray(scene.ball_start_m, dtype=float)),
+                     radius_m=scene.ball_radius_m)
+        if solid_overlaps_box(ball, Solid("the paddle", X_WA, scene.paddle_size_m)):
+            return "the ball starts inside the paddle"
+        moving = [Solid("paddle", X_WA, scene.paddle_size_m), ball]
+    table_z = table_top_z(scene)
+    for solid in moving:
+        for box in boxes:
+            if solid_overlaps_box(solid, box):
+                return f"the {solid.name} starts inside {box.name}"
+        if table_z is not None and solid_bottom_z(solid) < table_z:
+            return f"the {solid.name} starts inside the table (its top at z = {table_z:.4g} m)"
+    return None
+
+
+def wrench_to_generalized_force(velocity_start: int, num_velocities: int) -> np.ndarray:
+    """(num_velocities, 6) matrix mapping [f; tau] in W to the plant's generalized
+    forces: a quaternion free body's velocities are [w_WB; v_WB] in W, so the
+    conjugate forces are [tau; f] at ``velocity_start``."""
+    D = np.zeros((num_velocities, 6))
+    D[velocity_start:velocity_start + 3, 3:6] = np.eye(3)
+    D[velocity_start + 3:velocity_start + 6, 0:3] = np.eye(3)
+    return D
+
+
+
+def tool_sdf(scene: SceneConfig) -> str:
+    """The tool's model "tool": its link's frame is T (at the grip, I's origin when
+    relaxed); the tool's shape and centre of mass are at ``tool_offset_m`` in T."""
+    p_TA = tuple(float(v) for v in scene.tool_offset_m)
+    if isinstance(scene, PegInHole):
+        mass, solid = scene.peg_mass_kg, box_inertia(scene.peg_mass_kg, scene.peg_size_m)
+        part = Part("peg", box_geometry(scene.peg_size_m), p_TA, PEG_RGBA)
+    elif isinstance(scene, HangingBall):
+        mass = scene.anchor_mass_kg
+        solid = sphere_inertia(mass, scene.anchor_radius_m)
+        part = Part("anchor", sphere_geometry(scene.anchor_radius_m), p_TA, ANCHOR_RGBA)
+    else:
+        mass, solid = scene.paddle_mass_kg, box_inertia(scene.paddle_mass_kg, scene.paddle_size_m)
+        part = Part("paddle", box_geometry(scene.paddle_size_m), p_TA, PADDLE_RGBA)
+    inertia = np.maximum(solid, scene.min_inertia_kg_m2)
+    return model_sdf("tool", [part], scene.contact, compliant=False, mass_kg=mass,
+                     inertia_kg_m2=inertia, p_LCm=p_TA)
+
+
+def ball_sdf(radius_m: float, mass_kg: float, contact: ContactProperties) -> str:
+    part = Part("ball", sphere_geometry(radius_m), (0, 0, 0), BALL_RGBA)
+    return model_sdf("ball", [part], contact, mass_kg=mass_kg,
+                     inertia_kg_m2=sphere_inertia(mass_kg, radius_m))
+
+
+def block_sdf(scene: PegInHole) -> str:
+    """The static plate "block": its four walls on one body, placed in W."""
+    parts = [Part(name, box_geometry(size), centre, BLOCK_RGBA)
+             for name, centre, size in hole_block_boxes(scene.block_size_m, scene.hole_size_m,
+                                                        scene.hole_center_m)]
+    return model_sdf("block", parts, scene.contact)
+
+
+
+def AddScene(builder: DiagramBuilder, *, scene: SceneConfig, time_step_s: float,
+             X_WI_start: RigidTransform, use_sampled_output_ports: bool = True,
+             contact_sample_period_s: Optional[float] = None) -> SceneParts:
+    """Add the scene's plant and scene graph, its models and its ports to ``builder``.
+
+    The tool starts at X_WI_start * X_IT (X_IT the identity); the hanging ball at its static hanging
+    point below the anchor; the paddle's ball at ``ball_start_m``; all at rest.
+    A ValueError names a bad config field, or X_WI_start if it would start the
+    tool or the ball inside the scene. ``use_sampled_output_ports=False`` (for
+    linearization, DESIGN.md section 6) makes the plant's outputs, the contact
+    wrench among them, functions of the current state instead of the last step's.
+    ``contact_sample_period_s`` (s), when given, samples the contact wrench and
+    the contact flag at that period instead of every step.
+    """
+    validate_scene(scene)
+    positive("time_step_s", time_step_s)
+    X_IT = RigidTransform()
+    X_WT = X_WI_start @ X_IT
+    overlap = start_overlap(scene, X_WT @ RigidTransform(np.asarray(scene.tool_offset_m, float)))
+    if overlap is not None:
+        raise ValueError(
+            f"X_WI_start (p_WI = {np.round(X_WI_start.translation(), 6).tolist()} m): {overlap}; "
+            "start the instrument where the tool and the ball are clear of the scene")
+    config = MultibodyPlantConfig(time_step=time_step_s, discrete_contact_approximation="lagged",
+                                  contact_model="hydroelastic_with_fallback",
+                                  use_sampled_output_ports=use_sampled_output_ports)
+    plant, scene_graph = AddMultibodyPlant(config, builder)
+    plant.set_name("scene_plant")
+    scene_graph.set_name("scene_graph")
+    parser = Parser(plant)
+    tool = parser.AddModelsFromString(tool_sdf(scene), "sdf")[0]
+    plant.set_gravity_enabled(tool, False)
+    ball = None
+    if isinstance(scene, PegInHole):
+        parser.AddModelsFromString(block_sdf(scene), "sdf")
+    else:
+        ball = parser.AddModelsFromString(
+            ball_sdf(scene.ball_radius_m, scene.ball_mass_kg, scene.contact), "sdf")[0]
+    table_z = table_top_z(scene)
+    if table_z is not None:
+        # The soft side against the table: the table itself under the rigid peg, the
+        # compliant balls over a rigid table (Drake has no hydroelastic contact of a
+        # compliant body with a compliant half-space).
+        register_table(plant, table_z, scene.contact, compliant=isinstance(scene, PegInHole))
+    tool_body = plant.GetBodyByName("body", tool)
+    ball_body = None if ball is None else plant.GetBodyByName("body", ball)
+    p_TA = np.asarray(scene.tool_offset_m, dtype=float)  # the tool's centre in T (m)
+    if isinstance(scene, HangingBall):
+        plant.AddForceElement(LinearSpringDamper(
+            tool_body, p_TA, ball_body, np.zeros(3), scene.spring_rest_length_m,
+            scene.spring_stiffness_n_per_m, scene.spring_damping_n_s_per_m))
+    plant.Finalize()
+    plant.SetDefaultFloatingBaseBodyPose(tool_body, X_WT)
+    if isinstance(scene, HangingBall):
+        p_WB = X_WT @ p_TA - [0.0, 0.0, hanging_drop_m(scene)]
+        plant.SetDefaultFloatingBaseBodyPose(ball_body, RigidTransform(p_WB))
+    elif isinstance(scene, PaddleBall):
+        plant.SetDefaultFloatingBaseBodyPose(ball_body, RigidTransform(
+            np.asarray(scene.ball_start_m, dtype=float)))
+
+    gain = builder.AddNamedSystem("scene_tool_wrench", MatrixGain(
+        wrench_to_generalized_force(tool_body.floating_velocities_start_in_v(),
+                                    plant.num_velocities())))
+    builder.Connect(gain.get_output_port(), plant.get_applied_generalized_force_input_port())
+    split = builder.AddNamedSystem("scene_tool_state", Demultiplexer([7, 6]))
+    builder.Connect(plant.get_state_output_port(tool), split.get_input_port())
+    sensor = builder.AddNamedSystem("scene_tool_contact", ToolContactSensor(plant, tool_body))
+    builder.Connect(plant.get_contact_results_output_port(), sensor.GetInputPort("contact_results"))
+    builder.Connect(split.get_output_port(0), sensor.GetInputPort("X_WT"))
+    contact_wrench = sensor.GetOutputPort("wrench_on_tool_W")
+    in_contact = sensor.GetOutputPort("in_contact")
+    if contact_sample_period_s is not None:
+        # Sample-and-hold: the plant's contact results (about as costly as its step)
+        # and the sensor then run only at this period.
+        holds = [builder.AddNamedSystem(f"scene_tool_contact_hold_{i}", ZeroOrderHold(
+            contact_sample_period_s, port.size())) for i, port in enumerate((contact_wrench,
+                                                                            in_contact))]
+        for hold, port in zip(holds, (contact_wrench, in_contact)):
+            builder.Connect(port, hold.get_input_port())
+        contact_wrench, in_contact = (hold.get_output_port() for hold in holds)
+    return SceneParts(
+        plant=plant, scene_graph=scene_graph, tool_body=tool_body, X_IT=X_IT, ball_body=ball_body,
+        wrench_on_tool_input=gain.get_input_port(), X_WT_output=split.get_output_port(0),
+        V_WT_output=split.get_output_port(1),
+        contact_wrench_output=contact_wrench, in_contact_output=in_contact)
