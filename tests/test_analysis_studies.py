@@ -83,8 +83,22 @@ def _check_workspace(results, tmp_path):
     assert all((tmp_path / plot).stat().st_size > 10_000 for plot in results["plots"])
 
 
-@pytest.mark.parametrize("study", ["linearize", "multirate"])
-@pytest.mark.parametrize("file, name", SCENARIOS)
+# The default suite linearizes one levitation loop, one haptic loop with a scripted
+# hand (B, C, D) and the refused deformable scene; `-m slow` covers every scenario.
+QUICK_LINEARIZATIONS = {("linearize", "levitate"), ("linearize", "peg_in_hole"),
+                        ("linearize", "deformable_surface")}
+
+
+def first_of_each_file(study):
+    seen = set()
+    for file, name in SCENARIOS:
+        quick = (study, file) in QUICK_LINEARIZATIONS and file not in seen
+        seen.add(file)
+        yield pytest.param(study, file, name, marks=() if quick else pytest.mark.slow)
+
+
+@pytest.mark.parametrize("study, file, name", [
+    *first_of_each_file("linearize"), *first_of_each_file("multirate")])
 def test_loop_linearization_runs_or_says_why(study, file, name, tmp_path, capsys):
     """Every shipped scenario's loop is stable at its operating point, the deformable
     one is refused with the reason."""
@@ -118,7 +132,6 @@ def test_peg_multirate_against_single_rate(tmp_path):
     assert results["hyperperiod_s"] == pytest.approx(0.05)
     assert results["spectral_radius"] == pytest.approx(
         results["single_rate"]["spectral_radius_over_multirate_hyperperiod"], rel=0.02)
-    assert results["wall_s"] < 60.0
 
 
 @pytest.mark.slow
