@@ -7,7 +7,7 @@ import matplotlib.image
 import numpy as np
 import pytest
 
-from maglev_haptics.diagrams import stereo_video
+from maglev_haptics.analysis import stereo_video
 from maglev_haptics.analysis.stereo_video import StereoVideoWriter, anaglyph, side_by_side
 
 RNG = np.random.default_rng(7)
