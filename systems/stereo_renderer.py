@@ -157,18 +157,21 @@ class StereoRenderer(LeafSystem):
     whenever the rendering so far took more than that share of the wall time since
     the first frame (for real-time runs). ``frames_rendered`` and
     ``frames_skipped`` count them; ``render_wall_s`` is the time spent rendering.
+    ``wall_clock`` () -> s is the clock both are read from (tests give their own).
     """
 
     def __init__(self, *, rate_hz: float, image_px, display_px, near_m: float, far_m: float,
                  sink: Callable[[float, np.ndarray, np.ndarray], None],
                  max_wall_share: Optional[float] = None,
-                 surface: Optional[SurfaceLayer] = None):
+                 surface: Optional[SurfaceLayer] = None,
+                 wall_clock: Callable[[], float] = time.perf_counter):
         super().__init__()
         self._image_px = (int(image_px[0]), int(image_px[1]))
         self._display_px = tuple(display_px)
         self._near_m, self._far_m = near_m, far_m
         self._sink = sink
         self._max_wall_share = max_wall_share
+        self._wall_clock = wall_clock
         self._query = self.DeclareAbstractInputPort(
             "query_object", AbstractValue.Make(QueryObject()))
         self._cameras = [self.DeclareVectorInputPort(f"camera_{eye}", CAMERA_SIZE)
@@ -206,7 +209,7 @@ class StereoRenderer(LeafSystem):
     def _publish(self, context):
         if self._view_ok.Eval(context)[0] < 0.5:
             return
-        now = time.perf_counter()
+        now = self._wall_clock()
         if self._first_wall_s is None:
             self._first_wall_s = now
         elif (self._max_wall_share is not None
@@ -214,6 +217,6 @@ class StereoRenderer(LeafSystem):
             self.frames_skipped += 1
             return
         left, right = self.render(context)
-        self.render_wall_s += time.perf_counter() - now
+        self.render_wall_s += self._wall_clock() - now
         self.frames_rendered += 1
         self._sink(context.get_time(), left, right)

@@ -1,6 +1,8 @@
 """Per-eye off-axis views: projection matrices, cameras and actual renders against
 the geometry of the display window."""
 
+import time
+
 import numpy as np
 import pytest
 from pydrake.math import RigidTransform
@@ -131,7 +133,8 @@ def test_stereo_view_outputs_and_freezes_on_a_bad_pose():
         np.testing.assert_array_equal(view.GetOutputPort("camera_right").Eval(context), good)
 
 
-def sphere_diagram(max_wall_share=None, sink=lambda *frame: None, surface=None):
+def sphere_diagram(max_wall_share=None, sink=lambda *frame: None, surface=None,
+                   wall_clock=time.perf_counter):
     """A small bright sphere (4 mm radius) on a free body, and the stereo display's
     renderer (cameras and view_ok exported as inputs)."""
     builder = DiagramBuilder()
@@ -144,7 +147,8 @@ def sphere_diagram(max_wall_share=None, sink=lambda *frame: None, surface=None):
     image_px = (SCREEN.width_px // 2, SCREEN.height_px // 2)
     renderer = builder.AddSystem(StereoRenderer(
         rate_hz=30.0, image_px=image_px, display_px=(SCREEN.width_px, SCREEN.height_px),
-        near_m=0.05, far_m=2.0, sink=sink, max_wall_share=max_wall_share, surface=surface))
+        near_m=0.05, far_m=2.0, sink=sink, max_wall_share=max_wall_share, surface=surface,
+        wall_clock=wall_clock))
     if surface is not None:
         builder.ExportInput(renderer.GetInputPort("surface_positions_m"), "surface_positions_m")
     builder.Connect(scene_graph.get_query_output_port(), renderer.GetInputPort("query_object"))
@@ -199,17 +203,37 @@ def test_rendered_sphere_lies_where_the_eye_ray_meets_the_display(sphere_scene):
             assert np.linalg.norm(centroid - expected) < 0.5, (eye, p_W, centroid, expected)
 
 
+class RenderCostClock:
+    """A wall clock that runs with simulated time, plus ``render_s`` (s) for each frame
+    rendered: the renderer reads it once per frame, and once more after a render,
+    at the same simulated time. The skip rule, free of the host's speed."""
+
+    def __init__(self, render_s: float):
+        self.render_s, self.rendering_s, self.context, self.last_t = render_s, 0.0, None, None
+
+    def __call__(self) -> float:
+        t = self.context.get_time()
+        if t == self.last_t:
+            self.rendering_s += self.render_s
+        self.last_t = t
+        return t + self.rendering_s
+
+
 def test_real_time_rendering_skips_frames_within_its_share_of_the_wall_clock():
     frames = []
+    clock = RenderCostClock(render_s=0.040)
     diagram, plant, body, renderer, _ = sphere_diagram(
-        max_wall_share=0.01, sink=lambda t, left, right: frames.append(t))
+        max_wall_share=0.25, sink=lambda t, left, right: frames.append(t), wall_clock=clock)
     simulator = Simulator(diagram)
+    clock.context = simulator.get_context()
     fix_views(diagram, simulator.get_mutable_context(), SEATED_HEAD)
-    simulator.AdvanceTo(1.0)  # 31 frames due at 30 Hz; simulating takes far less than 1 s
+    simulator.AdvanceTo(1.0)  # 31 frames due at 30 Hz
     assert renderer.frames_rendered + renderer.frames_skipped == 31
-    assert len(frames) == renderer.frames_rendered >= 1
-    # Rendering took at most ~1% of the wall clock, give or take the frame that crossed it.
-    assert renderer.frames_skipped > 20
+    assert len(frames) == renderer.frames_rendered
+    assert renderer.render_wall_s == pytest.approx(0.040 * renderer.frames_rendered)
+    # 40 ms renders within a 25% share of the wall clock let 0.25 / 0.75 * 33 / 40
+    # = 28% of the frames through: 8-9 of 31.
+    assert 7 <= renderer.frames_rendered <= 10
 
 
 def square_mesh(half_width_m: float, z_m: float):
