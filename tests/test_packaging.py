@@ -4,6 +4,7 @@ cache, never from the source tree."""
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -21,11 +22,15 @@ def run(command, **kwargs):
 
 @pytest.mark.skipif(not (REPO / "pyproject.toml").exists(), reason="needs the source tree")
 def test_wheel_installs_and_runs_a_scenario_from_anywhere(tmp_path):
-    dist, site, elsewhere = tmp_path / "dist", tmp_path / "site", tmp_path / "elsewhere"
+    source, dist, site, elsewhere = (tmp_path / name for name in
+                                     ("source", "dist", "site", "elsewhere"))
     elsewhere.mkdir()
+    # A copy, so the build leaves nothing in the checkout.
+    shutil.copytree(REPO, source, ignore=shutil.ignore_patterns(
+        ".venv", ".git", "build", "*.egg-info", "__pycache__", "out", "docs"))
     # No build isolation: setuptools and wheel come with the test extra, so no download.
     run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q",
-         "-w", str(dist), str(REPO)], cwd=tmp_path)
+         "-w", str(dist), str(source)], cwd=tmp_path)
     wheel, = dist.glob("maglev_haptics-*.whl")
     run([sys.executable, "-m", "pip", "install", "--no-deps", "-q", "--target", str(site),
          str(wheel)])
