@@ -4,16 +4,105 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
+import shutil
 import sys
+import tempfile
+import textwrap
+from importlib.metadata import version
 from pathlib import Path
 
 from maglev_haptics.diagrams.scenario import (
     ScenarioError, load_scenario, resolve_scenario_file, scenario_names, shipped_scenario_files)
 
+# What `maglev diagram --out` may end in: graphviz's (dot -T) file formats for looking
+# at or editing a diagram, all of them in every graphviz build.
+DIAGRAM_FORMATS = ("svg", "png", "pdf", "jpg", "jpeg", "gif", "ps", "dot")
+HELP_WIDTH = 88  # characters a line in the help texts
+
+
+def _finite_number(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"{text!r}: must be a finite number")
+    return value
+
+
+def _positive_seconds(text: str) -> float:
+    """argparse type of a duration: a finite number of seconds > 0."""
+    seconds = _finite_number(text)
+    if seconds <= 0:
+        raise argparse.ArgumentTypeError(f"{text!r}: must be > 0 simulated seconds")
+    return seconds
+
+
+def _realtime_rate(text: str) -> float:
+    """argparse type of a real-time rate: >= 0, 0 being as fast as possible."""
+    rate = _finite_number(text)
+    if rate < 0:
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: must be >= 0 (1 = wall-clock speed, 0 = as fast as possible)")
+    return rate
+
+
+def _subsystem_levels(text: str) -> int:
+    """argparse type of --depth: a whole number >= 0."""
+    try:
+        levels = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if levels < 0:
+        raise argparse.ArgumentTypeError(f"{text!r}: must be >= 0")
+    return levels
+
+
+def _diagram_file(text: str) -> Path:
+    """argparse type of ``diagram --out``: a file whose suffix names a format graphviz
+    writes (none: SVG)."""
+    path = Path(text)
+    suffix = path.suffix.lstrip(".").lower()
+    if suffix and suffix not in DIAGRAM_FORMATS:
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: unknown format {suffix!r}; end the file in one of "
+            + ", ".join("." + fmt for fmt in DIAGRAM_FORMATS))
+    return path
+
+
+def _writable_folder(folder: Path) -> Path:
+    """``folder``, created if missing and checked by writing a file there, so a run that
+    could not save its results stops before it starts; a ValueError naming --out if not."""
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as error:
+        reason = "a file, not a folder" if isinstance(error, FileExistsError) else error.strerror
+        raise ValueError(f"cannot write to {folder} ({reason}): "
+                         "give --out a place you can write to") from None
+    return folder
+
+
+def _scenario_listing() -> str:
+    """The shipped scenario files and the named scenarios in each, for the help texts."""
+    lines = ["Shipped scenarios (file: names; --name picks one, the first is the default):"]
+    for path in shipped_scenario_files():
+        lines.append(textwrap.fill(f"{path.stem}: " + ", ".join(scenario_names(path)),
+                                   width=HELP_WIDTH, initial_indent="  ",
+                                   subsequent_indent="      "))
+    return "\n".join(lines)
+
+
+def _epilog(examples: str, *, with_scenarios: bool = True) -> str:
+    text = "Examples:\n" + textwrap.indent(textwrap.dedent(examples).strip("\n"), "  ")
+    return text + ("\n\n" + _scenario_listing() if with_scenarios else "")
+
 
 def _add_scenario_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("scenario", help="a scenario file's path, or the name of a shipped one "
-                        "(" + ", ".join(p.stem for p in shipped_scenario_files()) + ")")
+                        "(listed below)")
     parser.add_argument("--name", help="which named scenario in the file (default: the first)")
     parser.add_argument("--scenario-text", default="{}",
                         help="YAML layered over the scenario, e.g. "
@@ -32,8 +121,6 @@ def _cmd_run(args) -> int:
     from maglev_haptics.analysis.run_results import run_scenario
     from maglev_haptics.diagrams.scenario import with_stereo
 
-    if args.duration is not None and not args.duration > 0:
-        raise ScenarioError(f"--duration = {args.duration}: must be > 0 simulated seconds")
     scenario, label = _load(args)
     duration = args.duration
     if args.stereo and scenario.stereo is None:
@@ -43,11 +130,12 @@ def _cmd_run(args) -> int:
             raise ScenarioError("--interactive drives the hand from Meshcat: drop --no-meshcat")
         scenario = interactive_variant(scenario, duration)
         duration = scenario.duration_s
+    out = _writable_folder(Path(args.out) if args.out else Path("out") / label.replace(":", "-"))
+    if args.interactive:
         print("interactive: move the hand with the sliders in Meshcat's Controls panel; "
               "'Grip / release' (or the G key) grips the instrument; Ctrl-C ends the run")
     meshcat = not args.no_meshcat
     realtime = args.realtime if args.realtime is not None else (1.0 if meshcat else 0.0)
-    out = Path(args.out) if args.out else Path("out") / label.replace(":", "-")
     result = run_scenario(scenario, label=label, out_dir=out, meshcat=meshcat,
                           realtime_rate=realtime, duration_s=duration)
     printed = {k: v for k, v in result.summary.items() if k != "holds"}
@@ -70,13 +158,22 @@ def _cmd_diagram(args) -> int:
 
     from maglev_haptics.diagrams.application import BuildDiagram
 
+    if shutil.which("dot") is None:
+        raise ValueError("graphviz's dot is not on the PATH: install graphviz "
+                         "(apt install graphviz, brew install graphviz)")
     scenario, _ = _load(args)
+    out = args.out
+    _writable_folder(out.parent)
     built = BuildDiagram(scenario)
     graph = pydot.graph_from_dot_data(built.diagram.GetGraphvizString(max_depth=args.depth))[0]
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fmt = out.suffix.lstrip(".") or "svg"
-    graph.write(str(out), format=fmt)
+    fmt = out.suffix.lstrip(".").lower() or "svg"
+    try:
+        graph.write(str(out), format=fmt)
+    except OSError as error:
+        raise ValueError(f"cannot write {out} ({error.strerror}): "
+                         "give --out a file you can write to") from None
+    except AssertionError as error:  # pydot's report of dot's non-zero exit
+        raise ValueError(f"graphviz could not write {out}: {error}") from None
     print(f"wrote {out}")
     return 0
 
@@ -84,7 +181,7 @@ def _cmd_diagram(args) -> int:
 def _cmd_bench(args) -> int:
     from maglev_haptics.analysis.bench import run_benchmarks
 
-    out_dir = Path(args.out)
+    out_dir = _writable_folder(Path(args.out))
     results = run_benchmarks(duration_s=args.duration, progress=not args.json, out_dir=out_dir)
     print(json.dumps(results, indent=2) if args.json else results["report"])
     if not args.json:
@@ -96,7 +193,8 @@ def _cmd_analyze(args) -> int:
     from maglev_haptics.analysis.studies import format_modes, run_study
 
     scenario, label = _load(args)
-    out = Path(args.out) if args.out else Path("out") / "analyze" / label.replace(":", "-")
+    out = _writable_folder(Path(args.out) if args.out
+                           else Path("out") / "analyze" / label.replace(":", "-"))
     results = run_study(args.study, scenario, label=label, out_dir=out, quick=args.quick,
                         show_progress=not args.json)
     if args.json:
@@ -112,14 +210,51 @@ def _cmd_analyze(args) -> int:
     return 0
 
 
+ANALYZE_STUDIES = """\
+Studies:
+  linearize      the single-rate loop's state map over a period at an operating point:
+                 A, spectral radius, modes with frequency, damping and states
+  multirate      the true 860 Hz / 1 kHz loop's monodromy over its 50 ms hyperperiod,
+                 against the single-rate loop
+  passivity      Colgate-Schenkel margin of the coupling, and the damping a maglev
+                 device must get from the hand or controller
+  zwidth         the stiffness-damping range renderable stably and passively
+  stability-map  largest stable stiffness against damping over sample rates and
+                 delays, with closed forms
+  workspace      over x, y, height, tilt and yaw, for both instruments: the wrench
+                 matrix's condition number, hover current and power, the largest
+                 force and torque each way within the peak and thermal current limits"""
+
+
 def build_parser() -> argparse.ArgumentParser:
+    formatter = argparse.RawDescriptionHelpFormatter  # keeps the epilogs' lines as written
     parser = argparse.ArgumentParser(
-        prog="maglev", description="Simulate, drive and analyse the co-located maglev haptic display.")
+        prog="maglev", formatter_class=formatter,
+        description="Simulate, drive and analyse the co-located maglev haptic display.",
+        epilog=_epilog("""
+            maglev run levitate                  # fly the first levitation scenario in Meshcat
+            maglev run peg_in_hole --no-meshcat  # as fast as possible, plots in out/
+            maglev COMMAND --help                # each command's options and examples
+            """, with_scenarios=False))
+    parser.add_argument("--version", action="version",
+                        version=f"%(prog)s {version('maglev-haptics')}")
     commands = parser.add_subparsers(dest="command", required=True)
 
-    run = commands.add_parser("run", help="simulate a scenario; write log.npz, summary.json, plots")
+    run = commands.add_parser(
+        "run", formatter_class=formatter,
+        help="simulate a scenario; write log.npz, summary.json, plots",
+        description="Simulate a scenario; write log.npz, summary.json and plots to --out.",
+        epilog=_epilog("""
+            maglev run levitate                          # its first scenario, Meshcat at 1x
+            maglev run levitate --name square --duration 2 --no-meshcat --out out/square
+            maglev run peg_in_hole --realtime 0.5        # half speed, to watch it
+            maglev run hanging_ball --interactive        # your hand, from Meshcat's sliders
+            maglev run levitate --scenario-text '{device: {instrument: four_magnet}}'
+            maglev run ./my_scenarios.yaml --name mine --stereo
+            """))
     _add_scenario_arguments(run)
-    run.add_argument("--duration", type=float, help="simulated seconds (default: the script's length)")
+    run.add_argument("--duration", type=_positive_seconds,
+                     help="simulated seconds (default: the script's length)")
     run.add_argument("--out", help="output folder (default: out/<file>-<name>)")
     run.add_argument("--no-meshcat", action="store_true", help="do not start Meshcat")
     run.add_argument("--interactive", action="store_true",
@@ -129,19 +264,38 @@ def build_parser() -> argparse.ArgumentParser:
                      help="turn on the head-tracked stereo display (the scenario's stereo: "
                      "block, or the defaults): per-eye views, rendered side-by-side and "
                      "anaglyph video, co-location errors, glasses and frusta in Meshcat")
-    run.add_argument("--realtime", type=float,
-                     help="target real-time rate (default 1 with Meshcat, else 0 = as fast as possible)")
+    run.add_argument("--realtime", type=_realtime_rate,
+                     help="target real-time rate >= 0 (default 1 with Meshcat, else 0 = as "
+                     "fast as possible)")
     run.set_defaults(func=_cmd_run)
 
-    diagram = commands.add_parser("diagram", help="draw the system diagram (pydot + graphviz)")
+    diagram = commands.add_parser(
+        "diagram", formatter_class=formatter,
+        help="draw the system diagram (pydot + graphviz)",
+        description="Draw the scenario's system diagram with graphviz.",
+        epilog=_epilog("""
+            maglev diagram levitate --out levitate.svg
+            maglev diagram peg_in_hole --depth 2 --out peg_in_hole.pdf
+            """))
     _add_scenario_arguments(diagram)
-    diagram.add_argument("--out", required=True, help="FILE.svg (or .png, .pdf)")
-    diagram.add_argument("--depth", type=int, default=1, help="subsystem levels to expand")
+    diagram.add_argument("--out", required=True, type=_diagram_file,
+                         help="FILE.svg, or another of " + ", ".join(
+                             "." + fmt for fmt in DIAGRAM_FORMATS[1:]))
+    diagram.add_argument("--depth", type=_subsystem_levels, default=1,
+                         help="subsystem levels to expand (default: 1)")
     diagram.set_defaults(func=_cmd_diagram)
 
-    bench = commands.add_parser("bench", help="real-time factor of each scenario, per-tick costs")
+    bench = commands.add_parser(
+        "bench", formatter_class=formatter,
+        help="real-time factor of each scenario, per-tick costs",
+        description="Real-time factor of each shipped scenario, per-tick cost of each "
+        "system, lattice scaling and allocation cost (Meshcat off).",
+        epilog=_epilog("""
+            maglev bench
+            maglev bench --duration 1 --json > bench.json
+            """, with_scenarios=False))
     bench.add_argument("--json", action="store_true", help="print JSON instead of a table")
-    bench.add_argument("--duration", type=float,
+    bench.add_argument("--duration", type=_positive_seconds,
                        help="simulated seconds per scenario (default: each whole script)")
     bench.add_argument("--out", default="out/bench",
                        help="folder for bench.json and lattice_scaling.png (default: out/bench)")
@@ -149,17 +303,15 @@ def build_parser() -> argparse.ArgumentParser:
 
     from maglev_haptics.analysis.studies import study_names
     analyze = commands.add_parser(
-        "analyze", help="offline analysis of a scenario's loop; writes JSON and plots",
-        description="Studies: linearize (the single-rate loop's state map over a period at "
-        "an operating point: A, spectral radius, modes with frequency, damping and states), "
-        "multirate (the true 860 Hz / 1 kHz loop's monodromy over its 50 ms hyperperiod, "
-        "against the single-rate loop), passivity (Colgate-Schenkel margin of the coupling, and the "
-        "damping a maglev device must get from the hand or controller), zwidth (the "
-        "stiffness-damping range renderable stably and passively), stability-map (largest "
-        "stable stiffness against damping over sample rates and delays, with closed forms), "
-        "workspace (over x, y, height, tilt and yaw, for both instruments: the wrench matrix's "
-        "condition number, hover current and power, the largest force and torque each way "
-        "within the peak and thermal current limits).")
+        "analyze", formatter_class=formatter,
+        help="offline analysis of a scenario's loop; writes JSON and plots",
+        description="Offline analysis of a scenario's loop; writes <study>.json and plots.\n\n"
+        + ANALYZE_STUDIES,
+        epilog=_epilog("""
+            maglev analyze linearize levitate --quick
+            maglev analyze passivity peg_in_hole --out out/passivity
+            maglev analyze workspace levitate --name four_magnet_tilt --json
+            """))
     analyze.add_argument("study", choices=study_names())
     _add_scenario_arguments(analyze)
     analyze.add_argument("--out", help="output folder (default: out/analyze/<file>-<name>)")
@@ -176,6 +328,9 @@ def main(argv=None) -> int:
     except (ScenarioError, ValueError, OSError) as error:
         print(f"maglev {args.command}: error: {error}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print(f"maglev {args.command}: interrupted", file=sys.stderr)
+        return 130  # the shell's code for a run ended by Ctrl-C
     except SystemExit as error:
         if error.code in (None, 0):
             raise

@@ -1,0 +1,86 @@
+"""The ``maglev`` command line as a new user meets it: bad input ends in one clear
+line and exit code 2, never a traceback; help texts list scenarios and examples."""
+
+from importlib.metadata import version
+
+import pytest
+
+from maglev_haptics.diagrams.cli import DIAGRAM_FORMATS, main
+from maglev_haptics.diagrams.scenario import scenario_names, shipped_scenario_files
+
+COMMANDS = ("run", "diagram", "bench", "analyze")
+
+
+def exit_code_and_stderr(argv, capsys):
+    """main's exit code, whether argparse exits or main returns, and what it printed to stderr."""
+    try:
+        code = main(argv)
+    except SystemExit as exit_:
+        code = exit_.code
+    return code, capsys.readouterr().err
+
+
+def help_text(command, capsys) -> str:
+    with pytest.raises(SystemExit) as exit_:
+        main([command, "--help"])
+    assert exit_.value.code == 0
+    return capsys.readouterr().out
+
+
+def test_version_is_the_installed_distributions(capsys):
+    with pytest.raises(SystemExit) as exit_:
+        main(["--version"])
+    assert exit_.value.code == 0
+    assert capsys.readouterr().out.strip() == f"maglev {version('maglev-haptics')}"
+
+
+def test_run_help_lists_each_files_named_scenarios(capsys):
+    text = help_text("run", capsys)
+    for path in shipped_scenario_files():
+        assert f"{path.stem}: {', '.join(scenario_names(path))}" in text.replace("\n      ", " ")
+
+
+@pytest.mark.parametrize("command", COMMANDS)
+def test_each_command_help_has_examples(command, capsys):
+    assert "Examples:\n  maglev " + command in help_text(command, capsys)
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["diagram", "levitate", "--out", "x.jpgg"],
+     "argument --out: 'x.jpgg': unknown format 'jpgg'; end the file in one of "
+     + ", ".join("." + fmt for fmt in DIAGRAM_FORMATS)),
+    (["diagram", "levitate", "--out", "x.svg", "--depth", "-1"], "argument --depth: '-1'"),
+    (["run", "levitate", "--realtime", "-2"], "argument --realtime: '-2': must be >= 0"),
+    (["run", "levitate", "--realtime", "inf"], "argument --realtime: 'inf': must be a finite"),
+    (["run", "levitate", "--duration", "-1"], "argument --duration: '-1': must be > 0"),
+    (["run", "levitate", "--duration", "abc"], "argument --duration: 'abc' is not a number"),
+    (["run", "levitate", "--duration", "nan"], "argument --duration: 'nan': must be a finite"),
+    (["bench", "--duration", "0"], "argument --duration: '0': must be > 0"),
+    (["run", "no_such_file", "--no-meshcat"], "scenario file 'no_such_file' not found"),
+    (["run", "levitate", "--name", "no_such_name"], "no scenario named 'no_such_name'"),
+])
+def test_bad_input_is_one_clear_line_and_exit_code_2(argv, message, capsys):
+    code, err = exit_code_and_stderr(argv, capsys)
+    assert code == 2
+    assert message in err
+    assert "Traceback" not in err
+
+
+@pytest.mark.parametrize("command", [["run", "levitate", "--no-meshcat"],
+                                     ["analyze", "passivity", "levitate"],
+                                     ["bench"]])
+def test_an_unwritable_out_stops_before_the_work(command, tmp_path, capsys):
+    a_file = tmp_path / "a_file"
+    a_file.write_text("")
+    code, err = exit_code_and_stderr(command + ["--out", str(a_file / "results")], capsys)
+    assert code == 2
+    assert f"cannot write to {a_file / 'results'}" in err
+
+
+def test_diagram_into_an_unwritable_place_is_refused(tmp_path, capsys):
+    a_file = tmp_path / "a_file"
+    a_file.write_text("")
+    code, err = exit_code_and_stderr(["diagram", "levitate", "--out", str(a_file / "d.svg")],
+                                     capsys)
+    assert code == 2
+    assert f"cannot write to {a_file}" in err
