@@ -50,16 +50,14 @@ Drake 1.51's clipping of a rigid mesh by a half-space fails a check
 ("mesh_half_space_intersection.cc ... sgn(s_a) != sgn(s_b)") when two vertices
 of one triangle lie exactly on the plane: a level tool, never perturbed, whose
 bottom lands exactly on the table, which takes round numbers in a noiseless test
-(the tracker's noise keeps the haptic runs off it). Drake also warns once per
-process that half-spaces take no part in deformable contact; the scene has no
-deformable bodies.
+(the tracker's noise keeps the haptic runs off it).
 """
 
 from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
-from pydrake.geometry import SceneGraph
+from pydrake.geometry import DefaultProximityProperties, SceneGraph, SceneGraphConfig
 from pydrake.math import RigidTransform
 from pydrake.multibody.parsing import Parser
 from pydrake.multibody.plant import AddMultibodyPlant, MultibodyPlant, MultibodyPlantConfig
@@ -219,6 +217,11 @@ def AddScene(builder: DiagramBuilder, *, scene: SceneConfig, time_step_s: float,
         # compliant balls over a rigid table (Drake has no hydroelastic contact of a
         # compliant body with a compliant half-space).
         register_table(plant, table_z, scene.contact, compliant=isinstance(scene, PegInHole))
+        # SceneGraph back-fills a resolution hint (0.02 m) into every geometry without
+        # one, which enrols the table's half-space for deformable contact, where Drake
+        # warns it cannot take part. Every other scene geometry states its own hint.
+        scene_graph.set_config(SceneGraphConfig(
+            default_proximity_properties=DefaultProximityProperties(resolution_hint=None)))
     tool_body = plant.GetBodyByName("body", tool)
     ball_body = None if ball is None else plant.GetBodyByName("body", ball)
     p_TA = np.asarray(scene.tool_offset_m, dtype=float)  # the tool's centre in T (m)
