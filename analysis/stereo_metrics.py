@@ -26,6 +26,9 @@ from maglev_haptics.systems.rotations import rotation_from_quaternion  # noqa: E
 from maglev_haptics.systems.stereo import display_rectangle, screen_axes  # noqa: E402
 
 MOVING_SPEED_M_S = 0.05  # the head counts as moving above this eye-midpoint speed (m/s)
+# Speeds below this are round-off from differencing equal logged positions, not
+# motion (a still head otherwise shows ~1e-14 m/s): 0.1 mm/s (m/s).
+SPEED_RESOLUTION_M_S = 1e-4
 
 
 def eyes_from_poses(poses: np.ndarray, ipd_m: float) -> np.ndarray:
@@ -43,8 +46,9 @@ def true_eyes(log, ipd_m: float) -> np.ndarray:
 
 
 def head_speed(log) -> np.ndarray:
-    """(N,) speed of the eyes' midpoint (m/s)."""
-    return np.linalg.norm(np.gradient(log["head_pose"][:, 0:3], log["t"], axis=0), axis=1)
+    """(N,) speed of the eyes' midpoint (m/s); 0 below SPEED_RESOLUTION_M_S."""
+    speed = np.linalg.norm(np.gradient(log["head_pose"][:, 0:3], log["t"], axis=0), axis=1)
+    return np.where(speed < SPEED_RESOLUTION_M_S, 0.0, speed)
 
 
 def screen_points(screen, eyes: np.ndarray, p_W: np.ndarray) -> np.ndarray:
@@ -149,7 +153,12 @@ def plot_colocation(log: Dict[str, np.ndarray], scenario, out_dir: Path, title: 
     speed = head_speed(log)
     figure, (top, bottom) = plt.subplots(2, 1, sharex=True, figsize=(9, 6))
     top.plot(t, speed, color="0.3")
+    top.axhline(MOVING_SPEED_M_S, color="0.6", linestyle="--", linewidth=0.8,
+                label=f"moving: above {MOVING_SPEED_M_S} m/s (summary.json's errors)")
+    # A still head's speed is 0 on a readable scale, not autoscaled noise.
+    top.set_ylim(0.0, 1.1 * max(speed.max(), 2 * MOVING_SPEED_M_S))
     top.set_ylabel("head speed (m/s)")
+    top.legend(loc="best")
     top.set_title(f"{title}: co-location of a virtual point at {np.round(1e3 * point).tolist()} mm")
     for key, label, color in (("X_WG_latest", "latest 10 Hz sample (no prediction)", "tab:red"),
                               ("X_WG_predicted", "predicted (Kalman, constant velocity)",
