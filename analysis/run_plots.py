@@ -109,7 +109,9 @@ def plot_haptics(log: Dict[str, np.ndarray], out_dir: Path, *, title: str) -> Pa
     measured = np.cumsum(log["tracking_ok"] > 0.5) > 0
     fig, axes = plt.subplots(7, 1, figsize=(10, 15), sharex=True)
     engaged = log["haptic_mode"] == HAPTIC
-    contact = log["tool_in_contact"] > 0.5
+    # Before haptics engages the tool follows the resting instrument and may touch the
+    # table, but nothing is rendered to the user: not contact in the Fig. 9 sense.
+    contact = engaged & (log["tool_in_contact"] > 0.5)
     for i, axis in enumerate("xyz"):
         ax = axes[i]
         ax.plot(t[measured], 1e3 * log["p_WI_measured"][measured, i], color=AXIS_COLORS[i], lw=1)
@@ -125,11 +127,11 @@ def plot_haptics(log: Dict[str, np.ndarray], out_dir: Path, *, title: str) -> Pa
     ax.set_xlabel("time [s]")
     for ax in axes:
         ax.grid(alpha=0.3)
-        # Shade where the tool touches the scene, and mark the haptic phase.
+        # Shade where the user feels the tool touch the scene, and mark the haptic phase.
         ax.fill_between(t, 0, 1, where=contact, transform=ax.get_xaxis_transform(),
                         color="tab:orange", alpha=0.12, lw=0)
         ax.fill_between(t, 0, 0.03, where=engaged, transform=ax.get_xaxis_transform(),
                         color="tab:purple", alpha=0.5, lw=0)
     fig.suptitle(f"{title}: position and force rendered on the user\n"
-                 "(orange: tool in contact; purple strip: haptics engaged)")
+                 "(orange: tool in contact while haptics is engaged; purple strip: haptics engaged)")
     return save_figure(fig, Path(out_dir) / "haptics.png", dpi=100)
