@@ -132,6 +132,6 @@ def plot_haptics(log: Dict[str, np.ndarray], out_dir: Path, *, title: str) -> Pa
                         color="tab:orange", alpha=0.12, lw=0)
         ax.fill_between(t, 0, 0.03, where=engaged, transform=ax.get_xaxis_transform(),
                         color="tab:purple", alpha=0.5, lw=0)
-    fig.suptitle(f"{title}: position and force rendered on the user\n"
-                 "(orange: tool in contact while haptics is engaged; purple strip: haptics engaged)")
+    fig.suptitle(f"{title}: position and force rendered on the user\n(orange: tool in "
+                 "contact while haptics is engaged; purple strip: haptics engaged)")
     return save_figure(fig, Path(out_dir) / "haptics.png", dpi=100)
