@@ -37,7 +37,7 @@ def passivity_bound(H: scipy.signal.dlti, angles: np.ndarray) -> np.ndarray:
 
 def passivity_margin(H: scipy.signal.dlti, device_damping: float) -> float:
     """b minus the largest damping the environment H needs over 0 <= w <= pi / T
-    (N s/m): positive iff the sampled loop is passive (DESIGN.md section 8).
+    (N s/m): positive iff the sampled loop is passive (Colgate and Schenkel's bound).
 
     ``H`` is the environment's impedance (force over displacement) with sample
     period ``H.dt``; delays and filters are simply part of H. The maximum is

@@ -39,7 +39,7 @@ def coil_temperatures_c(t: np.ndarray, currents: np.ndarray, thermal) -> np.ndar
 
 
 def log_arrays(logger, log_layout, context, device) -> Dict[str, np.ndarray]:
-    """The run's log as named arrays; the contract's keys first (DESIGN.md section 8)."""
+    """The run's log as named arrays; the public contract's keys first (docs/haptic_loop.md, "What a run writes")."""
     log = logger.FindLog(context)
     # The logger reads a sample-and-hold: what it publishes at t was sampled one
     # period earlier, and its t = 0 entry is the hold's blank initial state.

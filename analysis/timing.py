@@ -11,7 +11,7 @@ from maglev_haptics.analysis.linearization import leaf_systems
 
 def time_per_call_us(function, n: int, windows: int = 1) -> float:
     """Microseconds per call of ``function()`` over ``n`` calls after one warm-up call;
-    the best of ``windows`` such runs, as this host's load comes and goes."""
+    the best of ``windows`` such runs, as the machine's load comes and goes."""
     function()
     best = float("inf")
     for _ in range(windows):

@@ -38,7 +38,7 @@ The slices (each pose three small linear programs, ~8 ms):
   a half turn, so over the centre 0..90 deg covers every yaw (and 0..35 deg
   every tilt of up to 35 deg about x or y).
 
-Measured on the 2-core development machine with the wrench tables cached: the
+Measured on a 2-core machine with the wrench tables cached: the
 default study (2 instruments x 3,190 poses) takes 55 s and its plots 14 s;
 ``WorkspaceSettings.quick()`` (2 x 90 poses) 2 s and its plots ~10 s.
 """
@@ -168,7 +168,7 @@ def pose_metrics(magnetics: MagneticsModel, config: DeviceConfig, p_WI, R_WI) ->
     metrics = _nan_metrics(clearance)
     if clearance < 0:
         return metrics
-    # A's axes are W's (DESIGN.md 3), so R_AI = R_WI.
+    # A's axes are W's (docs/architecture.md, frames), so R_AI = R_WI.
     A = magnetics.wrench_matrix_from(p_WI - config.p_WA, R_WI)
     condition = scaled_condition_number(A, lever_length_m(config))
     if not math.isfinite(condition):

@@ -1,4 +1,4 @@
-"""The application half (DESIGN.md section 1) wired to a station: the whole diagram.
+"""The application half (docs/architecture.md) wired to a station: the whole diagram.
 
 ``BuildDiagram(scenario)`` adds the station, the pose estimator, the scripted
 setpoint and enable ramps, the levitation controller, the current allocator,

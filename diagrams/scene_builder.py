@@ -39,7 +39,7 @@ and a compliant half-space, so under the balls the table is a rigid half-space
 (the ball is the soft side); a rigid tool pushed onto that table would meet it
 in point contact (the "fallback"), which the scripts never do.
 
-Measured cost of one scene plant step on the 2-core reference machine (the
+Measured cost of one scene plant step on a 2-core machine (the
 plant alone, best of several runs): ~15 us free; the peg pressed on the hole's
 floor ~80 us (16 contact polygons; the compliant box floor this table replaced
 made 43 and cost ~230 us), sliding on it ~105 us (11), on the floor and against a
@@ -182,7 +182,7 @@ def AddScene(builder: DiagramBuilder, *, scene: SceneConfig, time_step_s: float,
     point below the anchor; the paddle's ball at ``ball_start_m``; all at rest.
     A ValueError names a bad config field, or X_WI_start if it would start the
     tool or the ball inside the scene. ``use_sampled_output_ports=False`` (for
-    linearization, DESIGN.md section 6) makes the plant's outputs, the contact
+    linearization: Drake otherwise linearizes a sampled output to the identity) makes the plant's outputs, the contact
     wrench among them, functions of the current state instead of the last step's.
     ``contact_sample_period_s`` (s), when given, samples the contact wrench and
     the contact flag at that period instead of every step.

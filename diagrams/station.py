@@ -1,4 +1,4 @@
-"""The station: what real hardware replaces (DESIGN.md section 1).
+"""The station: what real hardware replaces (docs/architecture.md).
 
 ``MakeStation`` returns a Diagram named ``station`` with the same ports the
 real hardware drivers will have:

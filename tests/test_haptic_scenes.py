@@ -1,4 +1,4 @@
-"""The paper's three rigid demos, run with the whole diagram, against issue 3's acceptance."""
+"""The paper's three rigid demos, run with the whole diagram, against the paper's numbers."""
 
 import numpy as np
 import pytest

@@ -32,7 +32,7 @@ def test_takeoff_hover_land_two_magnet(hover_run):
     assert hold["pose_desired"][2] == pytest.approx(0.018)
     assert hold["position_error_rms_mm"] < 0.05
     assert hold["angle_error_rms_deg"] < 0.1
-    # Hover currents and power as DESIGN.md section 4 states for magnets 25-30 mm up.
+    # Hover currents and power as docs/device_model.md states for magnets 25-30 mm up.
     assert 1.0 < summary["hover_max_coil_current_a"] < 2.0
     assert 25.0 < summary["hover_mean_power_w"] < 70.0
     # Landed gently and is back on the glass with the currents off.

@@ -302,7 +302,7 @@ def test_columns_sum_the_magnets_about_the_instrument_origin(models):
 
 def test_hover_currents_match_the_design_estimate(models):
     """2-magnet instrument level over the array centre, magnet centres 25-30 mm up:
-    DESIGN.md section 4 expects ~1.3-1.7 A in the busiest coil, 30-60 W in all."""
+    The reference device (docs/device_model.md) expects ~1.3-1.7 A in the busiest coil, 30-60 W in all."""
     config = DeviceConfig()
     weight = np.array([0.0, 0.0, config.instrument_spec().mass_kg * GRAVITY, 0.0, 0.0, 0.0])
     resistance = config.coil.resistance_ohm
