@@ -43,7 +43,11 @@ def allocate_currents(A: np.ndarray, wrench: np.ndarray, current_limit_a: float)
     currents = minimum_norm_currents(A, wrench)
     if np.max(np.abs(currents)) <= current_limit_a:
         return currents, wrench - A @ currents, 0
-    scaled = currents * (current_limit_a / np.max(np.abs(currents)))
+    # Rounding can leave a coil a hair past its limit; the limit is a hard one.
+    scaled = np.clip(currents * (current_limit_a / np.max(np.abs(currents))),
+                     -current_limit_a, current_limit_a)
+    # Not scipy's lsq_linear(method="bvls"): the same currents within limits and in 323 of 326
+    # reachable saturating cases, but ~900 us a saturated call (p95 1.9 ms) against ~65 us here.
     free = np.ones(n, dtype=bool)
     pinned = np.zeros(n)
     while free.sum() >= A.shape[0]:
@@ -56,7 +60,6 @@ def allocate_currents(A: np.ndarray, wrench: np.ndarray, current_limit_a: float)
         indices = np.flatnonzero(free)[over]
         pinned[indices] = np.sign(trial[over]) * current_limit_a
         free[indices] = False
-    # Rounding can leave a coil a hair past its limit; the limit is a hard one.
     redistributed = np.clip(pinned, -current_limit_a, current_limit_a)
     shortfall_redistributed = wrench - A @ redistributed
     shortfall_scaled = wrench - A @ scaled

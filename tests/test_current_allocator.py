@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 from pydrake.math import RigidTransform, RollPitchYaw
+from scipy.optimize import lsq_linear
 
 from maglev_haptics.hardware import DeviceConfig
 from maglev_haptics.hardware.magnetics import load_magnetics
@@ -84,3 +85,35 @@ def test_out_of_the_coils_reach_gives_zero_currents_not_an_error(magnetics):
     currents, shortfall, _ = allocate_currents(A, wrench, LIMIT_A)
     assert np.all(np.isfinite(currents)) and np.max(np.abs(currents)) <= LIMIT_A
     np.testing.assert_allclose(shortfall, wrench - A @ currents)
+
+
+def random_allocation_problems(magnetics, rng, count):
+    """(A, wrench, limit) at random hovering poses: the weight plus a random wrench of
+    0.3 to 10 N (and N*m / 50), under the peak or the thermal coil limit (A)."""
+    for _ in range(count):
+        X_AI = RigidTransform(
+            RollPitchYaw(rng.uniform(-0.4, 0.4), rng.uniform(-0.4, 0.4), rng.uniform(-np.pi, np.pi)),
+            [rng.uniform(-0.04, 0.04), rng.uniform(-0.03, 0.03), rng.uniform(0.024, 0.045)])
+        scale = 10 ** rng.uniform(-0.5, 1.0)
+        wrench = np.r_[0.0, 0.0, 0.125 * 9.81, 0.0, 0.0, 0.0] + scale * np.r_[
+            rng.normal(0.0, 1.0, 3), rng.normal(0.0, 0.02, 3)]
+        yield magnetics.wrench_matrix(X_AI), wrench, rng.choice([LIMIT_A, 1.874])
+
+
+def test_matches_bounded_least_squares_within_limits_and_never_beats_it(magnetics):
+    """The allocator against scipy's lsq_linear (BVLS), which it is kept over for speed:
+    the same currents while the minimum-norm ones fit the limits, and beyond them never
+    a smaller shortfall than BVLS's optimum, nor a coil over its limit."""
+    rng = np.random.default_rng(7)
+    within = saturated = 0
+    for A, wrench, limit in random_allocation_problems(magnetics, rng, 300):
+        currents, shortfall, n_saturated = allocate_currents(A, wrench, limit)
+        optimum = lsq_linear(A, wrench, bounds=(-limit, limit), method="bvls", tol=1e-12)
+        assert np.max(np.abs(currents)) <= limit
+        if n_saturated == 0:
+            within += 1
+            np.testing.assert_allclose(currents, optimum.x, rtol=0, atol=1e-9)
+        else:
+            saturated += 1
+            assert np.linalg.norm(shortfall) >= np.linalg.norm(wrench - A @ optimum.x) - 1e-9
+    assert within > 10 and saturated > 10
