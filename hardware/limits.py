@@ -148,7 +148,7 @@ def max_added_wrench(A, base_wrench, directions, current_limit_a):
         raise ValueError(f"directions rows {np.flatnonzero(norms == 0).tolist()}: zero length")
     D = D / norms[:, None]
     k, n = D.shape[0], A.shape[1]
-    blocks = [np.hstack([A, -d[:, None]]) for d in D]
+    blocks = [scipy.sparse.csr_array(np.hstack([A, -d[:, None]])) for d in D]
     cost = np.tile(np.r_[np.zeros(n), -1.0], k)
     bounds = [(-limit, limit)] * n + [(0, None)]
     result = linprog(cost, A_eq=scipy.sparse.block_diag(blocks, format="csr"),

@@ -1,5 +1,7 @@
 """Device limits: the LP's currents, the limits' shape, symmetry, bad input."""
 
+import warnings
+
 import numpy as np
 import pytest
 
@@ -43,6 +45,14 @@ def test_lp_currents_respect_limits_and_achieve_the_wrench(model):
     assert np.allclose(currents @ A.T, targets, rtol=0, atol=1e-6)
     # Optimal: every maximum pins some coil at the limit.
     assert np.all(np.max(np.abs(currents), axis=1) > 2.0 - 1e-6)
+
+
+def test_the_lp_raises_no_warning(model):
+    # scipy deprecates building sparse matrices from dense blocks (the sparse array interface).
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        max_added_wrench(matrix(model), weight_wrench(CONFIG), WRENCH_DIRECTIONS, 2.0)
+        hover_current_a(matrix(model), weight_wrench(CONFIG))
 
 
 def test_limits_from_peak_and_thermal_currents():
