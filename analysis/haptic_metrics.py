@@ -11,7 +11,7 @@ from scipy.signal import butter, sosfiltfilt
 from maglev_haptics.diagrams.deformable_scene import DeformableSurface
 from maglev_haptics.diagrams.scene import HangingBall, PaddleBall, PegInHole
 from maglev_haptics.systems.haptic_supervisor import HAPTIC, LANDING
-from maglev_haptics.systems.rotations import rotation_from_quaternion
+from maglev_haptics.systems.rotations import rotation_matrix, rotations_of_quaternions
 
 CONTACT_GUARD_S = 0.05  # free motion excludes samples this close to any contact (s)
 RELEASE_WINDOW_S = 5.0  # how long a let-go is watched (s)
@@ -165,8 +165,7 @@ def releases(log, rest_height_m: float, debounce_s: float) -> List[Dict]:
 def peg_centers(log, scene: PegInHole) -> np.ndarray:
     """(N, 3) centre of the simulated peg in W (m): ``tool_offset_m`` in the tool's frame."""
     offset = np.asarray(scene.tool_offset_m, float)
-    return np.array([p + rotation_from_quaternion(q) @ offset
-                     for p, q in zip(log["p_WT"], log["q_WT"])])
+    return log["p_WT"] + rotations_of_quaternions(log["q_WT"]).apply(offset)
 
 
 def peg_metrics(log, scene: PegInHole, ramp_s: float) -> Dict:
@@ -219,7 +218,7 @@ def contact_hits(log, ramp_s: float, tool_offset_m) -> List[Dict]:
     for run in _runs((log["tool_in_contact"] > 0.5) & engaged):
         wrench = log["tool_contact_wrench_W"][run]
         k = int(np.argmax(np.abs(wrench[:, 2])))
-        R_WT = rotation_from_quaternion(log["q_WT"][run][k])
+        R_WT = rotation_matrix(log["q_WT"][run][k]).matrix()
         # The contact moment about the paddle's centre (tool_offset_m in T), in T.
         f_T = R_WT.T @ wrench[k, 0:3]
         tau_T = R_WT.T @ wrench[k, 3:6] - np.cross(np.asarray(tool_offset_m, float), f_T)
@@ -229,8 +228,8 @@ def contact_hits(log, ramp_s: float, tool_offset_m) -> List[Dict]:
         x_hit = -tau_T[1] / f_T[2]
         window = slice(run.start, min(run.stop + int(0.05 / np.median(np.diff(t))), len(t)))
         tau_user_y = log["tau_user"][window]
-        R_WI_rows = [rotation_from_quaternion(q) for q in log["q_WI_true"][window]]
-        tau_user_I_y = np.array([R.T @ tau for R, tau in zip(R_WI_rows, tau_user_y)])[:, 1]
+        tau_user_I_y = rotations_of_quaternions(log["q_WI_true"][window]).inv().apply(
+            tau_user_y)[:, 1]
         peak = float(tau_user_I_y[np.argmax(np.abs(tau_user_I_y))])
         hits.append({"time_s": float(t[run.start]), "duration_s": float(t[run.stop - 1] - t[run.start]),
                      "peak_normal_force_n": float(abs(f_T[2])), "x_hit_mm": float(1e3 * x_hit),

@@ -3,11 +3,14 @@ the whole state at t0 to the state one period later (the monodromy matrix when
 the period is the loop's hyperperiod). Stable iff its spectral radius is < 1.
 
 Two ways to get it, the same map:
-- AutoDiff: the diagram converted to AutoDiffXd and simulated from a state
-  seeded with the identity (every system must support AutoDiffXd);
 - central differences: the float diagram simulated from the state perturbed
   up and down along each coordinate (any diagram; randomness that is a pure
-  function of the seed and the sample, as in the tracker, cancels).
+  function of the seed and the sample, as in the tracker, cancels). The loop's
+  studies use these: its systems are float-only compiled kernels;
+- AutoDiff: the diagram converted to AutoDiffXd and simulated from a state
+  seeded with the identity (every system must support AutoDiffXd). It checks
+  the differences once, on a 1-DOF loop of Drake's own systems
+  (tests/test_linearization.py).
 
 Abstract states (discrete modes, flags) are held as they are: the
 linearization is about a fixed mode.
@@ -19,7 +22,7 @@ from fractions import Fraction
 from typing import Callable, Iterable, List, Optional
 
 import numpy as np
-from pydrake.autodiffutils import AutoDiffXd, ExtractGradient, ExtractValue, InitializeAutoDiff
+from pydrake.autodiffutils import AutoDiffXd, ExtractGradient, InitializeAutoDiff
 from pydrake.multibody.plant import MultibodyPlant
 from pydrake.systems.analysis import InitializeParams, Simulator, Simulator_
 
@@ -158,10 +161,6 @@ def monodromy_autodiff(diagram, context, period_s: float,
     if gradient.shape[1] == 0:  # nothing depended on the state
         return np.zeros((len(x0), len(x0)))
     return gradient
-
-
-def autodiff_state_values(context_ad) -> np.ndarray:
-    return ExtractValue(np.array(state_vector(context_ad), dtype=object).reshape(-1, 1)).ravel()
 
 
 @dataclass

@@ -7,9 +7,10 @@ hyperperiod at an operating point, from the very diagram ``maglev run`` simulate
 - ``multirate``: the true loop (an 860 Hz tracker against a 1 kHz controller:
   a 50 ms hyperperiod), compared with the single-rate one over the same time.
 
-The map comes from central differences: not every system of the loop converts to
-AutoDiffXd (the numba-compiled tracker, estimator and allocator), and
-``linearization.py``'s tests show the two agree on the systems that do. States
+The map comes from central differences: the loop's systems are float-only compiled
+kernels (one numeric strategy, no AutoDiffXd), and ``linearization.py``'s tests check
+the differences once against AutoDiff and a hand derivation on a 1-DOF loop built
+from Drake's own systems. States
 that only record or display (the logger's hold, the stereo display) feed nothing
 back and are left out.
 """

@@ -5,22 +5,21 @@ from __future__ import annotations
 from typing import Dict, Optional
 
 import numpy as np
-from pydrake.common.eigen_geometry import Quaternion
-from pydrake.math import RollPitchYaw
+from scipy.spatial.transform import Rotation
 
 from maglev_haptics.diagrams.motion import FlightPlan
 from maglev_haptics.hardware.thermal import (
     coil_thermal, continuous_current_limit_a, steady_state_temperature_c, temperature_after_c,
     winding_resistance_ohm)
 from maglev_haptics.systems.haptic_supervisor import HAPTIC
-from maglev_haptics.systems.rotations import rotation_from_quaternion, rotation_from_rpy
+from maglev_haptics.systems.rotations import rotation_matrix, rotations_of_quaternions
 
 HOVER_SETTLE_S = 0.5  # skipped at the start of each hold before hover errors count (s)
 
 
 def rpy_from_quaternions(q: np.ndarray) -> np.ndarray:
     """(N, 3) roll-pitch-yaw (rad, each unwrapped over time) from (N, 4) [w, x, y, z]."""
-    rpy = np.array([RollPitchYaw(Quaternion(row / np.linalg.norm(row))).vector() for row in q])
+    rpy = rotations_of_quaternions(q).as_euler("xyz")  # extrinsic: Drake's roll-pitch-yaw
     return np.unwrap(rpy, axis=0)
 
 
@@ -112,11 +111,8 @@ def _optional_arrays(data) -> Dict[str, np.ndarray]:
 
 def angle_between_deg(q_WI: np.ndarray, rpy_WD: np.ndarray) -> np.ndarray:
     """Rotation angle (deg) between each measured/true orientation and the setpoint."""
-    angles = []
-    for q, rpy in zip(q_WI, rpy_WD):
-        R = rotation_from_rpy(rpy).T @ rotation_from_quaternion(q)
-        angles.append(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))))
-    return np.array(angles)
+    R_DI = Rotation.from_euler("xyz", rpy_WD).inv() * rotations_of_quaternions(q_WI)
+    return np.degrees(R_DI.magnitude())
 
 
 AIRBORNE_M = 1e-3  # above the rest height by this much counts as flying (m)
@@ -136,7 +132,7 @@ def first_touchdown(log: Dict[str, np.ndarray], rest_height_m: float):
     if not down.any():
         return None
     k = int(np.argmax(down))
-    R_WI = rotation_from_quaternion(log["q_WI_true"][k])
+    R_WI = rotation_matrix(log["q_WI_true"][k]).matrix()
     return {"time_s": float(log["t"][k]),
             "speed_m_s": float(np.linalg.norm(log["V_WI_true"][k, 3:6])),
             "tilt_deg": float(np.degrees(np.arccos(np.clip(R_WI[2, 2], -1.0, 1.0))))}

@@ -22,7 +22,7 @@ import numpy as np  # noqa: E402
 from maglev_haptics.analysis.run_plots import save_figure  # noqa: E402
 
 from maglev_haptics.systems.head_sensor import glasses_pose  # noqa: E402
-from maglev_haptics.systems.rotations import rotation_from_quaternion  # noqa: E402
+from maglev_haptics.systems.rotations import rotations_of_quaternions  # noqa: E402
 from maglev_haptics.systems.stereo import display_rectangle, screen_axes  # noqa: E402
 
 MOVING_SPEED_M_S = 0.05  # the head counts as moving above this eye-midpoint speed (m/s)
@@ -33,8 +33,10 @@ SPEED_RESOLUTION_M_S = 1e-4
 
 def eyes_from_poses(poses: np.ndarray, ipd_m: float) -> np.ndarray:
     """(N, 2, 3) left and right eyes (m) of glasses pose vectors (N, 7) [q, p]."""
-    x_G = np.array([rotation_from_quaternion(q)[:, 0] if np.all(np.isfinite(q))
-                    else np.full(3, np.nan) for q in poses[:, 0:4]])
+    seen = np.all(np.isfinite(poses[:, 0:4]), axis=1)  # NaN while the glasses are lost
+    x_G = np.full((len(poses), 3), np.nan)
+    if seen.any():
+        x_G[seen] = rotations_of_quaternions(poses[seen, 0:4]).apply([1.0, 0.0, 0.0])
     half = x_G * ipd_m / 2
     return np.stack([poses[:, 4:7] - half, poses[:, 4:7] + half], axis=1)
 

@@ -59,6 +59,7 @@ import numpy as np  # noqa: E402
 from matplotlib.colors import LogNorm  # noqa: E402
 from matplotlib.patches import Circle, Rectangle  # noqa: E402
 from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter  # noqa: E402
+from pydrake.math import RollPitchYaw, RotationMatrix  # noqa: E402
 
 from maglev_haptics.diagrams.motion import MAX_TILT_DEG, base_clearance_m  # noqa: E402
 from maglev_haptics.analysis.run_plots import save_figure  # noqa: E402
@@ -69,7 +70,6 @@ from maglev_haptics.hardware.limits import (  # noqa: E402
 from maglev_haptics.hardware.magnetics import MagneticsModel, load_magnetics  # noqa: E402
 from maglev_haptics.hardware.thermal import coil_thermal, winding_resistance_ohm  # noqa: E402
 from maglev_haptics.systems.current_allocator import minimum_norm_currents  # noqa: E402
-from maglev_haptics.systems.rotations import rotation_from_rpy, rpy_from_rotation  # noqa: E402
 
 # Labels of the six axis directions, in hardware.limits.AXIS_DIRECTIONS' order.
 DIRECTIONS = ("+x", "+y", "+z", "-x", "-y", "-z")
@@ -164,7 +164,7 @@ def pose_metrics(magnetics: MagneticsModel, config: DeviceConfig, p_WI, R_WI) ->
     p_WI = np.asarray(p_WI, dtype=float)
     R_WI = np.asarray(R_WI, dtype=float)
     spec = config.instrument_spec()
-    clearance = base_clearance_m(np.r_[p_WI, rpy_from_rotation(R_WI)], spec)
+    clearance = base_clearance_m(np.r_[p_WI, RollPitchYaw(RotationMatrix(R_WI)).vector()], spec)
     metrics = _nan_metrics(clearance)
     if clearance < 0:
         return metrics
@@ -213,7 +213,7 @@ def _slices(settings: WorkspaceSettings) -> dict:
     level = np.eye(3)
 
     def rotation(roll_deg=0.0, pitch_deg=0.0, yaw_deg=0.0):
-        return rotation_from_rpy(np.radians([roll_deg, pitch_deg, yaw_deg]))
+        return RollPitchYaw(np.radians([roll_deg, pitch_deg, yaw_deg])).ToRotationMatrix().matrix()
 
     return {
         "xy": ({"height_m": map_heights, "y_m": ys, "x_m": xs},

@@ -35,7 +35,6 @@ from maglev_haptics.systems.haptic_coupling import (
     CouplingConfig, HapticCoupling, resolved_rotational_gains)
 from maglev_haptics.systems.haptic_supervisor import HapticSupervisor
 from maglev_haptics.systems.meshcat_hand import MeshcatHandInput
-from maglev_haptics.systems.rotations import rotation_from_rpy
 
 
 # The tool's contact wrench and flag feed only the supervisor's let-go decision
@@ -65,7 +64,8 @@ def resolved_coupling_config(scenario: Scenario, magnetics) -> CouplingConfig:
         return config
     device = scenario.device
     pose = hand_start_pose(scenario)  # where the hand grips and haptics starts
-    limits = device_limits(device, pose[0:3] - device.p_WA, rotation_from_rpy(pose[3:6]),
+    R_WI = RollPitchYaw(pose[3:6]).ToRotationMatrix().matrix()
+    limits = device_limits(device, pose[0:3] - device.p_WA, R_WI,
                            limit=config.device_limit, magnetics=magnetics,
                            workspace=(np.zeros(3), np.zeros(3)))
     return dataclasses.replace(

@@ -12,13 +12,13 @@ from dataclasses import dataclass
 from typing import List, Tuple
 
 import numpy as np
+from pydrake.math import RollPitchYaw
 from pydrake.trajectories import PiecewisePolynomial
 
 from maglev_haptics.diagrams.scenario import ScenarioError
 from maglev_haptics.systems.blends import LANDING_PRESS_M, minimum_jerk_samples
 from maglev_haptics.systems.current_allocator import allocate_currents
 from maglev_haptics.hardware.constants import GRAVITY_M_S2
-from maglev_haptics.systems.rotations import rotation_from_rpy
 
 IDLE_AFTER_S = 0.2  # the script ends this long after the currents are ramped to zero
 HOLD_MARGIN = 1.2  # a waypoint must be holdable with this multiple of the weight
@@ -95,7 +95,7 @@ def base_clearance_m(pose, spec) -> float:
     """Height (m) of the lowest corner of the instrument's base above the glass at ``pose``."""
     a, b, c = spec.body_size_m
     corners = np.array([[sx * a / 2, sy * b / 2, -c / 2] for sx in (-1, 1) for sy in (-1, 1)])
-    R_WI = rotation_from_rpy(np.asarray(pose[3:6], float))
+    R_WI = RollPitchYaw(np.asarray(pose[3:6], float)).ToRotationMatrix().matrix()
     return float(np.min(pose[2] + corners @ R_WI[2]))
 
 
@@ -111,7 +111,8 @@ def check_waypoints_reachable(motion, device, magnetics, label: str) -> None:
     for i, waypoint in enumerate(motion.waypoints):
         pose = np.asarray(waypoint.pose, float)
         field_name = f"{label}: motion.waypoints[{i}].pose"
-        tilt_deg = np.degrees(np.arccos(np.clip(rotation_from_rpy(pose[3:6])[2, 2], -1, 1)))
+        R_WI = RollPitchYaw(pose[3:6]).ToRotationMatrix().matrix()
+        tilt_deg = np.degrees(np.arccos(np.clip(R_WI[2, 2], -1, 1)))
         if tilt_deg > MAX_TILT_DEG:
             raise ScenarioError(
                 f"{field_name} = {waypoint.pose}: tilt {tilt_deg:.1f} deg is beyond the "
@@ -121,7 +122,7 @@ def check_waypoints_reachable(motion, device, magnetics, label: str) -> None:
             raise ScenarioError(
                 f"{field_name} = {waypoint.pose}: unreachable, the instrument's base would be "
                 f"{-1e3 * clearance:.1f} mm inside the display glass (z must keep it above W's z = 0)")
-        A = magnetics.wrench_matrix_from(pose[0:3] - device.p_WA, rotation_from_rpy(pose[3:6]))
+        A = magnetics.wrench_matrix_from(pose[0:3] - device.p_WA, R_WI)
         if np.linalg.matrix_rank(A) < 6:
             cutoffs = magnetics.cutoffs()
             raise ScenarioError(

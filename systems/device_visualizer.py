@@ -8,7 +8,7 @@ from pydrake.geometry import Cylinder, Meshcat, Rgba, Sphere
 from pydrake.math import RigidTransform, RollPitchYaw, RotationMatrix
 from pydrake.systems.framework import LeafSystem
 
-from maglev_haptics.systems.rotations import rotation_from_quaternion
+from maglev_haptics.systems.rotations import rigid_transform
 
 COIL_PATH = "/device/coils"
 SETPOINT_PATH = "/device/setpoint"
@@ -88,8 +88,7 @@ class DeviceVisualizer(LeafSystem):
         meshcat.SetTransform(SETPOINT_PATH, RigidTransform(
             RollPitchYaw(setpoint[3:6]), setpoint[0:3]))
         pose = self._pose.Eval(context)
-        meshcat.SetTransform(MEASURED_PATH, RigidTransform(
-            RotationMatrix(rotation_from_quaternion(pose[0:4])), pose[4:7]))
+        meshcat.SetTransform(MEASURED_PATH, rigid_transform(pose))
         meshcat.SetTransform(FORCE_PATH, force_rod_transform(
             pose[4:7], self._rendered.Eval(context)[0:3]))
         markers = self._markers.Eval(context).reshape(-1, 3)

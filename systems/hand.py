@@ -34,17 +34,17 @@ spring-damper k, b on a mass m is then stable iff k h^2 / m + 2 b h / m < 4;
 from dataclasses import dataclass, field
 from typing import List
 
+import numba
 import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.multibody.tree import SpatialInertia
 from pydrake.systems.framework import LeafSystem, ValueProducer
 
-from maglev_haptics.systems.float_twins import float64_twins
 from maglev_haptics.systems.haptic_coupling import coupling_wrenches
 from maglev_haptics.hardware.constants import GRAVITY_M_S2
 from maglev_haptics.systems.rotations import (
-    angular_velocity_from_rpy_rates, quaternion_from_rotation_matrix, rotation_from_quaternion,
-    rotation_from_rpy)
+    angular_velocity_from_rpy_rates, pose_vector, quaternion_from_rotation_matrix,
+    rigid_transform, rotation_from_quaternion, rotation_from_rpy)
 
 HAND_MODEL_URL = "package://maglev_haptics/hand.sdf"
 HAND_BODY_NAME = "hand"
@@ -115,6 +115,8 @@ def hand_spatial_inertia(mass_kg: float) -> SpatialInertia:
     return SpatialInertia.SolidEllipsoidWithMass(mass_kg, *HAND_SEMI_AXES_M)
 
 
+# The arm and the grip act every plant step (1 kHz): compiled by numba.
+@numba.njit(cache=True)
 def arm_wrench(X_WH, V_WH, target, k, b, mass_kg):
     """Wrench [f; tau] in W (N, N*m) of the arm on the hand, about H's origin: the
     spring-damper toward ``target`` (12) plus the hand's weight carried."""
@@ -126,6 +128,7 @@ def arm_wrench(X_WH, V_WH, target, k, b, mass_kg):
     return on_hand
 
 
+@numba.njit(cache=True)
 def grip_wrenches(X_WH, V_WH, X_WI, V_WI, X_HI, k, b):
     """(wrench on the hand about H's origin, wrench on the instrument about I's
     origin), each [f; tau] in W (N, N*m), of the grip relaxed at ``X_HI`` (7)."""
@@ -134,6 +137,7 @@ def grip_wrenches(X_WH, V_WH, X_WI, V_WI, X_HI, k, b):
     return on_hand, on_instrument
 
 
+@numba.njit(cache=True)
 def hand_wrenches(hand_state, instrument_state, target, gripped, X_HI, k_arm, b_arm, k_grip,
                   b_grip, mass_kg):
     """(total wrench on the hand, wrench on the instrument), each [f; tau] in W about the
@@ -149,10 +153,7 @@ def hand_wrenches(hand_state, instrument_state, target, gripped, X_HI, k_arm, b_
 
 def latch_X_HI(X_WH, X_WI) -> np.ndarray:
     """X_HI = X_WH^-1 X_WI as a pose vector [qw, qx, qy, qz, x, y, z] (m)."""
-    R_WH = rotation_from_quaternion(np.asarray(X_WH[0:4], float))
-    R_WI = rotation_from_quaternion(np.asarray(X_WI[0:4], float))
-    p_HI = R_WH.T @ (np.asarray(X_WI[4:7], float) - X_WH[4:7])
-    return np.concatenate((quaternion_from_rotation_matrix(R_WH.T @ R_WI), p_HI))
+    return pose_vector(rigid_transform(X_WH).InvertAndCompose(rigid_transform(X_WI)))
 
 
 def grip_update(gripped: float, X_HI, grip_command: float, X_WH, X_WI):
@@ -199,12 +200,6 @@ def explicit_step_spectral_radius(config: HandImpedanceConfig, instrument_mass_k
         for step in (empty, gripped):
             radius = max(radius, float(np.max(np.abs(np.linalg.eigvals(step)))))
     return radius
-
-
-# The 1 kHz float path: the same source compiled by numba.
-_FLOAT64 = float64_twins(rotation_from_quaternion, rotation_from_rpy,
-                         angular_velocity_from_rpy_rates, quaternion_from_rotation_matrix,
-                         coupling_wrenches, arm_wrench, grip_wrenches, hand_wrenches)
 
 
 class SimulatedHand(LeafSystem):
@@ -283,7 +278,7 @@ class SimulatedHand(LeafSystem):
 
     def _calc_wrenches(self, context, value):
         """(wrench on the hand, wrench on the instrument)."""
-        value.set_value(_FLOAT64.hand_wrenches(
+        value.set_value(hand_wrenches(
             self._hand_state.Eval(context), self._instrument_state.Eval(context),
             self._target.Eval(context), context.get_discrete_state(self._gripped).GetAtIndex(0),
             context.get_discrete_state(self._X_HI).CopyToVector(), self._k_arm, self._b_arm,

@@ -40,15 +40,14 @@ import dataclasses
 from dataclasses import dataclass, field
 from typing import List, Optional
 
+import numba
 import numpy as np
-from pydrake.autodiffutils import AutoDiffXd
 from pydrake.common.value import AbstractValue
 from pydrake.math import RigidTransform
-from pydrake.systems.framework import LeafSystem_, ValueProducer
-from pydrake.systems.scalar_conversion import TemplateSystem
+from pydrake.systems.framework import LeafSystem, ValueProducer
 
-from maglev_haptics.systems.float_twins import float64_twins
 from maglev_haptics.systems.rotations import rotation_from_quaternion
+
 
 @dataclass
 class CouplingConfig:
@@ -117,6 +116,8 @@ def coupling_gains(config: CouplingConfig):
     return k, b
 
 
+# The coupling's law runs at 1 kHz (and as the hand's arm and grip): compiled by numba.
+@numba.njit(cache=True)
 def coupling_wrenches(X_WI, V_WI, X_WT, V_WT, R_IT, p_IT, k, b):
     """(wrench on the tool about its origin, wrench on the instrument about its
     origin), each [f; tau] in W (N, N*m); see the module docstring for the law."""
@@ -139,6 +140,7 @@ def coupling_wrenches(X_WI, V_WI, X_WT, V_WT, R_IT, p_IT, k, b):
     return on_tool, on_instrument
 
 
+@numba.njit(cache=True)
 def spring_potential(X_WI, X_WT, R_IT, p_IT, k):
     """Energy (J) stored in the coupling's springs; the spring wrenches derive from it."""
     R_WI = rotation_from_quaternion(X_WI[0:4])
@@ -149,13 +151,13 @@ def spring_potential(X_WI, X_WT, R_IT, p_IT, k):
     return 0.5 * (k[0:3] @ (d * d)) + g @ (1.0 - np.array([R_E[0, 0], R_E[1, 1], R_E[2, 2]]))
 
 
+@numba.njit(cache=True)
 def clamp_scale(wrench, max_force_n, max_torque_nm):
     """Factor in (0, 1] that scales the whole wrench to within both limits (N, N*m),
     preserving its direction; 1 when it is within them."""
     f2 = wrench[0:3] @ wrench[0:3]
     t2 = wrench[3:6] @ wrench[3:6]
     scale = 1.0
-    # Norms only above the limits: sqrt at zero has no AutoDiff derivative.
     if f2 > max_force_n * max_force_n:
         scale = max_force_n / np.sqrt(f2)
     if t2 > max_torque_nm * max_torque_nm:
@@ -165,6 +167,7 @@ def clamp_scale(wrench, max_force_n, max_torque_nm):
     return scale
 
 
+@numba.njit(cache=True)
 def limited_wrenches(X_WI, V_WI, X_WT, V_WT, R_IT, p_IT, k, b, fraction, max_force_n,
                      max_torque_nm):
     """``coupling_wrenches`` both scaled by the one factor that brings the
@@ -182,131 +185,109 @@ def velocity_filter_gain(corner_hz: float, period_s: float) -> float:
     return float(1.0 - np.exp(-2.0 * np.pi * corner_hz * period_s))
 
 
-def ramp_step(fraction, enable, period_s, ramp_s):
+def ramp_step(fraction: float, enable: float, period_s: float, ramp_s: float) -> float:
     """The ramp fraction (0..1) after one period (s): grows by period / ramp_s while
     enabled, resets to 0 when disabled so the next enable ramps again."""
     if enable < 0.5:
-        return 0.0 * fraction
+        return 0.0
     if ramp_s <= 0.0:
-        return 0.0 * fraction + 1.0
-    grown = fraction + period_s / ramp_s
-    return 0.0 * fraction + 1.0 if grown > 1.0 else grown
+        return 1.0
+    return min(fraction + period_s / ramp_s, 1.0)
 
 
-# The 1 kHz float path: the same source compiled by numba.
-_FLOAT64 = float64_twins(rotation_from_quaternion, coupling_wrenches, clamp_scale,
-                         limited_wrenches)
+class HapticCoupling(LeafSystem):
+    """Virtual coupling between the measured instrument and the scene's tool,
+    with a safe force ramp at haptics start and a direction-preserving clamp.
 
+    .. pydrake_system::
 
-@TemplateSystem.define("HapticCoupling_", T_list=[float, AutoDiffXd])
-def HapticCoupling_(T):
+        name: HapticCoupling
+        input_ports:
+        - X_WI_measured
+        - V_WI_measured
+        - X_WT
+        - V_WT
+        - haptics_enable
+        output_ports:
+        - wrench_on_tool_W
+        - wrench_feedforward_W
+        - coupling_clamped
 
-    class Impl(LeafSystem_[T]):
-        """Virtual coupling between the measured instrument and the scene's tool,
-        with a safe force ramp at haptics start and a direction-preserving clamp.
+    ``wrench_on_tool_W`` drives the tool (about its origin): the tool
+    always follows the instrument, so the virtual tool is where the hand
+    is whether or not haptics is on. ``wrench_feedforward_W`` is its
+    opposite on the instrument (about the instrument's origin), for the
+    levitation controller's feed-forward input, times the ramp fraction:
+    what the user feels. Both are scaled by one factor so the instrument's
+    full wrench is within the limits (the tool is never driven harder than
+    the device could render); ``coupling_clamped`` is 1 when that factor
+    is below 1. The discrete state (updated every period_s) is the ramp
+    fraction 0..1, which grows by period / ramp_s each period while
+    ``haptics_enable`` > 0.5 and resets to 0 otherwise (so the user feels
+    nothing while disabled), and the low-passed V_WI_measured the damper
+    uses; the outputs do not feed ``V_WI_measured`` through.
+    """
 
-        .. pydrake_system::
+    def __init__(self, *, config: CouplingConfig, period_s: float,
+                 X_IT: RigidTransform = RigidTransform()):
+        LeafSystem.__init__(self)
+        for name in ("max_force_n", "max_torque_nm", "rotational_stiffness",
+                     "rotational_damping"):
+            if getattr(config, name) is None:
+                raise ValueError(f"CouplingConfig.{name} is None: give a value, or let "
+                                 "the diagram builder derive it from the device")
+        self._config = config
+        self._period_s = float(period_s)
+        # Writable C-ordered copies: the argument types the kernel is compiled for.
+        self._R_IT = np.array(X_IT.rotation().matrix(), order="C")
+        self._p_IT = np.array(X_IT.translation())
+        self._k, self._b = coupling_gains(config)
+        self._X_WI = self.DeclareVectorInputPort("X_WI_measured", 7)
+        self._V_WI = self.DeclareVectorInputPort("V_WI_measured", 6)
+        self._X_WT = self.DeclareVectorInputPort("X_WT", 7)
+        self._V_WT = self.DeclareVectorInputPort("V_WT", 6)
+        self._enable = self.DeclareVectorInputPort("haptics_enable", 1)
+        self._ramp = self.DeclareDiscreteState(1)
+        self._V_WI_filtered = self.DeclareDiscreteState(6)
+        self._alpha = velocity_filter_gain(config.velocity_filter_hz, period_s)
+        self.DeclarePeriodicDiscreteUpdateEvent(period_s, 0.0, self._update)
+        # The scene reads one output and the controller the other: compute once.
+        self._cache = self.DeclareCacheEntry(
+            description="limited wrenches",
+            value_producer=ValueProducer(allocate=AbstractValue.Make(()).Clone,
+                                         calc=self._calc_cache),
+            prerequisites_of_calc={self._X_WI.ticket(), self._X_WT.ticket(),
+                                   self._V_WT.ticket(), self._enable.ticket(),
+                                   self.xd_ticket()})
+        self.DeclareVectorOutputPort("wrench_on_tool_W", 6, self._calc_on_tool)
+        self.DeclareVectorOutputPort("wrench_feedforward_W", 6, self._calc_feedforward)
+        self.DeclareVectorOutputPort("coupling_clamped", 1, self._calc_clamped)
 
-            name: HapticCoupling
-            input_ports:
-            - X_WI_measured
-            - V_WI_measured
-            - X_WT
-            - V_WT
-            - haptics_enable
-            output_ports:
-            - wrench_on_tool_W
-            - wrench_feedforward_W
-            - coupling_clamped
+    def _update(self, context, discrete_state):
+        fraction = ramp_step(context.get_discrete_state(self._ramp).GetAtIndex(0),
+                             self._enable.Eval(context)[0], self._period_s, self._config.ramp_s)
+        discrete_state.get_mutable_vector(self._ramp).SetAtIndex(0, fraction)
+        filtered = context.get_discrete_state(self._V_WI_filtered).CopyToVector()
+        filtered = filtered + self._alpha * (self._V_WI.Eval(context) - filtered)
+        discrete_state.get_mutable_vector(self._V_WI_filtered).SetFromVector(filtered)
 
-        ``wrench_on_tool_W`` drives the tool (about its origin): the tool
-        always follows the instrument, so the virtual tool is where the hand
-        is whether or not haptics is on. ``wrench_feedforward_W`` is its
-        opposite on the instrument (about the instrument's origin), for the
-        levitation controller's feed-forward input, times the ramp fraction:
-        what the user feels. Both are scaled by one factor so the instrument's
-        full wrench is within the limits (the tool is never driven harder than
-        the device could render); ``coupling_clamped`` is 1 when that factor
-        is below 1. The discrete state (updated every period_s) is the ramp
-        fraction 0..1, which grows by period / ramp_s each period while
-        ``haptics_enable`` > 0.5 and resets to 0 otherwise (so the user feels
-        nothing while disabled), and the low-passed V_WI_measured the damper
-        uses; the outputs do not feed ``V_WI_measured`` through.
-        """
+    def _calc_cache(self, context, value):
+        """(wrench on tool, wrench on instrument, clamp factor) after ramp and clamp."""
+        fraction = context.get_discrete_state(self._ramp).GetAtIndex(0)
+        if self._enable.Eval(context)[0] < 0.5:
+            fraction = 0.0
+        value.set_value(limited_wrenches(
+            self._X_WI.Eval(context),
+            context.get_discrete_state(self._V_WI_filtered).CopyToVector(),
+            self._X_WT.Eval(context),
+            self._V_WT.Eval(context), self._R_IT, self._p_IT, self._k, self._b, fraction,
+            self._config.max_force_n, self._config.max_torque_nm))
 
-        def _construct(self, *, config: CouplingConfig, period_s: float,
-                       X_IT: RigidTransform = RigidTransform(), converter=None):
-            LeafSystem_[T].__init__(self, converter)
-            for name in ("max_force_n", "max_torque_nm", "rotational_stiffness",
-                         "rotational_damping"):
-                if getattr(config, name) is None:
-                    raise ValueError(f"CouplingConfig.{name} is None: give a value, or let "
-                                     "the diagram builder derive it from the device")
-            self._config = config
-            self._period_s = float(period_s)
-            self._X_IT = RigidTransform(X_IT)
-            # Writable C-ordered copies: the argument types the numba twin is compiled for.
-            self._R_IT = np.array(X_IT.rotation().matrix(), order="C")
-            self._p_IT = np.array(X_IT.translation())
-            self._k, self._b = coupling_gains(config)
-            self._limited_wrenches = (_FLOAT64.limited_wrenches if T is float
-                                      else limited_wrenches)
-            self._X_WI = self.DeclareVectorInputPort("X_WI_measured", 7)
-            self._V_WI = self.DeclareVectorInputPort("V_WI_measured", 6)
-            self._X_WT = self.DeclareVectorInputPort("X_WT", 7)
-            self._V_WT = self.DeclareVectorInputPort("V_WT", 6)
-            self._enable = self.DeclareVectorInputPort("haptics_enable", 1)
-            self._ramp = self.DeclareDiscreteState(1)
-            self._V_WI_filtered = self.DeclareDiscreteState(6)
-            self._alpha = velocity_filter_gain(config.velocity_filter_hz, period_s)
-            self.DeclarePeriodicDiscreteUpdateEvent(period_s, 0.0, self._update)
-            # The scene reads one output and the controller the other: compute once.
-            self._cache = self.DeclareCacheEntry(
-                description="limited wrenches",
-                value_producer=ValueProducer(allocate=AbstractValue.Make(()).Clone,
-                                             calc=self._calc_cache),
-                prerequisites_of_calc={self._X_WI.ticket(), self._X_WT.ticket(),
-                                       self._V_WT.ticket(), self._enable.ticket(),
-                                       self.xd_ticket()})
-            self.DeclareVectorOutputPort("wrench_on_tool_W", 6, self._calc_on_tool)
-            self.DeclareVectorOutputPort("wrench_feedforward_W", 6, self._calc_feedforward)
-            self.DeclareVectorOutputPort("coupling_clamped", 1, self._calc_clamped)
+    def _calc_on_tool(self, context, output):
+        output.SetFromVector(self._cache.Eval(context)[0])
 
-        def _construct_copy(self, other, converter=None):
-            Impl._construct(self, config=other._config, period_s=other._period_s,
-                            X_IT=other._X_IT, converter=converter)
+    def _calc_feedforward(self, context, output):
+        output.SetFromVector(self._cache.Eval(context)[1])
 
-        def _update(self, context, discrete_state):
-            fraction = context.get_discrete_state(self._ramp).CopyToVector()[0]
-            fraction = ramp_step(fraction, self._enable.Eval(context)[0], self._period_s,
-                                 self._config.ramp_s)
-            discrete_state.get_mutable_vector(self._ramp).SetFromVector([fraction])
-            filtered = context.get_discrete_state(self._V_WI_filtered).CopyToVector()
-            filtered = filtered + self._alpha * (self._V_WI.Eval(context) - filtered)
-            discrete_state.get_mutable_vector(self._V_WI_filtered).SetFromVector(filtered)
-
-        def _calc_cache(self, context, value):
-            """(wrench on tool, wrench on instrument, clamp factor) after ramp and clamp."""
-            fraction = context.get_discrete_state(self._ramp).CopyToVector()[0]
-            if self._enable.Eval(context)[0] < 0.5:
-                fraction = 0.0 * fraction
-            value.set_value(self._limited_wrenches(
-                self._X_WI.Eval(context),
-                context.get_discrete_state(self._V_WI_filtered).CopyToVector(),
-                self._X_WT.Eval(context),
-                self._V_WT.Eval(context), self._R_IT, self._p_IT, self._k, self._b, fraction,
-                self._config.max_force_n, self._config.max_torque_nm))
-
-        def _calc_on_tool(self, context, output):
-            output.SetFromVector(self._cache.Eval(context)[0])
-
-        def _calc_feedforward(self, context, output):
-            output.SetFromVector(self._cache.Eval(context)[1])
-
-        def _calc_clamped(self, context, output):
-            output.SetFromVector([1.0 if self._cache.Eval(context)[2] < 1.0 else 0.0])
-
-    return Impl
-
-
-HapticCoupling = HapticCoupling_[None]
+    def _calc_clamped(self, context, output):
+        output.SetFromVector([1.0 if self._cache.Eval(context)[2] < 1.0 else 0.0])

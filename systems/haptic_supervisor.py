@@ -28,13 +28,11 @@ m/s, rad/s), as the controller's input.
 from dataclasses import dataclass
 
 import numpy as np
-from pydrake.autodiffutils import AutoDiffXd
-from pydrake.systems.framework import LeafSystem_
-from pydrake.systems.scalar_conversion import TemplateSystem
+from pydrake.common.eigen_geometry import Quaternion
+from pydrake.math import RollPitchYaw
+from pydrake.systems.framework import LeafSystem
 
 from maglev_haptics.systems.blends import LANDING_PRESS_M, clipped_minimum_jerk
-from maglev_haptics.systems.float_twins import scalar_value
-from maglev_haptics.systems.rotations import rotation_from_quaternion, rpy_from_rotation
 
 LEVITATE, HAPTIC, LANDING = 0, 1, 2
 
@@ -68,7 +66,8 @@ def initial_supervisor_state() -> np.ndarray:
 def measured_pose6(X_WI, reference_yaw: float) -> np.ndarray:
     """[x, y, z, roll, pitch, yaw] of a [q; p] pose, yaw unwrapped to within pi of
     ``reference_yaw`` (rad) so a blend from it to the script turns the short way."""
-    rpy = rpy_from_rotation(rotation_from_quaternion(np.asarray(X_WI[0:4], float)))
+    q_WI = np.asarray(X_WI[0:4], float)
+    rpy = RollPitchYaw(Quaternion(q_WI / np.linalg.norm(q_WI))).vector()
     rpy[2] = reference_yaw + (rpy[2] - reference_yaw + np.pi) % (2 * np.pi) - np.pi
     return np.concatenate((np.asarray(X_WI[4:7], float), rpy))
 
@@ -148,109 +147,84 @@ def supervisor_setpoint(state: np.ndarray, t: float, scripted, rest_height_m: fl
     return scripted
 
 
-@TemplateSystem.define("HapticSupervisor_", T_list=[float, AutoDiffXd])
-def HapticSupervisor_(T):
+class HapticSupervisor(LeafSystem):
+    """The device's mode logic (see the module docstring).
 
-    class Impl(LeafSystem_[T]):
-        """The device's mode logic (see the module docstring).
+    .. pydrake_system::
 
-        .. pydrake_system::
+        name: HapticSupervisor
+        input_ports:
+        - scripted_setpoint
+        - scripted_enable
+        - X_WI_measured
+        - tracking_ok
+        - haptics_request
+        - handle_gripped
+        - tool_in_contact
+        output_ports:
+        - setpoint
+        - enable
+        - pd_gain
+        - brake_gain
+        - haptics_enable
+        - mode
 
-            name: HapticSupervisor
-            input_ports:
-            - scripted_setpoint
-            - scripted_enable
-            - X_WI_measured
-            - tracking_ok
-            - haptics_request
-            - handle_gripped
-            - tool_in_contact
-            output_ports:
-            - setpoint
-            - enable
-            - pd_gain
-            - brake_gain
-            - haptics_enable
-            - mode
+    The discrete state (updated every ``period_s``) holds the mode, the
+    time and measured pose of the last mode change, the PD and force
+    gains and the release and contact timers, and, in groups of their
+    own, what ``pd_gain``, ``brake_gain``, ``haptics_enable`` and ``mode``
+    output (``supervisor_gains``).
+    """
 
-        The discrete state (updated every ``period_s``) holds the mode, the
-        time and measured pose of the last mode change, the PD and force
-        gains and the release and contact timers, and, in groups of their
-        own, what ``pd_gain``, ``brake_gain``, ``haptics_enable`` and ``mode``
-        output (``supervisor_gains``). The mode logic runs on values, so
-        under AutoDiffXd the state carries no derivatives and the scripted
-        setpoint passes through with its own.
-        """
+    def __init__(self, *, config: SupervisorConfig, period_s: float, rest_height_m: float):
+        LeafSystem.__init__(self)
+        self._config = config
+        self._period_s = float(period_s)
+        self._rest_height_m = float(rest_height_m)
+        self._scripted = self.DeclareVectorInputPort("scripted_setpoint", 12)
+        self._scripted_enable = self.DeclareVectorInputPort("scripted_enable", 1)
+        self._X_WI = self.DeclareVectorInputPort("X_WI_measured", 7)
+        self._tracking_ok = self.DeclareVectorInputPort("tracking_ok", 1)
+        self._request = self.DeclareVectorInputPort("haptics_request", 1)
+        self._gripped = self.DeclareVectorInputPort("handle_gripped", 1)
+        self._in_contact = self.DeclareVectorInputPort("tool_in_contact", 1)
+        self._state = self.DeclareDiscreteState(initial_supervisor_state())
+        self.DeclarePeriodicDiscreteUpdateEvent(period_s, 0.0, self._update)
+        # Outputs read the state and at most the script: none feeds through the
+        # measurements, so the loop through the scene has no algebraic loop.
+        state = {self.xd_ticket()}
+        self.DeclareVectorOutputPort(
+            "setpoint", 12, self._calc_setpoint,
+            state | {self.time_ticket(), self._scripted.ticket()})
+        self.DeclareVectorOutputPort("enable", 1, self._calc_enable,
+                                     state | {self._scripted_enable.ticket()})
+        # The gains and the mode are kept as state groups of their own, so their
+        # ports are plain state outputs read every tick without calling Python.
+        initial = supervisor_gains(initial_supervisor_state(), config)
+        self._gains = {name: self.DeclareDiscreteState([value])
+                       for name, value in zip(_GAIN_OUTPUTS, initial)}
+        for name, group in self._gains.items():
+            self.DeclareStateOutputPort(name, group)
 
-        def _construct(self, *, config: SupervisorConfig, period_s: float,
-                       rest_height_m: float, converter=None):
-            LeafSystem_[T].__init__(self, converter)
-            self._config = config
-            self._period_s = float(period_s)
-            self._rest_height_m = float(rest_height_m)
-            self._scripted = self.DeclareVectorInputPort("scripted_setpoint", 12)
-            self._scripted_enable = self.DeclareVectorInputPort("scripted_enable", 1)
-            self._X_WI = self.DeclareVectorInputPort("X_WI_measured", 7)
-            self._tracking_ok = self.DeclareVectorInputPort("tracking_ok", 1)
-            self._request = self.DeclareVectorInputPort("haptics_request", 1)
-            self._gripped = self.DeclareVectorInputPort("handle_gripped", 1)
-            self._in_contact = self.DeclareVectorInputPort("tool_in_contact", 1)
-            self._state = self.DeclareDiscreteState(initial_supervisor_state())
-            self.DeclarePeriodicDiscreteUpdateEvent(period_s, 0.0, self._update)
-            # Outputs read the state and at most the script: none feeds through the
-            # measurements, so the loop through the scene has no algebraic loop.
-            state = {self.xd_ticket()}
-            self.DeclareVectorOutputPort(
-                "setpoint", 12, self._calc_setpoint,
-                state | {self.time_ticket(), self._scripted.ticket()})
-            self.DeclareVectorOutputPort("enable", 1, self._calc_enable,
-                                         state | {self._scripted_enable.ticket()})
-            # The gains and the mode are kept as state groups of their own, so their
-            # ports are plain state outputs read every tick without calling Python.
-            initial = supervisor_gains(initial_supervisor_state(), config)
-            self._gains = {name: self.DeclareDiscreteState([value])
-                           for name, value in zip(_GAIN_OUTPUTS, initial)}
-            for name, group in self._gains.items():
-                self.DeclareStateOutputPort(name, group)
+    def _values(self, context) -> np.ndarray:
+        return context.get_discrete_state(self._state).CopyToVector()
 
-        def _construct_copy(self, other, converter=None):
-            Impl._construct(self, config=other._config, period_s=other._period_s,
-                            rest_height_m=other._rest_height_m, converter=converter)
+    def _update(self, context, discrete_state):
+        new = supervisor_step(
+            self._values(context), context.get_time(), self._period_s,
+            self._scripted.Eval(context)[0:6], self._X_WI.Eval(context),
+            self._tracking_ok.Eval(context)[0] > 0.5, self._request.Eval(context)[0] > 0.5,
+            self._gripped.Eval(context)[0] > 0.5, self._in_contact.Eval(context)[0] > 0.5,
+            self._config)
+        discrete_state.get_mutable_vector(self._state).SetFromVector(new)
+        for name, value in zip(_GAIN_OUTPUTS, supervisor_gains(new, self._config)):
+            discrete_state.get_mutable_vector(self._gains[name]).SetAtIndex(0, value)
 
-        def _values(self, context) -> np.ndarray:
-            state = context.get_discrete_state(self._state).CopyToVector()
-            return state if T is float else np.array([scalar_value(x) for x in state])
+    def _calc_setpoint(self, context, output):
+        output.SetFromVector(supervisor_setpoint(
+            self._values(context), context.get_time(), self._scripted.Eval(context),
+            self._rest_height_m, self._config))
 
-        def _update(self, context, discrete_state):
-            scripted = self._scripted.Eval(context)[0:6]
-            X_WI = self._X_WI.Eval(context)
-            if T is not float:
-                scripted = np.array([scalar_value(x) for x in scripted])
-                X_WI = np.array([scalar_value(x) for x in X_WI])
-            new = supervisor_step(
-                self._values(context), scalar_value(context.get_time()), self._period_s,
-                scripted, X_WI,
-                scalar_value(self._tracking_ok.Eval(context)[0]) > 0.5,
-                scalar_value(self._request.Eval(context)[0]) > 0.5,
-                scalar_value(self._gripped.Eval(context)[0]) > 0.5,
-                scalar_value(self._in_contact.Eval(context)[0]) > 0.5, self._config)
-            discrete_state.get_mutable_vector(self._state).SetFromVector(
-                new if T is float else np.array([T(x) for x in new]))
-            for name, value in zip(_GAIN_OUTPUTS, supervisor_gains(new, self._config)):
-                discrete_state.get_mutable_vector(self._gains[name]).SetFromVector([T(value)])
-
-        def _calc_setpoint(self, context, output):
-            scripted = self._scripted.Eval(context)
-            setpoint = supervisor_setpoint(self._values(context), scalar_value(context.get_time()),
-                                           scripted, self._rest_height_m, self._config)
-            output.SetFromVector(setpoint if setpoint is scripted or T is float
-                                 else np.array([T(x) for x in setpoint]))
-
-        def _calc_enable(self, context, output):
-            gain = self._values(context)[_ENABLE]
-            output.SetFromVector(gain * self._scripted_enable.Eval(context))
-
-    return Impl
-
-
-HapticSupervisor = HapticSupervisor_[None]
+    def _calc_enable(self, context, output):
+        gain = self._values(context)[_ENABLE]
+        output.SetFromVector(gain * self._scripted_enable.Eval(context))

@@ -22,11 +22,11 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from pydrake.math import RotationMatrix
 from pydrake.systems.framework import LeafSystem
 
 from maglev_haptics.systems.pose_estimator import MarkerModel, fit_pose
-from maglev_haptics.systems.rotations import (
-    quaternion_from_rotation_matrix, rotation_from_quaternion)
+from maglev_haptics.systems.rotations import rotation_matrix
 
 HEAD_POSE_SIZE = 8
 MEASUREMENT_SIZE = 9  # [t_capture, q (4), p (3), ok]
@@ -70,10 +70,11 @@ def glasses_rotation(p_WG, look_at_W, heading_rad: float, roll_rad: float) -> np
 
 
 def glasses_pose(head_pose) -> tuple:
-    """(q_WG, p_WG) of a ``head_pose`` vector [p_WG, look-at, heading, roll]."""
+    """(q_WG, p_WG) of a ``head_pose`` vector [p_WG, look-at, heading, roll]: the
+    quaternion [w, x, y, z] and the position (m)."""
     head_pose = np.asarray(head_pose, float)
     R_WG = glasses_rotation(head_pose[0:3], head_pose[3:6], head_pose[6], head_pose[7])
-    return quaternion_from_rotation_matrix(R_WG), head_pose[0:3].copy()
+    return RotationMatrix(R_WG).ToQuaternion().wxyz(), head_pose[0:3].copy()
 
 
 def measure_glasses(head_pose, p_GK: np.ndarray, noise_m: float, rng) -> np.ndarray:
@@ -82,7 +83,7 @@ def measure_glasses(head_pose, p_GK: np.ndarray, noise_m: float, rng) -> np.ndar
     if not np.all(np.isfinite(head_pose)):
         return np.full(7, np.nan)
     q_WG, p_WG = glasses_pose(head_pose)
-    R_WG = rotation_from_quaternion(q_WG)
+    R_WG = rotation_matrix(q_WG).matrix()
     p_WK = p_WG + p_GK @ R_WG.T + rng.normal(0.0, noise_m, p_GK.shape)
     x_WG, rms_m = fit_pose(MarkerModel(p_GK), p_WK)
     if not rms_m <= RESIDUAL_LIMIT_M:

@@ -8,7 +8,7 @@ from pydrake.geometry import Cylinder, Meshcat, Rgba
 from pydrake.math import RotationMatrix
 from pydrake.systems.framework import LeafSystem
 
-from maglev_haptics.systems.rotations import rotation_from_quaternion
+from maglev_haptics.systems.rotations import rigid_transform
 
 SURFACE_PATH = "/deformable_surface/top"
 WIRE_PATH = "/deformable_surface/wire"
@@ -109,7 +109,6 @@ class LatticeVisualizer(LeafSystem):
         self._meshcat.SetTriangleMesh(SURFACE_PATH, vertices, self._faces, JELLY_RGBA)
         self._meshcat.SetTriangleMesh(WIRE_PATH, vertices, self._faces, WIRE_RGBA,
                                       wireframe=True)
-        X_WT = self._X_WT.Eval(context)
-        p_WP = X_WT[4:7] + rotation_from_quaternion(X_WT[0:4]) @ self._p_TP
+        p_WP = rigid_transform(self._X_WT.Eval(context)) @ self._p_TP
         self._meshcat.SetTransform(FORCE_PATH, force_rod_transform(
             p_WP, self._radius_m, self._wrench.Eval(context)[0:3]))

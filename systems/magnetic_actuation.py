@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from pydrake.systems.framework import LeafSystem
 
-from maglev_haptics.systems.rotations import rotation_from_quaternion_f64
+from maglev_haptics.systems.rotations import rotation_from_quaternion
 
 
 def wrench_matrix_at(magnetics, p_WA, q_WI):
@@ -14,7 +14,8 @@ def wrench_matrix_at(magnetics, p_WA, q_WI):
     The model works in the coil-array frame A, whose axes are W's and whose
     origin is p_WA [m] in W.
     """
-    return magnetics.wrench_matrix_from(q_WI[4:7] - p_WA, rotation_from_quaternion_f64(q_WI[0:4]))
+    # The compiled helper, not Drake's RotationMatrix: this runs every 1 kHz tick.
+    return magnetics.wrench_matrix_from(q_WI[4:7] - p_WA, rotation_from_quaternion(q_WI[0:4]))
 
 
 def instrument_generalized_force(magnetics, p_WA, instrument_state, coil_currents):

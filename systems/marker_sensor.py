@@ -31,7 +31,7 @@ from pydrake.systems.framework import BasicVector, LeafSystem
 
 from maglev_haptics.hardware.device import InstrumentSpec, TrackerSpec
 from maglev_haptics.systems.rotations import (
-    quaternion_exp_tuple_f64, quaternion_multiply_tuple_f64, rotation_from_quaternion_f64)
+    quaternion_exp, quaternion_multiply, rotation_from_quaternion)
 
 # Samples per block of pre-drawn random numbers (one generator per block).
 NOISE_BLOCK = 1024
@@ -56,7 +56,7 @@ class Occlusion:
 def marker_positions_W(q_WI: np.ndarray, p_IK: np.ndarray) -> np.ndarray:
     """Marker positions p_WK (n, 3) [m] for the pose vector q_WI
     [qw qx qy qz x y z] (m) and the model p_IK (n, 3) [m] in I."""
-    return q_WI[4:7] + p_IK @ rotation_from_quaternion_f64(q_WI[:4]).T
+    return q_WI[4:7] + p_IK @ rotation_from_quaternion(q_WI[:4]).T
 
 
 @numba.njit(cache=True)
@@ -66,8 +66,8 @@ def extrapolate_pose(q_WI: np.ndarray, V_WI: np.ndarray, dt_s: float) -> np.ndar
     V_WI = [w; v] in W (rad/s; m/s of I's origin). Exact for constant V_WI:
     R <- exp([w] dt) R, p <- p + v dt.
     """
-    q = quaternion_multiply_tuple_f64(
-        quaternion_exp_tuple_f64(V_WI[0] * dt_s, V_WI[1] * dt_s, V_WI[2] * dt_s),
+    q = quaternion_multiply(
+        quaternion_exp(V_WI[0] * dt_s, V_WI[1] * dt_s, V_WI[2] * dt_s),
         (q_WI[0], q_WI[1], q_WI[2], q_WI[3]))
     return np.concatenate((np.array(q), q_WI[4:7] + V_WI[3:6] * dt_s))
 

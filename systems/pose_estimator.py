@@ -41,8 +41,8 @@ from pydrake.systems.framework import BasicVector, LeafSystem
 
 from maglev_haptics.hardware.device import InstrumentSpec, TrackerSpec
 from maglev_haptics.systems.rotations import (
-    quaternion_conjugate_tuple_f64, quaternion_exp_tuple_f64, quaternion_from_rotation_matrix_f64,
-    quaternion_log_tuple_f64, quaternion_multiply_tuple_f64)
+    quaternion_conjugate, quaternion_exp, quaternion_from_rotation_matrix, quaternion_log,
+    quaternion_multiply)
 
 # A fit is refused when the visible markers' second principal spread is below
 # this fraction of the first (nearly collinear): the roll about their line is
@@ -140,7 +140,7 @@ def _rigid_fit(p_IK, p_WK):
     sum_sq = sum_sq_I + sum_sq_W - 2.0 * (s0 + s1 + s2)
     rms_m = math.sqrt(max(sum_sq, 0.0) / m)
     x_WI = np.empty(7)
-    x_WI[:4] = quaternion_from_rotation_matrix_f64(R_WI)
+    x_WI[:4] = quaternion_from_rotation_matrix(R_WI)
     x_WI[4:] = c_W - R_WI @ c_I
     return x_WI, rms_m
 
@@ -243,15 +243,15 @@ def filter_update(x_hat: np.ndarray, V: np.ndarray, x_meas: np.ndarray,
     T = period_s
     wx, wy, wz, vx, vy, vz = V[0], V[1], V[2], V[3], V[4], V[5]
     # Predict at constant V, then the innovation [rotation vector; position].
-    q_pred = quaternion_multiply_tuple_f64(
-        quaternion_exp_tuple_f64(wx * T, wy * T, wz * T), (x_hat[0], x_hat[1], x_hat[2], x_hat[3]))
+    q_pred = quaternion_multiply(
+        quaternion_exp(wx * T, wy * T, wz * T), (x_hat[0], x_hat[1], x_hat[2], x_hat[3]))
     p_pred = (x_hat[4] + vx * T, x_hat[5] + vy * T, x_hat[6] + vz * T)
-    dq = quaternion_multiply_tuple_f64(
-        (x_meas[0], x_meas[1], x_meas[2], x_meas[3]), quaternion_conjugate_tuple_f64(q_pred))
-    rx, ry, rz = quaternion_log_tuple_f64(dq[0], dq[1], dq[2], dq[3])
+    dq = quaternion_multiply(
+        (x_meas[0], x_meas[1], x_meas[2], x_meas[3]), quaternion_conjugate(q_pred))
+    rx, ry, rz = quaternion_log(dq[0], dq[1], dq[2], dq[3])
     ex, ey, ez = x_meas[4] - p_pred[0], x_meas[5] - p_pred[1], x_meas[6] - p_pred[2]
-    nw, nx, ny, nz = quaternion_multiply_tuple_f64(
-        quaternion_exp_tuple_f64(alpha * rx, alpha * ry, alpha * rz), q_pred)
+    nw, nx, ny, nz = quaternion_multiply(
+        quaternion_exp(alpha * rx, alpha * ry, alpha * rz), q_pred)
     norm = math.sqrt(nw * nw + nx * nx + ny * ny + nz * nz)
     x_new = np.array([nw / norm, nx / norm, ny / norm, nz / norm,
                       p_pred[0] + alpha * ex, p_pred[1] + alpha * ey, p_pred[2] + alpha * ez])

@@ -1,20 +1,28 @@
-"""Rotation helpers shared by the loop's systems.
+"""Rotation helpers for the numba-compiled kernels of the 1 kHz and tracker-rate path.
 
-The matrix helpers work on float and AutoDiffXd arrays alike (the controller
-converts to AutoDiffXd for linearization); ``*_f64`` is the same source compiled
-by numba for the float-only systems on the 1 kHz path. The quaternion algebra
-below them is float only, on tuples where speed matters, with ``*_f64`` twins
-for the numba-compiled tracker-rate cores (marker sensor, pose estimator).
+Written by hand because Drake's RotationMatrix, RollPitchYaw and Quaternion cannot
+be called from numba, and a Python call costs microseconds a tick. Everywhere else
+(setup, visualization, whole logs) uses Drake's classes or scipy's Rotation; the
+tests check these against Drake's. At the end, for the code off the kernels: pose
+vectors to and from Drake's RigidTransform, and quaternion logs to scipy's Rotation.
+
+Conventions: quaternions [w, x, y, z] (Hamilton, Drake's order), as 4-tuples of
+floats (no allocation inside a kernel); roll-pitch-yaw is Drake's extrinsic X-Y-Z,
+R = Rz(yaw) Ry(pitch) Rx(roll); rotation vectors are axis * angle (rad).
 """
 
 import math
 
 import numba
 import numpy as np
+from pydrake.common.eigen_geometry import Quaternion
+from pydrake.math import RigidTransform, RotationMatrix
+from scipy.spatial.transform import Rotation
 
 
+@numba.njit(cache=True)
 def rotation_from_quaternion(q):
-    """R (3x3) from a quaternion [w, x, y, z] (normalized here)."""
+    """R (3x3) from a quaternion array [w, x, y, z] (normalized here)."""
     w, x, y, z = q / np.sqrt(q @ q)
     return np.array([
         [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
@@ -23,8 +31,9 @@ def rotation_from_quaternion(q):
     ])
 
 
+@numba.njit(cache=True)
 def rotation_from_rpy(rpy):
-    """R = Rz(yaw) Ry(pitch) Rx(roll), Drake's RollPitchYaw convention."""
+    """R = Rz(yaw) Ry(pitch) Rx(roll) of [roll, pitch, yaw] (rad)."""
     cr, sr = np.cos(rpy[0]), np.sin(rpy[0])
     cp, sp = np.cos(rpy[1]), np.sin(rpy[1])
     cy, sy = np.cos(rpy[2]), np.sin(rpy[2])
@@ -35,8 +44,9 @@ def rotation_from_rpy(rpy):
     ])
 
 
+@numba.njit(cache=True)
 def angular_velocity_from_rpy_rates(rpy, rpy_dot):
-    """w_W (rad/s) of R = Rz Ry Rx given roll-pitch-yaw and their rates."""
+    """w_W (rad/s) of R = Rz Ry Rx given roll-pitch-yaw (rad) and their rates (rad/s)."""
     cp, sp = np.cos(rpy[1]), np.sin(rpy[1])
     cy, sy = np.cos(rpy[2]), np.sin(rpy[2])
     return np.array([
@@ -46,76 +56,16 @@ def angular_velocity_from_rpy_rates(rpy, rpy_dot):
     ])
 
 
+@numba.njit(cache=True)
 def rotation_error_W(R_WD, R_WI):
     """sin(angle) * axis of the rotation taking R_WI to R_WD, in W."""
     R = R_WD @ R_WI.T
     return 0.5 * np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
 
 
-def rpy_from_rotation(R):
-    """[roll, pitch, yaw] (rad) of R = Rz(yaw) Ry(pitch) Rx(roll), float only."""
-    return np.array([math.atan2(R[2, 1], R[2, 2]),
-                     math.atan2(-R[2, 0], math.hypot(R[2, 1], R[2, 2])),
-                     math.atan2(R[1, 0], R[0, 0])])
-
-
-rotation_from_quaternion_f64 = numba.njit(cache=True)(rotation_from_quaternion)
-
-
-# --- quaternions [w, x, y, z] (Hamilton, Drake's order) ---------------------
-# The *_tuple functions work on tuples of floats: for 4-vectors that is several
-# times faster than numpy in Python, and numba compiles the same source (the
-# *_f64 twins below) for the tracker-rate cores of the sensor and the estimator.
-
-def quaternion_multiply_tuple(a, b):
-    aw, ax, ay, az = a
-    bw, bx, by, bz = b
-    return (aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw)
-
-
-def quaternion_conjugate_tuple(q):
-    return (q[0], -q[1], -q[2], -q[3])
-
-
-def quaternion_exp_tuple(x, y, z):
-    angle = math.sqrt(x * x + y * y + z * z)
-    # sin(angle / 2) / angle; its Taylor series below 1e-4 rad is exact in double.
-    scale = math.sin(angle / 2) / angle if angle > 1e-4 else 0.5 - angle * angle / 48
-    return (math.cos(angle / 2), scale * x, scale * y, scale * z)
-
-
-def quaternion_log_tuple(w, x, y, z):
-    if w < 0:
-        w, x, y, z = -w, -x, -y, -z
-    s = math.sqrt(x * x + y * y + z * z)
-    # angle / sin(angle / 2), with its limit 2 / w as s -> 0.
-    scale = 2.0 * math.atan2(s, w) / s if s > 1e-12 else 2.0 / w
-    return (scale * x, scale * y, scale * z)
-
-
-def quaternion_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton product a * b, so R(a * b) = R(a) R(b)."""
-    return np.array(quaternion_multiply_tuple(a.tolist(), b.tolist()))
-
-
-def quaternion_exp(rotvec: np.ndarray) -> np.ndarray:
-    """Unit quaternion of the rotation vector ``rotvec`` (axis * angle, rad)."""
-    return np.array(quaternion_exp_tuple(*rotvec.tolist()))
-
-
-def quaternion_log(q: np.ndarray) -> np.ndarray:
-    """Rotation vector (rad, angle in [0, pi]) of the unit quaternion ``q``.
-
-    q and -q give the same result: the shorter of the two rotations is taken.
-    """
-    return np.array(quaternion_log_tuple(*q.tolist()))
-
-
-def quaternion_from_rotation_matrix(R: np.ndarray) -> np.ndarray:
-    """Unit quaternion [w, x, y, z] of the rotation matrix R (Shepperd's method,
+@numba.njit(cache=True)
+def quaternion_from_rotation_matrix(R):
+    """Unit quaternion array [w, x, y, z] of the rotation matrix R (Shepperd's method,
     pivoting on the largest of w, x, y, z for accuracy at any angle)."""
     r00, r01, r02 = R[0, 0], R[0, 1], R[0, 2]
     r10, r11, r12 = R[1, 0], R[1, 1], R[1, 2]
@@ -137,8 +87,65 @@ def quaternion_from_rotation_matrix(R: np.ndarray) -> np.ndarray:
     return np.array([w / norm, x / norm, y / norm, z / norm])
 
 
-quaternion_multiply_tuple_f64 = numba.njit(cache=True)(quaternion_multiply_tuple)
-quaternion_conjugate_tuple_f64 = numba.njit(cache=True)(quaternion_conjugate_tuple)
-quaternion_exp_tuple_f64 = numba.njit(cache=True)(quaternion_exp_tuple)
-quaternion_log_tuple_f64 = numba.njit(cache=True)(quaternion_log_tuple)
-quaternion_from_rotation_matrix_f64 = numba.njit(cache=True)(quaternion_from_rotation_matrix)
+@numba.njit(cache=True)
+def quaternion_multiply(a, b):
+    """Hamilton product a * b of two 4-tuples, so R(a * b) = R(a) R(b)."""
+    aw, ax, ay, az = a
+    bw, bx, by, bz = b
+    return (aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw)
+
+
+@numba.njit(cache=True)
+def quaternion_conjugate(q):
+    """The conjugate of a 4-tuple: the inverse rotation of a unit quaternion."""
+    return (q[0], -q[1], -q[2], -q[3])
+
+
+@numba.njit(cache=True)
+def quaternion_exp(x, y, z):
+    """Unit quaternion 4-tuple of the rotation vector (x, y, z) (rad)."""
+    angle = math.sqrt(x * x + y * y + z * z)
+    # sin(angle / 2) / angle; its Taylor series below 1e-4 rad is exact in double.
+    scale = math.sin(angle / 2) / angle if angle > 1e-4 else 0.5 - angle * angle / 48
+    return (math.cos(angle / 2), scale * x, scale * y, scale * z)
+
+
+@numba.njit(cache=True)
+def quaternion_log(w, x, y, z):
+    """Rotation vector 3-tuple (rad, angle in [0, pi]) of the unit quaternion
+    (w, x, y, z); q and -q give the same result, the shorter rotation."""
+    if w < 0:
+        w, x, y, z = -w, -x, -y, -z
+    s = math.sqrt(x * x + y * y + z * z)
+    # angle / sin(angle / 2), with its limit 2 / w as s -> 0.
+    scale = 2.0 * math.atan2(s, w) / s if s > 1e-12 else 2.0 / w
+    return (scale * x, scale * y, scale * z)
+
+
+# --- off the kernels: Drake for single poses, scipy for whole logs ----------
+
+def rotation_matrix(q) -> RotationMatrix:
+    """Drake's RotationMatrix of a quaternion [w, x, y, z], normalized here (a measured
+    one is unit only to rounding, and Drake's Quaternion insists on unit)."""
+    q = np.asarray(q, float)
+    return RotationMatrix(Quaternion(q / np.linalg.norm(q)))
+
+
+def rigid_transform(pose) -> RigidTransform:
+    """Drake's RigidTransform of a pose vector [qw, qx, qy, qz, x, y, z] (m)."""
+    return RigidTransform(rotation_matrix(pose[0:4]), np.asarray(pose[4:7], float))
+
+
+def pose_vector(X: RigidTransform) -> np.ndarray:
+    """The pose vector [qw, qx, qy, qz, x, y, z] (m) of ``X`` (w >= 0)."""
+    q = X.rotation().ToQuaternion()
+    return np.array([q.w(), q.x(), q.y(), q.z(), *X.translation()])
+
+
+def rotations_of_quaternions(q) -> Rotation:
+    """scipy's Rotation of quaternions [w, x, y, z] ((N, 4) or (4,)), normalized: a
+    whole log at once."""
+    return Rotation.from_quat(np.asarray(q, float)[..., [1, 2, 3, 0]])

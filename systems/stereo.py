@@ -21,10 +21,10 @@ from dataclasses import dataclass
 from functools import cached_property
 
 import numpy as np
+from pydrake.math import RollPitchYaw, RotationMatrix
 from pydrake.systems.framework import LeafSystem
 
-from maglev_haptics.systems.rotations import (
-    quaternion_from_rotation_matrix, rotation_from_quaternion, rotation_from_rpy)
+from maglev_haptics.systems.rotations import rotation_matrix
 
 # An eye must be at least this far in front of the display plane (m): nearer, the
 # frustum degenerates (and a real eye 1 cm from a screen sees no image anyway).
@@ -70,7 +70,7 @@ def display_rectangle(display) -> DisplayRectangle:
         raise ValueError(f"device.display.resolution_px = {list(display.resolution_px)}: "
                          "must be two positive integers (width, height)")
     pose = np.asarray(display.pose_W, float)
-    R_WD = rotation_from_rpy(pose[3:6])
+    R_WD = RollPitchYaw(pose[3:6]).ToRotationMatrix().matrix()
 
     def corner(x, y):
         return pose[0:3] + R_WD @ np.array([x, y, 0.0])
@@ -168,7 +168,8 @@ def eye_camera(screen: DisplayRectangle, pe, width_px: int, height_px: int):
 def camera_vector(screen: DisplayRectangle, pe, width_px: int, height_px: int) -> np.ndarray:
     """``eye_camera`` packed as a CAMERA_SIZE vector [q_WC, p_WC, fx, fy, cx, cy]."""
     R_WC, p_WC, fx, fy, cx, cy = eye_camera(screen, pe, width_px, height_px)
-    return np.concatenate([quaternion_from_rotation_matrix(R_WC), p_WC, [fx, fy, cx, cy]])
+    q_WC = RotationMatrix(R_WC).ToQuaternion()
+    return np.concatenate([[q_WC.w(), q_WC.x(), q_WC.y(), q_WC.z()], p_WC, [fx, fy, cx, cy]])
 
 
 def projected_pixel(projection: np.ndarray, p_W, width_px: int, height_px: int) -> np.ndarray:
@@ -201,7 +202,7 @@ def screen_pixel(screen: DisplayRectangle, p_S) -> np.ndarray:
 
 def eye_positions_W(q_WG, p_WG, ipd_m: float) -> np.ndarray:
     """(2, 3) left and right eye centres (m): -/+ IPD/2 along the glasses' x."""
-    x_G = rotation_from_quaternion(np.asarray(q_WG, float))[:, 0]
+    x_G = rotation_matrix(q_WG).col(0)
     return np.array([p_WG - x_G * ipd_m / 2, p_WG + x_G * ipd_m / 2])
 
 

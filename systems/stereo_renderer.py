@@ -15,17 +15,17 @@ import time
 from typing import Callable, Optional
 
 import numpy as np
-from pydrake.common.eigen_geometry import Quaternion
 from pydrake.common import MemoryFile
 from pydrake.common.value import AbstractValue
 from pydrake.geometry import (
     ClippingRange, ColorRenderCamera, DepthRange, DepthRenderCamera, GeometryId, InMemoryMesh,
     LightParameter, MakeRenderEngineVtk, Mesh, PerceptionProperties, QueryObject,
     RenderCameraCore, RenderEngineVtkParams, Rgba)
-from pydrake.math import RigidTransform, RotationMatrix
+from pydrake.math import RigidTransform
 from pydrake.systems.framework import LeafSystem
 from pydrake.systems.sensors import CameraInfo, ImageDepth32F, ImageRgba8U
 
+from maglev_haptics.systems.rotations import rotation_matrix
 from maglev_haptics.systems.stereo import CAMERA_SIZE
 
 RENDERER_NAME = "stereo_display"
@@ -67,7 +67,7 @@ def render_camera(camera: np.ndarray, display_px, image_px, near_m: float, far_m
     height, row = canvas_extent(cy, int(image_px[1]))
     info = CameraInfo(width, height, fx * sx, fy * sy, cx + column, cy + row)
     core = RenderCameraCore(RENDERER_NAME, info, ClippingRange(near_m, far_m), RigidTransform())
-    X_WC = RigidTransform(RotationMatrix(Quaternion(q / np.linalg.norm(q))), p)
+    X_WC = RigidTransform(rotation_matrix(q), p)
     return ColorRenderCamera(core, False), X_WC, (column, row)
 
 

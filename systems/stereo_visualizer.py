@@ -4,10 +4,11 @@ their markers, the two eyes, and each eye's viewing frustum onto the display."""
 from __future__ import annotations
 
 import numpy as np
-from pydrake.common.eigen_geometry import Quaternion
 from pydrake.geometry import Box, Meshcat, Rgba, Sphere
 from pydrake.math import RigidTransform
 from pydrake.systems.framework import LeafSystem
+
+from maglev_haptics.systems.rotations import rigid_transform
 
 # Paths below the visualizer's prefix. The glasses, eyes and frusta are groups whose
 # objects sit one level down, so hiding a group survives redrawing its objects
@@ -43,14 +44,6 @@ def outline_segments(corners_W) -> tuple[np.ndarray, np.ndarray]:
     corners = _corners(corners_W)
     return (np.asfortranarray(corners.T),
             np.asfortranarray(np.roll(corners, -1, axis=0).T))
-
-
-def glasses_transform(X_WG) -> RigidTransform:
-    """X_WG from [qw, qx, qy, qz, x, y, z] (m); the quaternion is normalized here,
-    since the tracker's is unit only to rounding and Quaternion insists on unit."""
-    X_WG = np.asarray(X_WG, float)
-    q = X_WG[0:4] / np.linalg.norm(X_WG[0:4])
-    return RigidTransform(Quaternion(q), X_WG[4:7])
 
 
 def _corners(corners_W) -> np.ndarray:
@@ -115,7 +108,7 @@ class StereoVisualizer(LeafSystem):
         glasses_seen = bool(np.all(np.isfinite(X_WG)))
         meshcat.SetProperty(self._glasses, "visible", glasses_seen)
         if glasses_seen:
-            meshcat.SetTransform(self._glasses, glasses_transform(X_WG))
+            meshcat.SetTransform(self._glasses, rigid_transform(X_WG))
         eyes = self._eye_positions.Eval(context).reshape(2, 3)
         eyes_seen = bool(np.all(np.isfinite(eyes)))
         meshcat.SetProperty(self._eyes, "visible", eyes_seen)

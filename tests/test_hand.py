@@ -1,6 +1,8 @@
 """The simulated hand: arm and grip laws, latching, the plan, the schema, and the hand
 gripping real instrument models in a discrete plant."""
 
+import math
+import re
 from dataclasses import dataclass, field
 from typing import Union
 
@@ -21,7 +23,7 @@ from maglev_haptics.diagrams.waypoints import Waypoint
 from maglev_haptics.diagrams.station import generalized_force_placement
 from maglev_haptics.plant_models import PACKAGE_XML
 from maglev_haptics.systems.hand import (
-    _FLOAT64, HAND_BODY_NAME, HAND_MODEL_URL, HandImpedanceConfig, SimulatedHand, arm_wrench,
+    HAND_BODY_NAME, HAND_MODEL_URL, HandImpedanceConfig, SimulatedHand, arm_wrench,
     explicit_step_spectral_radius, grip_update, grip_wrenches, hand_spatial_inertia,
     hand_wrenches, impedance_gains, latch_X_HI)
 from maglev_haptics.hardware.constants import GRAVITY_M_S2
@@ -149,7 +151,7 @@ def test_grip_update_latches_on_the_rising_edge_and_releases_on_the_falling_edge
     assert gripped == 0.0
 
 
-def test_released_hand_puts_no_force_on_the_instrument_and_twins_agree():
+def test_released_hand_puts_no_force_on_the_instrument():
     rng = np.random.default_rng(4)
     gains = impedance_gains(UNEVEN)
     hand, instrument = random_state(rng), random_state(rng)
@@ -159,11 +161,6 @@ def test_released_hand_puts_no_force_on_the_instrument_and_twins_agree():
     np.testing.assert_array_equal(on_instrument, 0.0)
     np.testing.assert_allclose(on_hand, arm_wrench(hand[0:7], hand[7:13], target, gains[0],
                                                    gains[1], 0.25))
-    for gripped in (0.0, 1.0):
-        expected = hand_wrenches(hand, instrument, target, gripped, X_HI, *gains, 0.25)
-        compiled = _FLOAT64.hand_wrenches(hand, instrument, target, gripped, X_HI, *gains, 0.25)
-        for a, b in zip(expected, compiled):
-            np.testing.assert_allclose(b, a, rtol=1e-12, atol=1e-12)
 
 
 @pytest.mark.parametrize("kind", INSTRUMENTS)
@@ -429,7 +426,20 @@ def test_validate_hand_names_the_field_the_value_and_what_is_allowed(hand, messa
     assert str(error.value).startswith(message)
 
 
-def test_validate_hand_accepts_the_defaults():
-    validate_hand(ScriptedHand(), "test")
-    validate_hand(moving_script([GripEvent()]), "test")
-    validate_hand(MeshcatHand(), "test")
+# A hand with one ">= 0" bound at value v, by the field its message names.
+ZERO_EDGES = {
+    "hand.start_s": lambda v: ScriptedHand(start_s=v),
+    "hand.waypoints[0].hold_s": lambda v: ScriptedHand(waypoints=[Waypoint(hold_s=v)]),
+    "hand.events[0].at_s": lambda v: ScriptedHand(events=[GripEvent(at_s=v)]),
+    "hand.impedance.arm_translational_damping": lambda v: ScriptedHand(
+        impedance=HandImpedanceConfig(arm_translational_damping=[v] * 3)),
+}
+
+
+def test_validate_hand_accepts_the_defaults_and_each_bound_up_to_its_edge():
+    for hand in (ScriptedHand(), moving_script([GripEvent()]), MeshcatHand()):
+        assert validate_hand(hand, "test") is None
+    for field_name, hand_with in ZERO_EDGES.items():
+        assert validate_hand(hand_with(0.0), "test") is None  # the edge itself is allowed
+        with pytest.raises(ValueError, match=re.escape(f"test: {field_name} = ")):
+            validate_hand(hand_with(math.nextafter(0.0, -1.0)), "test")  # one step below

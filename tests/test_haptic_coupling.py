@@ -1,15 +1,14 @@
-"""The virtual coupling: spring-damper law, momentum balance, potential, ramp, clamp, AutoDiff."""
+"""The virtual coupling: spring-damper law, momentum balance, potential, ramp, clamp, the
+compiled law against Drake's rotations and central differences."""
 
 import numpy as np
 import pytest
-from pydrake.autodiffutils import AutoDiffXd, InitializeAutoDiff
-from pydrake.common.eigen_geometry import Quaternion
 from pydrake.math import RigidTransform, RollPitchYaw, RotationMatrix
+from scipy.spatial.transform import Rotation
 
 from maglev_haptics.systems.haptic_coupling import (
-    _FLOAT64, CouplingConfig, HapticCoupling, HapticCoupling_, clamp_scale, coupling_gains,
-    coupling_wrenches, resolved_rotational_gains, spring_potential, velocity_filter_gain)
-from maglev_haptics.systems.rotations import quaternion_exp
+    CouplingConfig, HapticCoupling, clamp_scale, coupling_gains, coupling_wrenches,
+    resolved_rotational_gains, spring_potential, velocity_filter_gain)
 
 PERIOD_S = 1e-3
 # What the diagram builder fills in for a device: limits and rotational gains.
@@ -132,7 +131,7 @@ def test_equal_and_opposite_with_zero_net_moment():
 
 def rotated_moved(X, dphi_W, dp_W):
     """X turned by the rotation vector dphi_W (rad, in W) about its origin and moved by dp_W (m)."""
-    R = RotationMatrix(Quaternion(quaternion_exp(np.asarray(dphi_W))))
+    R = RotationMatrix(Rotation.from_rotvec(dphi_W).as_matrix())
     return RigidTransform(R @ X.rotation(), X.translation() + dp_W)
 
 
@@ -211,42 +210,55 @@ def test_clamp_preserves_direction_and_limits():
     assert clamp_scale(np.array([0, 1.0, 0, 0, 0.16, 0]), 4.0, 0.08) == 0.5
 
 
-def test_converts_to_autodiff_with_the_stiffness_as_derivative():
-    coupling, _ = make(CouplingConfig(ramp_s=0.0, **RESOLVED))
+def test_stiffness_by_central_differences_through_the_system():
+    coupling, context = make(CouplingConfig(ramp_s=0.0, **RESOLVED))
     k, _ = coupling_gains(CouplingConfig(**RESOLVED))
-    ad = coupling.ToAutoDiffXd()
-    assert isinstance(ad, HapticCoupling_[AutoDiffXd])
-    context = ad.CreateDefaultContext()
-    # One derivative per entry of [X_WI; X_WT].
-    poses = InitializeAutoDiff(np.concatenate([pose_vector(RigidTransform([0.0, 0.0, 0.03])),
-                                               pose_vector(RigidTransform([0.001, 0.0, 0.03]))]))
-    ad.GetInputPort("X_WI_measured").FixValue(context, poses[0:7, 0])
-    ad.GetInputPort("X_WT").FixValue(context, poses[7:14, 0])
-    for name in ("V_WI_measured", "V_WT"):
-        ad.GetInputPort(name).FixValue(context, [AutoDiffXd(0.0)] * 6)
-    ad.GetInputPort("haptics_enable").FixValue(context, [AutoDiffXd(1.0)])
-    step(ad, context)
-    # A pose vector is [q; p]: x_WI is derivative 4, x_WT derivative 11.
-    f_tool = ad.GetOutputPort("wrench_on_tool_W").Eval(context)[0]
-    assert f_tool.value() == pytest.approx(-k[0] * 0.001)
-    assert f_tool.derivatives()[11] == pytest.approx(-k[0])  # d f_x / d x_WT
-    assert f_tool.derivatives()[4] == pytest.approx(k[0])
-    f_instrument = ad.GetOutputPort("wrench_feedforward_W").Eval(context)[0]
-    assert f_instrument.derivatives()[4] == pytest.approx(-k[0])  # d f_x / d x_WI
+    step_m = 1e-7
+
+    def forces(dx_WI, dx_WT):
+        """(f_x on the tool, f_x on the instrument) with I and T moved along x (m)."""
+        fix(coupling, context, X_WI=RigidTransform([dx_WI, 0.0, 0.03]),
+            X_WT=RigidTransform([0.001 + dx_WT, 0.0, 0.03]))
+        step(coupling, context)
+        on_tool, feedforward, _ = outputs(coupling, context)
+        return np.array([on_tool[0], feedforward[0]])
+
+    assert forces(0.0, 0.0)[0] == pytest.approx(-k[0] * 0.001)
+    d_dx_WT = (forces(0.0, step_m) - forces(0.0, -step_m)) / (2 * step_m)
+    d_dx_WI = (forces(step_m, 0.0) - forces(-step_m, 0.0)) / (2 * step_m)
+    np.testing.assert_allclose(d_dx_WT, [-k[0], k[0]], rtol=1e-6)
+    np.testing.assert_allclose(d_dx_WI, [k[0], -k[0]], rtol=1e-6)
 
 
-def test_numba_twin_equals_the_python_function():
+def test_compiled_law_matches_its_matrix_form_with_drakes_rotations():
+    """coupling_wrenches against the module docstring's law written with Drake's
+    RigidTransform: f_T = k_t (p_WD - p_WT) + b_t (v_WD - v_WT), tau_T_I =
+    -2 vee(skew(R_E G)) + b_r R_WI^T (w_WI - w_WT), the instrument's the opposite."""
     rng = np.random.default_rng(4)
     k, b = coupling_gains(GAINS)
-    R_IT, p_IT = X_IT_OFFSET.rotation().matrix(), X_IT_OFFSET.translation()
+    G = np.diag(0.5 * k[3:6].sum() - k[3:6])
     for _ in range(5):
-        args = (pose_vector(random_pose(rng)), rng.normal(0, 0.1, 6),
-                pose_vector(random_pose(rng)), rng.normal(0, 0.1, 6), R_IT, p_IT, k, b)
-        for python, compiled in zip(coupling_wrenches(*args), _FLOAT64.coupling_wrenches(*args)):
-            np.testing.assert_allclose(compiled, python, rtol=1e-12, atol=1e-15)
-        wrench = rng.normal(0, 3, 6)
-        assert _FLOAT64.clamp_scale(wrench, 4.0, 0.08) == pytest.approx(
-            clamp_scale(wrench, 4.0, 0.08), rel=1e-15)
+        X_WI, X_WT = random_pose(rng), random_pose(rng)
+        V_WI, V_WT = rng.normal(0, 0.1, 6), rng.normal(0, 0.1, 6)
+        R_WI = X_WI.rotation().matrix()
+        X_WD = X_WI @ X_IT_OFFSET
+        p_ID_W = X_WD.translation() - X_WI.translation()
+        v_WD = V_WI[3:6] + np.cross(V_WI[0:3], p_ID_W)
+        force = k[0:3] * (X_WD.translation() - X_WT.translation()) + b[0:3] * (v_WD - V_WT[3:6])
+        R_E = (X_WI.rotation().inverse() @ X_WT.rotation()
+               @ X_IT_OFFSET.rotation().inverse()).matrix()
+        skew = 0.5 * (R_E @ G - (R_E @ G).T)
+        spring_I = -2 * np.array([skew[2, 1], skew[0, 2], skew[1, 0]])
+        torque = R_WI @ (spring_I + b[3:6] * (R_WI.T @ (V_WI[0:3] - V_WT[0:3])))
+        moment_arm = X_WT.translation() - X_WI.translation()
+        on_tool, on_instrument = coupling_wrenches(
+            pose_vector(X_WI), V_WI, pose_vector(X_WT), V_WT, X_IT_OFFSET.rotation().matrix(),
+            X_IT_OFFSET.translation(), k, b)
+        np.testing.assert_allclose(on_tool, np.concatenate((force, torque)), rtol=1e-12,
+                                   atol=1e-15)
+        np.testing.assert_allclose(
+            on_instrument, np.concatenate((-force, -torque - np.cross(moment_arm, force))),
+            rtol=1e-12, atol=1e-15)
 
 
 def test_damper_uses_the_low_passed_velocity():

@@ -1,13 +1,14 @@
-"""The levitation controller: PD law, gravity compensation, blind landing, AutoDiff."""
+"""The levitation controller: PD law, gravity compensation, blind landing, the compiled law
+against Drake's rotations."""
 
 import numpy as np
 import pytest
-from pydrake.autodiffutils import AutoDiffXd
+from pydrake.common.eigen_geometry import Quaternion
 from pydrake.math import RollPitchYaw, RotationMatrix
 
 from maglev_haptics.hardware.constants import GRAVITY_M_S2
 from maglev_haptics.systems.levitation_controller import (
-    ControllerConfig, LevitationController, LevitationController_, pd_gains, pd_wrench)
+    ControllerConfig, LevitationController, pd_gains, pd_wrench)
 from maglev_haptics.systems.rotations import (
     angular_velocity_from_rpy_rates, rotation_error_W, rotation_from_rpy)
 
@@ -108,26 +109,31 @@ def test_lost_tracking_holds_weight_briefly_then_cuts_and_latches_off():
     assert np.all(controller.GetOutputPort("wrench_commanded_W").Eval(context) == 0.0)
 
 
-def test_converts_to_autodiff_and_differentiates():
-    controller, _ = make()
-    ad = controller.ToAutoDiffXd()
-    assert isinstance(ad, LevitationController_[AutoDiffXd])
-    context = ad.CreateDefaultContext()
-    from pydrake.autodiffutils import InitializeAutoDiff
-    pose = InitializeAutoDiff(pose_vector([0, 0, 0], [0, 0, 0.018]))[:, 0]
-    ad.GetInputPort("setpoint").FixValue(context, np.array([0, 0, 0.018] + [0] * 9, dtype=float)
-                                         .astype(object) * AutoDiffXd(1.0))
-    ad.GetInputPort("X_WI_measured").FixValue(context, pose)
-    for name, size in (("V_WI_measured", 6), ("wrench_feedforward_W", 6)):
-        ad.GetInputPort(name).FixValue(context, [AutoDiffXd(0.0)] * size)
-    ad.GetInputPort("tracking_ok").FixValue(context, [AutoDiffXd(1.0)])
-    ad.GetInputPort("enable").FixValue(context, [AutoDiffXd(1.0)])
-    ad.GetInputPort("pd_gain").FixValue(context, [AutoDiffXd(1.0)])
-    ad.GetInputPort("brake_gain").FixValue(context, [AutoDiffXd(0.0)])
-    wrench = ad.GetOutputPort("wrench_commanded_W").Eval(context)
-    kp, _ = pd_gains(ControllerConfig(), MASS_KG, INERTIA)
-    # d fz / d z = -kp_z (the pose vector is [q; p], so z is entry 6).
-    assert wrench[2].derivatives()[6] == pytest.approx(-kp[2])
+def test_compiled_pd_law_matches_drakes_rotations_and_its_differences():
+    """pd_wrench at a tilted, turning pose, against the law written with Drake's
+    RotationMatrix, RollPitchYaw and AngleAxis; and d fz / d z by central differences."""
+    kp, kd = pd_gains(ControllerConfig(), MASS_KG, INERTIA)
+    setpoint = np.array([0.01, -0.02, 0.03, 0.2, -0.1, 1.3, 0.05, 0.0, -0.02, 0.3, -0.2, 0.7])
+    pose = pose_vector([0.25, 0.05, 1.1], [0.012, -0.018, 0.027])
+    velocity = np.array([0.4, -0.3, 0.2, 0.02, -0.01, 0.03])
+    R_WI = RotationMatrix(Quaternion(pose[0:4])).matrix()
+    rpy_WD = RollPitchYaw(setpoint[3:6])
+    # sin(angle) * axis of the rotation from I to D, in W.
+    error = RotationMatrix(rpy_WD.ToRotationMatrix().matrix() @ R_WI.T).ToAngleAxis()
+    error_W = np.sin(error.angle()) * error.axis()
+    rate_error_W = rpy_WD.CalcAngularVelocityInParentFromRpyDt(setpoint[9:12]) - velocity[0:3]
+    force = (kp[0:3] * (setpoint[0:3] - pose[4:7]) + kd[0:3] * (setpoint[6:9] - velocity[3:6])
+             + [0.0, 0.0, MASS_KG * GRAVITY_M_S2])
+    torque = R_WI @ (kp[3:6] * (R_WI.T @ error_W) + kd[3:6] * (R_WI.T @ rate_error_W))
+    wrench = pd_wrench(setpoint, pose, velocity, kp, kd, MASS_KG)
+    np.testing.assert_allclose(wrench, np.concatenate((force, torque)), rtol=1e-12, atol=1e-15)
+    step_m = 1e-6
+    up, down = pose.copy(), pose.copy()
+    up[6] += step_m
+    down[6] -= step_m
+    dfz_dz = (pd_wrench(setpoint, up, velocity, kp, kd, MASS_KG)[2]
+              - pd_wrench(setpoint, down, velocity, kp, kd, MASS_KG)[2]) / (2 * step_m)
+    assert dfz_dz == pytest.approx(-kp[2], rel=1e-8)
 
 
 def test_haptic_mode_renders_only_the_feedforward_beyond_the_weight():

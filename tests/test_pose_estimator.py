@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 from pydrake.common.eigen_geometry import Quaternion
-from pydrake.math import RotationMatrix
+from pydrake.math import RollPitchYaw, RotationMatrix
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder, LeafSystem
 from scipy.spatial.transform import Rotation
@@ -17,10 +17,8 @@ from maglev_haptics.systems.pose_estimator import (
     MarkerModel, PoseEstimator, PoseEstimatorConfig, alpha_beta_gains, alpha_beta_noise_gains,
     fit_pose, measured_pose)
 from maglev_haptics.systems.rotations import (
-    quaternion_exp, quaternion_exp_tuple, quaternion_exp_tuple_f64, quaternion_from_rotation_matrix,
-    quaternion_from_rotation_matrix_f64, quaternion_log, quaternion_log_tuple,
-    quaternion_log_tuple_f64, quaternion_multiply, quaternion_multiply_tuple,
-    quaternion_multiply_tuple_f64)
+    quaternion_conjugate, quaternion_exp, quaternion_from_rotation_matrix, quaternion_log,
+    quaternion_multiply, rotation_from_quaternion, rotations_of_quaternions)
 
 INSTRUMENT = default_instrument("two_magnet")
 P_IK = INSTRUMENT.p_IK
@@ -123,7 +121,7 @@ def simulate(body, n_samples, tracker=TrackerSpec(), occlusions=(), config=None,
 
 # --- quaternion helpers and gains ---------------------------------------------
 
-def test_quaternion_helpers_match_drake():
+def test_compiled_quaternion_helpers_match_drake_and_scipy():
     rotations = list(Rotation.random(50, random_state=1)) + [
         Rotation.from_rotvec(math.pi * np.array(axis) / np.linalg.norm(axis))
         # Half turns exercise every branch of Shepperd's method.
@@ -133,29 +131,32 @@ def test_quaternion_helpers_match_drake():
         q = quaternion_from_rotation_matrix(R)
         q_drake = RotationMatrix(R).ToQuaternion().wxyz()
         np.testing.assert_allclose(q * np.sign(q @ q_drake), q_drake, atol=1e-14)
+        # Any length: the helper normalizes.
+        np.testing.assert_allclose(rotation_from_quaternion(2.5 * q_drake), R, atol=1e-14)
     a, b = Rotation.random(2, random_state=2)
     qa, qb = a.as_quat(scalar_first=True), b.as_quat(scalar_first=True)
     product = Quaternion(qa).multiply(Quaternion(qb)).wxyz()
-    np.testing.assert_allclose(quaternion_multiply(qa, qb), product, atol=1e-15)
+    np.testing.assert_allclose(quaternion_multiply(tuple(qa), tuple(qb)), product, atol=1e-15)
+    np.testing.assert_allclose(quaternion_conjugate(tuple(qa)), Quaternion(qa).inverse().wxyz(),
+                               atol=1e-15)
     for angle in (0.0, 1e-9, 1e-5, 1e-4, 0.3, 3.0, math.pi - 1e-9):
         rotvec = angle * np.array([0.6, -0.8, 0.0])
-        q = quaternion_exp(rotvec)
+        q = np.array(quaternion_exp(*rotvec))
         np.testing.assert_allclose(q, Rotation.from_rotvec(rotvec).as_quat(scalar_first=True),
                                    atol=1e-15)
-        np.testing.assert_allclose(quaternion_log(q), rotvec, atol=1e-15)
-        np.testing.assert_allclose(quaternion_log(-q), rotvec, atol=1e-15)  # q ~ -q
+        np.testing.assert_allclose(quaternion_log(*q), rotvec, atol=1e-15)
+        np.testing.assert_allclose(quaternion_log(*-q), rotvec, atol=1e-15)  # q ~ -q
 
 
-def test_compiled_quaternion_twins_match_python():
-    for rotation in Rotation.random(20, random_state=3):
-        R = rotation.as_matrix()
-        np.testing.assert_array_equal(quaternion_from_rotation_matrix_f64(R),
-                                      quaternion_from_rotation_matrix(R))
-        q = tuple(rotation.as_quat(scalar_first=True))
-        v = tuple(rotation.as_rotvec())
-        assert quaternion_multiply_tuple_f64(q, q) == quaternion_multiply_tuple(q, q)
-        assert quaternion_exp_tuple_f64(*v) == quaternion_exp_tuple(*v)
-        assert quaternion_log_tuple_f64(*q) == quaternion_log_tuple(*q)
+def test_whole_log_rotations_match_drake():
+    """rotations_of_quaternions (analysis over whole logs) against Drake, sample by sample:
+    unnormalized [w, x, y, z] rows, and "xyz" Euler angles as Drake's roll-pitch-yaw."""
+    q = 1.7 * Rotation.random(20, random_state=5).as_quat(scalar_first=True)
+    rotations = rotations_of_quaternions(q)
+    for row, R, rpy in zip(q, rotations.as_matrix(), rotations.as_euler("xyz")):
+        drake = RotationMatrix(Quaternion(row / np.linalg.norm(row)))
+        np.testing.assert_allclose(R, drake.matrix(), atol=1e-14)
+        np.testing.assert_allclose(rpy, RollPitchYaw(drake).vector(), atol=1e-12)
 
 
 def test_alpha_beta_gains_put_poles_at_the_bandwidth():

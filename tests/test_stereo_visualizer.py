@@ -9,9 +9,9 @@ from pydrake.geometry import Meshcat, MeshcatParams
 from pydrake.math import RigidTransform, RollPitchYaw
 from pydrake.systems.analysis import Simulator
 
+from maglev_haptics.systems.rotations import pose_vector, rigid_transform
 from maglev_haptics.systems.stereo_visualizer import (
-    DISPLAY, EYES, FRUSTA, GLASSES, StereoVisualizer, frustum_segments, glasses_transform,
-    outline_segments)
+    DISPLAY, EYES, FRUSTA, GLASSES, StereoVisualizer, frustum_segments, outline_segments)
 
 PREFIX = "/stereo_test"
 # A 520 x 320 mm active area in the display plane (m), lower-left first, counter-clockwise.
@@ -21,10 +21,6 @@ P_GK_M = np.array([[-0.06, -0.02, 0.0], [0.06, -0.02, 0.0], [0.0, -0.03, 0.005]]
 IPD_M = 0.064
 # Looking down at the display from the user's side, head a little turned and tilted.
 X_WG = RigidTransform(RollPitchYaw(np.pi - 0.5, 0.1, 0.05), [0.02, -0.25, 0.40])
-
-
-def pose_vector(X: RigidTransform) -> np.ndarray:
-    return np.concatenate([X.rotation().ToQuaternion().wxyz(), X.translation()])
 
 
 def eyes_of(X: RigidTransform) -> np.ndarray:
@@ -127,10 +123,10 @@ def test_outline_closes_through_the_corners_in_order():
     np.testing.assert_allclose(np.linalg.norm(end - start, axis=0), [0.52, 0.32, 0.52, 0.32])
 
 
-def test_glasses_transform_is_the_pose_with_its_quaternion_normalized():
+def test_glasses_pose_is_drawn_with_its_quaternion_normalized():
     pose = pose_vector(X_WG)
     pose[0:4] *= 1.001  # a tracker's quaternion is unit only to rounding
-    X = glasses_transform(pose)
+    X = rigid_transform(pose)
     np.testing.assert_allclose(X.GetAsMatrix4(), X_WG.GetAsMatrix4(), atol=1e-12)
 
 

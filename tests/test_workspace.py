@@ -5,6 +5,7 @@ import json
 
 import numpy as np
 import pytest
+from pydrake.math import RollPitchYaw
 
 from maglev_haptics.analysis.workspace import (
     DIRECTIONS, WorkspaceSettings, plot_workspace, pose_metrics, workspace_study)
@@ -12,7 +13,6 @@ from maglev_haptics.hardware import DeviceConfig, load_magnetics
 from maglev_haptics.hardware.limits import (
     LIMIT_KINDS, device_limits, hover_workspace_A, weight_wrench)
 from maglev_haptics.systems.current_allocator import allocate_currents
-from maglev_haptics.systems.rotations import rotation_from_rpy
 
 CONFIG = DeviceConfig()
 LEVEL = np.eye(3)
@@ -109,9 +109,9 @@ def test_mirror_x_of_a_tilted_pose(model):
     # Mirroring x -> -x turns roll r, pitch p, yaw y into roll r, pitch -p, yaw -y
     # for the instrument too (its magnets are mirror-symmetric in I's x).
     here = pose_metrics(model, CONFIG, np.array([0.017, -0.023, 0.021]),
-                        rotation_from_rpy(np.radians([8.0, 12.0, 25.0])))
+                        RollPitchYaw(np.radians([8.0, 12.0, 25.0])).ToRotationMatrix().matrix())
     there = pose_metrics(model, CONFIG, np.array([-0.017, -0.023, 0.021]),
-                         rotation_from_rpy(np.radians([8.0, -12.0, -25.0])))
+                         RollPitchYaw(np.radians([8.0, -12.0, -25.0])).ToRotationMatrix().matrix())
     assert np.isfinite(here["condition_number"])
     for key in ("base_clearance_m", "condition_number", "hover_current_a", "hover_power_w",
                 "hover_current_minmax_a"):
@@ -137,7 +137,7 @@ def test_pose_inside_the_glass_is_nan(model):
     # At 15 mm level it hovers, but pitched 35 deg the 70 mm body's end dips into the glass.
     level = pose_metrics(model, CONFIG, np.array([0.0, 0.0, 0.015]), LEVEL)
     pitched = pose_metrics(model, CONFIG, np.array([0.0, 0.0, 0.015]),
-                           rotation_from_rpy(np.radians([0.0, 35.0, 0.0])))
+                           RollPitchYaw(np.radians([0.0, 35.0, 0.0])).ToRotationMatrix().matrix())
     assert np.all(np.isfinite(numbers(level)))
     assert pitched["base_clearance_m"] < 0
     assert np.all(np.isnan(numbers(pitched)))
