@@ -31,9 +31,11 @@ from pydrake.systems.analysis import InitializeParams, Simulator, Simulator_
 # squared, round-off as 1e-16 over the step.
 RELATIVE_STEP = 1e-5
 ABSOLUTE_STEP = 1e-6
+# Periods and offsets (s) as exact fractions up to this denominator: 1/860 s is 1/860.
+MAX_DENOMINATOR = 1_000_000
 
 
-def hyperperiod_s(periods_s: Iterable[float], max_denominator: int = 1_000_000) -> float:
+def hyperperiod_s(periods_s: Iterable[float], max_denominator: int = MAX_DENOMINATOR) -> float:
     """The least common multiple of sample periods (s), as exact fractions:
     1/860 and 1/1000 give 0.05 s."""
     fractions = [Fraction(p).limit_denominator(max_denominator) for p in periods_s]

@@ -35,8 +35,8 @@ from pydrake.multibody.plant import MultibodyPlant  # noqa: E402
 from pydrake.systems.analysis import Simulator  # noqa: E402
 
 from maglev_haptics.analysis.linearization import (  # noqa: E402
-    difference_step, hyperperiod_s, leaf_systems, modes, monodromy_central, nudged, state_after,
-    state_names, state_vector)
+    MAX_DENOMINATOR, difference_step, hyperperiod_s, leaf_systems, modes, monodromy_central,
+    nudged, state_after, state_names, state_vector)
 from maglev_haptics.analysis.loop_studies import StudyNotApplicable  # noqa: E402
 from maglev_haptics.diagrams.application import BuildDiagram  # noqa: E402
 from maglev_haptics.diagrams.hand_script import ScriptedHand, hand_plan  # noqa: E402
@@ -51,7 +51,6 @@ SETTLE_S = 0.3  # after haptics is fully on, before the operating point (s)
 MODES_SHOWN = 12
 HELD_TOLERANCE = 1e-6  # a row of the map this close to a unit vector is a held state
 NEUTRAL_TOLERANCE = 1e-4  # |multiplier| this close to 1 over the period: a neutral mode
-PHASE_S = 1e-6  # the map starts this long after a hyperperiod boundary (s): before any offset event
 
 
 def check_applies(scenario) -> None:
@@ -86,21 +85,42 @@ def operating_point_s(scenario) -> float:
     raise StudyNotApplicable("its scripted hand never rests for 0.2 s once haptics is on")
 
 
-def _periods(diagram, kept_names) -> List[float]:
-    """The update periods of the systems that own the kept states (s)."""
+def _update_timings(diagram) -> Dict[str, tuple]:
+    """Each leaf system with discrete state: its path -> (period, offset) of its
+    periodic update (s, exact fractions)."""
     context = diagram.CreateDefaultContext()
-    periods = []
+    timings = {}
     for system in leaf_systems(diagram):
         path = "/".join(system.GetSystemPathname().split("::")[2:])
         if system.GetMyContextFromRoot(context).num_discrete_state_groups() == 0:
             continue
-        if not any(name.startswith((path + "[", path + "/")) for name in kept_names):
-            continue
         attribute = system.GetUniquePeriodicDiscreteUpdateAttribute()
         if attribute is None:
             raise RuntimeError(f"{path}: no unique periodic update; its period is unknown")
-        periods.append(attribute.period_sec())
-    return periods
+        timings[path] = tuple(Fraction(value).limit_denominator(MAX_DENOMINATOR) for value
+                              in (attribute.period_sec(), attribute.offset_sec()))
+    return timings
+
+
+def _periods(timings, kept_names) -> List[float]:
+    """The update periods of the systems that own the kept states (s)."""
+    return [float(period) for path, (period, _) in timings.items()
+            if any(name.startswith((path + "[", path + "/")) for name in kept_names)]
+
+
+def map_start_s(timings, near_s: float, hyperperiod: float) -> float:
+    """Where the map starts (s): after the hyperperiod boundary at or before ``near_s``,
+    half way to the first update after it. A simulator started there has no update
+    due at its start, or within any rounding of it, so each nudged run does the
+    same updates (exactly on the boundary, whether a fresh simulator redoes one at
+    its start time hangs on the rounding of t / period, system by system: a 1 kHz
+    loop at 5.4 s is 5400.000000000001 periods). Every phase of a periodic map
+    has the same multipliers."""
+    period = Fraction(hyperperiod).limit_denominator(MAX_DENOMINATOR)
+    boundary = Fraction(near_s).limit_denominator(MAX_DENOMINATOR) // period * period
+    first_update = min(offset + ((boundary - offset) // step + 1) * step
+                       for step, offset in timings.values())
+    return float((boundary + first_update) / 2)
 
 
 def quaternion_coordinates(diagram) -> List[List[str]]:
@@ -177,14 +197,9 @@ def loop_map(scenario, *, progress: Optional[Callable[[int, int], None]] = None,
     kept = [i for i, name in enumerate(names)
             if not name.startswith(RECORDING_ONLY) and name not in MODE_COORDINATES]
     kept_names = [names[i] for i in kept]
-    period = hyperperiod_s(_periods(built.diagram, kept_names))
-    # Just after a hyperperiod boundary: the boundary's updates are done and the
-    # next ones unambiguous. Exactly on it, whether a fresh simulator redoes an
-    # update at its start time hangs on the rounding of t0 / period, system by
-    # system (a 1 kHz loop at 5.4 s: 5400.000000000001 periods), and the map
-    # would skip an update of some systems and not of others.
-    t0 = float(Fraction(t0).limit_denominator(10**6) // Fraction(period).limit_denominator(10**6)
-               * Fraction(period).limit_denominator(10**6)) + PHASE_S
+    timings = _update_timings(built.diagram)
+    period = hyperperiod_s(_periods(timings, kept_names))
+    t0 = map_start_s(timings, t0, period)
     if operating_point_from is None:
         context = _operating_context(built.diagram, t0)
     else:

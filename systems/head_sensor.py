@@ -33,7 +33,10 @@ MEASUREMENT_SIZE = 9  # [t_capture, q (4), p (3), ok]
 # A tracked tool's fit is rejected above this RMS marker residual (m), as a
 # Polaris rejects a tool whose markers do not match its definition.
 RESIDUAL_LIMIT_M = 1.0e-3
-RELEASE_GUARD_S = 1e-7
+# A capture's release time (capture time + latency) is a float sum; a reader's tick at
+# the same instant can differ from it by ulps (0.3 + 0.03 > 0.33): times this close (s)
+# are one instant.
+SAME_INSTANT_S = 1e-9
 
 
 @dataclass
@@ -106,7 +109,12 @@ class HeadSensor(LeafSystem):
         - glasses_measured
 
     Captures wait in a queue (state) until their latency has passed, so any
-    latency works, longer than the period too.
+    latency works, longer than the period too. ``glasses_measured`` is the newest
+    capture whose latency has passed at the reader's time: each capture is released
+    at exactly its capture time plus the latency, with no release event (whose
+    time, an offset from the capture clock, could fall an ulp beside another
+    system's tick, and Drake's periodic schedule can then skip it). It holds
+    between releases.
     """
 
     def __init__(self, *, tracker, glasses, occlusions=(), seed: int = 0):
@@ -117,21 +125,14 @@ class HeadSensor(LeafSystem):
         self._rate_hz = tracker.rate_hz
         self._occlusions = list(occlusions)
         self._seed = seed
-        period_s = 1.0 / tracker.rate_hz
-        self._slots = int(math.floor(tracker.latency_s * tracker.rate_hz + 1e-9)) + 1
+        # The captures still waiting for their latency, and the newest released one.
+        self._slots = int(math.floor(tracker.latency_s * tracker.rate_hz + 1e-9)) + 2
         self._head_pose = self.DeclareVectorInputPort("head_pose", HEAD_POSE_SIZE)
-        empty = np.tile(_EMPTY_MEASUREMENT, self._slots)
-        self._queue = self.DeclareDiscreteState(empty)
-        self._published = self.DeclareDiscreteState(_EMPTY_MEASUREMENT.copy())
-        self.DeclarePeriodicDiscreteUpdateEvent(period_s, 0.0, self._capture)
-        release_offset_s = tracker.latency_s % period_s
-        if release_offset_s > 1e-9 and period_s - release_offset_s > 1e-9:
-            # Released RELEASE_GUARD_S late: Drake finds a periodic event's next time
-            # by division, and skips one that lands an ulp after another system's
-            # tick (0.03 + 3 x 0.1 > 330 x 0.001 by 7e-17 s).
-            self.DeclarePeriodicDiscreteUpdateEvent(
-                period_s, release_offset_s + RELEASE_GUARD_S, self._release)
-        self.DeclareStateOutputPort("glasses_measured", self._published)
+        self._queue = self.DeclareDiscreteState(np.tile(_EMPTY_MEASUREMENT, self._slots))
+        self.DeclarePeriodicDiscreteUpdateEvent(1.0 / tracker.rate_hz, 0.0, self._capture)
+        self.DeclareVectorOutputPort("glasses_measured", MEASUREMENT_SIZE, self._calc_released,
+                                     prerequisites_of_calc={self.time_ticket(),
+                                                            self.xd_ticket()})
 
     def _hidden(self, t_s: float) -> bool:
         return any(o.start_s <= t_s < o.end_s for o in self._occlusions)
@@ -145,20 +146,15 @@ class HeadSensor(LeafSystem):
             rng = np.random.default_rng((self._seed, k))
             x_WG = measure_glasses(self._head_pose.Eval(context), self._p_GK, self._noise_m, rng)
             measurement = np.concatenate([[t], x_WG, [float(np.all(np.isfinite(x_WG)))]])
-        queue = context.get_discrete_state(self._queue).value().reshape(self._slots, -1).copy()
+        queue = context.get_discrete_state(self._queue).value().reshape(self._slots, -1)
         queue = np.vstack([queue[1:], measurement])  # oldest first
         discrete_state.get_mutable_vector(self._queue).SetFromVector(queue.ravel())
-        self._publish_due(t, queue, discrete_state)
 
-    def _release(self, context, discrete_state):
+    def _calc_released(self, context, output):
+        """The newest capture whose latency has passed by now (the oldest always has)."""
         queue = context.get_discrete_state(self._queue).value().reshape(self._slots, -1)
-        self._publish_due(context.get_time(), queue, discrete_state)
-
-    def _publish_due(self, t_s: float, queue: np.ndarray, discrete_state) -> None:
-        """Publish the newest capture whose latency has passed by t_s."""
-        due = np.flatnonzero(queue[:, 0] + self._latency_s <= t_s + 1e-9)
-        if len(due):
-            discrete_state.get_mutable_vector(self._published).SetFromVector(queue[due[-1]])
+        due = queue[:, 0] + self._latency_s <= context.get_time() + SAME_INSTANT_S
+        output.SetFromVector(queue[np.flatnonzero(due)[-1]])
 
 
 # Nothing captured yet: capture time -inf, no pose, not ok.

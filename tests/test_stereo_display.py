@@ -41,9 +41,13 @@ def run_sensor(tracker, occlusions=(), duration_s=1.0):
 def test_head_sensor_publishes_each_capture_its_latency_later(latency_s):
     tracker = HeadTrackerSpec(latency_s=latency_s)
     times, samples = run_sensor(tracker)
+    period_s = 1 / tracker.rate_hz
     for t, sample in zip(times, samples):
-        # The newest capture (every 0.1 s) whose latency has passed by t (log lags by a tick).
-        newest = np.floor((t - latency_s - 1e-3 + 1e-9) * tracker.rate_hz) / tracker.rate_hz
+        # The newest capture (every 0.1 s) whose latency has passed by t, to the instant;
+        # one made at t itself is queued after the log's publish at t.
+        newest = np.floor((t - latency_s + 1e-9) / period_s) * period_s
+        if newest > t - 1e-9:
+            newest -= period_s
         if newest < 0:
             assert sample[8] == 0.0
         else:
