@@ -72,10 +72,7 @@ class Haptics:
 class Scenario:
     device: DeviceConfig = field(default_factory=DeviceConfig)
     controller: ControllerConfig = field(default_factory=ControllerConfig)
-    # offset_s > 0: each tracker sample is used as it arrives, so the estimate is
-    # tracker.latency_s old rather than one tracker period more.
-    estimator: PoseEstimatorConfig = field(
-        default_factory=lambda: PoseEstimatorConfig(offset_s=1e-5))
+    estimator: PoseEstimatorConfig = field(default_factory=PoseEstimatorConfig)
     motion: MotionScript = field(default_factory=MotionScript)
     occlusions: List[Occlusion] = field(default_factory=list)  # marker null: all (instrument lost)
     marker_dropout_probability: float = 0.0  # per marker and sample

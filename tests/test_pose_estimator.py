@@ -284,11 +284,11 @@ def test_velocity_converges_and_yaw_turns_freely():
     tracker = TrackerSpec(noise_m=0.0, latency_s=latency)
     n = int(1.2 * RATE_HZ)  # more than one full turn of yaw
     times, _, X, V, ok = simulate(body, n, tracker)
-    assert np.all(ok == 1.0)  # the sensor's initialization event fed the first update
-    # Same-time events are simultaneous: the estimator's update at t_k fits the
-    # sample published at t_(k-1), which shows the body at t_(k-1) - latency.
-    for k in range(1, n, 37):
-        x_then = body.pose((k - 1) * T - latency)
+    assert np.all(ok == 1.0)
+    # The estimator's update at t_k + processing delay fits the sample published at
+    # t_k, which shows the body at t_k - latency.
+    for k in range(0, n, 37):
+        x_then = body.pose(k * T - latency)
         assert abs(X[k, :4] @ x_then[:4]) == pytest.approx(1.0, abs=1e-13)
         np.testing.assert_allclose(X[k, 4:], x_then[4:], atol=1e-13)
     np.testing.assert_allclose(V[-200:], np.tile(np.concatenate([body.w, body.v]), (200, 1)),
@@ -297,14 +297,17 @@ def test_velocity_converges_and_yaw_turns_freely():
     assert np.all(np.sum(X[2:, :4] * X[1:-1, :4], axis=1) > 0.99)
 
 
-def test_offset_processes_each_sample_as_it_arrives():
+def test_without_processing_delay_the_hand_off_takes_one_tracker_period():
     body = ConstantVelocityBody(**MOVING)
     latency = 1.5e-3
     tracker = TrackerSpec(noise_m=0.0, latency_s=latency)
-    _, _, X, _, ok = simulate(body, 50, tracker, config=PoseEstimatorConfig(offset_s=1e-5))
-    assert np.all(ok == 1.0)
-    for k in range(50):  # recorded at (k + 0.5) T: the sample of t_k, taken at t_k - latency
-        x_then = body.pose(k * T - latency)
+    _, _, X, _, ok = simulate(body, 50, tracker,
+                              config=PoseEstimatorConfig(processing_delay_s=0.0))
+    assert np.all(ok == 1.0)  # the sensor's initialization event fed the first update
+    # Same-time updates are simultaneous: the update at t_k reads the sample latched
+    # at t_(k-1) (at t_0 the sensor's initialization sample, which equals sample 0).
+    for k in range(1, 50):
+        x_then = body.pose((k - 1) * T - latency)
         assert abs(X[k, :4] @ x_then[:4]) == pytest.approx(1.0, abs=1e-13)
         np.testing.assert_allclose(X[k, 4:], x_then[4:], atol=1e-13)
 
@@ -329,19 +332,17 @@ def test_occlusion_holds_pose_zeroes_velocity_and_reacquires():
     _, markers, X, V, ok = simulate(body, n, TrackerSpec(), occlusions, seed=2)
     sample_lost = np.isnan(markers).any(axis=1)  # 3 markers: one hidden is lost
     assert sample_lost.sum() > 120
-    # The estimator's update at t_k reads the sample of t_(k-1) (at t_0 the
-    # sensor's initialization sample, which equals sample 0).
-    lost = np.concatenate([sample_lost[:1], sample_lost[:-1]])
-    np.testing.assert_array_equal(ok, np.where(lost, 0.0, 1.0))
+    # Each update reads the sample published a processing delay before it.
+    np.testing.assert_array_equal(ok, np.where(sample_lost, 0.0, 1.0))
     assert np.all(np.isfinite(X)) and np.all(np.isfinite(V))
     V_true = np.concatenate([body.w, body.v])
-    for k in np.flatnonzero(lost[1:] & ~lost[:-1]) + 1:  # first lost update
+    for k in np.flatnonzero(sample_lost[1:] & ~sample_lost[:-1]) + 1:  # first lost update
         held = X[k - 1]
-        end = k + np.argmax(~lost[k:])  # first update with markers again
+        end = k + np.argmax(~sample_lost[k:])  # first update with markers again
         np.testing.assert_array_equal(X[k:end], np.tile(held, (end - k, 1)))
         np.testing.assert_array_equal(V[k:end], 0.0)
         np.testing.assert_array_equal(V[end], 0.0)  # re-acquired: filter restarts at rest
-        x_then = body.pose((end - 1) * T - 1.5e-3)
+        x_then = body.pose(end * T - 1.5e-3)
         np.testing.assert_allclose(X[end, 4:], x_then[4:], atol=1e-4)
         np.testing.assert_allclose(V[end + 43], V_true, atol=0.15)  # 50 ms later: converged
         assert np.all(np.abs(V[end + 43] - V_true) < 5 * DOCUMENTED_VELOCITY_NOISE)
@@ -399,8 +400,10 @@ def test_residual_limit_follows_the_noise():
     (TrackerSpec(), PoseEstimatorConfig(bandwidth_hz=500.0), r"bandwidth_hz = 500.0"),
     (TrackerSpec(), PoseEstimatorConfig(max_residual_sigma=-1.0),
      r"pose_estimator.max_residual_sigma = -1.0: must be > 0"),
-    (TrackerSpec(), PoseEstimatorConfig(offset_s=-1e-5), r"pose_estimator.offset_s = -1e-05"),
-    (TrackerSpec(), PoseEstimatorConfig(offset_s=0.01), r"pose_estimator.offset_s = 0.01"),
+    (TrackerSpec(), PoseEstimatorConfig(processing_delay_s=-1e-5),
+     r"pose_estimator.processing_delay_s = -1e-05"),
+    (TrackerSpec(), PoseEstimatorConfig(processing_delay_s=0.01),
+     r"pose_estimator.processing_delay_s = 0.01"),
 ])
 def test_bad_config_is_named(tracker, config, match):
     with pytest.raises(ValueError, match=match):
