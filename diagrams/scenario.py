@@ -3,19 +3,21 @@
 A scenario file holds several named scenarios (plus an optional ``Defaults``
 entry that is ignored); each is a :class:`Scenario` in YAML, loaded with
 ``pydrake.common.yaml.yaml_load_typed`` over the defaults, so every field can
-be left out. Before loading, the raw YAML is walked against the schema so a
-typo or a wrong type is reported with its full field path; after loading, the
-values are range-checked the same way.
+be left out; Drake's loader refuses unknown keys, wrong types and unknown
+tags, and its error is reported with the field's full path. After loading, the
+values are range-checked, each error naming the field, its value and what is
+allowed.
 """
 
 import dataclasses
+import re
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import List, Optional, Union
 
 import yaml
-from pydrake.common.yaml import yaml_load_typed
+from pydrake.common.yaml import yaml_load_data, yaml_load_typed
 from pydrake.multibody.plant import MultibodyPlantConfig
 
 from maglev_haptics.diagrams.deformable_scene import (
@@ -112,34 +114,16 @@ def resolve_scenario_file(name_or_path: str) -> Path:
     raise ScenarioError(f"scenario file {name_or_path!r} not found: give a path or one of {names}")
 
 
-class _TaggedMapping(dict):
-    """A YAML mapping written with a tag (``!ScriptedHand {...}``): a Union's choice."""
-
-    def __init__(self, tag: str, mapping: dict):
-        super().__init__(mapping)
-        self.tag = tag
-
-
-class _TagLoader(yaml.SafeLoader):
-    """SafeLoader that keeps ``!Tag`` mappings as _TaggedMapping (for the schema walk)."""
-
-
-def _construct_tagged(loader, tag_suffix, node):
-    if not isinstance(node, yaml.MappingNode):
-        raise yaml.constructor.ConstructorError(
-            None, None, f"the tag !{tag_suffix} must mark a mapping", node.start_mark)
-    return _TaggedMapping(tag_suffix, loader.construct_mapping(node, deep=True))
-
-
-_TagLoader.add_multi_constructor("!", _construct_tagged)
-
-
-def _parse_yaml(text: str, source: str) -> dict:
-    """The YAML mapping in ``text``; a ScenarioError naming ``source`` if it is not one."""
+def _parse_mapping(text: str, source: str) -> dict:
+    """The YAML mapping in ``text``, as Drake's loader reads it; a ScenarioError
+    naming ``source`` if it is not one."""
     try:
-        raw = yaml.load(text, Loader=_TagLoader)
+        raw = yaml_load_data(text)
     except yaml.YAMLError as error:
-        raise ScenarioError(f"{source}: not valid YAML: {error}") from None
+        mark = getattr(error, "problem_mark", None)
+        where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark else ""
+        problem = getattr(error, "problem", None) or str(error).splitlines()[0]
+        raise ScenarioError(f"{source}: not valid YAML{where}: {problem}") from None
     if raw is None:
         return {}
     if not isinstance(raw, dict):
@@ -147,15 +131,105 @@ def _parse_yaml(text: str, source: str) -> dict:
     return raw
 
 
+def _paths_to(raw, token: str, keys=()):
+    """Key paths (tuples) in the parsed YAML ``raw`` whose key, tag or value is ``token``."""
+    items = (raw.items() if isinstance(raw, dict)
+             else enumerate(raw) if isinstance(raw, list) else ())
+    for key, value in items:
+        if key == "_tag":
+            continue
+        tag = value.get("_tag", "").lstrip("!") if isinstance(value, dict) else None
+        if key == token or tag == token or (not isinstance(value, (dict, list))
+                                            and str(value) == token):
+            yield keys + (key,)
+        yield from _paths_to(value, token, keys + (key,))
+
+
+def _field_path(keys) -> str:
+    return "".join(f"[{key}]" if isinstance(key, int) else f".{key}" for key in keys).lstrip(".")
+
+
+def _schema_at(raw, keys):
+    """The config class that the YAML at ``keys`` fills (a Union's member by its tag),
+    or None where the path leaves the dataclasses."""
+    schema, node = Scenario, raw
+    for key in keys:
+        node = node[key]
+        if isinstance(key, int):
+            schema = typing.get_args(schema)[0]
+        elif dataclasses.is_dataclass(schema):
+            schema = typing.get_type_hints(schema).get(key)
+        else:
+            return None
+        options = [a for a in typing.get_args(schema) if a is not type(None)]
+        if typing.get_origin(schema) is Union:
+            tag = node.get("_tag", "").lstrip("!") if isinstance(node, dict) else ""
+            named = {option.__name__: option for option in options}
+            schema = options[0] if len(options) == 1 else named.get(tag, options[0])
+    return schema
+
+
+def _check_union_tags(raw, schema, keys=()) -> None:
+    """Refuse an untagged mapping where a field holds one of several kinds: Drake's
+    loader would silently read it as the Union's first kind (a hanging ball's
+    ``scene: {contact: ...}`` as a fresh PegInHole). The one check Drake lacks."""
+    if typing.get_origin(schema) is Union:
+        options = [a for a in typing.get_args(schema) if a is not type(None)]
+        if len(options) > 1 and isinstance(raw, dict):
+            named = {option.__name__: option for option in options}
+            tags = ", ".join(f"!{name}" for name in named)
+            tag = raw.get("_tag", "").lstrip("!")
+            if not tag:
+                raise ScenarioError(f"{_field_path(keys)}: needs a tag to choose its kind, one "
+                                    f"of {tags} (e.g. {keys[-1]}: !{options[0].__name__} {{}})")
+            _check_union_tags(raw, named.get(tag), keys)
+        elif len(options) == 1:
+            _check_union_tags(raw, options[0], keys)
+    elif typing.get_origin(schema) is list and isinstance(raw, list):
+        for i, item in enumerate(raw):
+            _check_union_tags(item, typing.get_args(schema)[0], keys + (i,))
+    elif dataclasses.is_dataclass(schema) and isinstance(raw, dict):
+        hints = typing.get_type_hints(schema)
+        for key, value in raw.items():
+            if key in hints:
+                _check_union_tags(value, hints[key], keys + (key,))
+
+
+def _load_typed(source: str, raw: dict, load):
+    """``load()`` (Drake's yaml_load_typed, which checks keys, types and tags); its
+    error as a ScenarioError that names the field's path, found in ``raw``."""
+    try:
+        _check_union_tags(raw, Scenario)
+        return load()
+    except ScenarioError as error:
+        raise ScenarioError(f"{source}: {error}") from None
+    except (RuntimeError, ValueError, TypeError) as error:
+        message = str(error).splitlines()[0]
+        # Drake names a Union's options as classes: say them as the tags to write.
+        message = re.sub(r"\(\((.*)\)\)", lambda options: "(" + ", ".join(
+            f"!{name}" for name in re.findall(r"<class '[\w.]*?(\w+)'>", options[1])
+            if name != "NoneType") + ")", message)
+        tokens = re.findall(r"'([^']+)'", message)
+        paths = sorted({path for token in tokens for path in _paths_to(raw, token)})
+        if paths and "unknown to the schema" in message:
+            parent = _schema_at(raw, paths[0][:-1])
+            if dataclasses.is_dataclass(parent):
+                message = (f"unknown field; {parent.__name__} has "
+                           + ", ".join(f.name for f in dataclasses.fields(parent)))
+        where = f" {', '.join(_field_path(path) for path in paths)}:" if paths else ""
+        raise ScenarioError(f"{source}:{where} {message}") from None
+
+
 def scenario_names(path: Path) -> List[str]:
-    return [key for key in _parse_yaml(path.read_text(), str(path)) if key != "Defaults"]
+    return [key for key in _parse_mapping(path.read_text(), str(path)) if key != "Defaults"]
 
 
 def load_scenario(name_or_path: str, name: Optional[str] = None,
                   scenario_text: str = "{}") -> Scenario:
     """Load one named scenario (default: the file's first) and layer ``scenario_text`` on it."""
     path = resolve_scenario_file(name_or_path)
-    raw = _parse_yaml(path.read_text(), str(path))
+    text = path.read_text()
+    raw = _parse_mapping(text, str(path))
     names = [key for key in raw if key != "Defaults"]
     if not names:
         raise ScenarioError(f"{path}: holds no named scenario")
@@ -163,12 +237,11 @@ def load_scenario(name_or_path: str, name: Optional[str] = None,
     if name not in names:
         raise ScenarioError(f"{path}: no scenario named {name!r}; it has {', '.join(names)}")
     label = f"{path.stem}:{name}"
-    check_yaml_against_schema(raw[name] or {}, Scenario, label)
-    check_yaml_against_schema(_parse_yaml(scenario_text, "--scenario-text"), Scenario,
-                              f"{label} (--scenario-text)")
-    scenario = yaml_load_typed(schema=Scenario, data=path.read_text(),
-                               child_name=name, defaults=Scenario())
-    scenario = yaml_load_typed(schema=Scenario, data=scenario_text, defaults=scenario)
+    scenario = _load_typed(label, raw[name] or {}, lambda: yaml_load_typed(
+        schema=Scenario, data=text, child_name=name, defaults=Scenario()))
+    layered = _parse_mapping(scenario_text, "--scenario-text")
+    scenario = _load_typed(f"{label} (--scenario-text)", layered, lambda: yaml_load_typed(
+        schema=Scenario, data=scenario_text, defaults=scenario))
     validate_scenario(scenario, label)
     return scenario
 
@@ -178,68 +251,6 @@ def with_stereo(scenario: Scenario, label: str) -> Scenario:
     scenario = dataclasses.replace(scenario, stereo=StereoConfig())
     validate_scenario(scenario, label)
     return scenario
-
-
-def check_yaml_against_schema(value, schema, label: str) -> None:
-    """Raise ScenarioError naming ``label: path.to.field`` for unknown keys and wrong types."""
-    try:
-        _check_value(value, schema, "")
-    except ScenarioError as error:
-        raise ScenarioError(f"{label}: {error}") from None
-
-
-def _check_value(value, schema, path: str) -> None:
-    origin = typing.get_origin(schema)
-    args = typing.get_args(schema)
-    if origin is typing.Union:
-        if value is None and type(None) in args:
-            return
-        options = [a for a in args if a is not type(None)]
-        if len(options) == 1:
-            _check_value(value, options[0], path)
-            return
-        names = {option.__name__: option for option in options}
-        tags = ", ".join(f"!{name}" for name in names)
-        tag = getattr(value, "tag", None)
-        if tag is None:
-            # Untagged: yaml_load_typed keeps the current choice (the default's).
-            raise ScenarioError(f"{path}: needs a tag to choose its kind, one of {tags} "
-                                f"(e.g. {path.rsplit('.', 1)[-1]}: !{options[0].__name__} {{}})")
-        if tag not in names:
-            raise ScenarioError(f"{path}: unknown kind !{tag}; allowed: {tags}")
-        _check_value(dict(value), names[tag], path)
-        return
-    if origin in (list, List):
-        if not isinstance(value, list):
-            raise ScenarioError(f"{path} = {value!r}: must be a list")
-        for i, item in enumerate(value):
-            _check_value(item, args[0], f"{path}[{i}]")
-        return
-    if dataclasses.is_dataclass(schema):
-        if not isinstance(value, dict):
-            raise ScenarioError(f"{path or 'the scenario'} = {value!r}: must be a mapping of "
-                                f"{schema.__name__} fields")
-        hints = typing.get_type_hints(schema)
-        for key, item in value.items():
-            field_path = f"{path}.{key}" if path else str(key)
-            if key not in hints:
-                allowed = ", ".join(f.name for f in dataclasses.fields(schema))
-                raise ScenarioError(f"{field_path}: unknown field; {schema.__name__} has {allowed}")
-            _check_value(item, hints[key], field_path)
-        return
-    if schema is float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ScenarioError(f"{path} = {value!r}: must be a number")
-    elif schema is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise ScenarioError(f"{path} = {value!r}: must be an integer")
-    elif schema is bool:
-        if not isinstance(value, bool):
-            raise ScenarioError(f"{path} = {value!r}: must be true or false")
-    elif schema is str:
-        if not isinstance(value, str):
-            raise ScenarioError(f"{path} = {value!r}: must be a string")
-    # Drake's own config dataclasses check their fields in yaml_load_typed.
 
 
 def validate_scenario(s: Scenario, label: str) -> None:

@@ -5,10 +5,11 @@ import pytest
 from pydrake.geometry import Meshcat
 from pydrake.systems.analysis import Simulator
 
+from maglev_haptics.analysis.run_results import run_scenario
 from maglev_haptics.diagrams.application import BuildDiagram
 from maglev_haptics.diagrams.haptics import interactive_variant
-from maglev_haptics.analysis.run_results import run_scenario
 from maglev_haptics.diagrams.scenario import ScenarioError, load_scenario
+from maglev_haptics.diagrams.scene import PegInHole
 from maglev_haptics.systems.haptic_supervisor import HAPTIC
 from maglev_haptics.systems.meshcat_hand import GRIP_BUTTON
 
@@ -139,13 +140,21 @@ def test_interactive_needs_a_scene():
         interactive_variant(load_scenario("levitate"), 10.0)
 
 
-def test_scene_kind_needs_its_tag():
+def test_scene_kind_is_chosen_by_its_tag():
+    scenario = load_scenario("peg_in_hole",
+                             scenario_text="{haptics: {scene: !PegInHole {peg_mass_kg: 0.03}}}")
+    assert isinstance(scenario.haptics.scene, PegInHole)
+    assert scenario.haptics.scene.peg_mass_kg == 0.03
+    # Untagged, Drake would read any scene as the Union's first kind, a fresh PegInHole.
     with pytest.raises(ScenarioError, match=r"haptics.scene: needs a tag.*!PegInHole"):
-        load_scenario("peg_in_hole", scenario_text="{haptics: {scene: {peg_mass_kg: 0.03}}}")
-    with pytest.raises(ScenarioError, match=r"unknown kind !Teapot"):
-        load_scenario("peg_in_hole", scenario_text="{haptics: {scene: !Teapot {}}}")
+        load_scenario("hanging_ball", scenario_text="{haptics: {scene: {contact: {friction: 0.3}}}}")
     with pytest.raises(ScenarioError, match=r"hand: needs a tag"):
         load_scenario("peg_in_hole", scenario_text="{hand: {start_s: 1.0}}")
+    with pytest.raises(ScenarioError, match=r"haptics.scene.pegg: unknown field; HangingBall has"):
+        load_scenario("hanging_ball", scenario_text="{haptics: {scene: !HangingBall {pegg: 1}}}")
+    with pytest.raises(ScenarioError, match=r"haptics.scene: .*'Teapot'.*\(!PegInHole, "
+                                            r"!HangingBall, !PaddleBall, !DeformableSurface\)"):
+        load_scenario("peg_in_hole", scenario_text="{haptics: {scene: !Teapot {}}}")
 
 
 def test_haptics_needs_a_hand():

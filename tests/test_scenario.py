@@ -34,7 +34,8 @@ def test_levitate_names_the_required_scenarios():
     ("a: {device: {coil: {tunrs: 3}}}", "a: device.coil.tunrs: unknown field; CoilSpec has"),
     ("a: {motion: {waypoints: [{pose: [0, 0, 0.02, 0, 0, 0], hold: 1}]}}",
      "motion.waypoints[0].hold: unknown field"),
-    ("a: {device: {tracker: {rate_hz: fast}}}", "device.tracker.rate_hz = 'fast': must be a number"),
+    ("a: {device: {tracker: {rate_hz: fast}}}",
+     "device.tracker.rate_hz: could not convert string to float: 'fast'"),
     ("a: {device: {instrument_mass_kg: -0.1}}", "device.instrument_mass_kg = -0.1: must be a finite number > 0"),
     ("a: {device: {instrument: three_magnet}}", "device.instrument = 'three_magnet': must be one of"),
     ("a: {motion: {waypoints: [{pose: [0, 0, 0.02]}]}}", "motion.waypoints[0].pose = [0.0, 0.0, 0.02]: must be a list of 6"),
@@ -48,6 +49,16 @@ def test_bad_values_name_the_field(tmp_path, text, fragment):
     with pytest.raises(ScenarioError) as error:
         load_scenario(write(tmp_path, text), "a")
     assert fragment in str(error.value)
+
+
+def test_si_values_in_exponent_notation_load(tmp_path):
+    """YAML 1.1 reads 1e-5 (no dot) as text; Drake's loader, and so the scenario, as a number."""
+    scenario = load_scenario(write(tmp_path, "a: {device: {tracker: {noise_m: 2e-5}}}"), "a",
+                             scenario_text="{device: {instrument_mass_kg: 1e-1}}")
+    assert scenario.device.tracker.noise_m == 2e-5
+    assert scenario.device.instrument_mass_kg == 0.1
+    heavy = load_scenario("levitate", scenario_text="{device: {instrument_mass_kg: 1e9}}")
+    assert heavy.device.instrument_mass_kg == 1e9
 
 
 def test_unknown_scenario_name_lists_the_known_ones(tmp_path):
