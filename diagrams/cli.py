@@ -1,4 +1,4 @@
-"""The ``maglev`` command line (DESIGN.md section 8)."""
+"""The ``maglev`` command line: run, diagram, bench, analyze (docs/architecture.md)."""
 
 from __future__ import annotations
 
