@@ -28,21 +28,20 @@ from pydrake.multibody.plant import AddMultibodyPlant
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import ConstantVectorSource
-
 from tqdm import tqdm
 
-from maglev_haptics.diagrams.application import BuildDiagram
 from maglev_haptics.analysis.lattice_bench import (
     LATTICE_SIZES, format_lattice_report, lattice_scaling, plot_lattice_scaling)
-from maglev_haptics.diagrams.runner import simulate
-from maglev_haptics.diagrams.scenario import SCENARIO_DIR, load_scenario, scenario_names
 from maglev_haptics.analysis.stereo_bench import format_stereo_report, stereo_costs
 from maglev_haptics.analysis.timing import leaf_system_costs, time_per_call_us
+from maglev_haptics.diagrams.application import BuildDiagram
+from maglev_haptics.diagrams.runner import simulate
+from maglev_haptics.diagrams.scenario import SCENARIO_DIR, load_scenario, scenario_names
 from maglev_haptics.diagrams.station import add_station_models, rest_transform
+from maglev_haptics.hardware.constants import GRAVITY_M_S2
 from maglev_haptics.hardware.device import DeviceConfig
 from maglev_haptics.hardware.magnetics import bench_wrench_matrix, load_magnetics
 from maglev_haptics.systems.current_allocator import allocate_currents
-from maglev_haptics.hardware.constants import GRAVITY_M_S2
 
 LEVITATE_FILE = SCENARIO_DIR / "levitate.yaml"
 HAPTIC_FILES = [SCENARIO_DIR / f"{name}.yaml" for name in ("hanging_ball", "paddle_ball",

@@ -16,9 +16,9 @@ from typing import Dict, Sequence
 import matplotlib
 import numpy as np
 
-from maglev_haptics.diagrams.deformable_scene import DeformableSurface, build_scene_lattice
 from maglev_haptics.analysis.run_plots import save_figure
 from maglev_haptics.analysis.timing import time_per_call_us
+from maglev_haptics.diagrams.deformable_scene import DeformableSurface, build_scene_lattice
 from maglev_haptics.systems.lattice_dynamics import (
     ProbeContact, implicit_workspace, lattice_model, linearly_implicit_tick,
     max_stable_link_stiffness, symplectic_euler_tick)

@@ -27,8 +27,8 @@ import scipy.signal
 
 from maglev_haptics.analysis.loop_linearization import loop_map, stability
 from maglev_haptics.analysis.loop_studies import StudyNotApplicable
-from maglev_haptics.diagrams.hand_script import ScriptedHand
 from maglev_haptics.analysis.run_results import run_scenario
+from maglev_haptics.diagrams.hand_script import ScriptedHand
 
 HOLD_S = 3.0  # how long the hand holds still with haptics on (s)
 SETTLE_S = 0.5  # after haptics is fully on, before the growth is measured (s)

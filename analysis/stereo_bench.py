@@ -5,10 +5,10 @@ full resolution."""
 
 from typing import Dict
 
+from maglev_haptics.analysis.timing import leaf_system_costs, time_per_call_us
 from maglev_haptics.diagrams.application import BuildDiagram
 from maglev_haptics.diagrams.runner import simulate
 from maglev_haptics.diagrams.scenario import load_scenario, with_stereo
-from maglev_haptics.analysis.timing import leaf_system_costs, time_per_call_us
 from maglev_haptics.systems.head_sensor import glasses_pose
 from maglev_haptics.systems.stereo_renderer import StereoRenderer
 

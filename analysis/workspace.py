@@ -61,8 +61,8 @@ from matplotlib.patches import Circle, Rectangle  # noqa: E402
 from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter  # noqa: E402
 from pydrake.math import RollPitchYaw, RotationMatrix  # noqa: E402
 
-from maglev_haptics.diagrams.motion import MAX_TILT_DEG, base_clearance_m  # noqa: E402
 from maglev_haptics.analysis.run_plots import save_figure  # noqa: E402
+from maglev_haptics.diagrams.motion import MAX_TILT_DEG, base_clearance_m  # noqa: E402
 from maglev_haptics.hardware.device import INSTRUMENT_KINDS, DeviceConfig  # noqa: E402
 from maglev_haptics.hardware.limits import (  # noqa: E402
     AXIS_DIRECTIONS, LIMIT_KINDS, coil_current_limit_a, hover_current_a, hover_workspace_A,

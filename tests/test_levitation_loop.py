@@ -5,8 +5,8 @@ import json
 import numpy as np
 import pytest
 
-from maglev_haptics.diagrams.cli import main
 from maglev_haptics.analysis.run_results import run_scenario
+from maglev_haptics.diagrams.cli import main
 from maglev_haptics.diagrams.scenario import load_scenario, scenario_names, shipped_scenario_files
 
 LIMIT_A = 4.0
