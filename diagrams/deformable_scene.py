@@ -20,9 +20,9 @@ from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import Adder, Demultiplexer, MatrixGain
 
 from maglev_haptics.diagrams.scene_builder import SceneParts, wrench_to_generalized_force
+from maglev_haptics.hardware.config_checks import finite, nonnegative, positive, require, vector
 from maglev_haptics.hardware.constants import GRAVITY_M_S2
 from maglev_haptics.plant_models.scene_geometry import sphere_inertia
-from maglev_haptics.systems.config_checks import finite, nonnegative, positive, require, vector
 from maglev_haptics.systems.deformable_surface import DeformableSurface as DeformableSurfaceSystem
 from maglev_haptics.systems.heightmap import (
     Heightmap, RandomHeightmap, heightmap_heights, validate_heightmap)

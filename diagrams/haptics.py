@@ -25,9 +25,9 @@ from pydrake.math import RigidTransform, RollPitchYaw
 from pydrake.systems.primitives import Adder, TrajectorySource
 from pydrake.trajectories import PiecewisePolynomial
 
+from maglev_haptics.diagrams.deformable_scene import AddDeformableScene, DeformableSurface
 from maglev_haptics.diagrams.hand_script import MeshcatHand, hand_plan
 from maglev_haptics.diagrams.scenario import Scenario
-from maglev_haptics.diagrams.deformable_scene import AddDeformableScene, DeformableSurface
 from maglev_haptics.diagrams.scene_builder import AddScene
 from maglev_haptics.diagrams.station import hand_start_pose, rest_transform
 from maglev_haptics.hardware.limits import device_limits

@@ -15,9 +15,9 @@ from typing import List
 import numpy as np
 
 from maglev_haptics.diagrams.hand_script import TAIL_S
-from maglev_haptics.systems.blends import minimum_jerk_plan
-from maglev_haptics.systems.config_checks import (
+from maglev_haptics.hardware.config_checks import (
     finite, nonnegative, positive, require, vector)
+from maglev_haptics.systems.blends import minimum_jerk_plan
 from maglev_haptics.systems.head_sensor import glasses_pose
 from maglev_haptics.systems.stereo import MIN_EYE_DISTANCE_M, eye_distance_m, eye_positions_W
 

@@ -16,9 +16,9 @@ from pydrake.math import RollPitchYaw
 from pydrake.trajectories import PiecewisePolynomial
 
 from maglev_haptics.diagrams.scenario import ScenarioError
+from maglev_haptics.hardware.constants import GRAVITY_M_S2
 from maglev_haptics.systems.blends import LANDING_PRESS_M, minimum_jerk_samples
 from maglev_haptics.systems.current_allocator import allocate_currents
-from maglev_haptics.hardware.constants import GRAVITY_M_S2
 
 IDLE_AFTER_S = 0.2  # the script ends this long after the currents are ramped to zero
 HOLD_MARGIN = 1.2  # a waypoint must be holdable with this multiple of the weight

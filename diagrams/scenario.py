@@ -26,9 +26,9 @@ from maglev_haptics.diagrams.hand_script import MeshcatHand, ScriptedHand, valid
 from maglev_haptics.diagrams.scene import HangingBall, PaddleBall, PegInHole, validate_scene
 from maglev_haptics.diagrams.stereo_display import StereoConfig, validate_stereo
 from maglev_haptics.diagrams.waypoints import Waypoint
+from maglev_haptics.hardware.config_checks import each, nonnegative, positive, require, vector
 from maglev_haptics.hardware.device import INSTRUMENT_KINDS, DeviceConfig
 from maglev_haptics.hardware.limits import LIMIT_KINDS
-from maglev_haptics.systems.config_checks import each, nonnegative, positive, require, vector
 from maglev_haptics.systems.haptic_coupling import CouplingConfig
 from maglev_haptics.systems.haptic_supervisor import SupervisorConfig
 from maglev_haptics.systems.levitation_controller import ControllerConfig

@@ -12,8 +12,8 @@ checks. ``diagrams/scene_builder.py`` adds them to a diagram.
 from dataclasses import dataclass, field
 from typing import List, Optional, Union
 
+from maglev_haptics.hardware.config_checks import finite, nonnegative, positive, require, vector
 from maglev_haptics.hardware.constants import GRAVITY_M_S2
-from maglev_haptics.systems.config_checks import finite, nonnegative, positive, require, vector
 
 
 @dataclass

@@ -68,12 +68,12 @@ from pydrake.systems.primitives import Demultiplexer, MatrixGain, ZeroOrderHold
 from maglev_haptics.diagrams.scene import (
     ContactProperties, HangingBall, PaddleBall, PegInHole, SceneConfig, hanging_drop_m,
     table_top_z, validate_scene)
+from maglev_haptics.hardware.config_checks import positive
 from maglev_haptics.plant_models.scene_geometry import (
     Solid, box_inertia, hole_block_boxes, solid_bottom_z, solid_overlaps_box, sphere_inertia)
 from maglev_haptics.plant_models.scene_sdf import (
     ANCHOR_RGBA, BALL_RGBA, BLOCK_RGBA, PADDLE_RGBA, PEG_RGBA, Part, box_geometry, model_sdf,
     register_table, sphere_geometry)
-from maglev_haptics.systems.config_checks import positive
 from maglev_haptics.systems.tool_contact import ToolContactSensor
 
 

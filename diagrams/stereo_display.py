@@ -12,7 +12,7 @@ from typing import List, Optional
 from pydrake.systems.framework import DiagramBuilder
 
 from maglev_haptics.diagrams.head_script import HeadScript, validate_head_script
-from maglev_haptics.systems.config_checks import nonnegative, positive, require, vector
+from maglev_haptics.hardware.config_checks import nonnegative, positive, require, vector
 from maglev_haptics.systems.head_predictor import (
     PREDICTOR_MODES, HeadPosePredictor, HeadPredictorConfig)
 from maglev_haptics.systems.head_sensor import HeadOcclusion

@@ -40,8 +40,8 @@ from pydrake.common.value import AbstractValue
 from pydrake.multibody.tree import SpatialInertia
 from pydrake.systems.framework import LeafSystem, ValueProducer
 
-from maglev_haptics.systems.haptic_coupling import coupling_wrenches
 from maglev_haptics.hardware.constants import GRAVITY_M_S2
+from maglev_haptics.systems.haptic_coupling import coupling_wrenches
 from maglev_haptics.systems.rotations import (
     angular_velocity_from_rpy_rates, pose_vector, quaternion_from_rotation_matrix,
     rigid_transform, rotation_from_quaternion, rotation_from_rpy)

@@ -27,7 +27,7 @@ from typing import List, Union
 import numpy as np
 from scipy.ndimage import gaussian_filter
 
-from maglev_haptics.systems.config_checks import finite, require
+from maglev_haptics.hardware.config_checks import finite, require
 
 # Relative deviation of a grid's spacings from their mean still called uniform:
 # np.linspace's spacings differ by a few ulps.

@@ -19,14 +19,14 @@ from pydrake.systems.primitives import Adder, ConstantVectorSource, MatrixGain, 
 
 from maglev_haptics.diagrams.hand_script import (
     GripEvent, MeshcatHand, ScriptedHand, hand_plan, validate_hand)
-from maglev_haptics.diagrams.waypoints import Waypoint
 from maglev_haptics.diagrams.station import generalized_force_placement
+from maglev_haptics.diagrams.waypoints import Waypoint
+from maglev_haptics.hardware.constants import GRAVITY_M_S2
 from maglev_haptics.plant_models import PACKAGE_XML
 from maglev_haptics.systems.hand import (
     HAND_BODY_NAME, HAND_MODEL_URL, HandImpedanceConfig, SimulatedHand, arm_wrench,
     explicit_step_spectral_radius, grip_update, grip_wrenches, hand_spatial_inertia,
     hand_wrenches, impedance_gains, latch_X_HI)
-from maglev_haptics.hardware.constants import GRAVITY_M_S2
 
 CONFIG = HandImpedanceConfig()
 # Distinct per-axis gains so a mixed-up axis shows.
