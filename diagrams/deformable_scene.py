@@ -25,7 +25,7 @@ from maglev_haptics.hardware.constants import GRAVITY_M_S2
 from maglev_haptics.plant_models.scene_geometry import sphere_inertia
 from maglev_haptics.systems.deformable_surface import DeformableSurface as DeformableSurfaceSystem
 from maglev_haptics.systems.heightmap import (
-    Heightmap, RandomHeightmap, heightmap_heights, validate_heightmap)
+    Heightmap, RandomHeightmap, heightmap_heights)
 from maglev_haptics.systems.lattice_construction import Lattice, build_lattice
 from maglev_haptics.systems.lattice_dynamics import (
     INTEGRATORS, SYMPLECTIC_EULER, ProbeContact, lattice_model, max_stable_link_stiffness)
@@ -74,6 +74,42 @@ class DeformableSurface:
     tool_mass_kg: float = 0.015  # (kg); >= 10 g for the explicit coupling
     min_inertia_kg_m2: float = 5e-6  # floor of the tool's principal moments (kg*m^2)
 
+    def validate(self, path: str = "scene") -> None:
+        """Range checks; a ValueError names ``path.field``, its value and what is allowed."""
+        vector(f"{path}.size_m", self.size_m, positive=True, length=2)
+        vector(f"{path}.center_m", self.center_m, length=2)
+        positive(f"{path}.column_spacing_m", self.column_spacing_m)
+        for i in range(2):
+            require(self.size_m[i] >= 2 * self.column_spacing_m, f"{path}.size_m[{i}]",
+                    self.size_m[i], f"at least 2 column spacings ({2 * self.column_spacing_m} m)")
+        positive(f"{path}.level_spacing_m", self.level_spacing_m)
+        require(finite(self.base_z_m), f"{path}.base_z_m", self.base_z_m, "a finite number")
+        require(finite(self.surface_z_m) and self.surface_z_m > self.base_z_m,
+                f"{path}.surface_z_m", self.surface_z_m,
+                f"a finite height above base_z_m ({self.base_z_m} m)")
+        self.heightmap.validate(f"{path}.heightmap")
+        positive(f"{path}.node_mass_kg", self.node_mass_kg)
+        positive(f"{path}.link_stiffness_n_per_m", self.link_stiffness_n_per_m)
+        nonnegative(f"{path}.link_damping_n_s_per_m", self.link_damping_n_s_per_m)
+        require(self.integrator in INTEGRATORS, f"{path}.integrator", self.integrator,
+                f"one of {', '.join(INTEGRATORS)}")
+        require(isinstance(self.substeps, int) and self.substeps >= 1, f"{path}.substeps",
+                self.substeps, "an integer >= 1")
+        positive(f"{path}.cg_tolerance", self.cg_tolerance)
+        require(isinstance(self.cg_max_iterations, int) and self.cg_max_iterations >= 1,
+                f"{path}.cg_max_iterations", self.cg_max_iterations, "an integer >= 1")
+        vector(f"{path}.gravity_m_s2", self.gravity_m_s2)
+        probe = self.probe
+        positive(f"{path}.probe.radius_m", probe.radius_m)
+        positive(f"{path}.probe.stiffness_n_per_m", probe.stiffness_n_per_m)
+        positive(f"{path}.probe.onset_depth_m", probe.onset_depth_m)
+        nonnegative(f"{path}.probe.dissipation_s_per_m", probe.dissipation_s_per_m)
+        nonnegative(f"{path}.probe.friction", probe.friction)
+        positive(f"{path}.probe.slip_speed_m_s", probe.slip_speed_m_s)
+        vector(f"{path}.tool_offset_m", self.tool_offset_m)
+        positive(f"{path}.tool_mass_kg", self.tool_mass_kg)
+        nonnegative(f"{path}.min_inertia_kg_m2", self.min_inertia_kg_m2)
+
 
 def lattice_grid(scene: DeformableSurface):
     """(x_m (nx,), y_m (ny,)): the columns' positions in W (m)."""
@@ -90,43 +126,6 @@ def build_scene_lattice(scene: DeformableSurface) -> Lattice:
     x_m, y_m = lattice_grid(scene)
     heights = scene.surface_z_m + heightmap_heights(scene.heightmap, x_m, y_m)
     return build_lattice(heights, x_m, y_m, scene.base_z_m, scene.level_spacing_m)
-
-
-def validate_deformable_surface(scene: DeformableSurface, label: str = "scene") -> None:
-    """Range checks; a ValueError names ``label.field``, its value and what is allowed."""
-    vector(f"{label}.size_m", scene.size_m, positive=True, length=2)
-    vector(f"{label}.center_m", scene.center_m, length=2)
-    positive(f"{label}.column_spacing_m", scene.column_spacing_m)
-    for i in range(2):
-        require(scene.size_m[i] >= 2 * scene.column_spacing_m, f"{label}.size_m[{i}]",
-                scene.size_m[i], f"at least 2 column spacings ({2 * scene.column_spacing_m} m)")
-    positive(f"{label}.level_spacing_m", scene.level_spacing_m)
-    require(finite(scene.base_z_m), f"{label}.base_z_m", scene.base_z_m, "a finite number")
-    require(finite(scene.surface_z_m) and scene.surface_z_m > scene.base_z_m,
-            f"{label}.surface_z_m", scene.surface_z_m,
-            f"a finite height above base_z_m ({scene.base_z_m} m)")
-    validate_heightmap(scene.heightmap, f"{label}.heightmap")
-    positive(f"{label}.node_mass_kg", scene.node_mass_kg)
-    positive(f"{label}.link_stiffness_n_per_m", scene.link_stiffness_n_per_m)
-    nonnegative(f"{label}.link_damping_n_s_per_m", scene.link_damping_n_s_per_m)
-    require(scene.integrator in INTEGRATORS, f"{label}.integrator", scene.integrator,
-            f"one of {', '.join(INTEGRATORS)}")
-    require(isinstance(scene.substeps, int) and scene.substeps >= 1, f"{label}.substeps",
-            scene.substeps, "an integer >= 1")
-    positive(f"{label}.cg_tolerance", scene.cg_tolerance)
-    require(isinstance(scene.cg_max_iterations, int) and scene.cg_max_iterations >= 1,
-            f"{label}.cg_max_iterations", scene.cg_max_iterations, "an integer >= 1")
-    vector(f"{label}.gravity_m_s2", scene.gravity_m_s2)
-    probe = scene.probe
-    positive(f"{label}.probe.radius_m", probe.radius_m)
-    positive(f"{label}.probe.stiffness_n_per_m", probe.stiffness_n_per_m)
-    positive(f"{label}.probe.onset_depth_m", probe.onset_depth_m)
-    nonnegative(f"{label}.probe.dissipation_s_per_m", probe.dissipation_s_per_m)
-    nonnegative(f"{label}.probe.friction", probe.friction)
-    positive(f"{label}.probe.slip_speed_m_s", probe.slip_speed_m_s)
-    vector(f"{label}.tool_offset_m", scene.tool_offset_m)
-    positive(f"{label}.tool_mass_kg", scene.tool_mass_kg)
-    nonnegative(f"{label}.min_inertia_kg_m2", scene.min_inertia_kg_m2)
 
 
 def probe_tool_sdf(scene: DeformableSurface) -> str:
@@ -203,7 +202,7 @@ def AddDeformableScene(builder: DiagramBuilder, *, scene: DeformableSurface, tim
     as built. A ValueError names a bad config field (a link stiffness symplectic
     Euler cannot step among them), or X_WI_start if the probe would start in or
     under the surface."""
-    validate_deformable_surface(scene)
+    scene.validate()
     positive("time_step_s", time_step_s)
     lattice = build_scene_lattice(scene)
     check_explicit_stability(scene, lattice, time_step_s)

@@ -8,7 +8,6 @@ impedance (``systems/hand.py``). The hand target starts at the start pose, the
 instrument's hover pose, where the hand grips it (frame H then coincides with I).
 """
 
-import math
 from dataclasses import dataclass, field
 from typing import List
 
@@ -16,6 +15,7 @@ import numpy as np
 from pydrake.trajectories import PiecewisePolynomial
 
 from maglev_haptics.diagrams.waypoints import Waypoint
+from maglev_haptics.hardware.config_checks import finite, nonnegative, positive, require
 from maglev_haptics.systems.blends import minimum_jerk_plan
 from maglev_haptics.systems.hand import HandImpedanceConfig
 
@@ -42,6 +42,20 @@ class ScriptedHand:
     waypoints: List[Waypoint] = field(default_factory=list)
     events: List[GripEvent] = field(default_factory=list)
 
+    def validate(self, path: str = "hand") -> None:
+        """Range checks; a ValueError names ``path.field``, its value and what is allowed."""
+        self.impedance.validate(f"{path}.impedance")
+        nonnegative(f"{path}.start_s", self.start_s)
+        for i, waypoint in enumerate(self.waypoints):
+            here = f"{path}.waypoints[{i}]"
+            require(isinstance(waypoint.pose, list) and len(waypoint.pose) == 6
+                    and all(map(finite, waypoint.pose)), f"{here}.pose", waypoint.pose,
+                    "must be 6 finite numbers [x, y, z, roll, pitch, yaw] (m, rad)")
+            positive(f"{here}.move_s", waypoint.move_s)
+            nonnegative(f"{here}.hold_s", waypoint.hold_s)
+        for i, event in enumerate(self.events):
+            nonnegative(f"{path}.events[{i}].at_s", event.at_s)
+
 
 @dataclass
 class MeshcatHand:
@@ -53,6 +67,12 @@ class MeshcatHand:
     filter_time_constant_s: float = 0.2
     input_rate_hz: float = 30.0  # the sliders and the button are read at this rate (Hz)
     grip_at_start: bool = False  # gripping from t = 0, before any click
+
+    def validate(self, path: str = "hand") -> None:
+        """Range checks; a ValueError names ``path.field``, its value and what is allowed."""
+        self.impedance.validate(f"{path}.impedance")
+        positive(f"{path}.filter_time_constant_s", self.filter_time_constant_s)
+        positive(f"{path}.input_rate_hz", self.input_rate_hz)
 
 
 def hand_plan(script: ScriptedHand, start_pose):
@@ -79,52 +99,3 @@ def hand_plan(script: ScriptedHand, start_pose):
     grips.append(grips[-1])
     grip = PiecewisePolynomial.ZeroOrderHold(grip_times, np.array([grips]))
     return target, grip
-
-
-def _check(ok: bool, label: str, path: str, value, allowed: str) -> None:
-    if not ok:
-        raise ValueError(f"{label}: {path} = {value!r}: {allowed}")
-
-
-def _finite(x) -> bool:
-    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
-
-
-def _finite_list(values, length: int, minimum: float = -math.inf) -> bool:
-    return (isinstance(values, list) and len(values) == length
-            and all(_finite(v) and v >= minimum for v in values))
-
-
-def validate_hand(hand, label: str) -> None:
-    """Raise ValueError naming ``label: hand.<field> = value: what is allowed`` for a
-    value out of range in ``hand`` (a ScriptedHand or a MeshcatHand)."""
-    impedance = hand.impedance
-    _check(_finite(impedance.mass_kg) and impedance.mass_kg > 0, label,
-           "hand.impedance.mass_kg", impedance.mass_kg, "must be a finite number > 0")
-    for name in ("arm_translational_stiffness", "arm_translational_damping",
-                 "arm_rotational_stiffness", "arm_rotational_damping",
-                 "grip_translational_stiffness", "grip_translational_damping",
-                 "grip_rotational_stiffness", "grip_rotational_damping"):
-        value = getattr(impedance, name)
-        _check(_finite_list(value, 3, 0.0), label, f"hand.impedance.{name}", value,
-               "must be 3 finite numbers >= 0 (x, y, z)")
-    if isinstance(hand, MeshcatHand):
-        _check(_finite(hand.filter_time_constant_s) and hand.filter_time_constant_s > 0, label,
-               "hand.filter_time_constant_s", hand.filter_time_constant_s,
-               "must be a finite number > 0")
-        _check(_finite(hand.input_rate_hz) and hand.input_rate_hz > 0, label,
-               "hand.input_rate_hz", hand.input_rate_hz, "must be a finite number > 0")
-        return
-    _check(_finite(hand.start_s) and hand.start_s >= 0, label, "hand.start_s", hand.start_s,
-           "must be a finite number >= 0")
-    for i, waypoint in enumerate(hand.waypoints):
-        path = f"hand.waypoints[{i}]"
-        _check(_finite_list(waypoint.pose, 6), label, f"{path}.pose", waypoint.pose,
-               "must be 6 finite numbers [x, y, z, roll, pitch, yaw] (m, rad)")
-        _check(_finite(waypoint.move_s) and waypoint.move_s > 0, label, f"{path}.move_s",
-               waypoint.move_s, "must be a finite number > 0")
-        _check(_finite(waypoint.hold_s) and waypoint.hold_s >= 0, label, f"{path}.hold_s",
-               waypoint.hold_s, "must be a finite number >= 0")
-    for i, event in enumerate(hand.events):
-        _check(_finite(event.at_s) and event.at_s >= 0, label, f"hand.events[{i}].at_s",
-               event.at_s, "must be a finite number >= 0")

@@ -49,6 +49,35 @@ class HeadScript:
     start_s: float = 0.0  # the first move starts here (s)
     waypoints: List[HeadWaypoint] = field(default_factory=list)
 
+    def validate(self, path: str, *, screen, ipd_m: float) -> None:
+        """ValueError naming the field for a pose that is not finite, whose line of sight
+        is degenerate, or that puts an eye less than MIN_EYE_DISTANCE_M in front of the
+        display (behind it, the display cannot be seen)."""
+        poses = [(f"{path}.start", self.start)] + [
+            (f"{path}.waypoints[{i}]", w) for i, w in enumerate(self.waypoints)]
+        nonnegative(f"{path}.start_s", self.start_s)
+        for name, pose in poses:
+            vector(f"{name}.position_m", pose.position_m, 3)
+            vector(f"{name}.look_at_m", pose.look_at_m, 3)
+            for angle in ("heading_rad", "roll_rad"):
+                require(finite(getattr(pose, angle)), f"{name}.{angle}", getattr(pose, angle),
+                        "must be a finite angle (rad)")
+            if isinstance(pose, HeadWaypoint):
+                positive(f"{name}.move_s", pose.move_s)
+                nonnegative(f"{name}.hold_s", pose.hold_s)
+            try:
+                q_WG, p_WG = glasses_pose(pose.vector())
+            except ValueError as error:
+                raise ValueError(f"{name}: {error}") from None
+            for side, eye in zip(("left", "right"), eye_positions_W(q_WG, p_WG, ipd_m)):
+                distance = eye_distance_m(screen.pa, screen.pb, screen.pc, eye)
+                if distance < MIN_EYE_DISTANCE_M:
+                    raise ValueError(
+                        f"{name}.position_m = {pose.position_m}: the {side} eye would be "
+                        f"{distance * 1e3:.1f} mm in front of the display plane (negative: behind "
+                        f"it); eyes must be at least {MIN_EYE_DISTANCE_M * 1e3:.0f} mm above the "
+                        "screen to see it")
+
 
 def head_plan(script: HeadScript):
     """The ``head_pose`` trajectory (8 rows) of ``script``: a cubic Hermite fit of
@@ -56,33 +85,3 @@ def head_plan(script: HeadScript):
     return minimum_jerk_plan(
         script.start.vector(), script.start_s,
         [(w.vector(), w.move_s, w.hold_s) for w in script.waypoints], TAIL_S)
-
-
-def validate_head_script(script: HeadScript, *, screen, ipd_m: float, path: str) -> None:
-    """ValueError naming the field for a pose that is not finite, whose line of sight
-    is degenerate, or that puts an eye less than MIN_EYE_DISTANCE_M in front of the
-    display (behind it, the display cannot be seen)."""
-    poses = [(f"{path}.start", script.start)] + [
-        (f"{path}.waypoints[{i}]", w) for i, w in enumerate(script.waypoints)]
-    nonnegative(f"{path}.start_s", script.start_s)
-    for name, pose in poses:
-        vector(f"{name}.position_m", pose.position_m, 3)
-        vector(f"{name}.look_at_m", pose.look_at_m, 3)
-        for angle in ("heading_rad", "roll_rad"):
-            require(finite(getattr(pose, angle)), f"{name}.{angle}", getattr(pose, angle),
-                    "must be a finite angle (rad)")
-        if isinstance(pose, HeadWaypoint):
-            positive(f"{name}.move_s", pose.move_s)
-            nonnegative(f"{name}.hold_s", pose.hold_s)
-        try:
-            q_WG, p_WG = glasses_pose(pose.vector())
-        except ValueError as error:
-            raise ValueError(f"{name}: {error}") from None
-        for side, eye in zip(("left", "right"), eye_positions_W(q_WG, p_WG, ipd_m)):
-            distance = eye_distance_m(screen.pa, screen.pb, screen.pc, eye)
-            if distance < MIN_EYE_DISTANCE_M:
-                raise ValueError(
-                    f"{name}.position_m = {pose.position_m}: the {side} eye would be "
-                    f"{distance * 1e3:.1f} mm in front of the display plane (negative: behind "
-                    f"it); eyes must be at least {MIN_EYE_DISTANCE_M * 1e3:.0f} mm above the "
-                    "screen to see it")

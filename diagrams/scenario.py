@@ -20,15 +20,13 @@ import yaml
 from pydrake.common.yaml import yaml_load_data, yaml_load_typed
 from pydrake.multibody.plant import MultibodyPlantConfig
 
-from maglev_haptics.diagrams.deformable_scene import (
-    DeformableSurface, validate_deformable_surface)
-from maglev_haptics.diagrams.hand_script import MeshcatHand, ScriptedHand, validate_hand
-from maglev_haptics.diagrams.scene import HangingBall, PaddleBall, PegInHole, validate_scene
-from maglev_haptics.diagrams.stereo_display import StereoConfig, validate_stereo
+from maglev_haptics.diagrams.deformable_scene import DeformableSurface
+from maglev_haptics.diagrams.hand_script import MeshcatHand, ScriptedHand
+from maglev_haptics.diagrams.scene import HangingBall, PaddleBall, PegInHole
+from maglev_haptics.diagrams.stereo_display import StereoConfig
 from maglev_haptics.diagrams.waypoints import Waypoint
-from maglev_haptics.hardware.config_checks import each, nonnegative, positive, require, vector
-from maglev_haptics.hardware.device import INSTRUMENT_KINDS, DeviceConfig
-from maglev_haptics.hardware.limits import LIMIT_KINDS
+from maglev_haptics.hardware.config_checks import nonnegative, positive, require, vector
+from maglev_haptics.hardware.device import DeviceConfig
 from maglev_haptics.systems.haptic_coupling import CouplingConfig
 from maglev_haptics.systems.haptic_supervisor import SupervisorConfig
 from maglev_haptics.systems.levitation_controller import ControllerConfig
@@ -53,6 +51,20 @@ class MotionScript:
     landing_s: float = 1.5  # minimum-jerk descent onto the glass, after levelling out as long if tilted (s)
     settle_s: float = 0.3  # time on the glass, still levitation-controlled, before ramp-down (s)
 
+    def validate(self, path: str = "motion") -> None:
+        """Range checks; a ValueError names ``path.field``, its value and what is allowed."""
+        vector(f"{path}.start_xy_yaw", self.start_xy_yaw, 3)
+        positive(f"{path}.takeoff_at_s", self.takeoff_at_s)
+        for name in ("force_ramp_s", "landing_s"):
+            positive(f"{path}.{name}", getattr(self, name))
+        nonnegative(f"{path}.settle_s", self.settle_s)
+        require(len(self.waypoints) > 0, f"{path}.waypoints", self.waypoints,
+                "must hold at least one pose to hover at")
+        for i, w in enumerate(self.waypoints):
+            vector(f"{path}.waypoints[{i}].pose", w.pose, 6)
+            positive(f"{path}.waypoints[{i}].move_s", w.move_s)
+            nonnegative(f"{path}.waypoints[{i}].hold_s", w.hold_s)
+
 
 @dataclass
 class Haptics:
@@ -69,6 +81,17 @@ class Haptics:
     enable_at_s: float = 2.0  # (s)
     disable_at_s: Optional[float] = None  # (s)
 
+    def validate(self, path: str = "haptics") -> None:
+        """Range checks; a ValueError names ``path.field``, its value and what is allowed."""
+        self.scene.validate(f"{path}.scene")
+        nonnegative(f"{path}.enable_at_s", self.enable_at_s)
+        if self.disable_at_s is not None:
+            require(isinstance(self.disable_at_s, (int, float))
+                    and self.disable_at_s > self.enable_at_s, f"{path}.disable_at_s",
+                    self.disable_at_s, f"must be after enable_at_s ({self.enable_at_s} s), or null")
+        self.coupling.validate(f"{path}.coupling")
+        self.supervisor.validate(f"{path}.supervisor")
+
 
 @dataclass
 class Scenario:
@@ -84,7 +107,7 @@ class Scenario:
     # in flight, ~75 us resting on the glass). Unsampled output ports: the plant then
     # steps in the same discrete update as the loop instead of an unrestricted update
     # before it, so the loop's cached values are computed once a tick (and the
-    # plant linearizes, DESIGN.md section 6).
+    # plant linearizes: a sampled output would linearize to the identity).
     plant_config: MultibodyPlantConfig = field(default_factory=lambda: MultibodyPlantConfig(
         time_step=1e-3, discrete_contact_approximation="lagged",
         use_sampled_output_ports=False))
@@ -96,6 +119,41 @@ class Scenario:
     duration_s: Optional[float] = None  # None: the motion script's length
     random_seed: int = 0
     hardware: str = "sim"  # only the simulated station exists so far
+
+    def validate(self, label: str) -> None:
+        """Range checks of every config, each error naming ``label: path.field``, its
+        value and what is allowed; then the checks across configs."""
+        self.device.validate(f"{label}: device")
+        self.controller.validate(f"{label}: controller")
+        self.motion.validate(f"{label}: motion")
+        n_markers = len(self.device.instrument_spec().p_IK_m)
+        for i, o in enumerate(self.occlusions):
+            require(o.marker is None or 0 <= o.marker < n_markers,
+                    f"{label}: occlusions[{i}].marker", o.marker,
+                    f"must be null (all markers) or a marker index 0..{n_markers - 1}")
+            require(0 <= o.start_s <= o.end_s, f"{label}: occlusions[{i}]",
+                    (o.start_s, o.end_s), "needs 0 <= start_s <= end_s")
+        require(0.0 <= self.marker_dropout_probability <= 1.0,
+                f"{label}: marker_dropout_probability", self.marker_dropout_probability,
+                "must be in [0, 1]")
+        positive(f"{label}: control_rate_hz", self.control_rate_hz)
+        positive(f"{label}: log_rate_hz", self.log_rate_hz)
+        positive(f"{label}: plant_config.time_step", self.plant_config.time_step)
+        if self.duration_s is not None:
+            positive(f"{label}: duration_s", self.duration_s)
+        if self.haptics is not None:
+            self.haptics.validate(f"{label}: haptics")
+            if self.hand is None:
+                raise ScenarioError(
+                    f"{label}: hand = null: a haptic scenario needs the user's hand "
+                    "(hand: !ScriptedHand {...} or !MeshcatHand {...}), whose grip "
+                    "engages haptics")
+        if self.hand is not None:
+            self.hand.validate(f"{label}: hand")
+        if self.stereo is not None:
+            self.stereo.validate(f"{label}: stereo", self.device, f"{label}: device")
+        require(self.hardware == "sim", f"{label}: hardware", self.hardware,
+                "must be 'sim' (the real-hardware station is not part of this release)")
 
 
 def shipped_scenario_files() -> List[Path]:
@@ -257,114 +315,8 @@ def validate_scenario(s: Scenario, label: str) -> None:
     """Range checks; each error, a ScenarioError, names the field, its value and what
     is allowed."""
     try:
-        _check_scenario(s, label)
+        s.validate(label)
     except ScenarioError:
         raise
     except ValueError as error:
         raise ScenarioError(str(error)) from None
-
-
-def _check_scenario(s: Scenario, label: str) -> None:
-    d = s.device
-    p = f"{label}: device"
-    require(d.instrument in INSTRUMENT_KINDS, f"{p}.instrument", d.instrument,
-            f"must be one of {', '.join(INSTRUMENT_KINDS)}")
-    if d.instrument_mass_kg is not None:
-        positive(f"{p}.instrument_mass_kg", d.instrument_mass_kg)
-    if d.magnet is not None:
-        for name in ("diameter_m", "height_m", "remanence_t", "density_kg_m3"):
-            positive(f"{p}.magnet.{name}", getattr(d.magnet, name))
-    for name in ("outer_diameter_m", "height_m", "resistance_ohm", "inductance_h"):
-        positive(f"{p}.coil.{name}", getattr(d.coil, name))
-    nonnegative(f"{p}.coil.inner_diameter_m", d.coil.inner_diameter_m)
-    require(d.coil.inner_diameter_m < d.coil.outer_diameter_m, f"{p}.coil.inner_diameter_m",
-            d.coil.inner_diameter_m, f"must be < outer_diameter_m ({d.coil.outer_diameter_m})")
-    require(isinstance(d.coil.turns, int) and d.coil.turns > 0, f"{p}.coil.turns",
-            d.coil.turns, "must be a positive integer")
-    positive(f"{p}.array.pitch_m", d.array.pitch_m)
-    positive(f"{p}.array.row_spacing_m", d.array.row_spacing_m)
-    require(len(d.array.row_counts) > 0 and all(c > 0 for c in d.array.row_counts),
-            f"{p}.array.row_counts", d.array.row_counts, "must be a non-empty list of positive counts")
-    require(d.array.pitch_m >= d.coil.outer_diameter_m, f"{p}.array.pitch_m", d.array.pitch_m,
-            f"must be >= the coil's outer diameter ({d.coil.outer_diameter_m} m): coils cannot overlap")
-    positive(f"{p}.amplifier.current_limit_a", d.amplifier.current_limit_a)
-    positive(f"{p}.amplifier.bandwidth_hz", d.amplifier.bandwidth_hz)
-    positive(f"{p}.display.thickness_m", d.display.thickness_m)
-    positive(f"{p}.tracker.rate_hz", d.tracker.rate_hz)
-    nonnegative(f"{p}.tracker.noise_m", d.tracker.noise_m)
-    nonnegative(f"{p}.tracker.latency_s", d.tracker.latency_s)
-
-    c = s.controller
-    for name in ("natural_frequency_hz", "damping_ratio"):
-        each(f"{label}: controller.{name}", getattr(c, name), 6, positive)
-    for name in ("kp", "kd"):
-        if getattr(c, name) is not None:
-            each(f"{label}: controller.{name}", getattr(c, name), 6, nonnegative)
-    nonnegative(f"{label}: controller.lost_grace_s", c.lost_grace_s)
-
-    m = s.motion
-    vector(f"{label}: motion.start_xy_yaw", m.start_xy_yaw, 3)
-    positive(f"{label}: motion.takeoff_at_s", m.takeoff_at_s)
-    for name in ("force_ramp_s", "landing_s"):
-        positive(f"{label}: motion.{name}", getattr(m, name))
-    nonnegative(f"{label}: motion.settle_s", m.settle_s)
-    require(len(m.waypoints) > 0, f"{label}: motion.waypoints", m.waypoints,
-            "must hold at least one pose to hover at")
-    for i, w in enumerate(m.waypoints):
-        vector(f"{label}: motion.waypoints[{i}].pose", w.pose, 6)
-        positive(f"{label}: motion.waypoints[{i}].move_s", w.move_s)
-        nonnegative(f"{label}: motion.waypoints[{i}].hold_s", w.hold_s)
-
-    for i, o in enumerate(s.occlusions):
-        n_markers = len(d.instrument_spec().p_IK_m)
-        require(o.marker is None or 0 <= o.marker < n_markers, f"{label}: occlusions[{i}].marker",
-                o.marker, f"must be null (all markers) or a marker index 0..{n_markers - 1}")
-        require(0 <= o.start_s <= o.end_s, f"{label}: occlusions[{i}]",
-                (o.start_s, o.end_s), "needs 0 <= start_s <= end_s")
-    require(0.0 <= s.marker_dropout_probability <= 1.0, f"{label}: marker_dropout_probability",
-            s.marker_dropout_probability, "must be in [0, 1]")
-    positive(f"{label}: control_rate_hz", s.control_rate_hz)
-    positive(f"{label}: log_rate_hz", s.log_rate_hz)
-    positive(f"{label}: plant_config.time_step", s.plant_config.time_step)
-    if s.duration_s is not None:
-        positive(f"{label}: duration_s", s.duration_s)
-    if s.haptics is not None:
-        _validate_haptics(s.haptics, label)
-    if s.haptics is not None and s.hand is None:
-        raise ScenarioError(f"{label}: hand = null: a haptic scenario needs the user's hand "
-                            "(hand: !ScriptedHand {...} or !MeshcatHand {...}), whose grip "
-                            "engages haptics")
-    if s.hand is not None:
-        validate_hand(s.hand, label)
-    if s.stereo is not None:
-        validate_stereo(s.stereo, d, label)
-    require(s.hardware == "sim", f"{label}: hardware", s.hardware,
-            "must be 'sim' (the real-hardware station is not part of this release)")
-
-
-def _validate_haptics(h: Haptics, label: str) -> None:
-    p = f"{label}: haptics"
-    if isinstance(h.scene, DeformableSurface):
-        validate_deformable_surface(h.scene, f"{p}.scene")
-    else:
-        validate_scene(h.scene, f"{p}.scene")
-    nonnegative(f"{p}.enable_at_s", h.enable_at_s)
-    if h.disable_at_s is not None:
-        require(isinstance(h.disable_at_s, (int, float)) and h.disable_at_s > h.enable_at_s,
-                f"{p}.disable_at_s", h.disable_at_s,
-                f"must be after enable_at_s ({h.enable_at_s} s), or null")
-    c = h.coupling
-    for name in ("translational_stiffness", "translational_damping"):
-        each(f"{p}.coupling.{name}", getattr(c, name), 3, positive)
-    for name in ("rotational_stiffness", "rotational_damping"):
-        if getattr(c, name) is not None:
-            each(f"{p}.coupling.{name}", getattr(c, name), 3, positive)
-    positive(f"{p}.coupling.velocity_filter_hz", c.velocity_filter_hz)
-    nonnegative(f"{p}.coupling.ramp_s", c.ramp_s)
-    for name in ("max_force_n", "max_torque_nm"):
-        if getattr(c, name) is not None:
-            positive(f"{p}.coupling.{name}", getattr(c, name))
-    require(c.device_limit in LIMIT_KINDS, f"{p}.coupling.device_limit", c.device_limit,
-            f"must be one of {', '.join(LIMIT_KINDS)}")
-    for f in dataclasses.fields(h.supervisor):
-        nonnegative(f"{p}.supervisor.{f.name}", getattr(h.supervisor, f.name))

@@ -27,6 +27,13 @@ class ContactProperties:
     # (faces ~0.6 mm inside the sphere); 10 mm, 32 (~2 mm inside, ~40 us a step less).
     resolution_hint_m: float = 0.005
 
+    def validate(self, path: str = "contact") -> None:
+        positive(f"{path}.hydroelastic_modulus_pa", self.hydroelastic_modulus_pa)
+        nonnegative(f"{path}.hunt_crossley_dissipation_s_per_m",
+                    self.hunt_crossley_dissipation_s_per_m)
+        nonnegative(f"{path}.friction", self.friction)
+        positive(f"{path}.resolution_hint_m", self.resolution_hint_m)
+
 
 @dataclass
 class PegInHole:
@@ -54,6 +61,24 @@ class PegInHole:
     block_size_m: List[float] = field(default_factory=lambda: [0.12, 0.08])
     contact: ContactProperties = field(default_factory=ContactProperties)
 
+    def validate(self, path: str = "scene") -> None:
+        """Range checks; a ValueError names ``path.field``, its value and what is allowed."""
+        _validate_tool(self, path)
+        vector(f"{path}.peg_size_m", self.peg_size_m, positive=True)
+        positive(f"{path}.peg_mass_kg", self.peg_mass_kg)
+        vector(f"{path}.hole_size_m", self.hole_size_m, positive=True)
+        vector(f"{path}.hole_center_m", self.hole_center_m)
+        vector(f"{path}.block_size_m", self.block_size_m, positive=True, length=2,
+               meaning=": the plate's outer x, y (its thickness is the hole's depth, "
+               "hole_size_m[2])")
+        for i, axis in enumerate("xy"):
+            require(self.peg_size_m[i] < self.hole_size_m[i], f"{path}.peg_size_m[{i}]",
+                    self.peg_size_m[i], f"the peg must be narrower than the hole in {axis} "
+                    f"(hole_size_m[{i}] = {self.hole_size_m[i]})")
+            require(self.hole_size_m[i] < self.block_size_m[i], f"{path}.hole_size_m[{i}]",
+                    self.hole_size_m[i], f"the hole must be narrower than the plate in {axis} "
+                    f"(block_size_m[{i}] = {self.block_size_m[i]})")
+
 
 @dataclass
 class HangingBall:
@@ -76,6 +101,22 @@ class HangingBall:
     spring_rest_length_m: float = 0.030  # (m)
     table_z_m: Optional[float] = -0.040  # top of the table in W (m); None: no table
     contact: ContactProperties = field(default_factory=ContactProperties)
+
+    def validate(self, path: str = "scene") -> None:
+        """Range checks; a ValueError names ``path.field``, its value and what is allowed."""
+        _validate_tool(self, path)
+        positive(f"{path}.anchor_radius_m", self.anchor_radius_m)
+        positive(f"{path}.anchor_mass_kg", self.anchor_mass_kg)
+        positive(f"{path}.ball_radius_m", self.ball_radius_m)
+        positive(f"{path}.ball_mass_kg", self.ball_mass_kg)
+        positive(f"{path}.spring_stiffness_n_per_m", self.spring_stiffness_n_per_m)
+        nonnegative(f"{path}.spring_damping_n_s_per_m", self.spring_damping_n_s_per_m)
+        positive(f"{path}.spring_rest_length_m", self.spring_rest_length_m)
+        gap = self.anchor_radius_m + self.ball_radius_m
+        require(hanging_drop_m(self) > gap, f"{path}.spring_rest_length_m",
+                self.spring_rest_length_m, f"the ball must hang clear of the anchor: rest "
+                f"length + m g / k = {hanging_drop_m(self):.4g} m must exceed "
+                f"anchor_radius_m + ball_radius_m = {gap:.4g} m")
 
 
 @dataclass
@@ -102,6 +143,15 @@ class PaddleBall:
     contact: ContactProperties = field(default_factory=lambda: ContactProperties(
         hydroelastic_modulus_pa=1.0e5, hunt_crossley_dissipation_s_per_m=0.1))
 
+    def validate(self, path: str = "scene") -> None:
+        """Range checks; a ValueError names ``path.field``, its value and what is allowed."""
+        _validate_tool(self, path)
+        vector(f"{path}.paddle_size_m", self.paddle_size_m, positive=True)
+        positive(f"{path}.paddle_mass_kg", self.paddle_mass_kg)
+        positive(f"{path}.ball_radius_m", self.ball_radius_m)
+        positive(f"{path}.ball_mass_kg", self.ball_mass_kg)
+        vector(f"{path}.ball_start_m", self.ball_start_m)
+
 
 SceneConfig = Union[PegInHole, HangingBall, PaddleBall]
 
@@ -120,57 +170,11 @@ def hanging_drop_m(scene: HangingBall) -> float:
             + scene.ball_mass_kg * GRAVITY_M_S2 / scene.spring_stiffness_n_per_m)
 
 
-
-# --- validation -----------------------------------------------------------------------
-
-def _validate_contact(c: ContactProperties, path: str) -> None:
-    positive(f"{path}.hydroelastic_modulus_pa", c.hydroelastic_modulus_pa)
-    nonnegative(f"{path}.hunt_crossley_dissipation_s_per_m", c.hunt_crossley_dissipation_s_per_m)
-    nonnegative(f"{path}.friction", c.friction)
-    positive(f"{path}.resolution_hint_m", c.resolution_hint_m)
-
-
-def validate_scene(scene: SceneConfig, label: str = "scene") -> None:
-    """Range checks; a ValueError names ``label.field``, its value and what is allowed."""
-    require(isinstance(scene, (PegInHole, HangingBall, PaddleBall)), label, scene,
-            "must be a PegInHole, HangingBall or PaddleBall")
-    nonnegative(f"{label}.min_inertia_kg_m2", scene.min_inertia_kg_m2)
-    vector(f"{label}.tool_offset_m", scene.tool_offset_m)
+def _validate_tool(scene: SceneConfig, path: str) -> None:
+    """The checks every rigid scene shares: its tool, its table and its contact."""
+    nonnegative(f"{path}.min_inertia_kg_m2", scene.min_inertia_kg_m2)
+    vector(f"{path}.tool_offset_m", scene.tool_offset_m)
     if not isinstance(scene, PegInHole) and scene.table_z_m is not None:
-        require(finite(scene.table_z_m), f"{label}.table_z_m", scene.table_z_m,
+        require(finite(scene.table_z_m), f"{path}.table_z_m", scene.table_z_m,
                 "must be a finite number or null")
-    _validate_contact(scene.contact, f"{label}.contact")
-    if isinstance(scene, PegInHole):
-        vector(f"{label}.peg_size_m", scene.peg_size_m, positive=True)
-        positive(f"{label}.peg_mass_kg", scene.peg_mass_kg)
-        vector(f"{label}.hole_size_m", scene.hole_size_m, positive=True)
-        vector(f"{label}.hole_center_m", scene.hole_center_m)
-        vector(f"{label}.block_size_m", scene.block_size_m, positive=True, length=2,
-               meaning=": the plate's outer x, y (its thickness is the hole's depth, "
-               "hole_size_m[2])")
-        for i, axis in enumerate("xy"):
-            require(scene.peg_size_m[i] < scene.hole_size_m[i], f"{label}.peg_size_m[{i}]",
-                    scene.peg_size_m[i], f"the peg must be narrower than the hole in {axis} "
-                    f"(hole_size_m[{i}] = {scene.hole_size_m[i]})")
-            require(scene.hole_size_m[i] < scene.block_size_m[i], f"{label}.hole_size_m[{i}]",
-                    scene.hole_size_m[i], f"the hole must be narrower than the plate in {axis} "
-                    f"(block_size_m[{i}] = {scene.block_size_m[i]})")
-    elif isinstance(scene, HangingBall):
-        positive(f"{label}.anchor_radius_m", scene.anchor_radius_m)
-        positive(f"{label}.anchor_mass_kg", scene.anchor_mass_kg)
-        positive(f"{label}.ball_radius_m", scene.ball_radius_m)
-        positive(f"{label}.ball_mass_kg", scene.ball_mass_kg)
-        positive(f"{label}.spring_stiffness_n_per_m", scene.spring_stiffness_n_per_m)
-        nonnegative(f"{label}.spring_damping_n_s_per_m", scene.spring_damping_n_s_per_m)
-        positive(f"{label}.spring_rest_length_m", scene.spring_rest_length_m)
-        gap = scene.anchor_radius_m + scene.ball_radius_m
-        require(hanging_drop_m(scene) > gap, f"{label}.spring_rest_length_m",
-                scene.spring_rest_length_m, f"the ball must hang clear of the anchor: rest "
-                f"length + m g / k = {hanging_drop_m(scene):.4g} m must exceed "
-                f"anchor_radius_m + ball_radius_m = {gap:.4g} m")
-    else:
-        vector(f"{label}.paddle_size_m", scene.paddle_size_m, positive=True)
-        positive(f"{label}.paddle_mass_kg", scene.paddle_mass_kg)
-        positive(f"{label}.ball_radius_m", scene.ball_radius_m)
-        positive(f"{label}.ball_mass_kg", scene.ball_mass_kg)
-        vector(f"{label}.ball_start_m", scene.ball_start_m)
+    scene.contact.validate(f"{path}.contact")

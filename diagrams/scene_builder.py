@@ -67,7 +67,7 @@ from pydrake.systems.primitives import Demultiplexer, MatrixGain, ZeroOrderHold
 
 from maglev_haptics.diagrams.scene import (
     ContactProperties, HangingBall, PaddleBall, PegInHole, SceneConfig, hanging_drop_m,
-    table_top_z, validate_scene)
+    table_top_z)
 from maglev_haptics.hardware.config_checks import positive
 from maglev_haptics.plant_models.scene_geometry import (
     Solid, box_inertia, hole_block_boxes, solid_bottom_z, solid_overlaps_box, sphere_inertia)
@@ -187,7 +187,7 @@ def AddScene(builder: DiagramBuilder, *, scene: SceneConfig, time_step_s: float,
     ``contact_sample_period_s`` (s), when given, samples the contact wrench and
     the contact flag at that period instead of every step.
     """
-    validate_scene(scene)
+    scene.validate()
     positive("time_step_s", time_step_s)
     X_IT = RigidTransform()
     X_WT = X_WI_start @ X_IT

@@ -11,10 +11,10 @@ from typing import List, Optional
 
 from pydrake.systems.framework import DiagramBuilder
 
-from maglev_haptics.diagrams.head_script import HeadScript, validate_head_script
+from maglev_haptics.diagrams.head_script import HeadScript
 from maglev_haptics.hardware.config_checks import nonnegative, positive, require, vector
 from maglev_haptics.systems.head_predictor import (
-    PREDICTOR_MODES, HeadPosePredictor, HeadPredictorConfig)
+    HeadPosePredictor, HeadPredictorConfig)
 from maglev_haptics.systems.head_sensor import HeadOcclusion
 from maglev_haptics.systems.stereo import (
     StereoView, check_clipping, check_ipd, display_rectangle)
@@ -50,55 +50,45 @@ class StereoConfig:
     # the paper's ball, 2 cm in diameter and 4 cm below the display.
     colocation_points_m: List[List[float]] = field(default_factory=lambda: [[0.0, 0.0, -0.04]])
 
+    def validate(self, path: str, device, device_path: str = "device") -> None:
+        """Range checks of the display and its devices; a ValueError names the field (under
+        ``path``, or ``device_path`` for ``device``'s), its value and what is allowed."""
+        screen = display_rectangle(device.display)
+        positive(f"{device_path}.display.refresh_hz", device.display.refresh_hz)
+        vector(f"{device_path}.display.pose_W", device.display.pose_W, 6)
+        check_ipd(device.glasses.ipd_m, f"{device_path}.glasses.ipd_m")
+        t = device.head_tracker
+        positive(f"{device_path}.head_tracker.rate_hz", t.rate_hz)
+        nonnegative(f"{device_path}.head_tracker.noise_m", t.noise_m)
+        nonnegative(f"{device_path}.head_tracker.latency_s", t.latency_s)
+        markers = device.glasses.p_GK_m
+        require(isinstance(markers, list) and len(markers) >= 3, f"{device_path}.glasses.p_GK_m",
+                markers, "needs at least 3 markers for the tracker's pose fit")
+        for i, marker in enumerate(markers):
+            vector(f"{device_path}.glasses.p_GK_m[{i}]", marker, 3)
+        self.head.validate(f"{path}.head", screen=screen, ipd_m=device.glasses.ipd_m)
+        self.predictor.validate(f"{path}.predictor", head_tracker_rate_hz=t.rate_hz)
+        for i, o in enumerate(self.occlusions):
+            require(0 <= o.start_s <= o.end_s, f"{path}.occlusions[{i}]", (o.start_s, o.end_s),
+                    "needs 0 <= start_s <= end_s")
+        if self.view_rate_hz is not None:
+            positive(f"{path}.view_rate_hz", self.view_rate_hz)
+        check_clipping(self.near_m, self.far_m, f"{path}.near_m, far_m")
+        i = self.images
+        nonnegative(f"{path}.images.rate_hz", i.rate_hz)
+        require(isinstance(i.size_px, list) and len(i.size_px) == 2
+                and all(isinstance(v, int) and 2 <= v <= 4096 for v in i.size_px),
+                f"{path}.images.size_px", i.size_px, "must be [width, height], integers 2-4096")
+        require(i.encoder in ENCODERS, f"{path}.images.encoder", i.encoder,
+                f"must be one of {', '.join(ENCODERS)}")
+        require(0 < i.realtime_wall_share <= 1, f"{path}.images.realtime_wall_share",
+                i.realtime_wall_share, "must be in (0, 1]")
+        for k, point in enumerate(self.colocation_points_m):
+            vector(f"{path}.colocation_points_m[{k}]", point, 3)
+
 
 def view_period_s(stereo: StereoConfig, display) -> float:
     return 1.0 / (stereo.view_rate_hz if stereo.view_rate_hz is not None else display.refresh_hz)
-
-
-def validate_stereo(stereo: StereoConfig, device, label: str) -> None:
-    """ValueError naming the field, its value and what is allowed."""
-    p = f"{label}: stereo"
-    screen = display_rectangle(device.display)
-    positive(f"{label}: device.display.refresh_hz", device.display.refresh_hz)
-    vector(f"{label}: device.display.pose_W", device.display.pose_W, 6)
-    check_ipd(device.glasses.ipd_m, f"{label}: device.glasses.ipd_m")
-    t = device.head_tracker
-    positive(f"{label}: device.head_tracker.rate_hz", t.rate_hz)
-    nonnegative(f"{label}: device.head_tracker.noise_m", t.noise_m)
-    nonnegative(f"{label}: device.head_tracker.latency_s", t.latency_s)
-    markers = device.glasses.p_GK_m
-    require(isinstance(markers, list) and len(markers) >= 3, f"{label}: device.glasses.p_GK_m",
-            markers, "needs at least 3 markers for the tracker's pose fit")
-    for i, marker in enumerate(markers):
-        vector(f"{label}: device.glasses.p_GK_m[{i}]", marker, 3)
-    validate_head_script(stereo.head, screen=screen, ipd_m=device.glasses.ipd_m,
-                         path=f"{p}.head")
-    c = stereo.predictor
-    require(c.mode in PREDICTOR_MODES, f"{p}.predictor.mode", c.mode,
-            f"must be one of {', '.join(PREDICTOR_MODES)}")
-    positive(f"{p}.predictor.bandwidth_hz", c.bandwidth_hz)
-    require(c.bandwidth_hz < t.rate_hz / 2, f"{p}.predictor.bandwidth_hz", c.bandwidth_hz,
-            f"must be below the head tracker's Nyquist rate ({t.rate_hz / 2} Hz)")
-    if c.display_delay_s is not None:
-        nonnegative(f"{p}.predictor.display_delay_s", c.display_delay_s)
-    positive(f"{p}.predictor.max_extrapolation_s", c.max_extrapolation_s)
-    for i, o in enumerate(stereo.occlusions):
-        require(0 <= o.start_s <= o.end_s, f"{p}.occlusions[{i}]", (o.start_s, o.end_s),
-                "needs 0 <= start_s <= end_s")
-    if stereo.view_rate_hz is not None:
-        positive(f"{p}.view_rate_hz", stereo.view_rate_hz)
-    check_clipping(stereo.near_m, stereo.far_m, f"{p}.near_m, far_m")
-    i = stereo.images
-    nonnegative(f"{p}.images.rate_hz", i.rate_hz)
-    require(isinstance(i.size_px, list) and len(i.size_px) == 2
-            and all(isinstance(v, int) and 2 <= v <= 4096 for v in i.size_px),
-            f"{p}.images.size_px", i.size_px, "must be [width, height], integers 2-4096")
-    require(i.encoder in ENCODERS, f"{p}.images.encoder", i.encoder,
-            f"must be one of {', '.join(ENCODERS)}")
-    require(0 < i.realtime_wall_share <= 1, f"{p}.images.realtime_wall_share",
-            i.realtime_wall_share, "must be in (0, 1]")
-    for k, point in enumerate(stereo.colocation_points_m):
-        vector(f"{p}.colocation_points_m[{k}]", point, 3)
 
 
 @dataclass

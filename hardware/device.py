@@ -13,6 +13,8 @@ from typing import List, Optional
 
 import numpy as np
 
+from maglev_haptics.hardware.config_checks import nonnegative, positive, require
+
 NDFEB_DENSITY_KG_M3 = 7500.0
 INSTRUMENT_KINDS = ("two_magnet", "four_magnet")
 
@@ -260,6 +262,38 @@ class DeviceConfig:
     glasses: GlassesSpec = field(default_factory=GlassesSpec)
     head_tracker: HeadTrackerSpec = field(default_factory=HeadTrackerSpec)
     thermal: ThermalSpec = field(default_factory=ThermalSpec)
+
+    def validate(self, path: str = "device") -> None:
+        """Range checks; a ValueError names ``path.field``, its value and what is allowed."""
+        require(self.instrument in INSTRUMENT_KINDS, f"{path}.instrument", self.instrument,
+                f"must be one of {', '.join(INSTRUMENT_KINDS)}")
+        if self.instrument_mass_kg is not None:
+            positive(f"{path}.instrument_mass_kg", self.instrument_mass_kg)
+        if self.magnet is not None:
+            for name in ("diameter_m", "height_m", "remanence_t", "density_kg_m3"):
+                positive(f"{path}.magnet.{name}", getattr(self.magnet, name))
+        coil, array = self.coil, self.array
+        for name in ("outer_diameter_m", "height_m", "resistance_ohm", "inductance_h"):
+            positive(f"{path}.coil.{name}", getattr(coil, name))
+        nonnegative(f"{path}.coil.inner_diameter_m", coil.inner_diameter_m)
+        require(coil.inner_diameter_m < coil.outer_diameter_m, f"{path}.coil.inner_diameter_m",
+                coil.inner_diameter_m, f"must be < outer_diameter_m ({coil.outer_diameter_m})")
+        require(isinstance(coil.turns, int) and coil.turns > 0, f"{path}.coil.turns",
+                coil.turns, "must be a positive integer")
+        positive(f"{path}.array.pitch_m", array.pitch_m)
+        positive(f"{path}.array.row_spacing_m", array.row_spacing_m)
+        require(len(array.row_counts) > 0 and all(c > 0 for c in array.row_counts),
+                f"{path}.array.row_counts", array.row_counts,
+                "must be a non-empty list of positive counts")
+        require(array.pitch_m >= coil.outer_diameter_m, f"{path}.array.pitch_m", array.pitch_m,
+                f"must be >= the coil's outer diameter ({coil.outer_diameter_m} m): coils "
+                "cannot overlap")
+        positive(f"{path}.amplifier.current_limit_a", self.amplifier.current_limit_a)
+        positive(f"{path}.amplifier.bandwidth_hz", self.amplifier.bandwidth_hz)
+        positive(f"{path}.display.thickness_m", self.display.thickness_m)
+        positive(f"{path}.tracker.rate_hz", self.tracker.rate_hz)
+        nonnegative(f"{path}.tracker.noise_m", self.tracker.noise_m)
+        nonnegative(f"{path}.tracker.latency_s", self.tracker.latency_s)
 
     def instrument_spec(self) -> InstrumentSpec:
         spec = default_instrument(self.instrument)

@@ -40,6 +40,7 @@ from pydrake.common.value import AbstractValue
 from pydrake.multibody.tree import SpatialInertia
 from pydrake.systems.framework import LeafSystem, ValueProducer
 
+from maglev_haptics.hardware.config_checks import finite, positive, require
 from maglev_haptics.hardware.constants import GRAVITY_M_S2
 from maglev_haptics.systems.haptic_coupling import coupling_wrenches
 from maglev_haptics.systems.rotations import (
@@ -100,6 +101,18 @@ class HandImpedanceConfig:
     grip_translational_damping: List[float] = field(default_factory=lambda: [12.0] * 3)  # N*s/m
     grip_rotational_stiffness: List[float] = field(default_factory=lambda: [0.5] * 3)  # N*m/rad
     grip_rotational_damping: List[float] = field(default_factory=lambda: [3e-3] * 3)  # N*m*s/rad
+
+    def validate(self, path: str = "impedance") -> None:
+        """Range checks; a ValueError names ``path.field``, its value and what is allowed."""
+        positive(f"{path}.mass_kg", self.mass_kg)
+        for name in ("arm_translational_stiffness", "arm_translational_damping",
+                     "arm_rotational_stiffness", "arm_rotational_damping",
+                     "grip_translational_stiffness", "grip_translational_damping",
+                     "grip_rotational_stiffness", "grip_rotational_damping"):
+            value = getattr(self, name)
+            require(isinstance(value, list) and len(value) == 3
+                    and all(finite(v) and v >= 0 for v in value), f"{path}.{name}", value,
+                    "must be 3 finite numbers >= 0 (x, y, z)")
 
 
 def impedance_gains(config: HandImpedanceConfig):

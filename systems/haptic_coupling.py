@@ -46,6 +46,8 @@ from pydrake.common.value import AbstractValue
 from pydrake.math import RigidTransform
 from pydrake.systems.framework import LeafSystem, ValueProducer
 
+from maglev_haptics.hardware.config_checks import each, nonnegative, positive, require
+from maglev_haptics.hardware.limits import LIMIT_KINDS
 from maglev_haptics.systems.rotations import rotation_from_quaternion
 
 
@@ -90,6 +92,21 @@ class CouplingConfig:
     max_force_n: Optional[float] = None  # |f| limit (N); null: from device_limit
     max_torque_nm: Optional[float] = None  # |tau| limit (N*m); null: likewise
     device_limit: str = "peak"  # "peak" or "thermal": the coil current the null limits assume
+
+    def validate(self, path: str = "coupling") -> None:
+        """Range checks; a ValueError names ``path.field``, its value and what is allowed."""
+        for name in ("translational_stiffness", "translational_damping"):
+            each(f"{path}.{name}", getattr(self, name), 3, positive)
+        for name in ("rotational_stiffness", "rotational_damping"):
+            if getattr(self, name) is not None:
+                each(f"{path}.{name}", getattr(self, name), 3, positive)
+        positive(f"{path}.velocity_filter_hz", self.velocity_filter_hz)
+        nonnegative(f"{path}.ramp_s", self.ramp_s)
+        for name in ("max_force_n", "max_torque_nm"):
+            if getattr(self, name) is not None:
+                positive(f"{path}.{name}", getattr(self, name))
+        require(self.device_limit in LIMIT_KINDS, f"{path}.device_limit", self.device_limit,
+                f"must be one of {', '.join(LIMIT_KINDS)}")
 
 
 def resolved_rotational_gains(config: CouplingConfig, mass_kg: float,

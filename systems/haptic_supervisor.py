@@ -25,6 +25,7 @@ Setpoints are [x, y, z, roll, pitch, yaw] of I in W then their rates (m, rad,
 m/s, rad/s), as the controller's input.
 """
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -32,6 +33,7 @@ from pydrake.common.eigen_geometry import Quaternion
 from pydrake.math import RollPitchYaw
 from pydrake.systems.framework import LeafSystem
 
+from maglev_haptics.hardware.config_checks import nonnegative
 from maglev_haptics.systems.blends import LANDING_PRESS_M, clipped_minimum_jerk
 
 LEVITATE, HAPTIC, LANDING = 0, 1, 2
@@ -52,6 +54,11 @@ class SupervisorConfig:
     landing_s: float = 1.5  # minimum-jerk descent to the glass after a free let-go (s)
     settle_s: float = 0.3  # held on the glass after landing, before the force ramps down (s)
     force_ramp_s: float = 0.2  # the ramp-down of the force after landing (s)
+
+    def validate(self, path: str = "supervisor") -> None:
+        """Every time >= 0; a ValueError names ``path.field`` and its value."""
+        for f in dataclasses.fields(self):
+            nonnegative(f"{path}.{f.name}", getattr(self, f.name))
 
 
 def initial_supervisor_state() -> np.ndarray:

@@ -24,6 +24,7 @@ from typing import Optional
 import numpy as np
 from pydrake.systems.framework import LeafSystem
 
+from maglev_haptics.hardware.config_checks import nonnegative, positive, require
 from maglev_haptics.systems.marker_sensor import extrapolate_pose
 from maglev_haptics.systems.pose_estimator import alpha_beta_gains, filter_update
 
@@ -45,6 +46,18 @@ class HeadPredictorConfig:
     # (the frame is on the screen for one view period after its update).
     display_delay_s: Optional[float] = None
     max_extrapolation_s: float = 0.3  # beyond this after the last good sample, hold (s)
+
+    def validate(self, path: str, *, head_tracker_rate_hz: float) -> None:
+        """Range checks; a ValueError names ``path.field``, its value and what is allowed."""
+        require(self.mode in PREDICTOR_MODES, f"{path}.mode", self.mode,
+                f"must be one of {', '.join(PREDICTOR_MODES)}")
+        positive(f"{path}.bandwidth_hz", self.bandwidth_hz)
+        require(self.bandwidth_hz < head_tracker_rate_hz / 2, f"{path}.bandwidth_hz",
+                self.bandwidth_hz,
+                f"must be below the head tracker's Nyquist rate ({head_tracker_rate_hz / 2} Hz)")
+        if self.display_delay_s is not None:
+            nonnegative(f"{path}.display_delay_s", self.display_delay_s)
+        positive(f"{path}.max_extrapolation_s", self.max_extrapolation_s)
 
 
 def predicted_pose(x_hat: np.ndarray, V: np.ndarray, horizon_s: float,

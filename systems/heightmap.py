@@ -47,6 +47,16 @@ class RandomHeightmap:
     # standard deviation is half of it (see the module docstring).
     correlation_length_m: float = 0.004
 
+    def validate(self, path: str = "heightmap") -> None:
+        """Range checks; a ValueError names ``path.field``, its value and what is allowed."""
+        require(isinstance(self.seed, (int, np.integer)) and not isinstance(self.seed, bool)
+                and self.seed >= 0, f"{path}.seed", self.seed, "must be an integer >= 0")
+        require(finite(self.amplitude_m) and self.amplitude_m >= 0, f"{path}.amplitude_m",
+                self.amplitude_m, "must be a finite RMS height >= 0 (m)")
+        require(finite(self.correlation_length_m) and self.correlation_length_m > 0,
+                f"{path}.correlation_length_m", self.correlation_length_m,
+                "must be a finite length > 0 (m)")
+
 
 @dataclass
 class SineHeightmap:
@@ -55,6 +65,12 @@ class SineHeightmap:
     amplitude_m: List[float] = field(default_factory=lambda: [0.001, 0.0005])  # a_x, a_y (m)
     wavelength_m: List[float] = field(default_factory=lambda: [0.02, 0.015])  # l_x, l_y (m)
     phase_rad: List[float] = field(default_factory=lambda: [0.0, 0.0])  # phi_x, phi_y (rad)
+
+    def validate(self, path: str = "heightmap") -> None:
+        """Range checks; a ValueError names ``path.field``, its value and what is allowed."""
+        _pair(f"{path}.amplitude_m", self.amplitude_m, 0.0, False, "x and y amplitudes, m")
+        _pair(f"{path}.wavelength_m", self.wavelength_m, 0.0, True, "x and y wavelengths, m")
+        _pair(f"{path}.phase_rad", self.phase_rad, -math.inf, False, "x and y phases, rad")
 
 
 Heightmap = Union[RandomHeightmap, SineHeightmap]
@@ -66,7 +82,9 @@ def heightmap_heights(config: Heightmap, x_m: np.ndarray, y_m: np.ndarray) -> np
     ascending. A random map is de-meaned over the grid; a sine map's mean level is
     its waves' mean over whole periods. Raises ValueError for an invalid config
     or grid."""
-    validate_heightmap(config, type(config).__name__)
+    require(isinstance(config, (RandomHeightmap, SineHeightmap)), "heightmap", config,
+            "must be a RandomHeightmap or a SineHeightmap")
+    config.validate(type(config).__name__)
     # A random map's smoothing needs a spacing per axis, so at least 2 points.
     min_points = 2 if isinstance(config, RandomHeightmap) else 1
     x_m = validate_grid_axis("x_m", x_m, min_points)
@@ -126,21 +144,3 @@ def _pair(path: str, values, minimum: float, strict: bool, meaning: str) -> None
           and all(finite(v) and (v > minimum if strict else v >= minimum) for v in values))
     bound = "" if minimum == -math.inf else f" {'>' if strict else '>='} {minimum:g}"
     require(ok, path, values, f"must be a list of 2 finite numbers{bound} ({meaning})")
-
-
-def validate_heightmap(config: Heightmap, path: str) -> None:
-    """Range checks; a ValueError names ``path.field``, its value and what is allowed."""
-    require(isinstance(config, (RandomHeightmap, SineHeightmap)), path, config,
-            "must be a RandomHeightmap or a SineHeightmap")
-    if isinstance(config, RandomHeightmap):
-        require(isinstance(config.seed, (int, np.integer)) and not isinstance(config.seed, bool)
-                and config.seed >= 0, f"{path}.seed", config.seed, "must be an integer >= 0")
-        require(finite(config.amplitude_m) and config.amplitude_m >= 0, f"{path}.amplitude_m",
-                config.amplitude_m, "must be a finite RMS height >= 0 (m)")
-        require(finite(config.correlation_length_m) and config.correlation_length_m > 0,
-                f"{path}.correlation_length_m", config.correlation_length_m,
-                "must be a finite length > 0 (m)")
-        return
-    _pair(f"{path}.amplitude_m", config.amplitude_m, 0.0, False, "x and y amplitudes, m")
-    _pair(f"{path}.wavelength_m", config.wavelength_m, 0.0, True, "x and y wavelengths, m")
-    _pair(f"{path}.phase_rad", config.phase_rad, -math.inf, False, "x and y phases, rad")

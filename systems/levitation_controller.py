@@ -16,6 +16,7 @@ import numba
 import numpy as np
 from pydrake.systems.framework import LeafSystem
 
+from maglev_haptics.hardware.config_checks import each, nonnegative, positive
 from maglev_haptics.hardware.constants import GRAVITY_M_S2
 from maglev_haptics.systems.rotations import (
     angular_velocity_from_rpy_rates, rotation_error_W, rotation_from_quaternion, rotation_from_rpy)
@@ -36,6 +37,15 @@ class ControllerConfig:
     kp: Optional[List[float]] = None
     kd: Optional[List[float]] = None
     lost_grace_s: float = 0.020  # hold gravity compensation through short dropouts, then cut the lift
+
+    def validate(self, path: str = "controller") -> None:
+        """Range checks; a ValueError names ``path.field``, its value and what is allowed."""
+        for name in ("natural_frequency_hz", "damping_ratio"):
+            each(f"{path}.{name}", getattr(self, name), 6, positive)
+        for name in ("kp", "kd"):
+            if getattr(self, name) is not None:
+                each(f"{path}.{name}", getattr(self, name), 6, nonnegative)
+        nonnegative(f"{path}.lost_grace_s", self.lost_grace_s)
 
 
 def pd_gains(config: ControllerConfig, mass_kg: float, inertia_diag: np.ndarray):

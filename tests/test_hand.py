@@ -18,7 +18,7 @@ from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import Adder, ConstantVectorSource, MatrixGain, TrajectorySource
 
 from maglev_haptics.diagrams.hand_script import (
-    GripEvent, MeshcatHand, ScriptedHand, hand_plan, validate_hand)
+    GripEvent, MeshcatHand, ScriptedHand, hand_plan)
 from maglev_haptics.diagrams.station import generalized_force_placement
 from maglev_haptics.diagrams.waypoints import Waypoint
 from maglev_haptics.hardware.constants import GRAVITY_M_S2
@@ -396,7 +396,7 @@ hand: !MeshcatHand {filter_time_constant_s: 0.5, grip_at_start: true}
 """)
     assert isinstance(loaded.hand, MeshcatHand)
     assert loaded.hand.filter_time_constant_s == 0.5 and loaded.hand.grip_at_start
-    validate_hand(loaded.hand, "test")
+    loaded.hand.validate("test: hand")
 
 
 @pytest.mark.parametrize("hand, message", [
@@ -422,7 +422,7 @@ hand: !MeshcatHand {filter_time_constant_s: 0.5, grip_at_start: true}
 ])
 def test_validate_hand_names_the_field_the_value_and_what_is_allowed(hand, message):
     with pytest.raises(ValueError) as error:
-        validate_hand(hand, "test")
+        hand.validate("test: hand")
     assert str(error.value).startswith(message)
 
 
@@ -438,8 +438,8 @@ ZERO_EDGES = {
 
 def test_validate_hand_accepts_the_defaults_and_each_bound_up_to_its_edge():
     for hand in (ScriptedHand(), moving_script([GripEvent()]), MeshcatHand()):
-        assert validate_hand(hand, "test") is None
+        assert hand.validate("test: hand") is None
     for field_name, hand_with in ZERO_EDGES.items():
-        assert validate_hand(hand_with(0.0), "test") is None  # the edge itself is allowed
+        assert hand_with(0.0).validate("test: hand") is None  # the edge itself is allowed
         with pytest.raises(ValueError, match=re.escape(f"test: {field_name} = ")):
-            validate_hand(hand_with(math.nextafter(0.0, -1.0)), "test")  # one step below
+            hand_with(math.nextafter(0.0, -1.0)).validate("test: hand")  # one step below

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from maglev_haptics.systems.heightmap import (RandomHeightmap, SineHeightmap,
-                                              heightmap_heights, validate_heightmap)
+                                              heightmap_heights)
 from maglev_haptics.systems.lattice_construction import build_lattice
 
 BASE_Z_M = -0.030
@@ -369,15 +369,17 @@ def test_sine_heightmap_at_known_points():
     (SineHeightmap(amplitude_m=[0.001, -0.001]), r"terrain\.amplitude_m = .* >= 0"),
     (SineHeightmap(wavelength_m=[0.02, 0.0]), r"terrain\.wavelength_m = \[0\.02, 0\.0\]: .* > 0"),
     (SineHeightmap(phase_rad=[0.0, math.nan]), r"terrain\.phase_rad = \[0\.0, nan\]: .* finite"),
-    ("flat", r"terrain = 'flat': must be a RandomHeightmap or a SineHeightmap"),
 ])
 def test_validate_heightmap_names_the_field(config, message):
     with pytest.raises(ValueError, match=message):
-        validate_heightmap(config, "terrain")
+        config.validate("terrain")
 
 
 def test_heightmap_heights_rejects_a_bad_config_or_grid():
     x = np.linspace(0, 0.01, 5)
+    with pytest.raises(ValueError, match="heightmap = 'flat': must be a RandomHeightmap or a "
+                                         "SineHeightmap"):
+        heightmap_heights("flat", x, x)
     with pytest.raises(ValueError, match=r"RandomHeightmap\.amplitude_m = -1"):
         heightmap_heights(RandomHeightmap(amplitude_m=-1), x, x)
     with pytest.raises(ValueError, match=r"y_m spacing"):

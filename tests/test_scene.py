@@ -18,7 +18,7 @@ from pydrake.systems.primitives import Adder, ConstantVectorSource, Demultiplexe
 
 from maglev_haptics.diagrams.scene import (
     ContactProperties, HangingBall, PaddleBall, PegInHole, SceneConfig, hanging_drop_m,
-    table_top_z, validate_scene)
+    table_top_z)
 from maglev_haptics.diagrams.scene_builder import (
     AddScene, start_overlap, wrench_to_generalized_force)
 from maglev_haptics.hardware.constants import GRAVITY_M_S2
@@ -559,7 +559,7 @@ def test_off_centre_hit_turns_the_paddle_about_y():
 ])
 def test_bad_config_names_the_field(scene, field_name):
     with pytest.raises(ValueError, match="^" + re.escape(field_name) + " = .+: .+"):
-        validate_scene(scene)
+        scene.validate()
     with pytest.raises(ValueError, match="scene."):
         build(scene)
 
@@ -631,6 +631,6 @@ scene: !HangingBall
     assert holder.scene.ball_mass_kg == 0.02 and holder.scene.table_z_m is None
     assert holder.scene.contact.friction == 0.4
     assert holder.scene.contact.resolution_hint_m == ContactProperties().resolution_hint_m
-    validate_scene(holder.scene)
+    holder.scene.validate()
     holder = yaml_load_typed(schema=_Holder, data="scene: !PaddleBall {}", defaults=_Holder())
     assert holder.scene == PaddleBall()
