@@ -1,8 +1,8 @@
 """The device description: coil array, instruments, amplifiers, display, trackers.
 
-Every number defaults to DESIGN.md section 4 (the paper's device plus the stated
-physical assumptions) and every field is settable from a scenario's ``device:``
-block. SI units throughout; frames as in DESIGN.md section 3 (W display, A coil
+Every number defaults to the reference device of docs/device_model.md (the
+paper's device plus the stated physical assumptions) and every field is settable
+from a scenario's ``device:`` block. SI units throughout; frames as in docs/architecture.md (W display, A coil
 array, C_j coil j, I instrument).
 """
 
@@ -23,7 +23,7 @@ INSTRUMENT_KINDS = ("two_magnet", "four_magnet")
 class CoilSpec:
     """One cylindrical air-core coil (all coils of the array are alike)."""
 
-    inner_diameter_m: float = 0.010  # assumption (DESIGN.md 4)
+    inner_diameter_m: float = 0.010  # assumption (docs/device_model.md)
     outer_diameter_m: float = 0.025  # paper
     height_m: float = 0.030  # paper
     turns: int = 1000  # paper
@@ -133,7 +133,7 @@ def _marker_triangle(radius_m: float, height_m: float) -> List[List[float]]:
 
 
 def default_instrument(kind: str) -> InstrumentSpec:
-    """The paper's instruments with the magnets of DESIGN.md section 4."""
+    """The paper's instruments with the magnets of docs/device_model.md."""
     if kind == "two_magnet":
         return InstrumentSpec(
             kind=kind,

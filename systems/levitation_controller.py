@@ -1,7 +1,7 @@
 """6-DOF PD levitation control with gravity compensation and a feed-forward wrench.
 
 Wrench vectors in the loop are ordered like the rows of the wrench matrix
-(DESIGN.md section 8): [fx, fy, fz, tx, ty, tz] in W (N, N*m), torque about
+(``load_magnetics(...).wrench_matrix``): [fx, fy, fz, tx, ty, tz] in W (N, N*m), torque about
 the instrument origin. Pose vectors follow Drake's free-body ordering
 [qw, qx, qy, qz, x, y, z]; spatial velocities [wx, wy, wz, vx, vy, vz] in W.
 Setpoints are [x, y, z, roll, pitch, yaw] followed by their time derivatives
