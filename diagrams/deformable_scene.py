@@ -22,7 +22,7 @@ from pydrake.systems.primitives import Adder, Demultiplexer, MatrixGain
 from maglev_haptics.diagrams.scene_builder import SceneParts, wrench_to_generalized_force
 from maglev_haptics.hardware.config_checks import finite, nonnegative, positive, require, vector
 from maglev_haptics.hardware.constants import GRAVITY_M_S2
-from maglev_haptics.plant_models.scene_geometry import sphere_inertia
+from maglev_haptics.plant_models.scene_sdf import probe_tool_sdf
 from maglev_haptics.systems.deformable_surface import DeformableSurface as DeformableSurfaceSystem
 from maglev_haptics.systems.heightmap import (
     Heightmap, RandomHeightmap, heightmap_heights)
@@ -30,8 +30,6 @@ from maglev_haptics.systems.lattice_construction import Lattice, build_lattice
 from maglev_haptics.systems.lattice_dynamics import (
     INTEGRATORS, SYMPLECTIC_EULER, ProbeContact, lattice_model, max_stable_link_stiffness)
 
-PROBE_RGBA = (0.75, 0.75, 0.78, 1.0)
-PROBE_SHAFT_RADIUS_M = 0.0015  # drawn only (m)
 
 
 @dataclass
@@ -128,35 +126,6 @@ def build_scene_lattice(scene: DeformableSurface) -> Lattice:
     return build_lattice(heights, x_m, y_m, scene.base_z_m, scene.level_spacing_m)
 
 
-def probe_tool_sdf(scene: DeformableSurface) -> str:
-    """The tool "tool": link frame T at the grip (I's origin when relaxed), a shaft
-    from T down to the probe sphere at ``tool_offset_m``; visuals only."""
-    p_TP = np.asarray(scene.tool_offset_m, dtype=float)
-    radius = scene.probe.radius_m
-    shaft_length = max(float(np.linalg.norm(p_TP)) - radius, 1e-4)
-    axis = p_TP / np.linalg.norm(p_TP) if np.linalg.norm(p_TP) > 0 else np.array([0, 0, -1.0])
-    # The shaft's cylinder runs along its own z: Rz(yaw) Ry(pitch) turns z onto T -> P.
-    pitch = float(np.arccos(np.clip(axis[2], -1.0, 1.0)))
-    yaw = float(np.arctan2(axis[1], axis[0]))
-    centre = axis * shaft_length / 2
-    inertia = np.maximum(sphere_inertia(scene.tool_mass_kg, radius), scene.min_inertia_kg_m2)
-    material = "<material><diffuse>{:.3g} {:.3g} {:.3g} {:.3g}</diffuse></material>".format(
-        *PROBE_RGBA)
-    return (
-        '<?xml version="1.0"?><sdf version="1.9"><model name="tool"><link name="body">'
-        "<inertial><pose>{:.9g} {:.9g} {:.9g} 0 0 0</pose>".format(*p_TP) +
-        f"<mass>{scene.tool_mass_kg:.9g}</mass><inertia><ixx>{inertia[0]:.9g}</ixx>"
-        f"<iyy>{inertia[1]:.9g}</iyy><izz>{inertia[2]:.9g}</izz><ixy>0</ixy><ixz>0</ixz>"
-        "<iyz>0</iyz></inertia></inertial>"
-        '<visual name="tip"><pose>{:.9g} {:.9g} {:.9g} 0 0 0</pose>'.format(*p_TP) +
-        f"<geometry><sphere><radius>{radius:.9g}</radius></sphere></geometry>{material}</visual>"
-        '<visual name="shaft"><pose>{:.9g} {:.9g} {:.9g} 0 {:.9g} {:.9g}</pose>'.format(
-            *centre, pitch, yaw) +
-        f"<geometry><cylinder><radius>{PROBE_SHAFT_RADIUS_M:.9g}</radius>"
-        f"<length>{shaft_length:.9g}</length></cylinder></geometry>{material}</visual>"
-        "</link></model></sdf>")
-
-
 def check_explicit_stability(scene: DeformableSurface, lattice: Lattice, time_step_s: float,
                              label: str = "haptics.scene") -> None:
     """A ValueError if symplectic Euler would blow this lattice up at ``time_step_s`` (s)."""
@@ -217,7 +186,9 @@ def AddDeformableScene(builder: DiagramBuilder, *, scene: DeformableSurface, tim
         MultibodyPlantConfig(time_step=time_step_s, use_sampled_output_ports=False), builder)
     plant.set_name("scene_plant")
     scene_graph.set_name("scene_graph")
-    tool = Parser(plant).AddModelsFromString(probe_tool_sdf(scene), "sdf")[0]
+    tool = Parser(plant).AddModelsFromString(probe_tool_sdf(
+        scene.tool_offset_m, scene.probe.radius_m, scene.tool_mass_kg, scene.min_inertia_kg_m2),
+        "sdf")[0]
     plant.set_gravity_enabled(tool, False)
     plant.Finalize()
     tool_body = plant.GetBodyByName("body", tool)

@@ -15,6 +15,8 @@ from pydrake.geometry import (
 from pydrake.math import RigidTransform
 from pydrake.multibody.plant import CoulombFriction, MultibodyPlant
 
+from maglev_haptics.plant_models.scene_geometry import sphere_inertia
+
 # The table's visual box, x, y, z (m), centred on W's z axis under the table's top;
 # for contact the table is a half-space.
 TABLE_SIZE_M = (0.24, 0.18, 0.010)
@@ -22,8 +24,10 @@ TABLE_SIZE_M = (0.24, 0.18, 0.010)
 # table's top to the modulus this deep, as in a 20 mm thick compliant box. At 1e6 Pa
 # the peg's 25 x 25 mm face then meets 1e6 * 6.25e-4 / 0.010 = 62.5 N/mm.
 TABLE_SLAB_M = 0.010
+PROBE_SHAFT_RADIUS_M = 0.0015  # the deformable scene's probe shaft, drawn only (m)
 
 # Visual colours, RGBA.
+PROBE_RGBA = (0.75, 0.75, 0.78, 1.0)
 PEG_RGBA = (0.20, 0.45, 0.85, 1.0)
 PADDLE_RGBA = (0.90, 0.50, 0.10, 1.0)
 ANCHOR_RGBA = (0.30, 0.30, 0.35, 1.0)
@@ -116,3 +120,34 @@ def register_table(plant: MultibodyPlant, top_z_m: float, contact, *,
                                     HalfSpace(), "table", properties)
     plant.RegisterVisualGeometry(world, RigidTransform([0.0, 0.0, top_z_m - TABLE_SIZE_M[2] / 2]),
                                  Box(*TABLE_SIZE_M), "table", np.array(TABLE_RGBA))
+
+
+def probe_tool_sdf(p_TP_m, radius_m: float, mass_kg: float, min_inertia_kg_m2: float) -> str:
+    """The tool "tool": link frame T at the grip (I's origin when relaxed), a shaft
+    from T down to the probe sphere (``radius_m``) centred at ``p_TP_m`` in T (m);
+    visuals only. Its mass ``mass_kg`` sits at the sphere, its principal moments
+    raised to ``min_inertia_kg_m2`` (kg*m^2)."""
+    p_TP = np.asarray(p_TP_m, dtype=float)
+    radius = radius_m
+    shaft_length = max(float(np.linalg.norm(p_TP)) - radius, 1e-4)
+    axis = p_TP / np.linalg.norm(p_TP) if np.linalg.norm(p_TP) > 0 else np.array([0, 0, -1.0])
+    # The shaft's cylinder runs along its own z: Rz(yaw) Ry(pitch) turns z onto T -> P.
+    pitch = float(np.arccos(np.clip(axis[2], -1.0, 1.0)))
+    yaw = float(np.arctan2(axis[1], axis[0]))
+    centre = axis * shaft_length / 2
+    inertia = np.maximum(sphere_inertia(mass_kg, radius), min_inertia_kg_m2)
+    material = "<material><diffuse>{:.3g} {:.3g} {:.3g} {:.3g}</diffuse></material>".format(
+        *PROBE_RGBA)
+    return (
+        '<?xml version="1.0"?><sdf version="1.9"><model name="tool"><link name="body">'
+        "<inertial><pose>{:.9g} {:.9g} {:.9g} 0 0 0</pose>".format(*p_TP) +
+        f"<mass>{mass_kg:.9g}</mass><inertia><ixx>{inertia[0]:.9g}</ixx>"
+        f"<iyy>{inertia[1]:.9g}</iyy><izz>{inertia[2]:.9g}</izz><ixy>0</ixy><ixz>0</ixz>"
+        "<iyz>0</iyz></inertia></inertial>"
+        '<visual name="tip"><pose>{:.9g} {:.9g} {:.9g} 0 0 0</pose>'.format(*p_TP) +
+        f"<geometry><sphere><radius>{radius:.9g}</radius></sphere></geometry>{material}</visual>"
+        '<visual name="shaft"><pose>{:.9g} {:.9g} {:.9g} 0 {:.9g} {:.9g}</pose>'.format(
+            *centre, pitch, yaw) +
+        f"<geometry><cylinder><radius>{PROBE_SHAFT_RADIUS_M:.9g}</radius>"
+        f"<length>{shaft_length:.9g}</length></cylinder></geometry>{material}</visual>"
+        "</link></model></sdf>")
