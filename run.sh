@@ -37,9 +37,11 @@ find_python() {  # the newest Python >= 3.12: on PATH, then under pyenv
     supported "$candidate" && { echo "$candidate"; return; }
   done
 }
-python=$(find_python)
+python=$(find_python || true)
 if [ -z "$python" ] || ! supported "$python"; then
-  found=$(for p in python3 python3.11 python3.10; do command -v $p >/dev/null && $p --version 2>&1; done | sort -u | tr '\n' ' ')
+  found=$(for p in python3 python3.11 python3.10; do
+            if command -v "$p" >/dev/null; then "$p" --version 2>&1; fi
+          done | sort -u | paste -sd, - | sed 's/,/, /g')
   echo "run.sh: needs Python 3.12 or newer (drake 1.58 wheels); found: ${found:-none}." \
        "Install one (Ubuntu 24.04 / Debian 13: apt install python3 python3-venv; else pyenv install 3.12)" \
        "or point MAGLEV_PYTHON at it."
