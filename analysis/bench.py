@@ -102,7 +102,7 @@ def run_benchmarks(duration_s: Optional[float] = None, progress: bool = True,
         simulate(built, 0.05, progress=False)  # loads the compiled kernels, off the clock
         length_s = scenario.duration_s if scenario.duration_s is not None else built.plan.end_s
         sim_s = length_s if duration_s is None else min(duration_s, length_s)
-        _, wall_s = simulate(built, sim_s, progress=progress, label=name)
+        _, wall_s, _ = simulate(built, sim_s, progress=progress, label=name)
         results["scenarios"][name] = {
             "instrument": scenario.device.instrument,
             "simulated_s": sim_s,
@@ -111,7 +111,7 @@ def run_benchmarks(duration_s: Optional[float] = None, progress: bool = True,
         }
     scenario = load_scenario(str(LEVITATE_FILE), "takeoff_hover_land")
     built = BuildDiagram(scenario)
-    simulator, _ = simulate(built, HOVER_TIME_S, progress=False)
+    simulator, _, _ = simulate(built, HOVER_TIME_S, progress=False)
     results["systems_us"] = leaf_system_costs(built, simulator.get_context())
     results["systems_us"]["plant step, hovering"] = plant_step_cost_us(scenario, hovering=True)
     results["systems_us"]["plant step, resting on the glass"] = plant_step_cost_us(

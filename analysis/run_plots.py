@@ -10,10 +10,10 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from maglev_haptics.analysis.run_metrics import angle_between_deg  # noqa: E402
+from maglev_haptics.diagrams.runner import TickTimes, realtime_report  # noqa: E402
 from maglev_haptics.systems.haptic_supervisor import HAPTIC  # noqa: E402
 
 AXIS_COLORS = ("tab:red", "tab:green", "tab:blue")
-
 
 
 def save_figure(figure, path: Path, *, dpi: int = 110, tight: bool = True) -> Path:
@@ -135,3 +135,39 @@ def plot_haptics(log: Dict[str, np.ndarray], out_dir: Path, *, title: str) -> Pa
     fig.suptitle(f"{title}: position and force rendered on the user\n(orange: tool in "
                  "contact while haptics is engaged; purple strip: haptics engaged)")
     return save_figure(fig, Path(out_dir) / "haptics.png", dpi=100)
+
+
+def plot_tick_times(times: TickTimes, out_dir: Path, *, title: str) -> Path:
+    """Write ``realtime.png``: each paced tick's compute time against its wall-clock
+    slot (misses in red), and their distribution."""
+    report = realtime_report(times)
+    compute_us = 1e6 * times.compute_s
+    slot_us = 1e6 * times.slot_s
+    missed = times.lateness_s > 0
+    tick = np.arange(compute_us.size)
+    fig, (trace, spread) = plt.subplots(2, 1, figsize=(11, 7.5))
+    trace.plot(tick, compute_us, lw=0.4, color="tab:blue", label="compute of a tick")
+    trace.plot(tick[missed], compute_us[missed], "o", ms=3, color="tab:red",
+               label=f"missed its slot ({report['deadline_misses']})")
+    trace.axhline(slot_us, color="k", ls="--", lw=1, label=f"slot {slot_us:.0f} us")
+    trace.set_yscale("log")
+    trace.set_xlabel("tick")
+    trace.set_ylabel("compute [us]")
+    _legend_outside(trace)
+    bins = np.geomspace(max(compute_us.min(), 1.0), max(compute_us.max(), slot_us) * 1.05, 80)
+    spread.hist(compute_us, bins=bins, color="tab:blue")
+    spread.set_xscale("log")
+    spread.set_yscale("log")
+    for name, style in (("p50", ":"), ("p99", "-.")):
+        value = report[f"tick_compute_us_{name}"]
+        spread.axvline(value, color="tab:green", ls=style, lw=1.2, label=f"{name} {value:.0f} us")
+    spread.axvline(slot_us, color="k", ls="--", lw=1, label="slot")
+    spread.set_xlabel("compute of a tick [us]")
+    spread.set_ylabel("ticks")
+    _legend_outside(spread)
+    for ax in (trace, spread):
+        ax.grid(alpha=0.3, which="both")
+    fig.suptitle(f"{title}: {report['ticks']} paced ticks, {report['deadline_misses']} missed "
+                 f"({100 * report['miss_fraction']:.2f}%), longest stall "
+                 f"{report['longest_stall_ms']:.2f} ms")
+    return save_figure(fig, Path(out_dir) / "realtime.png")

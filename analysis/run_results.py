@@ -12,11 +12,11 @@ from pydrake.geometry import StartMeshcat
 
 from maglev_haptics.analysis.haptic_metrics import haptic_summary
 from maglev_haptics.analysis.run_metrics import log_arrays, summarize
-from maglev_haptics.analysis.run_plots import plot_haptics, plot_run
+from maglev_haptics.analysis.run_plots import plot_haptics, plot_run, plot_tick_times
 from maglev_haptics.analysis.stereo_metrics import plot_colocation, stereo_summary
 from maglev_haptics.analysis.stereo_video import StereoVideoWriter
 from maglev_haptics.diagrams.application import BuildDiagram
-from maglev_haptics.diagrams.runner import simulate
+from maglev_haptics.diagrams.runner import realtime_report, simulate
 from maglev_haptics.diagrams.scenario import Scenario
 from maglev_haptics.hardware.thermal import coil_thermal
 from maglev_haptics.systems.device_visualizer import aim_camera_at_device
@@ -48,7 +48,7 @@ def run_scenario(scenario: Scenario, *, label: str, out_dir: Optional[Path] = No
     if record:
         viewer.StartRecording()
     try:
-        simulator, wall_s = simulate(built, duration_s, realtime_rate=realtime_rate,
+        simulator, wall_s, tick_times = simulate(built, duration_s, realtime_rate=realtime_rate,
                                      progress=progress, label=label,
                                      interruptible=built.meshcat_hand is not None)
     finally:
@@ -75,6 +75,8 @@ def run_scenario(scenario: Scenario, *, label: str, out_dir: Optional[Path] = No
                                     if scenario.haptics is not None else None)),
         **haptic_summary(log, scenario, rest_height_m=spec.rest_height_m),
     }
+    if tick_times is not None:
+        summary["realtime"] = {"rate": realtime_rate, **realtime_report(tick_times)}
     if scenario.stereo is not None:
         summary["stereo"] = stereo_summary(log, scenario, built.stereo, video_summary)
     if built.haptics is not None:
@@ -91,6 +93,8 @@ def run_scenario(scenario: Scenario, *, label: str, out_dir: Optional[Path] = No
                  current_limit_a=scenario.device.amplifier.current_limit_a)
         if scenario.haptics is not None:
             plot_haptics(log, out_dir, title=label)
+        if tick_times is not None:
+            plot_tick_times(tick_times, out_dir, title=label)
         if scenario.stereo is not None:
             plot_colocation(log, scenario, out_dir, title=label)
     return RunResult(summary=summary, log=log, meshcat=viewer)

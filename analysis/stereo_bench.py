@@ -18,7 +18,7 @@ PAIRS_TIMED = 10  # renders per size
 def stereo_costs() -> Dict:
     scenario = with_stereo(load_scenario("peg_in_hole"), "peg_in_hole --stereo")
     built = BuildDiagram(scenario, frame_sink=lambda *frame: None)
-    simulator, _ = simulate(built, 0.2, progress=False)
+    simulator, _, _ = simulate(built, 0.2, progress=False)
     view = built.stereo.view
     q_WG, p_WG = glasses_pose(scenario.stereo.head.start.vector())
     context = simulator.get_context()

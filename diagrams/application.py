@@ -43,6 +43,7 @@ class BuiltDiagram:
     logger: object  # one VectorLogSink of all logged signals, stacked
     log_layout: Dict[str, slice]  # name -> its rows in the logger's data
     magnetics: object
+    tick_s: float  # the control period: the real-time loop's tick (s)
     haptics: Optional[object] = None  # diagrams.haptics.HapticParts
     meshcat_hand: Optional[object] = None  # the MeshcatHandInput whose controls to delete
     stereo: Optional[object] = None  # diagrams.stereo_display.StereoParts
@@ -220,5 +221,6 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
     diagram = builder.Build()
     diagram.set_name("maglev_haptics")
     return BuiltDiagram(diagram=diagram, plan=plan, logger=logger, log_layout=log_layout,
-                        magnetics=magnetics, haptics=haptics, meshcat_hand=meshcat_hand,
+                        magnetics=magnetics, tick_s=1.0 / scenario.control_rate_hz,
+                        haptics=haptics, meshcat_hand=meshcat_hand,
                         stereo=stereo)

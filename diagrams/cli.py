@@ -12,6 +12,7 @@ import textwrap
 from importlib.metadata import version
 from pathlib import Path
 
+from maglev_haptics.diagrams.runner import MISS_WARNING_FRACTION
 from maglev_haptics.diagrams.scenario import (
     ScenarioError, load_scenario, resolve_scenario_file, scenario_names, shipped_scenario_files)
 
@@ -142,7 +143,16 @@ def _cmd_run(args) -> int:
     print(json.dumps(printed, indent=2))
     plots = "levitation.png" + (", haptics.png" if scenario.haptics is not None else "")
     plots += ", stereo.png" if scenario.stereo is not None else ""
+    plots += ", realtime.png" if "realtime" in result.summary else ""
     print(f"wrote {out}/log.npz, {out}/summary.json, {out}/{plots}")
+    realtime_summary = result.summary.get("realtime")
+    if realtime_summary and realtime_summary["miss_fraction"] > MISS_WARNING_FRACTION:
+        print(f"warning: {realtime_summary['deadline_misses']} of {realtime_summary['ticks']} "
+              f"ticks ({100 * realtime_summary['miss_fraction']:.2f}%) missed their "
+              f"{realtime_summary['slot_us']:.0f} us slot (allowed: "
+              f"{100 * MISS_WARNING_FRACTION:.1f}%); longest stall "
+              f"{realtime_summary['longest_stall_ms']:.1f} ms: see {out}/realtime.png",
+              file=sys.stderr)
     for name in result.summary.get("stereo", {}).get("video", {}).get("files", []):
         print(f"wrote {out}/{name}")
     if result.meshcat is not None:

@@ -1,41 +1,134 @@
-"""Advance a built diagram: a simulator, optionally paced to the wall clock, with progress."""
+"""Advance a built diagram: a simulator, optionally paced to the wall clock, with progress.
+
+Paced (``realtime_rate > 0``), the runner is the real-time loop: each control
+tick of ``tick_s`` simulated seconds is released at its wall-clock slot
+(``tick_s / realtime_rate`` wall seconds long), computed with one ``AdvanceTo``,
+and timed. A tick whose compute ends after its slot has missed its deadline; the
+next tick then starts at once, so a late loop catches up rather than skipping
+ticks (a haptic loop may not drop its samples).
+"""
 
 from __future__ import annotations
 
 import gc
 import time
+from dataclasses import dataclass
+from typing import Dict
 
 import numpy as np
 from pydrake.systems.analysis import Simulator
 from tqdm import tqdm
 
 PROGRESS_CHUNK_S = 0.25  # simulated seconds between progress-bar updates
+MISS_WARNING_FRACTION = 0.001  # more missed deadlines than this and the terminal says so
+SPIN_BEFORE_RELEASE_S = 150e-6  # the OS sleep overshoots by ~60 us: the last bit is spun (s)
+
+
+@dataclass
+class TickTimes:
+    """Wall-clock timing of a paced run, one entry a tick (s)."""
+    slot_s: float  # wall seconds a tick may take: tick_s / realtime_rate
+    compute_s: np.ndarray  # wall time each tick's AdvanceTo took
+    lateness_s: np.ndarray  # when each tick's compute ended, past its slot's end (< 0: early)
+
+
+def realtime_report(times: TickTimes) -> Dict:
+    """The ``realtime`` block of summary.json: deadline misses and compute-time
+    percentiles of the ticks run (us, ms)."""
+    compute_us = 1e6 * times.compute_s
+    missed = times.lateness_s > 0.0
+    ticks = int(compute_us.size)
+    return {
+        "ticks": ticks,
+        "slot_us": 1e6 * times.slot_s,
+        "deadline_misses": int(missed.sum()),
+        "miss_fraction": float(missed.mean()) if ticks else 0.0,
+        "tick_compute_us_p50": float(np.percentile(compute_us, 50)) if ticks else 0.0,
+        "tick_compute_us_p99": float(np.percentile(compute_us, 99)) if ticks else 0.0,
+        "tick_compute_us_max": float(compute_us.max()) if ticks else 0.0,
+        # The longest the loop ran behind its clock: one long tick, or a run of late ones.
+        "longest_stall_ms": float(1e3 * max(0.0, times.lateness_s.max())) if ticks else 0.0,
+    }
+
+
+def _sleep_until(wall_s: float) -> None:
+    remaining = wall_s - time.perf_counter()
+    if remaining > SPIN_BEFORE_RELEASE_S:
+        time.sleep(remaining - SPIN_BEFORE_RELEASE_S)
+    while time.perf_counter() < wall_s:
+        pass
+
+
+class PacedTicks:
+    """The timing of a paced run as it goes: kept when Ctrl-C ends the run early."""
+
+    def __init__(self, n_ticks: int, slot_s: float):
+        self.slot_s = slot_s
+        self.compute_s = np.zeros(n_ticks)
+        self.lateness_s = np.zeros(n_ticks)
+        self.done = 0
+
+    def times(self) -> TickTimes:
+        return TickTimes(slot_s=self.slot_s, compute_s=self.compute_s[:self.done],
+                         lateness_s=self.lateness_s[:self.done])
+
+
+def advance_paced(simulator, duration_s: float, tick_s: float, ticks: PacedTicks, bar):
+    """Tick by tick to ``duration_s``, each released at its wall-clock slot."""
+    start_s = simulator.get_context().get_time()
+    ticks_per_update = max(1, int(round(PROGRESS_CHUNK_S / tick_s)))
+    clock_zero = time.perf_counter()
+    try:
+        for k in range(ticks.compute_s.size):
+            release = clock_zero + k * ticks.slot_s
+            _sleep_until(release)
+            begin = time.perf_counter()
+            simulator.AdvanceTo(start_s + (k + 1) * tick_s)
+            end = time.perf_counter()
+            ticks.compute_s[k] = end - begin
+            ticks.lateness_s[k] = end - (release + ticks.slot_s)
+            ticks.done = k + 1
+            if ticks.done % ticks_per_update == 0:
+                bar.update(simulator.get_context().get_time() - bar.n)
+                misses = int(np.count_nonzero(ticks.lateness_s[:ticks.done] > 0))
+                bar.set_postfix_str(f"missed {misses}/{ticks.done}", refresh=False)
+    finally:
+        bar.update(simulator.get_context().get_time() - bar.n)
 
 
 def simulate(built, duration_s: float, *, realtime_rate: float = 0.0,
              progress: bool = True, label: str = "", interruptible: bool = False):
-    """Advance the diagram to ``duration_s``; returns (simulator, wall seconds).
+    """Advance the diagram to ``duration_s``; returns (simulator, wall seconds,
+    TickTimes of the paced ticks or None when not paced).
     ``interruptible``: Ctrl-C ends the run early instead of raising."""
-    # The diagram lives as long as the run: keep the collector from scanning it every tick.
-    gc.collect()
-    gc.freeze()
     simulator = Simulator(built.diagram)
-    simulator.set_target_realtime_rate(realtime_rate)
     simulator.Initialize()
-    chunks = np.append(np.arange(PROGRESS_CHUNK_S, duration_s, PROGRESS_CHUNK_S), duration_s)
+    # The collector took a tenth of a run's time and paused the loop for milliseconds;
+    # the loop makes no reference cycles, so it is off until the run ends.
+    gc.collect()
+    gc.disable()
+    paced = None
+    if realtime_rate > 0:
+        n_ticks = int(round(duration_s / built.tick_s))
+        paced = PacedTicks(n_ticks, built.tick_s / realtime_rate)
     start = time.perf_counter()
     try:
         with tqdm(total=float(duration_s), unit="sim s", disable=not progress, desc=label,
-                  bar_format="{l_bar}{bar}| {n:.2f}/{total:.2f} sim s [{elapsed}]") as bar:
-            for t in chunks:
-                simulator.AdvanceTo(float(t))
-                bar.update(float(t) - bar.n)
+                  bar_format="{l_bar}{bar}| {n:.2f}/{total:.2f} sim s [{elapsed}{postfix}]"
+                  ) as bar:
+            if paced is not None:
+                advance_paced(simulator, duration_s, built.tick_s, paced, bar)
+            else:
+                chunks = np.append(np.arange(PROGRESS_CHUNK_S, duration_s, PROGRESS_CHUNK_S),
+                                   duration_s)
+                for t in chunks:
+                    simulator.AdvanceTo(float(t))
+                    bar.update(float(t) - bar.n)
     except KeyboardInterrupt:
         if not interruptible:
             raise
         # Ctrl-C ends an interactive run early; what was simulated is kept.
     finally:
-        gc.unfreeze()  # later runs in this process must be able to collect this one
-    return simulator, time.perf_counter() - start
-
-
+        gc.enable()
+    wall_s = time.perf_counter() - start
+    return simulator, wall_s, paced.times() if paced is not None else None
