@@ -19,6 +19,8 @@ import numpy as np
 from pydrake.systems.analysis import Simulator
 from tqdm import tqdm
 
+from maglev_haptics.hardware.kernels import compile_kernels
+
 PROGRESS_CHUNK_S = 0.25  # simulated seconds between progress-bar updates
 MISS_WARNING_FRACTION = 0.001  # more missed deadlines than this and the terminal says so
 SPIN_BEFORE_RELEASE_S = 150e-6  # the OS sleep overshoots by ~60 us: the last bit is spun (s)
@@ -101,6 +103,8 @@ def simulate(built, duration_s: float, *, realtime_rate: float = 0.0,
     """Advance the diagram to ``duration_s``; returns (simulator, wall seconds,
     TickTimes of the paced ticks or None when not paced).
     ``interruptible``: Ctrl-C ends the run early instead of raising."""
+    # Nothing compiles inside the loop: every kernel is ready before the clock starts.
+    compile_kernels(progress=progress)
     simulator = Simulator(built.diagram)
     simulator.Initialize()
     # The collector took a tenth of a run's time and paused the loop for milliseconds;

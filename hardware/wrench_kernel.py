@@ -34,6 +34,7 @@ import numpy as np
 from maglev_haptics.hardware.interpolation import (
     axis_position, beyond_end, clamped_position, lagrange3_weights, lagrange4_weights,
     nearest_stencil_start, stencil_start)
+from maglev_haptics.hardware.kernels import FLOAT32_TENSOR4, FLOAT32_VECTOR, MATRIX, VECTOR, kernel
 
 # Let LLVM reassociate and fuse the table sums into SIMD multiply-adds (about 2x);
 # unlike full fastmath it keeps IEEE NaN/inf semantics.
@@ -143,7 +144,8 @@ def pair_wrench_C(values, axes, p_CM, w_x, w_y, out, scratch):
     return True
 
 
-@numba.njit(cache=True, fastmath=VECTORIZING_MATH)
+@kernel((FLOAT32_TENSOR4, MATRIX, MATRIX, MATRIX, VECTOR, MATRIX, FLOAT32_VECTOR),
+        fastmath=VECTORIZING_MATH)
 def wrench_matrix_kernel(values, axes, p_ACj, p_IM, p_AI, R_AI, scratch):
     """(status, (6, n_coils) wrench per ampere on the instrument).
 

@@ -42,6 +42,7 @@ from pydrake.systems.framework import LeafSystem, ValueProducer
 
 from maglev_haptics.hardware.config_checks import finite, positive, require
 from maglev_haptics.hardware.constants import GRAVITY_M_S2
+from maglev_haptics.hardware.kernels import SCALAR, VECTOR, kernel
 from maglev_haptics.systems.haptic_coupling import coupling_wrenches
 from maglev_haptics.systems.rotations import (
     angular_velocity_from_rpy_rates, pose_vector, quaternion_from_rotation_matrix,
@@ -150,7 +151,7 @@ def grip_wrenches(X_WH, V_WH, X_WI, V_WI, X_HI, k, b):
     return on_hand, on_instrument
 
 
-@numba.njit(cache=True)
+@kernel((VECTOR, VECTOR, VECTOR, SCALAR, VECTOR, VECTOR, VECTOR, VECTOR, VECTOR, SCALAR))
 def hand_wrenches(hand_state, instrument_state, target, gripped, X_HI, k_arm, b_arm, k_grip,
                   b_grip, mass_kg):
     """(total wrench on the hand, wrench on the instrument), each [f; tau] in W about the

@@ -47,6 +47,7 @@ from pydrake.math import RigidTransform
 from pydrake.systems.framework import LeafSystem, ValueProducer
 
 from maglev_haptics.hardware.config_checks import each, nonnegative, positive, require
+from maglev_haptics.hardware.kernels import MATRIX, SCALAR, VECTOR, kernel
 from maglev_haptics.hardware.limits import LIMIT_KINDS
 from maglev_haptics.systems.rotations import rotation_from_quaternion
 
@@ -184,7 +185,7 @@ def clamp_scale(wrench, max_force_n, max_torque_nm):
     return scale
 
 
-@numba.njit(cache=True)
+@kernel((VECTOR, VECTOR, VECTOR, VECTOR, MATRIX, VECTOR, VECTOR, VECTOR, SCALAR, SCALAR, SCALAR))
 def limited_wrenches(X_WI, V_WI, X_WT, V_WT, R_IT, p_IT, k, b, fraction, max_force_n,
                      max_torque_nm):
     """``coupling_wrenches`` both scaled by the one factor that brings the

@@ -39,10 +39,23 @@ import scipy.sparse
 import scipy.sparse.linalg
 
 from maglev_haptics.hardware.constants import GRAVITY_M_S2
+from maglev_haptics.hardware.kernels import (
+    FLAG, INDEX, INDEX_MATRIX, INDEX_VECTOR, MATRIX, READONLY_VECTOR, SCALAR, TENSOR3, VECTOR,
+    kernel)
 
 SYMPLECTIC_EULER = "symplectic_euler"
 LINEARLY_IMPLICIT = "linearly_implicit"
 INTEGRATORS = (SYMPLECTIC_EULER, LINEARLY_IMPLICIT)
+
+# The argument types the steps share: x, v, links, rest, k, b, mass, inv_mass, gravity,
+# surface, external, p_WP, v_WP, p_WT, then the probe's six constants and the tick h.
+STEP_ARGUMENTS = (MATRIX, MATRIX, INDEX_MATRIX, VECTOR, VECTOR, VECTOR, VECTOR, VECTOR, VECTOR,
+                  INDEX_VECTOR, MATRIX, VECTOR, VECTOR, VECTOR, *(SCALAR,) * 7)
+# tick_from's: masses in and out, probe, the model's arrays, external, constants, the
+# integrator's flag and counts, and the work space of both integrators.
+TICK_ARGUMENTS = (VECTOR, VECTOR, VECTOR, INDEX_MATRIX, VECTOR, VECTOR, VECTOR, VECTOR, VECTOR,
+                  VECTOR, INDEX_VECTOR, MATRIX, VECTOR, FLAG, INDEX, INDEX, MATRIX, TENSOR3,
+                  MATRIX, MATRIX)
 
 
 class LatticeModel(NamedTuple):
@@ -233,7 +246,7 @@ def _symplectic_substep(x, v, mass, inv_mass, gravity, external, f, h_s):
             x[i, a] += h_s * v[i, a]
 
 
-@numba.njit(cache=True)
+@kernel((*STEP_ARGUMENTS, INDEX, MATRIX))
 def symplectic_euler_tick(x, v, links, rest, k, b, mass, inv_mass, gravity, surface, external,
                           p_WP, v_WP, p_WT, radius, k_c, onset, d_hc, mu, slip_speed, h,
                           substeps, f):
@@ -304,7 +317,7 @@ def _dot(a, b):
     return total
 
 
-@numba.njit(cache=True)
+@kernel((*STEP_ARGUMENTS, SCALAR, INDEX, TENSOR3, MATRIX, MATRIX))
 def linearly_implicit_tick(x, v, links, rest, k, b, mass, inv_mass, gravity, surface, external,
                            p_WP, v_WP, p_WT, radius, k_c, onset, d_hc, mu, slip_speed, h,
                            tolerance,
@@ -380,7 +393,7 @@ def linearly_implicit_tick(x, v, links, rest, k, b, mass, inv_mass, gravity, sur
     return wrench, touching, iterations
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel(TICK_ARGUMENTS, nogil=True)
 def tick_from(masses_in, masses_out, probe, links, rest, k, b, mass, inv_mass, gravity, surface,
               external, constants, implicit, substeps, cg_max_iterations, forces, node_work, u,
               link_work):
@@ -406,14 +419,14 @@ def tick_from(masses_in, masses_out, probe, links, rest, k, b, mass, inv_mass, g
 
 # The DeformableSurface system's state vector is [x; v; X_WT; V_WT] (6 n + 13).
 
-@numba.njit(cache=True)
+@kernel((VECTOR, VECTOR), (READONLY_VECTOR, VECTOR))
 def probe_arguments(tool, p_TP):
     """[p_WP, v_WP, p_WT] (9) from the stored tool state [X_WT; V_WT] (13)."""
     p_WP, v_WP = probe_point(tool[0:7], tool[7:13], p_TP)
     return np.concatenate((p_WP, v_WP, tool[4:7]))
 
 
-@numba.njit(cache=True)
+@kernel((READONLY_VECTOR, INDEX_VECTOR, VECTOR, VECTOR, VECTOR, SCALAR))
 def state_contact(state, surface, p_TP, constants, mass, h):
     """(wrench on the tool [f; tau] in W about T's origin, vertices in contact) for the
     state vector [x; v; X_WT; V_WT]; ``constants`` the probe's radius, stiffness,

@@ -26,10 +26,12 @@ import ctypes
 import threading
 import weakref
 
-import numba
 import numpy as np
+from numba import types
 
-from maglev_haptics.systems.lattice_dynamics import LatticeModel, implicit_workspace, tick_from
+from maglev_haptics.hardware.kernels import INDEX_VECTOR, kernel
+from maglev_haptics.systems.lattice_dynamics import (
+    TICK_ARGUMENTS, LatticeModel, implicit_workspace, tick_from)
 
 FAST_POLLS = 20000  # looks by yielding (~5-10 ms idle) before the worker sleeps between them
 IDLE_POLL_US = 1000  # (us)
@@ -48,7 +50,7 @@ _sched_yield.restype = ctypes.c_int
 # Not cached (numba cannot cache code that calls a ctypes function), so kept small:
 # the tick it calls comes compiled from the cache. That tick lives with the kernels
 # it calls: numba's cache goes stale only when the function's own file changes.
-@numba.njit(nogil=True)
+@kernel((INDEX_VECTOR, types.Tuple(TICK_ARGUMENTS)), cache=False, nogil=True)
 def _serve(control, arguments):
     """Run ``tick_from(*arguments)`` for every request until the stop flag is set."""
     done = control[_DONE]

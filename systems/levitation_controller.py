@@ -12,12 +12,12 @@ and yaw unwrapped, so a 360 deg turn is a ramp.
 from dataclasses import dataclass, field
 from typing import List, Optional
 
-import numba
 import numpy as np
 from pydrake.systems.framework import LeafSystem
 
 from maglev_haptics.hardware.config_checks import each, nonnegative, positive
 from maglev_haptics.hardware.constants import GRAVITY_M_S2
+from maglev_haptics.hardware.kernels import SCALAR, VECTOR, kernel
 from maglev_haptics.systems.rotations import (
     angular_velocity_from_rpy_rates, rotation_error_W, rotation_from_quaternion, rotation_from_rpy)
 
@@ -59,7 +59,7 @@ def pd_gains(config: ControllerConfig, mass_kg: float, inertia_diag: np.ndarray)
 
 
 # The wrench laws run at 1 kHz: compiled by numba (3 us a call; 27 us in numpy).
-@numba.njit(cache=True)
+@kernel((VECTOR, VECTOR, VECTOR))
 def brake_wrench(pose, velocity, kd):
     """The PD's damping alone, toward rest: [f; tau] in W (N, N*m)."""
     R_WI = rotation_from_quaternion(pose[0:4])
@@ -68,7 +68,7 @@ def brake_wrench(pose, velocity, kd):
     return np.concatenate((force, torque))
 
 
-@numba.njit(cache=True)
+@kernel((VECTOR, VECTOR, VECTOR, VECTOR, VECTOR, SCALAR))
 def pd_wrench(setpoint, pose, velocity, kp, kd, mass_kg):
     """Wrench [f; tau] in W (N, N*m) that tracks ``setpoint`` and carries the weight.
 

@@ -30,6 +30,7 @@ import numpy as np
 from pydrake.systems.framework import BasicVector, LeafSystem
 
 from maglev_haptics.hardware.device import InstrumentSpec, TrackerSpec
+from maglev_haptics.hardware.kernels import MASK_MATRIX, MATRIX, SCALAR, VECTOR, kernel
 from maglev_haptics.systems.rotations import (
     quaternion_exp, quaternion_multiply, rotation_from_quaternion)
 
@@ -59,7 +60,7 @@ def marker_positions_W(q_WI: np.ndarray, p_IK: np.ndarray) -> np.ndarray:
     return q_WI[4:7] + p_IK @ rotation_from_quaternion(q_WI[:4]).T
 
 
-@numba.njit(cache=True)
+@kernel((VECTOR, VECTOR, SCALAR))
 def extrapolate_pose(q_WI: np.ndarray, V_WI: np.ndarray, dt_s: float) -> np.ndarray:
     """Pose vector dt_s [s] later (earlier if negative) at constant V_WI.
 
@@ -79,7 +80,8 @@ def quantize(values: np.ndarray, step: float) -> np.ndarray:
     return np.rint(values / step) * step if step > 0 else values
 
 
-@numba.njit(cache=True)
+@kernel((SCALAR, VECTOR, MATRIX, SCALAR, SCALAR, SCALAR, SCALAR, MATRIX, VECTOR, VECTOR, VECTOR,
+         MASK_MATRIX, VECTOR))
 def _measure(t, instrument_state, p_IK, latency_s, noise_m, quantization_m, dropout_probability,
              normal, uniform, occlusion_start, occlusion_end, occlusion_hides, p_WK_out):
     """MarkerSensor.measure written into p_WK_out (3 n,) [m], given the sample's

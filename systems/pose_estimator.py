@@ -40,6 +40,7 @@ import scipy.linalg
 from pydrake.systems.framework import BasicVector, LeafSystem
 
 from maglev_haptics.hardware.device import InstrumentSpec, TrackerSpec
+from maglev_haptics.hardware.kernels import MATRIX, SCALAR, VECTOR, kernel
 from maglev_haptics.systems.rotations import (
     quaternion_conjugate, quaternion_exp, quaternion_from_rotation_matrix, quaternion_log,
     quaternion_multiply)
@@ -103,7 +104,7 @@ def fit_pose(model: MarkerModel, p_WK: np.ndarray):
     return _rigid_fit(model.p_IK, np.ascontiguousarray(p_WK, dtype=float))
 
 
-@numba.njit(cache=True)
+@kernel((MATRIX, MATRIX))
 def _rigid_fit(p_IK, p_WK):
     """fit_pose on the model markers p_IK (m, 3) [m] and measured p_WK (m, 3) [m]."""
     m = len(p_IK)
@@ -225,7 +226,7 @@ def alpha_beta_noise_gains(alpha: float, beta: float, period_s: float):
     return math.sqrt(covariance[0, 0]), math.sqrt(covariance[1, 1])
 
 
-@numba.njit(cache=True)
+@kernel((VECTOR, VECTOR, VECTOR, SCALAR, SCALAR, SCALAR))
 def filter_update(x_hat: np.ndarray, V: np.ndarray, x_meas: np.ndarray,
                   alpha: float, beta: float, period_s: float):
     """One alpha-beta step on the pose (compiled by numba).
@@ -261,7 +262,7 @@ def filter_update(x_hat: np.ndarray, V: np.ndarray, x_meas: np.ndarray,
     return x_new, V_new
 
 
-@numba.njit(cache=True)
+@kernel((VECTOR, MATRIX, SCALAR, SCALAR, SCALAR, SCALAR, VECTOR, VECTOR, VECTOR, VECTOR))
 def _estimator_update(markers_W, p_IK, residual_limit_m, alpha, beta, period_s,
                       X, V, ok, x_hat):
     """PoseEstimator's update on one tracker sample, in place on its state

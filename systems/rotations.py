@@ -19,8 +19,10 @@ from pydrake.common.eigen_geometry import Quaternion
 from pydrake.math import RigidTransform, RotationMatrix
 from scipy.spatial.transform import Rotation
 
+from maglev_haptics.hardware.kernels import VECTOR, kernel
 
-@numba.njit(cache=True)
+
+@kernel((VECTOR,))
 def rotation_from_quaternion(q):
     """R (3x3) from a quaternion array [w, x, y, z] (normalized here)."""
     w, x, y, z = q / np.sqrt(q @ q)

@@ -12,14 +12,15 @@ Cost: ~20 us an evaluation in contact, mostly the pybind calls that read the
 contact results; the sum is compiled by numba.
 """
 
-import numba
 import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.multibody.plant import ContactResults
 from pydrake.systems.framework import LeafSystem, ValueProducer
 
+from maglev_haptics.hardware.kernels import MATRIX, VECTOR, kernel
 
-@numba.njit(cache=True)
+
+@kernel((MATRIX, MATRIX, MATRIX, VECTOR))
 def wrench_about_point(forces_W, torques_W, p_WC, p_WO):
     """[f; tau] (6,) in W (N, N*m): the sum of forces (n, 3) applied at points p_WC
     (n, 3) (m) with couples torques_W (n, 3) about those points, moved to p_WO (3,) (m).
