@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Dict, Optional
 
 import numpy as np
+from pydrake.math import RigidTransform, RollPitchYaw
 from pydrake.multibody.plant import AddMultibodyPlant
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
@@ -31,13 +32,17 @@ from pydrake.systems.primitives import ConstantVectorSource
 from tqdm import tqdm
 
 from maglev_haptics.analysis.lattice_bench import (
-    LATTICE_SIZES, format_lattice_report, lattice_scaling, plot_lattice_scaling)
+    LATTICE_SIZES, format_lattice_report, lattice_costs, lattice_scaling, plot_lattice_scaling)
 from maglev_haptics.analysis.stereo_bench import format_stereo_report, stereo_costs
 from maglev_haptics.analysis.timing import leaf_system_costs, time_per_call_us
 from maglev_haptics.diagrams.application import BuildDiagram
 from maglev_haptics.diagrams.runner import simulate
 from maglev_haptics.diagrams.scenario import SCENARIO_DIR, load_scenario, scenario_names
-from maglev_haptics.diagrams.station import add_station_models, rest_transform
+from maglev_haptics.diagrams.deformable_scene import DeformableSurface
+from maglev_haptics.diagrams.scene import PegInHole
+from maglev_haptics.diagrams.scene_builder import AddScene
+from maglev_haptics.diagrams.station import (
+    add_station_models, generalized_force_placement, hand_start_pose, rest_transform)
 from maglev_haptics.hardware.constants import GRAVITY_M_S2
 from maglev_haptics.hardware.device import DeviceConfig
 from maglev_haptics.hardware.magnetics import bench_wrench_matrix, load_magnetics
@@ -48,33 +53,79 @@ HAPTIC_FILES = [SCENARIO_DIR / f"{name}.yaml" for name in ("hanging_ball", "padd
                                                             "peg_in_hole", "deformable_surface",
                                                             "stereo_display")]
 HOVER_TIME_S = 1.5  # operating point for the per-system costs (s into takeoff_hover_land)
+FLOOR_TOOL_PUSH_N = 1.0  # the peg is pushed down this hard onto the block (N)
+
+
+def _step_cost_us(builder, n_steps: int, period_s: float) -> float:
+    """Wall microseconds per ``period_s`` of the built diagram, after 0.05 s to settle."""
+    simulator = Simulator(builder.Build())
+    simulator.Initialize()
+    simulator.AdvanceTo(0.05)
+    start = time.perf_counter()
+    simulator.AdvanceTo(0.05 + n_steps * period_s)
+    return 1e6 * (time.perf_counter() - start) / n_steps
 
 
 def plant_step_cost_us(scenario, *, hovering: bool, n_steps: int = 1000) -> float:
     """Wall microseconds per step of the station's MultibodyPlant and SceneGraph alone.
 
-    ``hovering``: the weight is applied as a constant force, no contact; else the
-    instrument rests on the glass (four point contacts).
+    ``hovering``: the weights (the instrument's, and the hand's with a hand) are
+    applied as constant forces, no contact; else the instrument rests on the glass
+    (four point contacts).
     """
     builder = DiagramBuilder()
     plant, _ = AddMultibodyPlant(scenario.plant_config, builder)
-    instrument, _ = add_station_models(plant, scenario)
+    instrument, hand = add_station_models(plant, scenario)
     plant.Finalize()
-    spec = scenario.device.instrument_spec()
     X_WI = rest_transform(scenario)
     if hovering:
         X_WI.set_translation(X_WI.translation() + [0.0, 0.0, 0.010])
     plant.SetDefaultFloatingBaseBodyPose(plant.GetBodyByName("instrument", instrument), X_WI)
-    lift = np.array([0, 0, 0, 0, 0, spec.mass_kg * GRAVITY_M_S2 if hovering else 0.0])
-    source = builder.AddSystem(ConstantVectorSource(lift))
+    bodies = [plant.GetBodyByName("instrument", instrument)]
+    if hand is not None:
+        bodies.append(plant.GetBodyByName("hand", hand))
+        x, y, z, roll, pitch, yaw = hand_start_pose(scenario)
+        plant.SetDefaultFloatingBaseBodyPose(bodies[1], RigidTransform(
+            RollPitchYaw(roll, pitch, yaw), [x, y, z]))
+    lift = np.concatenate([[0, 0, 0, 0, 0, body.default_mass() * GRAVITY_M_S2 if hovering else 0]
+                           for body in bodies])
+    source = builder.AddSystem(ConstantVectorSource(
+        generalized_force_placement(plant, *bodies) @ lift))
     builder.Connect(source.get_output_port(), plant.get_applied_generalized_force_input_port())
-    simulator = Simulator(builder.Build())
-    simulator.Initialize()
-    simulator.AdvanceTo(0.05)
-    step = scenario.plant_config.time_step
-    start = time.perf_counter()
-    simulator.AdvanceTo(0.05 + n_steps * step)
-    return 1e6 * (time.perf_counter() - start) / n_steps
+    return _step_cost_us(builder, n_steps, scenario.plant_config.time_step)
+
+
+def scene_step_cost_us(scenario, n_steps: int = 1000) -> float:
+    """Wall microseconds per tick of a rigid scene's plant and SceneGraph alone, held
+    in the contact the scene is for: the ball bouncing on the paddle or hanging from
+    the tool, the peg pushed down by FLOOR_TOOL_PUSH_N onto the block."""
+    builder = DiagramBuilder()
+    period_s = 1.0 / scenario.control_rate_hz
+    x, y, z, roll, pitch, yaw = hand_start_pose(scenario)
+    scene = AddScene(builder, scene=scenario.haptics.scene, time_step_s=period_s,
+                     use_sampled_output_ports=False,
+                     X_WI_start=RigidTransform(RollPitchYaw(roll, pitch, yaw), [x, y, z]))
+    push_n = FLOOR_TOOL_PUSH_N if isinstance(scenario.haptics.scene, PegInHole) else 0.0
+    push = builder.AddSystem(ConstantVectorSource([0, 0, -push_n, 0, 0, 0]))
+    builder.Connect(push.get_output_port(), scene.wrench_on_tool_input)
+    return _step_cost_us(builder, n_steps, period_s)
+
+
+def physics_floor_us(scenario, lattice_tick_us: Optional[float]) -> Dict[str, float]:
+    """What one tick of ``scenario`` costs in the plants and the compiled kernels
+    alone (us): the station plant hovering, the scene plant in contact, the two
+    6 x n wrench matrices (true pose, estimated pose) and one allocation. The
+    lattice's tick runs on the other core and is listed, not added."""
+    floor = {"station_plant_us": plant_step_cost_us(scenario, hovering=True)}
+    if scenario.haptics is not None and not isinstance(scenario.haptics.scene, DeformableSurface):
+        floor["scene_plant_us"] = scene_step_cost_us(scenario)
+    config = scenario.device
+    floor["wrench_matrices_us"] = 2 * bench_wrench_matrix(config)["mean_us"]
+    floor["allocation_us"] = allocation_cost_us(config)["within_limits_us"]
+    floor["total_us"] = sum(floor.values())
+    if lattice_tick_us is not None:
+        floor["lattice_tick_other_core_us"] = lattice_tick_us
+    return floor
 
 
 def allocation_cost_us(config: DeviceConfig, n: int = 2000) -> Dict[str, float]:
@@ -103,11 +154,17 @@ def run_benchmarks(duration_s: Optional[float] = None, progress: bool = True,
         length_s = scenario.duration_s if scenario.duration_s is not None else built.plan.end_s
         sim_s = length_s if duration_s is None else min(duration_s, length_s)
         _, wall_s, _ = simulate(built, sim_s, progress=progress, label=name)
+        tick_us = 1e6 * wall_s * built.tick_s / sim_s
+        lattice = built.haptics.scene.lattice if built.haptics is not None else None
+        floor = physics_floor_us(scenario, None if lattice is None else lattice_costs(
+            scenario.haptics.scene)[f"symplectic_euler_{scenario.haptics.scene.substeps}_us"])
         results["scenarios"][name] = {
             "instrument": scenario.device.instrument,
             "simulated_s": sim_s,
             "realtime_factor": sim_s / wall_s,
-            "wall_us_per_1ms_tick": 1e6 * wall_s / (sim_s * 1000),
+            "wall_us_per_1ms_tick": tick_us,
+            "physics_floor": floor,
+            "overhead_us_per_tick": tick_us - floor["total_us"],
         }
     scenario = load_scenario(str(LEVITATE_FILE), "takeoff_hover_land")
     built = BuildDiagram(scenario)
@@ -150,11 +207,14 @@ def analysis_costs() -> Dict[str, float]:
 
 
 def format_report(results: Dict) -> str:
-    lines = ["Scenarios, whole diagram (Meshcat off):",
-             f"  {'scenario':<24}{'instrument':<13}{'sim s':>7}{'RTF':>8}{'us per 1 ms tick':>18}"]
+    lines = ["Scenarios, whole diagram (Meshcat off); the physics floor is the plants and the "
+             "wrench kernels alone:",
+             f"  {'scenario':<24}{'instrument':<13}{'sim s':>7}{'RTF':>7}{'us a tick':>11}"
+             f"{'floor us':>10}{'overhead us':>13}"]
     for name, r in results["scenarios"].items():
         lines.append(f"  {name:<24}{r['instrument']:<13}{r['simulated_s']:>7.2f}"
-                     f"{r['realtime_factor']:>8.2f}{r['wall_us_per_1ms_tick']:>18.0f}")
+                     f"{r['realtime_factor']:>7.2f}{r['wall_us_per_1ms_tick']:>11.0f}"
+                     f"{r['physics_floor']['total_us']:>10.0f}{r['overhead_us_per_tick']:>13.0f}")
     lines.append("Per-system cost of one update at hover (us):")
     for name, us in sorted(results["systems_us"].items(), key=lambda kv: -kv[1]):
         lines.append(f"  {name:<52}{us:>8.1f}")

@@ -1,0 +1,22 @@
+"""The benchmark's physics floor: the plants and wrench kernels of a tick, alone."""
+
+import pytest
+
+from maglev_haptics.analysis.bench import physics_floor_us
+from maglev_haptics.diagrams.scenario import load_scenario
+
+
+def test_floor_of_a_rigid_scene_adds_its_parts():
+    floor = physics_floor_us(load_scenario("peg_in_hole"), lattice_tick_us=None)
+    parts = ("station_plant_us", "scene_plant_us", "wrench_matrices_us", "allocation_us")
+    assert all(floor[name] > 0 for name in parts)
+    assert floor["total_us"] == pytest.approx(sum(floor[name] for name in parts))
+    assert "lattice_tick_other_core_us" not in floor
+
+
+def test_lattice_tick_is_listed_not_added():
+    floor = physics_floor_us(load_scenario("levitate"), lattice_tick_us=400.0)
+    assert "scene_plant_us" not in floor
+    assert floor["lattice_tick_other_core_us"] == 400.0
+    assert floor["total_us"] == pytest.approx(
+        floor["station_plant_us"] + floor["wrench_matrices_us"] + floor["allocation_us"])
