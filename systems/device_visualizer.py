@@ -114,7 +114,9 @@ def force_rod_transform(p_WI, f_W) -> np.ndarray:
 
 
 def aim_camera_at_device(meshcat: Meshcat, *, close: bool = False) -> None:
-    """Look at the ~0.5 m device from the user's side; hide the metre-scale grid and axes.
+    """Look from the user's side, a little above the glass, at the coil array and the
+    instrument over it (the ~0.5 m glass fills the background); hide the metre-scale
+    grid and axes and lighten the background so the dark coils and bezel stand out.
     ``close``: nearer, at the handful of centimetres where a virtual scene is touched.
 
     Publishing a recording resets the view, so runners call this again after it.
@@ -123,10 +125,12 @@ def aim_camera_at_device(meshcat: Meshcat, *, close: bool = False) -> None:
         meshcat.SetCameraPose(camera_in_world=[0.09, -0.17, 0.09],
                               target_in_world=[0.0, 0.0, -0.01])
     else:
-        meshcat.SetCameraPose(camera_in_world=[0.16, -0.30, 0.20],
-                              target_in_world=[0.0, 0.0, 0.0])
+        meshcat.SetCameraPose(camera_in_world=[0.07, -0.17, 0.10],
+                              target_in_world=[0.0, 0.0, 0.005])
     meshcat.SetProperty("/Axes", "visible", False)
     meshcat.SetProperty("/Grid", "visible", False)
+    meshcat.SetProperty("/Background", "top_color", [0.97, 0.98, 1.0])
+    meshcat.SetProperty("/Background", "bottom_color", [0.78, 0.82, 0.88])
 
 
 def _add_triad(meshcat: Meshcat, path: str, *, length: float, radius: float, opacity: float):
