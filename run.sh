@@ -51,6 +51,8 @@ echo "run.sh: using $("$python" --version 2>&1) at $python"
 # graphviz draws `maglev diagram`; Drake's VTK renderer draws the stereo display headless
 # through EGL (Mesa llvmpipe).
 apt_install graphviz libegl1 libgl1-mesa-dri
+# The tests open Meshcat's page in a real browser: Debian's Chromium, driven by Playwright.
+if [ "$what" = test ]; then apt_install chromium; fi
 if ! "$python" -c 'import ensurepip, venv' 2>/dev/null; then
   # Debian splits venv out of its python3: the package named after the interpreter's version.
   apt_install "python$("$python" -c 'import sys; print("%d.%d" % sys.version_info[:2])')-venv"

@@ -17,6 +17,7 @@ MARKERS_PATH = "/device/markers_measured"
 FORCE_PATH = "/device/rendered_force"
 FORCE_SCALE_M_PER_N = 0.05  # arrow length per newton of rendered force (m/N)
 FORCE_SHOWN_N = 0.005  # smaller rendered forces are not drawn (N)
+COLOR_STEPS = 64  # coil colours are sent when they change by a step of this many
 
 
 def current_color(current_a: float, limit_a: float, opacity: float = 1.0) -> list:
@@ -76,14 +77,22 @@ class DeviceVisualizer(LeafSystem):
             _add_triad(meshcat, path, length=0.03, radius=0.0012, opacity=opacity)
         for k in range(n_markers):
             meshcat.SetObject(f"{MARKERS_PATH}/{k}", Sphere(0.0025), Rgba(0.1, 0.9, 0.2, 1.0))
+        # What the page already shows: a coil's colour or a marker's visibility is sent
+        # only when it changes (a steady hover then sends no colours at all), so the
+        # loop and a browser rendering in software are not flooded with messages.
+        self._shown_colors = [None] * device.n_coils
+        self._shown_visible = [None] * n_markers
         self.DeclarePeriodicPublishEvent(period_s, 0.0, self._draw)
         self.DeclareForcedPublishEvent(self._draw)
 
     def _draw(self, context):
         meshcat = self._meshcat
         for j, current in enumerate(self._currents.Eval(context)):
-            meshcat.SetProperty(f"{COIL_PATH}/{j}", "color",
-                                current_color(current, self._limit_a, self._coil_opacity))
+            color = current_color(current, self._limit_a, self._coil_opacity)
+            step = tuple(np.round(np.asarray(color) * COLOR_STEPS))
+            if step != self._shown_colors[j]:
+                meshcat.SetProperty(f"{COIL_PATH}/{j}", "color", color)
+                self._shown_colors[j] = step
         setpoint = self._setpoint.Eval(context)
         meshcat.SetTransform(SETPOINT_PATH, RigidTransform(
             RollPitchYaw(setpoint[3:6]), setpoint[0:3]))
@@ -94,7 +103,9 @@ class DeviceVisualizer(LeafSystem):
         markers = self._markers.Eval(context).reshape(-1, 3)
         for k, p in enumerate(markers):
             visible = bool(np.all(np.isfinite(p)))
-            meshcat.SetProperty(f"{MARKERS_PATH}/{k}", "visible", visible)
+            if visible != self._shown_visible[k]:
+                meshcat.SetProperty(f"{MARKERS_PATH}/{k}", "visible", visible)
+                self._shown_visible[k] = visible
             if visible:
                 meshcat.SetTransform(f"{MARKERS_PATH}/{k}", RigidTransform(p))
 
