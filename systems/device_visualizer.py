@@ -20,15 +20,17 @@ FORCE_SHOWN_N = 0.005  # smaller rendered forces are not drawn (N)
 COLOR_STEPS = 64  # coil colours are sent when they change by a step of this many
 
 
-def current_color(current_a: float, limit_a: float, opacity: float = 1.0) -> list:
-    """Diverging colour: grey at 0 A, red for positive, blue for negative, full at the limit.
-
-    The square root makes the ~1-2 A of hovering clearly visible against a 4 A scale.
+def current_colors(currents_a: np.ndarray, limit_a: float, opacity: float = 1.0) -> np.ndarray:
+    """(n, 4) RGBA per coil: grey at 0 A, red for positive, blue for negative, full at
+    the limit. The square root makes the ~1-2 A of hovering clearly visible against a
+    4 A scale. Whole arrays at once: per coil in numpy it cost ~0.4 ms a frame.
     """
-    level = float(np.sqrt(np.clip(abs(current_a) / limit_a, 0.0, 1.0)))
+    currents_a = np.asarray(currents_a, dtype=float)
+    level = np.sqrt(np.clip(np.abs(currents_a) / limit_a, 0.0, 1.0))[:, None]
     grey = np.array([0.6, 0.6, 0.6])
-    hot = np.array([0.9, 0.1, 0.05]) if current_a >= 0 else np.array([0.05, 0.25, 0.95])
-    return [*(grey + level * (hot - grey)), opacity]
+    hot = np.where(currents_a[:, None] >= 0, [0.9, 0.1, 0.05], [0.05, 0.25, 0.95])
+    rgb = grey + level * (hot - grey)
+    return np.column_stack((rgb, np.full(len(currents_a), opacity)))
 
 
 class DeviceVisualizer(LeafSystem):
@@ -80,19 +82,20 @@ class DeviceVisualizer(LeafSystem):
         # What the page already shows: a coil's colour or a marker's visibility is sent
         # only when it changes (a steady hover then sends no colours at all), so the
         # loop and a browser rendering in software are not flooded with messages.
-        self._shown_colors = [None] * device.n_coils
+        self._shown_steps = np.full((device.n_coils, 4), -1.0)
         self._shown_visible = [None] * n_markers
-        self.DeclarePeriodicPublishEvent(period_s, 0.0, self._draw)
+        # Half a period after MeshcatVisualizer's publishes, so the two frames' costs
+        # fall in different 1 ms ticks of a paced run.
+        self.DeclarePeriodicPublishEvent(period_s, period_s / 2, self._draw)
         self.DeclareForcedPublishEvent(self._draw)
 
     def _draw(self, context):
         meshcat = self._meshcat
-        for j, current in enumerate(self._currents.Eval(context)):
-            color = current_color(current, self._limit_a, self._coil_opacity)
-            step = tuple(np.round(np.asarray(color) * COLOR_STEPS))
-            if step != self._shown_colors[j]:
-                meshcat.SetProperty(f"{COIL_PATH}/{j}", "color", color)
-                self._shown_colors[j] = step
+        colors = current_colors(self._currents.Eval(context), self._limit_a, self._coil_opacity)
+        steps = np.round(colors * COLOR_STEPS)
+        for j in np.flatnonzero(np.any(steps != self._shown_steps, axis=1)):
+            meshcat.SetProperty(f"{COIL_PATH}/{j}", "color", colors[j].tolist())
+        self._shown_steps = steps
         setpoint = self._setpoint.Eval(context)
         meshcat.SetTransform(SETPOINT_PATH, RigidTransform(
             RollPitchYaw(setpoint[3:6]), setpoint[0:3]))
