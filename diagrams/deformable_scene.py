@@ -97,13 +97,7 @@ class DeformableSurface:
         require(isinstance(self.cg_max_iterations, int) and self.cg_max_iterations >= 1,
                 f"{path}.cg_max_iterations", self.cg_max_iterations, "an integer >= 1")
         vector(f"{path}.gravity_m_s2", self.gravity_m_s2)
-        probe = self.probe
-        positive(f"{path}.probe.radius_m", probe.radius_m)
-        positive(f"{path}.probe.stiffness_n_per_m", probe.stiffness_n_per_m)
-        positive(f"{path}.probe.onset_depth_m", probe.onset_depth_m)
-        nonnegative(f"{path}.probe.dissipation_s_per_m", probe.dissipation_s_per_m)
-        nonnegative(f"{path}.probe.friction", probe.friction)
-        positive(f"{path}.probe.slip_speed_m_s", probe.slip_speed_m_s)
+        self.probe.validate(f"{path}.probe")
         vector(f"{path}.tool_offset_m", self.tool_offset_m)
         positive(f"{path}.tool_mass_kg", self.tool_mass_kg)
         nonnegative(f"{path}.min_inertia_kg_m2", self.min_inertia_kg_m2)

@@ -38,6 +38,7 @@ import numpy as np
 import scipy.sparse
 import scipy.sparse.linalg
 
+from maglev_haptics.hardware.config_checks import nonnegative, positive
 from maglev_haptics.hardware.constants import GRAVITY_M_S2
 from maglev_haptics.hardware.kernels import (
     FLAG, INDEX, INDEX_MATRIX, INDEX_VECTOR, MATRIX, READONLY_VECTOR, SCALAR, TENSOR3, VECTOR,
@@ -81,6 +82,13 @@ class ProbeContact:
     dissipation_s_per_m: float = 5.0  # Hunt-Crossley, on the approach speed (s/m)
     friction: float = 0.05  # Coulomb coefficient (-): jelly is slippery (the peg's is 0.15)
     slip_speed_m_s: float = 0.002  # friction reaches ~70 % of mu f_n at this slip (m/s)
+
+    def validate(self, path: str = "probe") -> None:
+        """Range checks; a ValueError names ``path.field``, its value and what is allowed."""
+        for name in ("radius_m", "stiffness_n_per_m", "onset_depth_m", "slip_speed_m_s"):
+            positive(f"{path}.{name}", getattr(self, name))
+        for name in ("dissipation_s_per_m", "friction"):
+            nonnegative(f"{path}.{name}", getattr(self, name))
 
 
 def lattice_model(links, rest_lengths_m, fixed, surface, *, node_mass_kg: float,

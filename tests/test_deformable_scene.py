@@ -146,3 +146,11 @@ def test_substeps_make_a_stiffer_lattice_steppable():
     positions = state[:3 * lattice.num_masses].reshape(-1, 3)
     # Two substeps keep 400 N/m links (refused with one) stable: a small sag, no blow-up.
     assert np.all(np.isfinite(positions)) and np.abs(positions - lattice.positions_m).max() < 1e-3
+
+
+@pytest.mark.parametrize("field, value", [("radius_m", -1.0), ("friction", -0.1),
+                                          ("slip_speed_m_s", 0.0)])
+def test_bad_probe_names_its_field(field, value):
+    text = f"{{haptics: {{scene: !DeformableSurface {{probe: {{{field}: {value}}}}}}}}}"
+    with pytest.raises(ValueError, match=rf"haptics\.scene\.probe\.{field} = {value}"):
+        load_scenario("deformable_surface", None, text)
