@@ -24,7 +24,6 @@ from pathlib import Path
 from typing import Dict, Optional
 
 import numpy as np
-from pydrake.math import RigidTransform, RollPitchYaw
 from pydrake.multibody.plant import AddMultibodyPlant
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
@@ -42,7 +41,7 @@ from maglev_haptics.diagrams.deformable_scene import DeformableSurface
 from maglev_haptics.diagrams.scene import PegInHole
 from maglev_haptics.diagrams.scene_builder import AddScene
 from maglev_haptics.diagrams.station import (
-    add_station_models, generalized_force_placement, hand_start_pose, rest_transform)
+    add_station_models, generalized_force_placement, hand_start_transform, rest_transform)
 from maglev_haptics.hardware.constants import GRAVITY_M_S2
 from maglev_haptics.hardware.device import DeviceConfig
 from maglev_haptics.hardware.magnetics import bench_wrench_matrix, load_magnetics
@@ -84,9 +83,7 @@ def plant_step_cost_us(scenario, *, hovering: bool, n_steps: int = 1000) -> floa
     bodies = [plant.GetBodyByName("instrument", instrument)]
     if hand is not None:
         bodies.append(plant.GetBodyByName("hand", hand))
-        x, y, z, roll, pitch, yaw = hand_start_pose(scenario)
-        plant.SetDefaultFloatingBaseBodyPose(bodies[1], RigidTransform(
-            RollPitchYaw(roll, pitch, yaw), [x, y, z]))
+        plant.SetDefaultFloatingBaseBodyPose(bodies[1], hand_start_transform(scenario))
     lift = np.concatenate([[0, 0, 0, 0, 0, body.default_mass() * GRAVITY_M_S2 if hovering else 0]
                            for body in bodies])
     source = builder.AddSystem(ConstantVectorSource(
@@ -101,10 +98,8 @@ def scene_step_cost_us(scenario, n_steps: int = 1000) -> float:
     the tool, the peg pushed down by FLOOR_TOOL_PUSH_N onto the block."""
     builder = DiagramBuilder()
     period_s = 1.0 / scenario.control_rate_hz
-    x, y, z, roll, pitch, yaw = hand_start_pose(scenario)
     scene = AddScene(builder, scene=scenario.haptics.scene, time_step_s=period_s,
-                     use_sampled_output_ports=False,
-                     X_WI_start=RigidTransform(RollPitchYaw(roll, pitch, yaw), [x, y, z]))
+                     use_sampled_output_ports=False, X_WI_start=hand_start_transform(scenario))
     push_n = FLOOR_TOOL_PUSH_N if isinstance(scenario.haptics.scene, PegInHole) else 0.0
     push = builder.AddSystem(ConstantVectorSource([0, 0, -push_n, 0, 0, 0]))
     builder.Connect(push.get_output_port(), scene.wrench_on_tool_input)

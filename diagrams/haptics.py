@@ -21,7 +21,7 @@ from typing import Optional
 
 import numpy as np
 from pydrake.geometry import Meshcat
-from pydrake.math import RigidTransform, RollPitchYaw
+from pydrake.math import RollPitchYaw
 from pydrake.systems.primitives import Adder, TrajectorySource
 from pydrake.trajectories import PiecewisePolynomial
 
@@ -29,7 +29,8 @@ from maglev_haptics.diagrams.deformable_scene import AddDeformableScene, Deforma
 from maglev_haptics.diagrams.hand_script import MeshcatHand, hand_plan
 from maglev_haptics.diagrams.scenario import Scenario
 from maglev_haptics.diagrams.scene_builder import AddScene
-from maglev_haptics.diagrams.station import hand_start_pose, rest_transform
+from maglev_haptics.diagrams.station import (
+    hand_start_pose, hand_start_transform, rest_transform)
 from maglev_haptics.hardware.limits import device_limits
 from maglev_haptics.systems.haptic_coupling import (
     CouplingConfig, HapticCoupling, resolved_rotational_gains)
@@ -94,8 +95,7 @@ def AddHaptics(builder, *, scenario: Scenario, magnetics, station, estimator, co
     """Scene, coupling, contact sensor and supervisor, wired to the controller."""
     haptics = scenario.haptics
     period_s = 1.0 / scenario.control_rate_hz
-    x, y, z, roll, pitch, yaw = hand_start_pose(scenario)
-    X_WI_start = RigidTransform(RollPitchYaw(roll, pitch, yaw), [x, y, z])
+    X_WI_start = hand_start_transform(scenario)
     if isinstance(haptics.scene, DeformableSurface):
         # The probe starts where the instrument rests, so it never sweeps through the
         # jelly on its way to the instrument; rest beside the lattice.

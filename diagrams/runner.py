@@ -89,7 +89,7 @@ def advance_paced(simulator, duration_s: float, tick_s: float, ticks: PacedTicks
             end = time.perf_counter()
             ticks.compute_s[k] = end - begin
             ticks.lateness_s[k] = end - (release + ticks.slot_s)
-            ticks.missed += end > release + ticks.slot_s
+            ticks.missed += ticks.lateness_s[k] > 0.0
             ticks.done = k + 1
             if ticks.done % ticks_per_update == 0:
                 bar.update(simulator.get_context().get_time() - bar.n)

@@ -107,6 +107,13 @@ def hand_start_pose(scenario: Scenario) -> np.ndarray:
     return np.asarray(scenario.motion.waypoints[0].pose, float)
 
 
+def hand_start_transform(scenario: Scenario) -> RigidTransform:
+    """``hand_start_pose`` as a pose in W: X_WH of the waiting hand, and X_WI where
+    it grips."""
+    x, y, z, roll, pitch, yaw = hand_start_pose(scenario)
+    return RigidTransform(RollPitchYaw(roll, pitch, yaw), [x, y, z])
+
+
 def MakeStation(scenario: Scenario, *, magnetics) -> Diagram:
     """The simulated station for ``scenario`` (``hardware: sim``)."""
     device = scenario.device
@@ -126,9 +133,8 @@ def MakeStation(scenario: Scenario, *, magnetics) -> Diagram:
             f"{body.default_mass()} kg; the two must agree")
     plant.SetDefaultFloatingBaseBodyPose(body, rest_transform(scenario))
     if hand is not None:
-        x, y, z, roll, pitch, yaw = hand_start_pose(scenario)
-        plant.SetDefaultFloatingBaseBodyPose(plant.GetBodyByName("hand", hand), RigidTransform(
-            RollPitchYaw(roll, pitch, yaw), [x, y, z]))
+        plant.SetDefaultFloatingBaseBodyPose(plant.GetBodyByName("hand", hand),
+                                             hand_start_transform(scenario))
 
     control_period_s = 1.0 / scenario.control_rate_hz
     amplifiers = AddAmplifiers(builder, spec=device.amplifier, n_coils=device.n_coils,
