@@ -1,7 +1,7 @@
 """The application half (docs/architecture.md) wired to a station: the whole diagram.
 
 ``BuildDiagram(scenario)`` adds the station, the pose estimator, the scripted
-setpoint and enable ramps, the levitation controller, the current allocator,
+setpoint and enable ramps, the levitation controller (which allocates the currents),
 with haptics the scene, coupling and supervisor (``diagrams/haptics.py``),
 with a hand its commands, with the stereo display its predictor, views and
 renderer (``diagrams/stereo_display.py``), a logger at ``log_rate_hz`` and, when
@@ -26,7 +26,6 @@ from maglev_haptics.diagrams.scenario import Scenario
 from maglev_haptics.diagrams.station import MakeStation
 from maglev_haptics.diagrams.stereo_display import AddStereoDisplay
 from maglev_haptics.hardware.magnetics import load_magnetics
-from maglev_haptics.systems.current_allocator import CurrentAllocator
 from maglev_haptics.systems.device_visualizer import DeviceVisualizer
 from maglev_haptics.systems.lattice_visualizer import JELLY_RGBA, LatticeVisualizer, surface_faces
 from maglev_haptics.systems.levitation_controller import LevitationController
@@ -75,9 +74,7 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
     controller = builder.AddNamedSystem("levitation_controller", LevitationController(
         config=scenario.controller, mass_kg=spec.mass_kg,
         inertia_diag=np.diag(spec.inertia_about_I()),
-        period_s=1.0 / scenario.control_rate_hz))
-    allocator = builder.AddNamedSystem("current_allocator", CurrentAllocator(
-        magnetics=magnetics, p_WA=device.p_WA,
+        period_s=1.0 / scenario.control_rate_hz, magnetics=magnetics, p_WA=device.p_WA,
         current_limit_a=device.amplifier.current_limit_a))
 
     builder.Connect(station.GetOutputPort("markers_measured"),
@@ -109,11 +106,7 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
         meshcat_hand = AddHandCommands(builder, scenario=scenario, station=station,
                                        meshcat=meshcat,
                                        target_offset_input=hand_target_offset_input)
-    builder.Connect(controller.GetOutputPort("wrench_commanded_W"),
-                    allocator.GetInputPort("wrench_commanded_W"))
-    builder.Connect(estimator.GetOutputPort("X_WI_measured"),
-                    allocator.GetInputPort("X_WI_measured"))
-    builder.Connect(allocator.GetOutputPort("coil_currents_commanded"),
+    builder.Connect(controller.GetOutputPort("coil_currents_commanded"),
                     station.GetInputPort("coil_currents_commanded"))
 
     logged_ports = {
@@ -125,7 +118,7 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
         "coil_currents": station.GetOutputPort("coil_currents"),
         "wrench_commanded_W": controller.GetOutputPort("wrench_commanded_W"),
         "wrench_rendered_W": controller.GetOutputPort("wrench_rendered_W"),
-        "allocation_shortfall_W": allocator.GetOutputPort("allocation_shortfall_W"),
+        "allocation_shortfall_W": controller.GetOutputPort("allocation_shortfall_W"),
     }
     if scenario.hand is not None:
         logged_ports["handle_gripped"] = station.GetOutputPort("handle_gripped")

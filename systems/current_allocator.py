@@ -7,16 +7,15 @@ coils at their limit and re-solves for the rest; if the wrench is still out of
 reach, the direction-preserving scaled solution is kept when it misses by less.
 Either way no coil ever exceeds its limit and the shortfall ``w - A I`` is
 reported.
+
+The levitation controller allocates in the same computation as its wrench law
+(``systems/levitation_controller.py``): one Python call a tick instead of several.
 """
 
 from __future__ import annotations
 
 import numpy as np
 from scipy.linalg.lapack import dposv
-from pydrake.common.value import AbstractValue
-from pydrake.systems.framework import LeafSystem, ValueProducer
-
-from maglev_haptics.systems.magnetic_actuation import wrench_matrix_at
 
 
 def minimum_norm_currents(A: np.ndarray, wrench: np.ndarray) -> np.ndarray:
@@ -67,63 +66,3 @@ def allocate_currents(A: np.ndarray, wrench: np.ndarray, current_limit_a: float)
         redistributed, shortfall_redistributed = scaled, shortfall_scaled
     n_saturated = int(np.sum(np.abs(redistributed) >= current_limit_a * (1 - 1e-12)))
     return redistributed, shortfall_redistributed, n_saturated
-
-
-class CurrentAllocator(LeafSystem):
-    """Coil currents for the commanded wrench at the estimated pose.
-
-    Direct feedthrough with no state: the amplifiers sample the result at the
-    control rate, so the allocation always uses the newest estimate.
-
-    .. pydrake_system::
-
-        name: CurrentAllocator
-        input_ports:
-        - wrench_commanded_W
-        - X_WI_measured
-        output_ports:
-        - coil_currents_commanded
-        - allocation_shortfall_W
-
-    ``allocation_shortfall_W`` is the part [f; tau] (N, N*m) of the commanded
-    wrench that the limited currents cannot produce: exactly ``w - A I``.
-    """
-
-    def __init__(self, *, magnetics, p_WA: np.ndarray, current_limit_a: float):
-        super().__init__()
-        self._magnetics = magnetics
-        self._p_WA = np.asarray(p_WA, dtype=float)
-        self._current_limit_a = float(current_limit_a)
-        n = magnetics.n_coils
-        self._wrench = self.DeclareVectorInputPort("wrench_commanded_W", 6)
-        self._pose = self.DeclareVectorInputPort("X_WI_measured", 7)
-        # The matrix depends on the estimate alone, which changes at the tracker
-        # rate; the solve (both outputs) also on the wrench, which changes every tick.
-        self._matrix = self.DeclareCacheEntry(
-            "wrench_matrix",
-            ValueProducer(allocate=lambda: AbstractValue.Make(np.zeros((6, n))),
-                          calc=self._calc_matrix),
-            {self._pose.ticket()})
-        self._allocation = self.DeclareCacheEntry(
-            "allocation",
-            ValueProducer(allocate=lambda: AbstractValue.Make(np.zeros(n + 6)),
-                          calc=self._calc_allocation),
-            {self._matrix.ticket(), self._wrench.ticket()})
-        self.DeclareVectorOutputPort(
-            "coil_currents_commanded", n,
-            lambda context, output: output.SetFromVector(
-                self._allocation.Eval(context)[:n]),
-            {self._allocation.ticket()})
-        self.DeclareVectorOutputPort(
-            "allocation_shortfall_W", 6,
-            lambda context, output: output.SetFromVector(
-                self._allocation.Eval(context)[n:]),
-            {self._allocation.ticket()})
-
-    def _calc_matrix(self, context, matrix):
-        matrix.set_value(wrench_matrix_at(self._magnetics, self._p_WA, self._pose.Eval(context)))
-
-    def _calc_allocation(self, context, allocation):
-        currents, shortfall, _ = allocate_currents(
-            self._matrix.Eval(context), self._wrench.Eval(context), self._current_limit_a)
-        allocation.set_value(np.concatenate([currents, shortfall]))

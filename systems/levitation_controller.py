@@ -1,4 +1,5 @@
-"""6-DOF PD levitation control with gravity compensation and a feed-forward wrench.
+"""6-DOF PD levitation control with gravity compensation and a feed-forward wrench,
+and the coil currents that produce it.
 
 Wrench vectors in the loop are ordered like the rows of the wrench matrix
 (``load_magnetics(...).wrench_matrix``): [fx, fy, fz, tx, ty, tz] in W (N, N*m), torque about
@@ -13,11 +14,14 @@ from dataclasses import dataclass, field
 from typing import List, Optional
 
 import numpy as np
-from pydrake.systems.framework import LeafSystem
+from pydrake.common.value import AbstractValue
+from pydrake.systems.framework import LeafSystem, ValueProducer
 
 from maglev_haptics.hardware.config_checks import each, nonnegative, positive
 from maglev_haptics.hardware.constants import GRAVITY_M_S2
 from maglev_haptics.hardware.kernels import SCALAR, VECTOR, kernel
+from maglev_haptics.systems.current_allocator import allocate_currents
+from maglev_haptics.systems.magnetic_actuation import wrench_matrix_at
 from maglev_haptics.systems.rotations import (
     angular_velocity_from_rpy_rates, rotation_error_W, rotation_from_quaternion, rotation_from_rpy)
 
@@ -101,9 +105,34 @@ def carries_weight_while_lost(lost_time_s: float, config: ControllerConfig) -> b
     return lost_time_s <= config.lost_grace_s
 
 
+def commanded_wrenches(setpoint, pose, velocity, tracking_ok: float, enable: float,
+                       pd_gain: float, brake_gain: float, feedforward, lost_time_s: float,
+                       kp, kd, mass_kg: float, config: ControllerConfig):
+    """(commanded, rendered): the wrench [f; tau] in W (N, N*m) asked of the coils, and
+    the part of it that acts on the hand (the commanded less the weight it carries).
+
+    ``enable * (pd_gain * PD + brake_gain * D + weight) + feedforward`` while
+    tracking is good; the weight alone (within the grace), then nothing, once
+    tracking has been lost for ``lost_time_s``.
+    """
+    weight = np.zeros(6)
+    if carries_weight_while_lost(lost_time_s, config):
+        weight[2] = enable * mass_kg * GRAVITY_M_S2
+    if lost_time_s > 0.0 or tracking_ok < 0.5:
+        return weight, np.zeros(6)
+    # pd already carries the weight; only its PD part fades with pd_gain.
+    commanded = (enable * pd_gain * pd_wrench(setpoint, pose, velocity, kp, kd, mass_kg)
+                 + (1.0 - pd_gain) * weight)
+    if brake_gain != 0.0:
+        commanded += enable * brake_gain * brake_wrench(pose, velocity, kd)
+    commanded += feedforward
+    return commanded, commanded - weight
+
+
 class LevitationController(LeafSystem):
     """Levitation controller (MLHI style): PD about a setpoint, gravity
-    compensation, feed-forward wrench, safe force ramp, blind landing.
+    compensation, feed-forward wrench, safe force ramp, blind landing, and the
+    coil currents that produce the wrench (``systems/current_allocator.py``).
 
     The commanded wrench is ``enable * (pd_gain * PD + brake_gain * D +
     weight) + feedforward`` while tracking is good: ``pd_gain`` 0 leaves
@@ -132,19 +161,32 @@ class LevitationController(LeafSystem):
         output_ports:
         - wrench_commanded_W
         - wrench_rendered_W
+        - coil_currents_commanded
+        - allocation_shortfall_W
         - lost_time
 
+    ``coil_currents_commanded`` (n_coils, A) are the allocator's currents for the
+    commanded wrench at the estimated pose, every coil within ``current_limit_a``;
+    ``allocation_shortfall_W`` is the part of the wrench they cannot produce.
+    The wrench law and the allocation are one computation a tick, whose outputs
+    all read it: the Python calls, not the arithmetic, are what a 1 kHz tick
+    pays for. Direct feedthrough: the amplifiers sample the currents at the
+    control rate, so they always use the newest estimate.
+
     The discrete state (1 kHz) is the time since tracking was lost (s;
-    0 while tracking), which the output reads together with the inputs.
+    0 while tracking), which the outputs read together with the inputs.
     """
 
     def __init__(self, *, config: ControllerConfig, mass_kg: float, inertia_diag,
-                 period_s: float):
+                 period_s: float, magnetics, p_WA, current_limit_a: float):
         LeafSystem.__init__(self)
         self._config = config
         self._mass_kg = float(mass_kg)
         self._period_s = float(period_s)
         self._kp, self._kd = pd_gains(config, mass_kg, np.asarray(inertia_diag, dtype=float))
+        self._magnetics = magnetics
+        self._p_WA = np.asarray(p_WA, dtype=float)
+        self._current_limit_a = float(current_limit_a)
         self._setpoint = self.DeclareVectorInputPort("setpoint", 12)
         self._pose = self.DeclareVectorInputPort("X_WI_measured", 7)
         self._velocity = self.DeclareVectorInputPort("V_WI_measured", 6)
@@ -155,46 +197,55 @@ class LevitationController(LeafSystem):
         self._feedforward = self.DeclareVectorInputPort("wrench_feedforward_W", 6)
         self._lost_time = self.DeclareDiscreteState(1)
         self.DeclarePeriodicDiscreteUpdateEvent(period_s, 0.0, self._update_lost_time)
-        self._wrench_commanded = self.DeclareVectorOutputPort(
-            "wrench_commanded_W", 6, self._calc_wrench)
-        self.DeclareVectorOutputPort("wrench_rendered_W", 6, self._calc_rendered)
+        n = magnetics.n_coils
+        # The matrix depends on the estimate alone, which changes at the tracker
+        # rate; the command on everything, which changes every tick.
+        self._matrix = self.DeclareCacheEntry(
+            "wrench_matrix",
+            ValueProducer(allocate=lambda: AbstractValue.Make(np.zeros((6, n))),
+                          calc=self._calc_matrix),
+            {self._pose.ticket()})
+        # [commanded (6), rendered (6), currents (n), shortfall (6)]
+        self._command = self.DeclareCacheEntry(
+            "command",
+            ValueProducer(allocate=lambda: AbstractValue.Make(np.zeros(18 + n)),
+                          calc=self._calc_command),
+            {self.all_input_ports_ticket(), self.xd_ticket()})
+        for name, rows in (("wrench_commanded_W", slice(0, 6)),
+                           ("wrench_rendered_W", slice(6, 12)),
+                           ("coil_currents_commanded", slice(12, 12 + n)),
+                           ("allocation_shortfall_W", slice(12 + n, 18 + n))):
+            self.DeclareVectorOutputPort(
+                name, rows.stop - rows.start,
+                lambda context, output, rows=rows: output.SetFromVector(
+                    self._command.Eval(context)[rows]),
+                {self._command.ticket()})
         self.DeclareStateOutputPort("lost_time", self._lost_time)
+
+    def _scalar(self, port, context) -> float:
+        # A scalar input without Eval's copy into a new array (~4 us a read).
+        return port.EvalBasicVector(context).GetAtIndex(0)
 
     def _update_lost_time(self, context, discrete_state):
         lost_time = context.get_discrete_state(self._lost_time).GetAtIndex(0)
         latched = lost_time > self._config.lost_grace_s
-        if self._tracking_ok.Eval(context)[0] > 0.5 and not latched:
+        if self._scalar(self._tracking_ok, context) > 0.5 and not latched:
             lost_time = 0.0
         else:
             lost_time += self._period_s
         discrete_state.get_mutable_vector(self._lost_time).SetAtIndex(0, lost_time)
 
-    def _weight_carried(self, context):
-        """The weight compensation in the commanded wrench, [f; tau] (N, N*m)."""
-        lost_time = context.get_discrete_state(self._lost_time).GetAtIndex(0)
-        if not carries_weight_while_lost(lost_time, self._config):
-            return np.zeros(6)
-        enable = self._enable.Eval(context)[0]
-        return np.array([0.0, 0.0, enable * self._mass_kg * GRAVITY_M_S2, 0.0, 0.0, 0.0])
+    def _calc_matrix(self, context, matrix):
+        matrix.set_value(wrench_matrix_at(self._magnetics, self._p_WA, self._pose.Eval(context)))
 
-    def _calc_wrench(self, context, output):
-        lost_time = context.get_discrete_state(self._lost_time).GetAtIndex(0)
-        weight = self._weight_carried(context)
-        if lost_time > 0.0 or self._tracking_ok.Eval(context)[0] < 0.5:
-            output.SetFromVector(weight)
-            return
-        pose, velocity = self._pose.Eval(context), self._velocity.Eval(context)
-        pd = pd_wrench(self._setpoint.Eval(context), pose, velocity, self._kp, self._kd,
-                       self._mass_kg)
-        enable = self._enable.Eval(context)[0]
-        pd_gain = self._pd_gain.Eval(context)[0]
-        # pd already carries the weight; only its PD part fades with pd_gain.
-        wrench = enable * pd_gain * pd + (1.0 - pd_gain) * weight
-        brake_gain = self._brake_gain.Eval(context)[0]
-        if brake_gain != 0.0:
-            wrench = wrench + enable * brake_gain * brake_wrench(pose, velocity, self._kd)
-        output.SetFromVector(wrench + self._feedforward.Eval(context))
-
-    def _calc_rendered(self, context, output):
-        commanded = self._wrench_commanded.Eval(context)
-        output.SetFromVector(commanded - self._weight_carried(context))
+    def _calc_command(self, context, command):
+        commanded, rendered = commanded_wrenches(
+            self._setpoint.Eval(context), self._pose.Eval(context),
+            self._velocity.Eval(context), self._scalar(self._tracking_ok, context),
+            self._scalar(self._enable, context), self._scalar(self._pd_gain, context),
+            self._scalar(self._brake_gain, context), self._feedforward.Eval(context),
+            context.get_discrete_state(self._lost_time).GetAtIndex(0),
+            self._kp, self._kd, self._mass_kg, self._config)
+        currents, shortfall, _ = allocate_currents(
+            self._matrix.Eval(context), commanded, self._current_limit_a)
+        command.set_value(np.concatenate((commanded, rendered, currents, shortfall)))

@@ -7,7 +7,7 @@ from scipy.optimize import lsq_linear
 
 from maglev_haptics.hardware import DeviceConfig
 from maglev_haptics.hardware.magnetics import load_magnetics
-from maglev_haptics.systems.current_allocator import CurrentAllocator, allocate_currents
+from maglev_haptics.systems.current_allocator import allocate_currents
 
 LIMIT_A = 4.0
 
@@ -59,24 +59,6 @@ def test_out_of_reach_never_exceeds_the_limit_and_reports_the_shortfall(magnetic
     if scale >= 10:
         assert np.linalg.norm(shortfall) > 0.1 * np.linalg.norm(wrench)
         assert n_saturated > 0
-
-
-def test_system_outputs_currents_and_shortfall(magnetics):
-    device = DeviceConfig()
-    allocator = CurrentAllocator(magnetics=magnetics, p_WA=device.p_WA, current_limit_a=LIMIT_A)
-    context = allocator.CreateDefaultContext()
-    pose = np.array([1.0, 0, 0, 0, 0.0, 0.0, 0.018])
-    wrench = np.array([0, 0, 0.125 * 9.81, 0, 0, 0])
-    allocator.GetInputPort("wrench_commanded_W").FixValue(context, wrench)
-    allocator.GetInputPort("X_WI_measured").FixValue(context, pose)
-    currents = allocator.GetOutputPort("coil_currents_commanded").Eval(context)
-    A = magnetics.wrench_matrix_from(pose[4:7] - device.p_WA, np.eye(3))
-    np.testing.assert_allclose(A @ currents, wrench, atol=1e-9)
-    assert np.linalg.norm(allocator.GetOutputPort("allocation_shortfall_W").Eval(context)) < 1e-9
-    allocator.GetInputPort("wrench_commanded_W").FixValue(context, 100 * wrench)
-    currents = allocator.GetOutputPort("coil_currents_commanded").Eval(context)
-    assert np.max(np.abs(currents)) <= LIMIT_A
-    assert np.linalg.norm(allocator.GetOutputPort("allocation_shortfall_W").Eval(context)) > 1.0
 
 
 def test_out_of_the_coils_reach_gives_zero_currents_not_an_error(magnetics):

@@ -6,7 +6,9 @@ import pytest
 from pydrake.common.eigen_geometry import Quaternion
 from pydrake.math import RollPitchYaw, RotationMatrix
 
+from maglev_haptics.hardware import DeviceConfig
 from maglev_haptics.hardware.constants import GRAVITY_M_S2
+from maglev_haptics.hardware.magnetics import load_magnetics
 from maglev_haptics.systems.levitation_controller import (
     ControllerConfig, LevitationController, pd_gains, pd_wrench)
 from maglev_haptics.systems.rotations import (
@@ -14,11 +16,19 @@ from maglev_haptics.systems.rotations import (
 
 MASS_KG = 0.125
 INERTIA = np.array([8e-6, 5.6e-5, 6e-5])
+LIMIT_A = 4.0
+DEVICE = DeviceConfig()
 
 
-def make(config=ControllerConfig()):
+@pytest.fixture(scope="module")
+def magnetics():
+    return load_magnetics(DEVICE)
+
+
+def make(magnetics, config=ControllerConfig()):
     controller = LevitationController(config=config, mass_kg=MASS_KG, inertia_diag=INERTIA,
-                                      period_s=1e-3)
+                                      period_s=1e-3, magnetics=magnetics, p_WA=DEVICE.p_WA,
+                                      current_limit_a=LIMIT_A)
     context = controller.CreateDefaultContext()
     return controller, context
 
@@ -51,8 +61,8 @@ def test_rotation_helpers_match_drake():
     np.testing.assert_allclose(rotation_error_W(small, np.eye(3)), [1e-3, 0, 0], atol=1e-9)
 
 
-def test_at_the_setpoint_it_carries_the_weight_only():
-    controller, context = make()
+def test_at_the_setpoint_it_carries_the_weight_only(magnetics):
+    controller, context = make(magnetics)
     setpoint = np.array([0.01, -0.02, 0.018, 0.1, -0.2, 4.0, *np.zeros(6)])
     fix(controller, context, setpoint=setpoint, pose=pose_vector(setpoint[3:6], setpoint[0:3]))
     wrench = controller.GetOutputPort("wrench_commanded_W").Eval(context)
@@ -79,8 +89,8 @@ def test_pd_law_per_axis():
     np.testing.assert_allclose(torque, [0, -kp[3] * np.sin(0.002), 0], rtol=1e-6, atol=1e-15)
 
 
-def test_enable_ramp_and_feedforward():
-    controller, context = make()
+def test_enable_ramp_and_feedforward(magnetics):
+    controller, context = make(magnetics)
     setpoint = np.zeros(12)
     feedforward = np.array([0.1, 0, 0, 0, 0, 0.001])
     fix(controller, context, setpoint=setpoint, pose=pose_vector([0, 0, 0], [0, 0, 0]),
@@ -89,9 +99,9 @@ def test_enable_ramp_and_feedforward():
     np.testing.assert_allclose(wrench, [0.1, 0, 0.25 * MASS_KG * GRAVITY_M_S2, 0, 0, 0.001])
 
 
-def test_lost_tracking_holds_weight_briefly_then_cuts_and_latches_off():
+def test_lost_tracking_holds_weight_briefly_then_cuts_and_latches_off(magnetics):
     config = ControllerConfig(lost_grace_s=0.02)
-    controller, context = make(config)
+    controller, context = make(magnetics, config)
     pose = pose_vector([0, 0, 0], [0.01, 0, 0.02])
     fix(controller, context, setpoint=np.zeros(12), pose=pose, ok=0.0)
     lift = []
@@ -136,8 +146,8 @@ def test_compiled_pd_law_matches_drakes_rotations_and_its_differences():
     assert dfz_dz == pytest.approx(-kp[2], rel=1e-8)
 
 
-def test_haptic_mode_renders_only_the_feedforward_beyond_the_weight():
-    controller, context = make()
+def test_haptic_mode_renders_only_the_feedforward_beyond_the_weight(magnetics):
+    controller, context = make(magnetics)
     feedforward = np.array([0.3, -0.2, 0.1, 0.01, 0.0, -0.02])
     # Far from the setpoint and moving: with pd_gain 0 none of that matters.
     fix(controller, context, setpoint=np.array([0.0, 0.0, 0.018] + [0.0] * 9),
@@ -156,8 +166,8 @@ def test_haptic_mode_renders_only_the_feedforward_beyond_the_weight():
     assert rendered[2] == pytest.approx(0.5 * kp[2] * 0.001)
 
 
-def test_brake_damps_toward_rest_without_a_spring():
-    controller, context = make()
+def test_brake_damps_toward_rest_without_a_spring(magnetics):
+    controller, context = make(magnetics)
     _, kd = pd_gains(ControllerConfig(), MASS_KG, INERTIA)
     velocity = np.array([0.0, 0.0, 0.3, 0.01, -0.02, 0.0])
     fix(controller, context, setpoint=np.array([0.05, 0.0, 0.03] + [0.0] * 9),
@@ -167,3 +177,27 @@ def test_brake_damps_toward_rest_without_a_spring():
     # Level instrument: I's axes are W's. No pull toward the far setpoint, only damping.
     expected = np.concatenate((-kd[0:3] * velocity[3:6], -kd[3:6] * velocity[0:3]))
     np.testing.assert_allclose(rendered, expected, atol=1e-12)
+
+
+def test_currents_produce_the_commanded_wrench_within_the_limit(magnetics):
+    """The allocation reads the same command as the wrench outputs: at hover the
+    currents give the commanded wrench exactly; asked for far more, every coil stays
+    within its limit and the shortfall is what is missing."""
+    controller, context = make(magnetics)
+    pose = pose_vector([0, 0, 0], [0.0, 0.0, 0.018])
+    setpoint = np.array([0.0, 0.0, 0.018] + [0.0] * 9)
+    fix(controller, context, setpoint=setpoint, pose=pose)
+    currents = controller.GetOutputPort("coil_currents_commanded").Eval(context)
+    commanded = controller.GetOutputPort("wrench_commanded_W").Eval(context)
+    A = magnetics.wrench_matrix_from(pose[4:7] - DEVICE.p_WA, np.eye(3))
+    np.testing.assert_allclose(A @ currents, commanded, atol=1e-9)
+    assert commanded[2] == pytest.approx(MASS_KG * GRAVITY_M_S2)
+    assert np.linalg.norm(controller.GetOutputPort("allocation_shortfall_W").Eval(context)) < 1e-9
+    fix(controller, context, setpoint=setpoint, pose=pose,
+        feedforward=np.array([0.0, 0.0, 100.0, 0.0, 0.0, 0.0]))
+    currents = controller.GetOutputPort("coil_currents_commanded").Eval(context)
+    assert np.max(np.abs(currents)) <= LIMIT_A
+    shortfall = controller.GetOutputPort("allocation_shortfall_W").Eval(context)
+    commanded = controller.GetOutputPort("wrench_commanded_W").Eval(context)
+    np.testing.assert_allclose(shortfall, commanded - A @ currents, atol=1e-9)
+    assert shortfall[2] > 1.0

@@ -142,4 +142,4 @@ def test_cli_diagram_draws_svg(tmp_path):
     out = tmp_path / "d.svg"
     assert main(["diagram", "levitate", "--out", str(out)]) == 0
     text = out.read_text()
-    assert "<svg" in text and "current_allocator" in text and "station" in text
+    assert "<svg" in text and "levitation_controller" in text and "station" in text
