@@ -8,6 +8,7 @@ import numpy as np
 from scipy.ndimage import binary_dilation
 from scipy.signal import butter, sosfiltfilt
 
+from maglev_haptics.analysis.run_metrics import recorded_pose
 from maglev_haptics.diagrams.deformable_scene import DeformableSurface
 from maglev_haptics.diagrams.scene import HangingBall, PaddleBall, PegInHole
 from maglev_haptics.systems.haptic_supervisor import HAPTIC, LANDING
@@ -57,7 +58,7 @@ def palpation_metrics(log, ramp_s: float) -> Dict:
     engaged = engaged_mask(log, ramp_s)
     contact = (log["tool_in_contact"] > 0.5) & engaged
     strikes, sliding = [], np.zeros_like(contact)
-    speed = np.linalg.norm(log["V_WI_true"][:, 3:5], axis=1)
+    speed = np.linalg.norm(recorded_pose(log)[2][:, 3:5], axis=1)
     for touch in _runs(_near(contact, t, CONTACT_GAP_S / 2) & engaged):
         touching = np.flatnonzero(contact[touch]) + touch.start
         if t[touching[-1]] - t[touching[0]] < STRIKE_MAX_S:
@@ -117,7 +118,7 @@ def free_motion(log, ramp_s: float) -> Optional[Dict]:
         return None
     force = np.linalg.norm(log["f_user"][free], axis=1)
     torque = np.linalg.norm(log["tau_user"][free], axis=1)
-    speed = np.linalg.norm(log["V_WI_true"][free, 3:6], axis=1)
+    speed = np.linalg.norm(recorded_pose(log)[2][free, 3:6], axis=1)
     return {"duration_s": float(np.sum(free) * np.median(np.diff(t))),
             "max_force_n": float(force.max()), "rms_force_n": float(np.sqrt(np.mean(force**2))),
             "max_torque_nmm": float(1e3 * torque.max()),
@@ -143,8 +144,8 @@ def releases(log, rest_height_m: float, debounce_s: float) -> List[Dict]:
             outcome = "haptics disabled"
         else:
             outcome = "held by the scene"
-        p = log["p_WI_true"][window]
-        deviation = np.linalg.norm(p - log["p_WI_true"][k], axis=1)
+        p_WI, _, V_WI, _ = recorded_pose(log)
+        deviation = np.linalg.norm(p_WI[window] - p_WI[k], axis=1)
         last = window & (t >= t[k] + RELEASE_WINDOW_S - 2.0)
         events.append({
             "time_s": float(t[k]),
@@ -153,8 +154,8 @@ def releases(log, rest_height_m: float, debounce_s: float) -> List[Dict]:
             "max_deviation_mm": float(1e3 * deviation.max()) if window.any() else None,
             # The last 2 s of the window: a settled hold has no motion left.
             "final_speed_rms_mm_s": (float(1e3 * np.sqrt(np.mean(np.sum(
-                log["V_WI_true"][last, 3:6] ** 2, axis=1)))) if last.any() else None),
-            "final_height_above_rest_mm": float(1e3 * (log["p_WI_true"][window][-1, 2]
+                V_WI[last, 3:6] ** 2, axis=1)))) if last.any() else None),
+            "final_height_above_rest_mm": float(1e3 * (p_WI[window][-1, 2]
                                                        - rest_height_m)) if window.any() else None,
             "max_coil_current_a": float(np.max(np.abs(log["coil_currents"][window])))
             if window.any() else None,
@@ -228,7 +229,7 @@ def contact_hits(log, ramp_s: float, tool_offset_m) -> List[Dict]:
         x_hit = -tau_T[1] / f_T[2]
         window = slice(run.start, min(run.stop + int(0.05 / np.median(np.diff(t))), len(t)))
         tau_user_y = log["tau_user"][window]
-        tau_user_I_y = rotations_of_quaternions(log["q_WI_true"][window]).inv().apply(
+        tau_user_I_y = rotations_of_quaternions(recorded_pose(log)[1][window]).inv().apply(
             tau_user_y)[:, 1]
         peak = float(tau_user_I_y[np.argmax(np.abs(tau_user_I_y))])
         hits.append({"time_s": float(t[run.start]), "duration_s": float(t[run.stop - 1] - t[run.start]),

@@ -50,7 +50,6 @@ def log_arrays(logger, log_layout, context, device) -> Dict[str, np.ndarray]:
         raise ValueError(f"the run logged {len(times)} sample(s) in {times[-1] if len(times) else 0} "
                          "s: simulate at least two log periods")
     t = times[keep] - (times[1] - times[0])
-    state = data["instrument_state"]
     measured = data["X_WI_measured"]
     rendered = data["wrench_rendered_W"]
     engaged = (data["haptic_mode"][:, 0] == HAPTIC if "haptic_mode" in data
@@ -61,9 +60,9 @@ def log_arrays(logger, log_layout, context, device) -> Dict[str, np.ndarray]:
     return {
         "t": t,
         "p_WI_measured": measured[:, 4:7],
-        "p_WI_true": state[:, 4:7],
+        **_truth(data, "p"),
         "rpy_WI_measured": rpy_from_quaternions(measured[:, 0:4]),
-        "rpy_WI_true": rpy_from_quaternions(state[:, 0:4]),
+        **_truth(data, "rpy"),
         # What the device renders on the hand beyond carrying the weight while
         # haptics is engaged; zero otherwise (levitation has no user's wrench).
         "f_user": user_wrench[:, 0:3],
@@ -73,8 +72,8 @@ def log_arrays(logger, log_layout, context, device) -> Dict[str, np.ndarray]:
         "coil_temperature_c": temperatures,
         "p_WI_desired": data["setpoint"][:, 0:3],
         "rpy_WI_desired": data["setpoint"][:, 3:6],
-        "q_WI_true": state[:, 0:4],
-        "V_WI_true": state[:, 7:13],
+        **_truth(data, "q"),
+        **_truth(data, "V"),
         "q_WI_measured": measured[:, 0:4],
         "V_WI_measured": data["V_WI_measured"],
         "tracking_ok": data["tracking_ok"][:, 0],
@@ -85,11 +84,31 @@ def log_arrays(logger, log_layout, context, device) -> Dict[str, np.ndarray]:
     }
 
 
+def _truth(data, quantity: str) -> Dict[str, np.ndarray]:
+    """``{quantity}_WI_true`` from the true state, which only a simulated station
+    has; nothing with a station on LCM."""
+    if "instrument_state" not in data:
+        return {}
+    state = data["instrument_state"]
+    value = {"p": lambda: state[:, 4:7], "q": lambda: state[:, 0:4], "V": lambda: state[:, 7:13],
+             "rpy": lambda: rpy_from_quaternions(state[:, 0:4])}[quantity]()
+    return {f"{quantity}_WI_true": value}
+
+
+def recorded_pose(log: Dict[str, np.ndarray]):
+    """(p_WI, q_WI, V_WI, source) that the metrics read: the true pose where the
+    station is simulated, the tracker's estimate ("measured") where it is not."""
+    if "p_WI_true" in log:
+        return log["p_WI_true"], log["q_WI_true"], log["V_WI_true"], "true"
+    return log["p_WI_measured"], log["q_WI_measured"], log["V_WI_measured"], "measured"
+
+
 def _optional_arrays(data) -> Dict[str, np.ndarray]:
     """The hand's, the scene's and the stereo display's logs, where the scenario has them."""
     arrays = {}
     if "handle_gripped" in data:
         arrays["handle_gripped"] = data["handle_gripped"][:, 0]
+    if "hand_state" in data:
         arrays["p_WH_true"] = data["hand_state"][:, 4:7]
         arrays["hand_wrench_on_instrument_W"] = data["hand_wrench_on_instrument_W"]
     if "X_WT" in data:
@@ -124,7 +143,8 @@ def first_touchdown(log: Dict[str, np.ndarray], rest_height_m: float):
     Any return counts, scripted or not: a lost instrument's drop is reported the
     same way as a landing. None if it never flew or never came back.
     """
-    z = log["p_WI_true"][:, 2]
+    p_WI, q_WI, V_WI, _ = recorded_pose(log)
+    z = p_WI[:, 2]
     airborne = z > rest_height_m + AIRBORNE_M
     if not airborne.any():
         return None
@@ -132,9 +152,9 @@ def first_touchdown(log: Dict[str, np.ndarray], rest_height_m: float):
     if not down.any():
         return None
     k = int(np.argmax(down))
-    R_WI = rotation_matrix(log["q_WI_true"][k]).matrix()
+    R_WI = rotation_matrix(q_WI[k]).matrix()
     return {"time_s": float(log["t"][k]),
-            "speed_m_s": float(np.linalg.norm(log["V_WI_true"][k, 3:6])),
+            "speed_m_s": float(np.linalg.norm(V_WI[k, 3:6])),
             "tilt_deg": float(np.degrees(np.arccos(np.clip(R_WI[2, 2], -1.0, 1.0))))}
 
 
@@ -151,6 +171,7 @@ def summarize(log: Dict[str, np.ndarray], plan: FlightPlan, *, rest_height_m: fl
     the instrument and hover accuracy no longer means anything).
     """
     t = log["t"]
+    p_WI, q_WI, _, source = recorded_pose(log)
     holds = []
     for start, end in plan.holds:
         if holds_before_s is not None:
@@ -160,16 +181,17 @@ def summarize(log: Dict[str, np.ndarray], plan: FlightPlan, *, rest_height_m: fl
         window = (t >= start + min(HOVER_SETTLE_S, (end - start) / 2)) & (t <= end)
         if not window.any():
             continue
-        position_error = log["p_WI_true"][window] - log["p_WI_desired"][window]
-        angle_error = angle_between_deg(log["q_WI_true"][window], log["rpy_WI_desired"][window])
-        estimate_error = log["p_WI_measured"][window] - log["p_WI_true"][window]
+        position_error = p_WI[window] - log["p_WI_desired"][window]
+        angle_error = angle_between_deg(q_WI[window], log["rpy_WI_desired"][window])
+        estimate_error = log["p_WI_measured"][window] - p_WI[window]
         holds.append({
             "start_s": float(start), "end_s": float(end),
             "pose_desired": [*map(float, log["p_WI_desired"][window][0]),
                              *map(float, log["rpy_WI_desired"][window][0])],
             "position_error_rms_mm": float(1e3 * np.sqrt(np.mean(np.sum(position_error**2, 1)))),
             "angle_error_rms_deg": float(np.sqrt(np.mean(angle_error**2))),
-            "estimate_error_rms_mm": float(1e3 * np.sqrt(np.mean(np.sum(estimate_error**2, 1)))),
+            "estimate_error_rms_mm": (float(1e3 * np.sqrt(np.mean(np.sum(estimate_error**2, 1))))
+                                      if source == "true" else None),
             "max_coil_current_a": float(np.max(np.abs(log["coil_currents"][window]))),
             "mean_power_w": float(np.mean(log["coil_power_w"][window])),
             # Where the busiest coil would settle if the hold lasted (the time constant is
@@ -182,6 +204,8 @@ def summarize(log: Dict[str, np.ndarray], plan: FlightPlan, *, rest_height_m: fl
     tracked_before = np.cumsum(log["tracking_ok"] > 0.5) > 0
     dt = np.diff(t, prepend=t[0])
     return {
+        # "measured" with a station on LCM: no truth, so errors are the tracker's view.
+        "pose_source": source,
         "max_coil_current_a": float(np.max(np.abs(log["coil_currents"]))),
         "max_power_w": float(np.max(log["coil_power_w"])),
         "max_coil_temperature_c": float(np.max(log["coil_temperature_c"])),

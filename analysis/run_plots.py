@@ -9,7 +9,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from maglev_haptics.analysis.run_metrics import angle_between_deg  # noqa: E402
+from maglev_haptics.analysis.run_metrics import angle_between_deg, recorded_pose  # noqa: E402
 from maglev_haptics.diagrams.runner import TickTimes, realtime_report  # noqa: E402
 from maglev_haptics.systems.haptic_supervisor import HAPTIC  # noqa: E402
 
@@ -34,13 +34,16 @@ def plot_run(log: Dict[str, np.ndarray], out_dir: Path, *, title: str,
     t = log["t"]
     # Before the first estimate the measured pose is a placeholder, not a measurement.
     measured = np.cumsum(log["tracking_ok"] > 0.5) > 0
+    # With a station on LCM there is no truth: the tracker's estimate stands in for it.
+    p_WI, q_WI, _, source = recorded_pose(log)
+    rpy_WI = log["rpy_WI_true"] if source == "true" else log["rpy_WI_measured"]
     fig, axes = plt.subplots(5, 1, figsize=(12.5, 14), sharex=True)
 
     ax = axes[0]
     for i, axis in enumerate("xyz"):
         ax.plot(t, 1e3 * log["p_WI_desired"][:, i], color=AXIS_COLORS[i], lw=1, ls="--",
                 label=f"{axis} commanded")
-        ax.plot(t, 1e3 * log["p_WI_true"][:, i], color=AXIS_COLORS[i], lw=1.2, label=f"{axis} true")
+        ax.plot(t, 1e3 * p_WI[:, i], color=AXIS_COLORS[i], lw=1.2, label=f"{axis} {source}")
         ax.plot(t[measured], 1e3 * log["p_WI_measured"][measured, i], color="k", lw=0.5,
                 alpha=0.5, label="measured" if i == 0 else None)
     ax.set_ylabel("position of I in W [mm]")
@@ -50,13 +53,13 @@ def plot_run(log: Dict[str, np.ndarray], out_dir: Path, *, title: str,
     for i, axis in enumerate(("roll", "pitch", "yaw")):
         ax.plot(t, np.degrees(log["rpy_WI_desired"][:, i]), color=AXIS_COLORS[i], lw=1, ls="--",
                 label=f"{axis} commanded")
-        ax.plot(t, np.degrees(log["rpy_WI_true"][:, i]), color=AXIS_COLORS[i], lw=1.2,
-                label=f"{axis} true")
+        ax.plot(t, np.degrees(rpy_WI[:, i]), color=AXIS_COLORS[i], lw=1.2,
+                label=f"{axis} {source}")
     ax.set_ylabel("orientation [deg]")
     _legend_outside(ax)
 
     ax = axes[2]
-    error_mm = 1e3 * (log["p_WI_true"] - log["p_WI_desired"])
+    error_mm = 1e3 * (p_WI - log["p_WI_desired"])
     for i, axis in enumerate("xyz"):
         ax.plot(t, error_mm[:, i], color=AXIS_COLORS[i], lw=0.6, label=f"{axis} error")
     # Scale to the flight, not to resting or the scripted press into the glass.
@@ -64,8 +67,8 @@ def plot_run(log: Dict[str, np.ndarray], out_dir: Path, *, title: str,
     flying = z_desired > z_desired.min() + 2e-3
     span = max(np.percentile(np.abs(error_mm[flying] if flying.any() else error_mm), 99), 1e-3)
     ax.set_ylim(-1.5 * span, 1.5 * span)
-    ax.set_ylabel("true - commanded [mm]")
-    angle_deg = angle_between_deg(log["q_WI_true"], log["rpy_WI_desired"])
+    ax.set_ylabel(f"{source} - commanded [mm]")
+    angle_deg = angle_between_deg(q_WI, log["rpy_WI_desired"])
     angle = ax.twinx()
     angle.plot(t, angle_deg, color="k", lw=0.6)
     angle.set_ylim(0, 3 * max(np.percentile(angle_deg, 98), 1e-3))

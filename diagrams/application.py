@@ -15,12 +15,14 @@ from typing import Dict, Optional
 
 import numpy as np
 from pydrake.geometry import Meshcat, MeshcatVisualizer, MeshcatVisualizerParams, Role
+from pydrake.lcm import DrakeLcm
 from pydrake.multibody.meshcat import ContactVisualizer, ContactVisualizerParams
 from pydrake.systems.framework import Diagram, DiagramBuilder
 from pydrake.systems.primitives import (
     ConstantVectorSource, LogVectorOutput, Multiplexer, TrajectorySource, ZeroOrderHold)
 
 from maglev_haptics.diagrams.haptics import AddHandCommands, AddHaptics
+from maglev_haptics.diagrams.lcm_station import LcmStation, MakeLcmStation
 from maglev_haptics.diagrams.motion import FlightPlan, check_waypoints_reachable, flight_plan
 from maglev_haptics.diagrams.scenario import Scenario
 from maglev_haptics.diagrams.station import MakeStation
@@ -63,7 +65,10 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
     magnetics = load_magnetics(device)
     check_waypoints_reachable(scenario.motion, device, magnetics, label)
     builder = DiagramBuilder()
-    station = builder.AddSystem(MakeStation(scenario, magnetics=magnetics))
+    simulated = not isinstance(scenario.station, LcmStation)
+    station = builder.AddSystem(
+        MakeStation(scenario, magnetics=magnetics) if simulated
+        else MakeLcmStation(scenario, DrakeLcm(scenario.station.url)))
 
     estimator = builder.AddNamedSystem("pose_estimator", PoseEstimator(
         instrument=spec, tracker=device.tracker, config=scenario.estimator))
@@ -102,15 +107,17 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
     controller_setpoint = (setpoint.get_output_port() if haptics is None
                            else haptics.supervisor.GetOutputPort("setpoint"))
     meshcat_hand = None
-    if scenario.hand is not None:
+    if scenario.hand is not None and simulated:  # else the device's process moves the hand
         meshcat_hand = AddHandCommands(builder, scenario=scenario, station=station,
                                        meshcat=meshcat,
                                        target_offset_input=hand_target_offset_input)
     builder.Connect(controller.GetOutputPort("coil_currents_commanded"),
                     station.GetInputPort("coil_currents_commanded"))
 
-    logged_ports = {
-        "instrument_state": station.GetOutputPort("instrument_state"),
+    # What only a simulation knows (the true state, the hand's) is logged only there.
+    logged_ports = {"instrument_state": station.GetOutputPort("instrument_state")} \
+        if simulated else {}
+    logged_ports |= {
         "X_WI_measured": estimator.GetOutputPort("X_WI_measured"),
         "V_WI_measured": estimator.GetOutputPort("V_WI_measured"),
         "tracking_ok": estimator.GetOutputPort("tracking_ok"),
@@ -122,6 +129,7 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
     }
     if scenario.hand is not None:
         logged_ports["handle_gripped"] = station.GetOutputPort("handle_gripped")
+    if scenario.hand is not None and simulated:
         logged_ports["hand_state"] = station.GetOutputPort("hand_state")
         logged_ports["hand_wrench_on_instrument_W"] = station.GetOutputPort(
             "hand_wrench_on_instrument_W")
@@ -174,9 +182,11 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
                   for name, size, end in zip(logged_ports, sizes, ends)}
 
     if meshcat is not None:
-        MeshcatVisualizer.AddToBuilder(
-            builder, station.GetOutputPort("query_object"), meshcat,
-            MeshcatVisualizerParams(publish_period=MESHCAT_PERIOD_S, role=Role.kIllustration))
+        if simulated:  # the true instrument and the glass; the measured one is drawn below
+            MeshcatVisualizer.AddToBuilder(
+                builder, station.GetOutputPort("query_object"), meshcat,
+                MeshcatVisualizerParams(publish_period=MESHCAT_PERIOD_S,
+                                        role=Role.kIllustration))
         visualizer = builder.AddNamedSystem("device_visualizer", DeviceVisualizer(
             meshcat=meshcat, device=device, period_s=MESHCAT_PERIOD_S,
             close_view=scenario.haptics is not None))

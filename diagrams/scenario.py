@@ -22,6 +22,7 @@ from pydrake.multibody.plant import MultibodyPlantConfig
 
 from maglev_haptics.diagrams.deformable_scene import DeformableSurface
 from maglev_haptics.diagrams.hand_script import MeshcatHand, ScriptedHand
+from maglev_haptics.diagrams.lcm_station import LcmStation, SimStation
 from maglev_haptics.diagrams.scene import HangingBall, PaddleBall, PegInHole
 from maglev_haptics.diagrams.stereo_display import StereoConfig
 from maglev_haptics.diagrams.waypoints import Waypoint
@@ -118,7 +119,9 @@ class Scenario:
     stereo: Optional[StereoConfig] = None
     duration_s: Optional[float] = None  # None: the motion script's length
     random_seed: int = 0
-    hardware: str = "sim"  # only the simulated station exists so far
+    # The station: simulated in this diagram, or whatever answers on LCM
+    # (``maglev device-sim`` or a lab's drivers; diagrams/lcm_station.py).
+    station: Union[SimStation, LcmStation] = field(default_factory=SimStation)
 
     def validate(self, label: str) -> None:
         """Range checks of every config, each error naming ``label: path.field``, its
@@ -152,8 +155,14 @@ class Scenario:
             self.hand.validate(f"{label}: hand")
         if self.stereo is not None:
             self.stereo.validate(f"{label}: stereo", self.device, f"{label}: device")
-        require(self.hardware == "sim", f"{label}: hardware", self.hardware,
-                "must be 'sim' (the real-hardware station is not part of this release)")
+        self.station.validate(f"{label}: station")
+        if isinstance(self.station, LcmStation):
+            require(self.stereo is None, f"{label}: stereo", "set",
+                    "must be null with station: !LcmStation (the glasses' messages are not "
+                    "carried yet)")
+            require(not isinstance(self.hand, MeshcatHand), f"{label}: hand", "!MeshcatHand",
+                    "must be a !ScriptedHand or null with station: !LcmStation (the simulated "
+                    "hand is the device's, and device-sim has no Meshcat)")
 
 
 def shipped_scenario_files() -> List[Path]:

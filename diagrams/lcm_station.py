@@ -1,0 +1,148 @@
+"""The station over LCM, the application's side; and the station switch.
+
+``MakeLcmStation`` is the station a real device plugs into: a Diagram named
+``station`` with the simulated station's port names and units
+(``diagrams/station.py``), whose values come from LCM messages and go out as
+LCM messages (``hardware/lcm_messages``). ``diagrams/device_sim.py`` is the
+other end: the simulated station alone, speaking the same messages. Channels (``channel_prefix`` + name):
+
+- ``MARKERS`` (markers_t, device -> application, the tracker's rate);
+- ``COIL_CURRENTS_COMMANDED`` (coil_currents_t, application -> device, the control rate);
+- ``COIL_CURRENTS`` (coil_currents_t, device -> application: what flows);
+- ``DEVICE_STATUS`` (device_status_t, device -> application: grip, faults, coil
+  temperatures).
+
+The default URL is UDP multicast with ttl=0: the messages never leave this host.
+"""
+
+
+from dataclasses import dataclass
+
+import numpy as np
+from pydrake.lcm import DrakeLcm
+from pydrake.systems.framework import Diagram, DiagramBuilder
+from pydrake.systems.lcm import LcmInterfaceSystem, LcmPublisherSystem, LcmSubscriberSystem
+
+from maglev_haptics.hardware.config_checks import positive, require
+from maglev_haptics.hardware.lcm_messages import (
+    coil_currents_t, device_status_t, markers_t)
+from maglev_haptics.systems.station_messages import (
+    MessageReceiver, MessageSender, currents_message, markers_from_message)
+
+DEFAULT_LCM_URL = "udpm://239.255.76.67:7667?ttl=0"  # multicast that stays on this host
+MARKERS = "MARKERS"
+COIL_CURRENTS_COMMANDED = "COIL_CURRENTS_COMMANDED"
+COIL_CURRENTS = "COIL_CURRENTS"
+DEVICE_STATUS = "DEVICE_STATUS"
+
+
+@dataclass
+class SimStation:
+    """The simulated station, in the application's own diagram (the default)."""
+
+    def validate(self, path: str = "station") -> None:
+        """Nothing to check: the device config describes the simulated station."""
+
+
+@dataclass
+class LcmStation:
+    """Whatever station answers on LCM: ``maglev device-sim`` or a lab's drivers."""
+
+    url: str = DEFAULT_LCM_URL
+    channel_prefix: str = "MAGLEV_"
+    # A marker message older than the tracker's period plus its latency plus this
+    # is a sensor out of range: the markers read as unseen (s).
+    stale_margin_s: float = 0.002
+    # At start, how long to wait for the station's first marker message (s).
+    wait_for_station_s: float = 10.0
+    # The device's side: commands older than this turn every coil off (s), and
+    # ``maglev device-sim`` stops once none has come for ``stop_after_silence_s``.
+    command_timeout_s: float = 0.010
+    stop_after_silence_s: float = 1.0
+
+    def validate(self, path: str = "station") -> None:
+        """Range checks; a ValueError names ``path.field``, its value and what is allowed."""
+        require(self.url.split("://")[0] in ("udpm", "memq", "file"), f"{path}.url",
+                self.url, "must be an LCM URL: udpm://..., memq:// or file://...")
+        require(self.channel_prefix.replace("_", "").isalnum() or self.channel_prefix == "",
+                f"{path}.channel_prefix", self.channel_prefix,
+                "must be letters, digits and underscores")
+        positive(f"{path}.stale_margin_s", self.stale_margin_s)
+        for name in ("wait_for_station_s", "command_timeout_s", "stop_after_silence_s"):
+            positive(f"{path}.{name}", getattr(self, name))
+
+
+def channel(station, name: str) -> str:
+    return station.channel_prefix + name
+
+
+def marker_stale_after_s(scenario, station: LcmStation) -> float:
+    """How old the newest marker message may be before the markers read as unseen (s)."""
+    tracker = scenario.device.tracker
+    return 1.0 / tracker.rate_hz + tracker.latency_s + station.stale_margin_s
+
+
+def MakeLcmStation(scenario, lcm: DrakeLcm) -> Diagram:
+    """The application's station for ``scenario.station`` (an LcmStation), named
+    ``station``: input ``coil_currents_commanded``; outputs ``markers_measured``,
+    ``coil_currents`` and, with a hand in the scenario, ``handle_gripped``. Its
+    receivers (``markers_receiver``, ...) count the messages they read and lost."""
+    station = scenario.station
+    device = scenario.device
+    n_coils = device.n_coils
+    n_markers = len(device.instrument_spec().p_IK_m)
+    period_s = 1.0 / scenario.control_rate_hz
+    builder = DiagramBuilder()
+    interface = builder.AddNamedSystem("lcm", LcmInterfaceSystem(lcm))
+
+    def receive(name, message_type, size, decode, stale_value, stale_after_s, wait_s=0.0,
+                initial_value=None):
+        subscriber = builder.AddNamedSystem(f"{name}_subscriber", LcmSubscriberSystem.Make(
+            channel=channel(station, name.upper()), lcm_type=message_type, lcm=interface,
+            wait_for_message_on_initialization_timeout=wait_s))
+        receiver = builder.AddNamedSystem(f"{name}_receiver", MessageReceiver(
+            message_type=message_type, size=size, decode=decode, stale_value=stale_value,
+            stale_after_s=stale_after_s, period_s=period_s, initial_value=initial_value))
+        builder.Connect(subscriber.get_output_port(), receiver.GetInputPort("message"))
+        return receiver
+
+    markers = receive("markers", markers_t, 3 * n_markers,
+                      lambda message: markers_from_message(message, n_markers),
+                      np.full(3 * n_markers, np.nan), marker_stale_after_s(scenario, station),
+                      wait_s=station.wait_for_station_s)
+    builder.ExportOutput(markers.GetOutputPort("value"), "markers_measured")
+    currents = receive("coil_currents", coil_currents_t, n_coils,
+                       lambda message: np.array(message.current_a, dtype=float),
+                       None, np.inf, initial_value=np.zeros(n_coils))
+    builder.ExportOutput(currents.GetOutputPort("value"), "coil_currents")
+    if scenario.hand is not None:
+        status = receive("device_status", device_status_t, 1,
+                         lambda message: np.array([float(message.handle_gripped)]),
+                         None, np.inf, initial_value=np.zeros(1))
+        builder.ExportOutput(status.GetOutputPort("value"), "handle_gripped")
+
+    sender = builder.AddNamedSystem("coil_currents_commanded_sender", MessageSender(
+        message_type=coil_currents_t, size=n_coils, encode=currents_message, period_s=period_s))
+    publisher = builder.AddNamedSystem("coil_currents_commanded_publisher",
+                                       LcmPublisherSystem.Make(
+        channel=channel(station, COIL_CURRENTS_COMMANDED), lcm_type=coil_currents_t,
+        lcm=interface, publish_period=period_s))
+    builder.Connect(sender.GetOutputPort("message"), publisher.get_input_port())
+    builder.ExportInput(sender.GetInputPort("value"), "coil_currents_commanded")
+    diagram = builder.Build()
+    diagram.set_name("station")
+    return diagram
+
+
+def station_counts(diagram, context) -> dict:
+    """What the application's LCM station read and lost, per channel, and in all."""
+    station = diagram.GetSubsystemByName("station")
+    counts = {}
+    for name in (MARKERS, COIL_CURRENTS, DEVICE_STATUS):
+        system_name = f"{name.lower()}_receiver"
+        if station.HasSubsystemNamed(system_name):
+            receiver = station.GetSubsystemByName(system_name)
+            counts[name.lower()] = receiver.counts(receiver.GetMyContextFromRoot(context))
+    return {"messages_received": sum(c["messages_received"] for c in counts.values()),
+            "messages_lost": sum(c["messages_lost"] for c in counts.values()),
+            "channels": counts}

@@ -1,0 +1,39 @@
+"""The coils' winding temperatures from the currents that flow (station)."""
+
+from __future__ import annotations
+
+import numpy as np
+from pydrake.systems.framework import BasicVector, LeafSystem
+
+from maglev_haptics.hardware.thermal import CoilThermal, temperature_after_c
+
+
+class CoilTemperatures(LeafSystem):
+    """Each coil's winding temperature (C), the thermal model's exact RC step
+    (``hardware/thermal.py``) for the currents held over each period.
+
+    .. pydrake_system::
+
+        name: CoilTemperatures
+        input_ports:
+        - coil_currents
+        output_ports:
+        - coil_temperature_c
+
+    Starts at ambient; the state is the output, so it holds between updates.
+    """
+
+    def __init__(self, *, model: CoilThermal, n_coils: int, period_s: float):
+        super().__init__()
+        self._model = model
+        self._period_s = float(period_s)
+        self._currents = self.DeclareVectorInputPort("coil_currents", n_coils)
+        self._temperature = self.DeclareDiscreteState(
+            BasicVector(np.full(n_coils, model.ambient_c)))
+        self.DeclarePeriodicDiscreteUpdateEvent(period_s, 0.0, self._update)
+        self.DeclareStateOutputPort("coil_temperature_c", self._temperature)
+
+    def _update(self, context, discrete_state):
+        discrete_state.set_value(self._temperature, temperature_after_c(
+            self._model, context.get_discrete_state(self._temperature).get_value(),
+            self._currents.Eval(context), self._period_s))

@@ -1,0 +1,193 @@
+"""The station's ports as LCM messages (``hardware/lcm_messages``), both ways.
+
+The device side (``maglev device-sim`` or a lab's drivers) turns its port values
+into messages; the application side turns messages back into the same port
+values, so the application cannot tell a simulated station from a real one.
+Times on the wire are integer microseconds on the sender's clock.
+
+Each receiver counts what it got: ``received`` messages it read, ``lost`` the
+gaps in their ``sequence`` numbers (a message never read, whether the network
+dropped it or a newer one overtook it between two ticks). A receiver whose
+newest message is older than ``stale_after_s`` reports it the way the hardware
+would report a missing signal: markers all NaN (so the estimator loses
+tracking and the controller lands blind), currents and grip held.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from pydrake.common.value import AbstractValue
+from pydrake.systems.framework import LeafSystem
+
+from maglev_haptics.hardware.lcm_messages import coil_currents_t, device_status_t, markers_t
+
+US_PER_S = 1_000_000
+# Receiver state: [newest sequence read, its arrival time (s), first sequence, received]
+_NEVER = np.array([-1.0, -math.inf, -1.0, 0.0])
+
+
+def to_utime(t_s: float) -> int:
+    """Seconds as LCM's integer microseconds."""
+    return int(round(t_s * US_PER_S))
+
+
+def markers_message(sequence: int, capture_s: float, publish_s: float,
+                    markers_W: np.ndarray) -> markers_t:
+    """A tracker sample: ``markers_W`` (3 n,) p_WK [m], NaN where not seen."""
+    p_WK = np.asarray(markers_W, dtype=float).reshape(-1, 3)
+    visible = np.all(np.isfinite(p_WK), axis=1)
+    message = markers_t()
+    message.sequence = int(sequence)
+    message.capture_utime = to_utime(capture_s)
+    message.publish_utime = to_utime(publish_s)
+    message.num_markers = len(p_WK)
+    message.position_m = np.where(visible[:, None], p_WK, 0.0).tolist()
+    message.visible = visible.tolist()
+    return message
+
+
+def markers_from_message(message: markers_t, n_markers: int) -> np.ndarray:
+    """(3 n,) p_WK [m] from a tracker sample, NaN where not seen; all NaN for a
+    message of another instrument (a marker count that does not match)."""
+    if message.num_markers != n_markers:
+        return np.full(3 * n_markers, np.nan)
+    p_WK = np.array(message.position_m, dtype=float).reshape(n_markers, 3)
+    p_WK[~np.array(message.visible, dtype=bool)] = np.nan
+    return p_WK.ravel()
+
+
+def currents_message(sequence: int, t_s: float, currents_a: np.ndarray) -> coil_currents_t:
+    message = coil_currents_t()
+    message.sequence = int(sequence)
+    message.utime = to_utime(t_s)
+    message.num_coils = len(currents_a)
+    message.current_a = [float(i) for i in currents_a]
+    return message
+
+
+def status_message(sequence: int, t_s: float, handle_gripped: bool, fault_bits: int,
+                   coil_temperature_c: np.ndarray) -> device_status_t:
+    message = device_status_t()
+    message.sequence = int(sequence)
+    message.utime = to_utime(t_s)
+    message.fault_bits = int(fault_bits)
+    message.handle_gripped = bool(handle_gripped)
+    message.num_coils = len(coil_temperature_c)
+    message.coil_temperature_c = [float(c) for c in coil_temperature_c]
+    return message
+
+
+def receiver_step(state: np.ndarray, sequence: int, t_s: float) -> np.ndarray:
+    """The receiver's counters after reading a message numbered ``sequence`` at ``t_s``.
+
+    ``state`` is [newest sequence, its arrival (s), first sequence, received]; a
+    sequence it has already read changes nothing."""
+    newest, _, first, received = state
+    if sequence == newest:
+        return state
+    if first < 0 or sequence < newest:  # the first message, or the sender restarted
+        first = sequence - received
+    return np.array([sequence, t_s, first, received + 1])
+
+
+def receiver_counts(state: np.ndarray) -> dict:
+    """{"messages_received", "messages_lost"} from a receiver's state."""
+    newest, _, first, received = state
+    expected = newest - first + 1 if received > 0 else 0
+    return {"messages_received": int(received), "messages_lost": int(expected - received)}
+
+
+class MessageReceiver(LeafSystem):
+    """One LCM subscriber's newest message as the station's vector port.
+
+    .. pydrake_system::
+
+        name: MessageReceiver
+        input_ports:
+        - message
+        output_ports:
+        - value
+        - counts
+
+    ``decode(message) -> (size,)`` turns a message into the port's value;
+    ``stale_value`` (or None: hold the newest) is output before the first message
+    and once the newest is older than ``stale_after_s`` (s, on this diagram's
+    clock, which a paced run keeps on the wall clock). Updated every
+    ``period_s`` (s); ``counts`` is [received, lost].
+    """
+
+    def __init__(self, *, message_type, size: int, decode, stale_value, stale_after_s: float,
+                 period_s: float, initial_value=None):
+        super().__init__()
+        self._decode = decode
+        self._stale_after_s = float(stale_after_s)
+        self._stale = None if stale_value is None else np.asarray(stale_value, float)
+        self._message = self.DeclareAbstractInputPort(
+            "message", AbstractValue.Make(message_type()))
+        self._counters = self.DeclareDiscreteState(_NEVER)
+        initial = self._stale if initial_value is None else np.asarray(initial_value, float)
+        self._held = self.DeclareDiscreteState(initial)
+        self.DeclarePeriodicDiscreteUpdateEvent(period_s, 0.0, self._update)
+        self.DeclareInitializationDiscreteUpdateEvent(self._update)
+        self.DeclareVectorOutputPort("value", size, self._calc_value,
+                                     {self.xd_ticket(), self.time_ticket()})
+        self.DeclareVectorOutputPort("counts", 2, self._calc_counts, {self.xd_ticket()})
+
+    def _update(self, context, discrete_state):
+        message = self._message.Eval(context)
+        counters = context.get_discrete_state(self._counters).get_value()
+        # Senders number from 1: sequence 0 is the subscriber's empty default.
+        if message.sequence < 1 or message.sequence == counters[0]:
+            return
+        discrete_state.set_value(self._counters,
+                                 receiver_step(counters, message.sequence, context.get_time()))
+        discrete_state.set_value(self._held, self._decode(message))
+
+    def _calc_value(self, context, output):
+        arrival = context.get_discrete_state(self._counters).GetAtIndex(1)
+        if self._stale is not None and context.get_time() - arrival > self._stale_after_s:
+            output.SetFromVector(self._stale)
+        else:
+            output.SetFromVector(context.get_discrete_state(self._held).get_value())
+
+    def _calc_counts(self, context, output):
+        counts = receiver_counts(context.get_discrete_state(self._counters).get_value())
+        output.SetFromVector([counts["messages_received"], counts["messages_lost"]])
+
+    def newest_arrival_s(self, context) -> float:
+        """When the newest message was read (s on this diagram's clock; -inf: never)."""
+        return context.get_discrete_state(self._counters).GetAtIndex(1)
+
+    def counts(self, context) -> dict:
+        """{"messages_received", "messages_lost"} so far, from this system's context."""
+        return receiver_counts(context.get_discrete_state(self._counters).get_value())
+
+
+class MessageSender(LeafSystem):
+    """The station's vector port as an LCM message for a publisher, numbered.
+
+    .. pydrake_system::
+
+        name: MessageSender
+        input_ports:
+        - value
+        output_ports:
+        - message
+
+    ``encode(sequence, t_s, value) -> message``; the sequence is the tick number
+    ``round(t / period_s)``, so the receiver counts a gap as a lost message.
+    """
+
+    def __init__(self, *, message_type, size: int, encode, period_s: float):
+        super().__init__()
+        self._encode = encode
+        self._period_s = float(period_s)
+        self._value = self.DeclareVectorInputPort("value", size)
+        self.DeclareAbstractOutputPort(
+            "message", lambda: AbstractValue.Make(message_type()), self._calc_message)
+
+    def _calc_message(self, context, output):
+        t = context.get_time()
+        output.set_value(self._encode(round(t / self._period_s) + 1, t, self._value.Eval(context)))
