@@ -16,6 +16,7 @@ from maglev_haptics.analysis.run_plots import plot_haptics, plot_run, plot_tick_
 from maglev_haptics.analysis.stereo_metrics import plot_colocation, stereo_summary
 from maglev_haptics.analysis.stereo_video import StereoVideoWriter
 from maglev_haptics.diagrams.application import BuildDiagram
+from maglev_haptics.diagrams.lcm_station import LcmStation, station_counts
 from maglev_haptics.diagrams.runner import realtime_report, simulate
 from maglev_haptics.diagrams.scenario import Scenario
 from maglev_haptics.hardware.thermal import coil_thermal
@@ -32,7 +33,12 @@ class RunResult:
 def run_scenario(scenario: Scenario, *, label: str, out_dir: Optional[Path] = None,
                  meshcat: bool = False, realtime_rate: float = 0.0,
                  duration_s: Optional[float] = None, progress: bool = True) -> RunResult:
-    """Simulate ``scenario``; write ``log.npz``, ``summary.json`` and plots to ``out_dir``."""
+    """Simulate ``scenario``; write ``log.npz``, ``summary.json`` and plots to ``out_dir``.
+
+    With a station on LCM the run is paced (at 1.0 unless told): the device keeps
+    the wall clock's time, so the application must too."""
+    if isinstance(scenario.station, LcmStation) and realtime_rate <= 0:
+        realtime_rate = 1.0
     viewer = StartMeshcat() if meshcat else None
     video = None
     if scenario.stereo is not None and out_dir is not None and scenario.stereo.images.rate_hz > 0:
@@ -77,6 +83,9 @@ def run_scenario(scenario: Scenario, *, label: str, out_dir: Optional[Path] = No
     }
     if tick_times is not None:
         summary["realtime"] = {"rate": realtime_rate, **realtime_report(tick_times)}
+    if isinstance(scenario.station, LcmStation):
+        summary["station"] = {"kind": "lcm", "url": scenario.station.url,
+                              **station_counts(built.diagram, simulator.get_context())}
     if scenario.stereo is not None:
         summary["stereo"] = stereo_summary(log, scenario, built.stereo, video_summary)
     if built.haptics is not None:

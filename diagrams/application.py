@@ -15,7 +15,6 @@ from typing import Dict, Optional
 
 import numpy as np
 from pydrake.geometry import Meshcat, MeshcatVisualizer, MeshcatVisualizerParams, Role
-from pydrake.lcm import DrakeLcm
 from pydrake.multibody.meshcat import ContactVisualizer, ContactVisualizerParams
 from pydrake.systems.framework import Diagram, DiagramBuilder
 from pydrake.systems.primitives import (
@@ -68,7 +67,7 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
     simulated = not isinstance(scenario.station, LcmStation)
     station = builder.AddSystem(
         MakeStation(scenario, magnetics=magnetics) if simulated
-        else MakeLcmStation(scenario, DrakeLcm(scenario.station.url)))
+        else MakeLcmStation(scenario))
 
     estimator = builder.AddNamedSystem("pose_estimator", PoseEstimator(
         instrument=spec, tracker=device.tracker, config=scenario.estimator))

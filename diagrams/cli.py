@@ -1,8 +1,9 @@
-"""The ``maglev`` command line: run, diagram, bench, analyze (docs/architecture.md)."""
+"""The ``maglev`` command line: run, device-sim, diagram, bench, analyze (docs/architecture.md)."""
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import shutil
@@ -12,9 +13,11 @@ import textwrap
 from importlib.metadata import version
 from pathlib import Path
 
+from maglev_haptics.diagrams.lcm_station import LcmStation, lcm_config
 from maglev_haptics.diagrams.runner import MISS_WARNING_FRACTION
 from maglev_haptics.diagrams.scenario import (
-    ScenarioError, load_scenario, resolve_scenario_file, scenario_names, shipped_scenario_files)
+    ScenarioError, load_scenario, resolve_scenario_file, scenario_names, shipped_scenario_files,
+    validate_scenario)
 
 # What `maglev diagram --out` may end in: graphviz's (dot -T) file formats for looking
 # at or editing a diagram, all of them in every graphviz build.
@@ -124,6 +127,9 @@ def _cmd_run(args) -> int:
 
     scenario, label = _load(args)
     duration = args.duration
+    if args.station == "lcm" and not isinstance(scenario.station, LcmStation):
+        scenario = dataclasses.replace(scenario, station=LcmStation())
+        validate_scenario(scenario, label)
     if args.stereo and scenario.stereo is None:
         scenario = with_stereo(scenario, label)
     if args.interactive:
@@ -160,6 +166,26 @@ def _cmd_run(args) -> int:
         print(f"Meshcat: {result.meshcat.web_url()}{replay}")
         if sys.stdin.isatty():
             input("press Enter to close Meshcat and exit ")
+    return 0
+
+
+def _cmd_device_sim(args) -> int:
+    from maglev_haptics.diagrams.device_sim import BuildDeviceSim
+    from maglev_haptics.diagrams.runner import realtime_report, simulate
+
+    scenario, label = _load(args)
+    device_sim = BuildDeviceSim(scenario)
+    print(f"device-sim {label}: the simulated station on LCM "
+          f"({lcm_config(scenario).url}); stops {device_sim.stop_after_silence_s:g} s after "
+          "the application's last command, or after --duration", file=sys.stderr)
+    simulator, wall_s, tick_times = simulate(
+        device_sim, args.duration, realtime_rate=1.0, label=f"device-sim {label}",
+        interruptible=True, stop=device_sim.application_gone)
+    context = simulator.get_context()
+    receiver = device_sim.command_receiver
+    print(json.dumps({"scenario": label, "duration_s": context.get_time(), "wall_time_s": wall_s,
+                      "commands": receiver.counts(receiver.GetMyContextFromRoot(context)),
+                      "realtime": realtime_report(tick_times)}, indent=2))
     return 0
 
 
@@ -277,7 +303,27 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--realtime", type=_realtime_rate,
                      help="target real-time rate >= 0 (default 1 with Meshcat, else 0 = as "
                      "fast as possible)")
+    run.add_argument("--station", choices=("sim", "lcm"),
+                     help="sim: the simulated station in this process; lcm: whatever answers "
+                     "on LCM (maglev device-sim, or the device's drivers); default: the "
+                     "scenario's station")
     run.set_defaults(func=_cmd_run)
+
+    device_sim = commands.add_parser(
+        "device-sim", formatter_class=formatter,
+        help="the simulated station alone, paced to the wall clock, speaking LCM",
+        description="The simulated station (instrument, coils, amplifiers, tracker, scripted "
+        "hand) as its own process, paced to the wall clock, on LCM: what a real device "
+        "would be to `maglev run --station lcm`. Stops once the application's commands "
+        "stop, or after --duration.",
+        epilog=_epilog("""
+            maglev device-sim levitate &                 # the device, in another process
+            maglev run levitate --station lcm --no-meshcat
+            """))
+    _add_scenario_arguments(device_sim)
+    device_sim.add_argument("--duration", type=_positive_seconds, default=3600.0,
+                            help="longest it runs (s; default 3600)")
+    device_sim.set_defaults(func=_cmd_device_sim)
 
     diagram = commands.add_parser(
         "diagram", formatter_class=formatter,

@@ -14,19 +14,23 @@ from dataclasses import dataclass
 import numpy as np
 from pydrake.lcm import DrakeLcm
 from pydrake.systems.framework import Diagram, DiagramBuilder
-from pydrake.systems.lcm import LcmInterfaceSystem, LcmPublisherSystem, LcmSubscriberSystem
 from pydrake.systems.primitives import ConstantVectorSource, Multiplexer
 
 from maglev_haptics.diagrams.haptics import AddHandCommands
 from maglev_haptics.diagrams.lcm_station import (
-    COIL_CURRENTS, COIL_CURRENTS_COMMANDED, DEVICE_STATUS, MARKERS, LcmStation, channel)
+    COIL_CURRENTS, COIL_CURRENTS_COMMANDED, DEVICE_STATUS, MARKERS, channel, lcm_config)
 from maglev_haptics.diagrams.station import MakeStation
-from maglev_haptics.hardware.lcm_messages import coil_currents_t, device_status_t, markers_t
+from maglev_haptics.hardware.lcm_messages import coil_currents_t, device_status_t
 from maglev_haptics.hardware.magnetics import load_magnetics
 from maglev_haptics.hardware.thermal import coil_thermal
 from maglev_haptics.systems.coil_thermal import CoilTemperatures
 from maglev_haptics.systems.station_messages import (
     MessageReceiver, MessageSender, currents_message, markers_message, status_message)
+
+# The grip sensor and the coils' temperatures (time constant ~1 min) need no more
+# than 100 Hz.
+STATUS_PERIOD_S = 0.01
+
 
 @dataclass
 class DeviceSim:
@@ -44,11 +48,6 @@ class DeviceSim:
         return context.get_time() - arrival_s > self.stop_after_silence_s
 
 
-def lcm_config(scenario) -> LcmStation:
-    """The scenario's LCM settings: its LcmStation, or the defaults."""
-    return scenario.station if isinstance(scenario.station, LcmStation) else LcmStation()
-
-
 def BuildDeviceSim(scenario) -> DeviceSim:
     """The simulated station of ``scenario`` alone, its ports on LCM (the module
     docstring's channels), with the simulated hand's script when it has one.
@@ -60,39 +59,32 @@ def BuildDeviceSim(scenario) -> DeviceSim:
     tracker_period_s = 1.0 / device.tracker.rate_hz
     builder = DiagramBuilder()
     station = builder.AddSystem(MakeStation(scenario, magnetics=load_magnetics(device)))
-    interface = builder.AddNamedSystem("lcm", LcmInterfaceSystem(DrakeLcm(station_config.url)))
-
-    subscriber = builder.AddNamedSystem("commands_subscriber", LcmSubscriberSystem.Make(
-        channel=channel(station_config, COIL_CURRENTS_COMMANDED), lcm_type=coil_currents_t,
-        lcm=interface))
     commands = builder.AddNamedSystem("commands_receiver", MessageReceiver(
+        lcm=DrakeLcm(station_config.url), channel=channel(station_config, COIL_CURRENTS_COMMANDED),
         message_type=coil_currents_t, size=n_coils,
         decode=lambda message: np.array(message.current_a, dtype=float),
         stale_value=np.zeros(n_coils), stale_after_s=station_config.command_timeout_s,
         period_s=period_s))
-    builder.Connect(subscriber.get_output_port(), commands.GetInputPort("message"))
     builder.Connect(commands.GetOutputPort("value"),
                     station.GetInputPort("coil_currents_commanded"))
 
-    def send(name, message_type, value_port, encode, send_period_s):
+    publisher = DrakeLcm(station_config.url)
+
+    def send(name, value_port, encode, send_period_s):
         sender = builder.AddNamedSystem(f"{name.lower()}_sender", MessageSender(
-            message_type=message_type, size=value_port.size(), encode=encode,
-            period_s=send_period_s))
-        publisher = builder.AddNamedSystem(f"{name.lower()}_publisher", LcmPublisherSystem.Make(
-            channel=channel(station_config, name), lcm_type=message_type, lcm=interface,
-            publish_period=send_period_s))
+            lcm=publisher, channel=channel(station_config, name), size=value_port.size(),
+            encode=encode, period_s=send_period_s))
         builder.Connect(value_port, sender.GetInputPort("value"))
-        builder.Connect(sender.GetOutputPort("message"), publisher.get_input_port())
 
     latency_s = device.tracker.latency_s
-    send(MARKERS, markers_t, station.GetOutputPort("markers_measured"),
+    send(MARKERS, station.GetOutputPort("markers_measured"),
          lambda sequence, t, value: markers_message(sequence, t - latency_s, t, value),
          tracker_period_s)
-    send(COIL_CURRENTS, coil_currents_t, station.GetOutputPort("coil_currents"),
+    send(COIL_CURRENTS, station.GetOutputPort("coil_currents"),
          currents_message, period_s)
     thermal = coil_thermal(device)
     temperatures = builder.AddNamedSystem("coil_temperatures", CoilTemperatures(
-        model=thermal, n_coils=n_coils, period_s=period_s))
+        model=thermal, n_coils=n_coils, period_s=STATUS_PERIOD_S))
     builder.Connect(station.GetOutputPort("coil_currents"), temperatures.get_input_port())
     status = builder.AddNamedSystem("status", Multiplexer([1, n_coils]))
     if scenario.hand is not None:
@@ -102,12 +94,12 @@ def BuildDeviceSim(scenario) -> DeviceSim:
         no_grip = builder.AddNamedSystem("no_grip_sensor", ConstantVectorSource([0.0]))
         builder.Connect(no_grip.get_output_port(), status.get_input_port(0))
     builder.Connect(temperatures.get_output_port(), status.get_input_port(1))
-    send(DEVICE_STATUS, device_status_t, status.get_output_port(),
+    send(DEVICE_STATUS, status.get_output_port(),
          lambda sequence, t, value: status_message(
              sequence, t, value[0] > 0.5,
              device_status_t.FAULT_COIL_OVER_TEMPERATURE if np.any(value[1:] > thermal.max_c)
              else 0, value[1:]),
-         period_s)
+         STATUS_PERIOD_S)
     diagram = builder.Build()
     diagram.set_name("device_sim")
     return DeviceSim(diagram=diagram, tick_s=period_s, command_receiver=commands,

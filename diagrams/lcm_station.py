@@ -13,6 +13,12 @@ other end: the simulated station alone, speaking the same messages. Channels (``
   temperatures).
 
 The default URL is UDP multicast with ttl=0: the messages never leave this host.
+
+Drake's DrakeLcm carries the messages; its LcmSubscriberSystem and
+LcmPublisherSystem do not: with Python message types they cost ~1 ms a tick
+(the device side ran 1,450 us a tick with them against 400 without), so each
+receiver and sender (``systems/station_messages.py``) encodes and decodes
+itself, on vector ports.
 """
 
 
@@ -21,7 +27,6 @@ from dataclasses import dataclass
 import numpy as np
 from pydrake.lcm import DrakeLcm
 from pydrake.systems.framework import Diagram, DiagramBuilder
-from pydrake.systems.lcm import LcmInterfaceSystem, LcmPublisherSystem, LcmSubscriberSystem
 
 from maglev_haptics.hardware.config_checks import positive, require
 from maglev_haptics.hardware.lcm_messages import (
@@ -76,58 +81,54 @@ def channel(station, name: str) -> str:
     return station.channel_prefix + name
 
 
+def lcm_config(scenario) -> LcmStation:
+    """The scenario's LCM settings: its LcmStation, or the defaults."""
+    return scenario.station if isinstance(scenario.station, LcmStation) else LcmStation()
+
+
 def marker_stale_after_s(scenario, station: LcmStation) -> float:
     """How old the newest marker message may be before the markers read as unseen (s)."""
     tracker = scenario.device.tracker
     return 1.0 / tracker.rate_hz + tracker.latency_s + station.stale_margin_s
 
 
-def MakeLcmStation(scenario, lcm: DrakeLcm) -> Diagram:
+def MakeLcmStation(scenario) -> Diagram:
     """The application's station for ``scenario.station`` (an LcmStation), named
     ``station``: input ``coil_currents_commanded``; outputs ``markers_measured``,
     ``coil_currents`` and, with a hand in the scenario, ``handle_gripped``. Its
-    receivers (``markers_receiver``, ...) count the messages they read and lost."""
+    receivers (``markers_receiver``, ...) count the messages they read and lost;
+    building it waits up to ``wait_for_station_s`` for the station's markers."""
     station = scenario.station
     device = scenario.device
     n_coils = device.n_coils
     n_markers = len(device.instrument_spec().p_IK_m)
     period_s = 1.0 / scenario.control_rate_hz
     builder = DiagramBuilder()
-    interface = builder.AddNamedSystem("lcm", LcmInterfaceSystem(lcm))
 
     def receive(name, message_type, size, decode, stale_value, stale_after_s, wait_s=0.0,
                 initial_value=None):
-        subscriber = builder.AddNamedSystem(f"{name}_subscriber", LcmSubscriberSystem.Make(
-            channel=channel(station, name.upper()), lcm_type=message_type, lcm=interface,
-            wait_for_message_on_initialization_timeout=wait_s))
-        receiver = builder.AddNamedSystem(f"{name}_receiver", MessageReceiver(
-            message_type=message_type, size=size, decode=decode, stale_value=stale_value,
-            stale_after_s=stale_after_s, period_s=period_s, initial_value=initial_value))
-        builder.Connect(subscriber.get_output_port(), receiver.GetInputPort("message"))
-        return receiver
+        return builder.AddNamedSystem(f"{name.lower()}_receiver", MessageReceiver(
+            lcm=DrakeLcm(station.url), channel=channel(station, name), message_type=message_type,
+            size=size, decode=decode, stale_value=stale_value, stale_after_s=stale_after_s,
+            period_s=period_s, initial_value=initial_value, wait_s=wait_s))
 
-    markers = receive("markers", markers_t, 3 * n_markers,
+    markers = receive(MARKERS, markers_t, 3 * n_markers,
                       lambda message: markers_from_message(message, n_markers),
                       np.full(3 * n_markers, np.nan), marker_stale_after_s(scenario, station),
                       wait_s=station.wait_for_station_s)
     builder.ExportOutput(markers.GetOutputPort("value"), "markers_measured")
-    currents = receive("coil_currents", coil_currents_t, n_coils,
+    currents = receive(COIL_CURRENTS, coil_currents_t, n_coils,
                        lambda message: np.array(message.current_a, dtype=float),
                        None, np.inf, initial_value=np.zeros(n_coils))
     builder.ExportOutput(currents.GetOutputPort("value"), "coil_currents")
     if scenario.hand is not None:
-        status = receive("device_status", device_status_t, 1,
+        status = receive(DEVICE_STATUS, device_status_t, 1,
                          lambda message: np.array([float(message.handle_gripped)]),
                          None, np.inf, initial_value=np.zeros(1))
         builder.ExportOutput(status.GetOutputPort("value"), "handle_gripped")
-
     sender = builder.AddNamedSystem("coil_currents_commanded_sender", MessageSender(
-        message_type=coil_currents_t, size=n_coils, encode=currents_message, period_s=period_s))
-    publisher = builder.AddNamedSystem("coil_currents_commanded_publisher",
-                                       LcmPublisherSystem.Make(
-        channel=channel(station, COIL_CURRENTS_COMMANDED), lcm_type=coil_currents_t,
-        lcm=interface, publish_period=period_s))
-    builder.Connect(sender.GetOutputPort("message"), publisher.get_input_port())
+        lcm=DrakeLcm(station.url), channel=channel(station, COIL_CURRENTS_COMMANDED),
+        size=n_coils, encode=currents_message, period_s=period_s))
     builder.ExportInput(sender.GetInputPort("value"), "coil_currents_commanded")
     diagram = builder.Build()
     diagram.set_name("station")

@@ -75,8 +75,10 @@ class PacedTicks:
                          lateness_s=self.lateness_s[:self.done])
 
 
-def advance_paced(simulator, duration_s: float, tick_s: float, ticks: PacedTicks, bar):
-    """Tick by tick to ``duration_s``, each released at its wall-clock slot."""
+def advance_paced(simulator, duration_s: float, tick_s: float, ticks: PacedTicks, bar,
+                  stop=None):
+    """Tick by tick to ``duration_s``, each released at its wall-clock slot; ``stop(context)``,
+    asked every PROGRESS_CHUNK_S, ends the run early when it returns True."""
     start_s = simulator.get_context().get_time()
     ticks_per_update = max(1, int(round(PROGRESS_CHUNK_S / tick_s)))
     clock_zero = time.perf_counter()
@@ -94,15 +96,18 @@ def advance_paced(simulator, duration_s: float, tick_s: float, ticks: PacedTicks
             if ticks.done % ticks_per_update == 0:
                 bar.update(simulator.get_context().get_time() - bar.n)
                 bar.set_postfix_str(f"missed {ticks.missed}/{ticks.done}", refresh=False)
+                if stop is not None and stop(simulator.get_context()):
+                    break
     finally:
         bar.update(simulator.get_context().get_time() - bar.n)
 
 
 def simulate(built, duration_s: float, *, realtime_rate: float = 0.0,
-             progress: bool = True, label: str = "", interruptible: bool = False):
+             progress: bool = True, label: str = "", interruptible: bool = False, stop=None):
     """Advance the diagram to ``duration_s``; returns (simulator, wall seconds,
     TickTimes of the paced ticks or None when not paced).
-    ``interruptible``: Ctrl-C ends the run early instead of raising."""
+    ``interruptible``: Ctrl-C ends the run early instead of raising. ``stop(context)``
+    ends a paced run early (``advance_paced``)."""
     # Nothing compiles inside the loop: every kernel is ready before the clock starts.
     compile_kernels(progress=progress)
     simulator = Simulator(built.diagram)
@@ -121,7 +126,7 @@ def simulate(built, duration_s: float, *, realtime_rate: float = 0.0,
                   bar_format="{l_bar}{bar}| {n:.2f}/{total:.2f} sim s [{elapsed}{postfix}]"
                   ) as bar:
             if paced is not None:
-                advance_paced(simulator, duration_s, built.tick_s, paced, bar)
+                advance_paced(simulator, duration_s, built.tick_s, paced, bar, stop)
             else:
                 chunks = np.append(np.arange(PROGRESS_CHUNK_S, duration_s, PROGRESS_CHUNK_S),
                                    duration_s)

@@ -16,9 +16,10 @@ tracking and the controller lands blind), currents and grip held.
 from __future__ import annotations
 
 import math
+import struct
+import time
 
 import numpy as np
-from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import LeafSystem
 
 from maglev_haptics.hardware.lcm_messages import coil_currents_t, device_status_t, markers_t
@@ -99,51 +100,75 @@ def receiver_counts(state: np.ndarray) -> dict:
     return {"messages_received": int(received), "messages_lost": int(expected - received)}
 
 
+def message_sequence(data: bytes) -> int:
+    """The ``sequence`` of an encoded station message: every type here has it first,
+    right after LCM's 8-byte fingerprint (big-endian int64)."""
+    return struct.unpack_from(">q", data, 8)[0]
+
+
 class MessageReceiver(LeafSystem):
-    """One LCM subscriber's newest message as the station's vector port.
+    """One LCM channel's newest message as a station vector port.
 
     .. pydrake_system::
 
         name: MessageReceiver
-        input_ports:
-        - message
         output_ports:
         - value
-        - counts
 
-    ``decode(message) -> (size,)`` turns a message into the port's value;
+    Every ``period_s`` (s) the update reads what arrived on ``channel`` of ``lcm``
+    (a DrakeLcm of its own, so no other system's polling reorders its messages),
+    counts it, and keeps the newest, ``decode(message) -> (size,)``.
     ``stale_value`` (or None: hold the newest) is output before the first message
     and once the newest is older than ``stale_after_s`` (s, on this diagram's
-    clock, which a paced run keeps on the wall clock). Updated every
-    ``period_s`` (s); ``counts`` is [received, lost].
+    clock, which a paced run keeps on the wall clock). With ``wait_s`` > 0,
+    initialization waits that long (wall-clock seconds) for a first message and
+    raises a RuntimeError naming the channel if none comes.
     """
 
-    def __init__(self, *, message_type, size: int, decode, stale_value, stale_after_s: float,
-                 period_s: float, initial_value=None):
+    def __init__(self, *, lcm, channel: str, message_type, size: int, decode, stale_value,
+                 stale_after_s: float, period_s: float, initial_value=None,
+                 wait_s: float = 0.0):
         super().__init__()
+        self._lcm = lcm
+        self._channel = channel
+        self._message_type = message_type
         self._decode = decode
         self._stale_after_s = float(stale_after_s)
+        self._wait_s = float(wait_s)
         self._stale = None if stale_value is None else np.asarray(stale_value, float)
-        self._message = self.DeclareAbstractInputPort(
-            "message", AbstractValue.Make(message_type()))
+        # Raw messages that LCM handed over since the last update: I/O, not state.
+        self._arrived = []
+        lcm.Subscribe(channel, self._arrived.append)
         self._counters = self.DeclareDiscreteState(_NEVER)
         initial = self._stale if initial_value is None else np.asarray(initial_value, float)
         self._held = self.DeclareDiscreteState(initial)
         self.DeclarePeriodicDiscreteUpdateEvent(period_s, 0.0, self._update)
-        self.DeclareInitializationDiscreteUpdateEvent(self._update)
+        self.DeclareInitializationDiscreteUpdateEvent(self._initialize)
         self.DeclareVectorOutputPort("value", size, self._calc_value,
                                      {self.xd_ticket(), self.time_ticket()})
-        self.DeclareVectorOutputPort("counts", 2, self._calc_counts, {self.xd_ticket()})
+
+    def _initialize(self, context, discrete_state):
+        deadline = time.monotonic() + self._wait_s
+        while self._wait_s > 0 and not self._arrived:
+            if time.monotonic() > deadline:
+                raise RuntimeError(
+                    f"no message on LCM channel {self._channel!r} within {self._wait_s:g} s: "
+                    "is the station running (maglev device-sim SCENARIO, or the device's "
+                    "drivers) on the same LCM URL?")
+            self._lcm.HandleSubscriptions(100)
+        self._update(context, discrete_state)
 
     def _update(self, context, discrete_state):
-        message = self._message.Eval(context)
-        counters = context.get_discrete_state(self._counters).get_value()
-        # Senders number from 1: sequence 0 is the subscriber's empty default.
-        if message.sequence < 1 or message.sequence == counters[0]:
+        self._lcm.HandleSubscriptions(0)
+        if not self._arrived:
             return
-        discrete_state.set_value(self._counters,
-                                 receiver_step(counters, message.sequence, context.get_time()))
-        discrete_state.set_value(self._held, self._decode(message))
+        counters = context.get_discrete_state(self._counters).get_value()
+        for data in self._arrived:
+            counters = receiver_step(counters, message_sequence(data), context.get_time())
+        discrete_state.set_value(self._counters, counters)
+        discrete_state.set_value(
+            self._held, self._decode(self._message_type.decode(self._arrived[-1])))
+        self._arrived.clear()
 
     def _calc_value(self, context, output):
         arrival = context.get_discrete_state(self._counters).GetAtIndex(1)
@@ -151,10 +176,6 @@ class MessageReceiver(LeafSystem):
             output.SetFromVector(self._stale)
         else:
             output.SetFromVector(context.get_discrete_state(self._held).get_value())
-
-    def _calc_counts(self, context, output):
-        counts = receiver_counts(context.get_discrete_state(self._counters).get_value())
-        output.SetFromVector([counts["messages_received"], counts["messages_lost"]])
 
     def newest_arrival_s(self, context) -> float:
         """When the newest message was read (s on this diagram's clock; -inf: never)."""
@@ -166,28 +187,28 @@ class MessageReceiver(LeafSystem):
 
 
 class MessageSender(LeafSystem):
-    """The station's vector port as an LCM message for a publisher, numbered.
+    """A station vector port published on an LCM channel every ``period_s`` (s).
 
     .. pydrake_system::
 
         name: MessageSender
         input_ports:
         - value
-        output_ports:
-        - message
 
     ``encode(sequence, t_s, value) -> message``; the sequence is the tick number
-    ``round(t / period_s)``, so the receiver counts a gap as a lost message.
+    ``round(t / period_s) + 1``, so a receiver counts a gap as a lost message.
     """
 
-    def __init__(self, *, message_type, size: int, encode, period_s: float):
+    def __init__(self, *, lcm, channel: str, size: int, encode, period_s: float):
         super().__init__()
+        self._lcm = lcm
+        self._channel = channel
         self._encode = encode
         self._period_s = float(period_s)
         self._value = self.DeclareVectorInputPort("value", size)
-        self.DeclareAbstractOutputPort(
-            "message", lambda: AbstractValue.Make(message_type()), self._calc_message)
+        self.DeclarePeriodicPublishEvent(period_s, 0.0, self._publish)
 
-    def _calc_message(self, context, output):
+    def _publish(self, context):
         t = context.get_time()
-        output.set_value(self._encode(round(t / self._period_s) + 1, t, self._value.Eval(context)))
+        message = self._encode(round(t / self._period_s) + 1, t, self._value.Eval(context))
+        self._lcm.Publish(self._channel, message.encode())

@@ -1,0 +1,93 @@
+"""The station over LCM: the messages both ways, their counting, and levitation with the
+device's diagram on the other end of the messages."""
+
+import os
+
+import numpy as np
+import pytest
+from pydrake.systems.analysis import Simulator
+
+from maglev_haptics.analysis.run_metrics import log_arrays
+from maglev_haptics.diagrams.application import BuildDiagram
+from maglev_haptics.diagrams.device_sim import BuildDeviceSim
+from maglev_haptics.diagrams.lcm_station import station_counts
+from maglev_haptics.diagrams.scenario import ScenarioError, load_scenario
+from maglev_haptics.hardware.lcm_messages import markers_t
+from maglev_haptics.systems.station_messages import (
+    markers_from_message, markers_message, message_sequence, receiver_counts, receiver_step)
+
+
+def test_markers_round_trip_with_hidden_markers():
+    markers = np.array([0.01, 0.02, 0.03, np.nan, np.nan, np.nan, -0.01, 0.0, 0.05])
+    message = markers_t.decode(markers_message(7, 1.0, 1.0015, markers).encode())
+    assert message.sequence == 7 and message.capture_utime == 1_000_000
+    np.testing.assert_array_equal(markers_from_message(message, 3), markers)
+    # Another instrument's message (2 markers) reads as nothing seen.
+    assert np.all(np.isnan(markers_from_message(message, 2)))
+    assert message_sequence(message.encode()) == 7
+
+
+def test_receiver_counts_gaps_as_lost_and_ignores_repeats():
+    state = np.array([-1.0, -np.inf, -1.0, 0.0])
+    for sequence in (5, 6, 6, 9, 10):
+        state = receiver_step(state, sequence, 0.0)
+    assert receiver_counts(state) == {"messages_received": 4, "messages_lost": 2}
+
+
+def test_lcm_station_refuses_what_it_cannot_carry(tmp_path):
+    with pytest.raises(ScenarioError, match="stereo"):
+        load_scenario("levitate", scenario_text="{station: !LcmStation {}, stereo: {}}")
+
+
+@pytest.fixture(scope="module")
+def lockstep_run():
+    """The application and device-sim diagrams stepped in lock-step in this process,
+    talking only through LCM (multicast that stays on this host): the instrument flies
+    as in the all-in-one run, within what the messages' added tick of latency explains.
+    Returns (scenario, duration_s, application, its context, the run's log)."""
+    port = 7700 + os.getpid() % 200  # no other test run's traffic
+    scenario = load_scenario("levitate", scenario_text=(
+        f"{{station: !LcmStation {{url: 'udpm://239.255.76.67:{port}?ttl=0', "
+        "channel_prefix: TEST_}}"))
+    application = BuildDiagram(scenario)  # subscribes before the device publishes
+    device = BuildDeviceSim(scenario)
+    device_simulator = Simulator(device.diagram)
+    device_simulator.Initialize()
+    device_simulator.AdvanceTo(0.001)  # its first tracker sample, for the application's start
+    simulator = Simulator(application.diagram)
+    simulator.Initialize()
+    duration_s, tick_s = 2.0, application.tick_s
+    for k in range(int(round(duration_s / tick_s))):
+        simulator.AdvanceTo((k + 1) * tick_s)
+        device_simulator.AdvanceTo(0.001 + (k + 1) * tick_s)
+    log = log_arrays(application.logger, application.log_layout, simulator.get_context(),
+                     scenario.device)
+    return scenario, duration_s, application, simulator.get_context(), log
+
+
+def test_levitation_over_lcm_follows_the_all_in_one_run(lockstep_run):
+    scenario, duration_s, _, _, log = lockstep_run
+    assert "p_WI_true" not in log  # no truth from a station on LCM
+
+    reference = BuildDiagram(load_scenario("levitate"))
+    reference_simulator = Simulator(reference.diagram)
+    reference_simulator.Initialize()
+    reference_simulator.AdvanceTo(duration_s)
+    expected = log_arrays(reference.logger, reference.log_layout,
+                          reference_simulator.get_context(), scenario.device)
+    n = min(len(log["t"]), len(expected["t"]))
+    flying = expected["p_WI_measured"][:n, 2] > 0.015  # from take-off on
+    assert flying.sum() > 500
+    deviation_m = np.abs(log["p_WI_measured"][:n] - expected["p_WI_measured"][:n])[flying]
+    assert deviation_m.max() < 0.5e-3
+
+
+def test_messages_are_counted_and_few_are_lost(lockstep_run):
+    """Every tracker sample is counted. Issue 14 asks for none lost; in lock-step runs 0-2%
+    of the marker messages went missing (cause open, see its note), so this bound only
+    catches a broken channel, not the acceptance."""
+    scenario, duration_s, application, context, _ = lockstep_run
+    counts = station_counts(application.diagram, context)
+    markers = counts["channels"]["markers"]
+    assert markers["messages_received"] > 0.95 * duration_s * scenario.device.tracker.rate_hz
+    assert markers["messages_lost"] < 0.05 * markers["messages_received"]
