@@ -122,7 +122,7 @@ class MessageReceiver(LeafSystem):
     and once the newest is older than ``stale_after_s`` (s, on this diagram's
     clock, which a paced run keeps on the wall clock). With ``wait_s`` > 0,
     initialization waits that long (wall-clock seconds) for a first message and
-    raises a RuntimeError naming the channel if none comes.
+    raises a TimeoutError naming the channel if none comes.
     """
 
     def __init__(self, *, lcm, channel: str, message_type, size: int, decode, stale_value,
@@ -151,7 +151,7 @@ class MessageReceiver(LeafSystem):
         deadline = time.monotonic() + self._wait_s
         while self._wait_s > 0 and not self._arrived:
             if time.monotonic() > deadline:
-                raise RuntimeError(
+                raise TimeoutError(
                     f"no message on LCM channel {self._channel!r} within {self._wait_s:g} s: "
                     "is the station running (maglev device-sim SCENARIO, or the device's "
                     "drivers) on the same LCM URL?")

@@ -8,7 +8,7 @@ import pytest
 from maglev_haptics.diagrams.cli import DIAGRAM_FORMATS, main
 from maglev_haptics.diagrams.scenario import scenario_names, shipped_scenario_files
 
-COMMANDS = ("run", "diagram", "bench", "analyze")
+COMMANDS = ("run", "device-sim", "diagram", "bench", "analyze")
 
 
 def exit_code_and_stderr(argv, capsys):
@@ -84,3 +84,14 @@ def test_diagram_into_an_unwritable_place_is_refused(tmp_path, capsys):
                                      capsys)
     assert code == 2
     assert f"cannot write to {a_file}" in err
+
+
+def test_run_against_no_station_on_lcm_says_so_in_one_line(capsys):
+    code, err = exit_code_and_stderr([
+        "run", "levitate", "--no-meshcat", "--duration", "0.1", "--scenario-text",
+        "{station: !LcmStation {url: 'udpm://239.255.76.67:7999?ttl=0', "
+        "channel_prefix: NOBODY_, wait_for_station_s: 0.2}}"], capsys)
+    assert code == 2
+    assert err.strip().splitlines()[-1] == ("maglev run: error: no message on LCM channel 'NOBODY_MARKERS' "
+                           "within 0.2 s: is the station running (maglev device-sim SCENARIO, "
+                           "or the device's drivers) on the same LCM URL?")
