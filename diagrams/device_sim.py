@@ -11,8 +11,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import lcm
 import numpy as np
-from pydrake.lcm import DrakeLcm
 from pydrake.systems.framework import Diagram, DiagramBuilder
 from pydrake.systems.primitives import ConstantVectorSource, Multiplexer
 
@@ -60,7 +60,7 @@ def BuildDeviceSim(scenario) -> DeviceSim:
     builder = DiagramBuilder()
     station = builder.AddSystem(MakeStation(scenario, magnetics=load_magnetics(device)))
     commands = builder.AddNamedSystem("commands_receiver", MessageReceiver(
-        lcm=DrakeLcm(station_config.url), channel=channel(station_config, COIL_CURRENTS_COMMANDED),
+        lcm=lcm.LCM(station_config.url), channel=channel(station_config, COIL_CURRENTS_COMMANDED),
         message_type=coil_currents_t, size=n_coils,
         decode=lambda message: np.array(message.current_a, dtype=float),
         stale_value=np.zeros(n_coils), stale_after_s=station_config.command_timeout_s,
@@ -68,7 +68,7 @@ def BuildDeviceSim(scenario) -> DeviceSim:
     builder.Connect(commands.GetOutputPort("value"),
                     station.GetInputPort("coil_currents_commanded"))
 
-    publisher = DrakeLcm(station_config.url)
+    publisher = lcm.LCM(station_config.url)
 
     def send(name, value_port, encode, send_period_s):
         sender = builder.AddNamedSystem(f"{name.lower()}_sender", MessageSender(

@@ -14,18 +14,20 @@ other end: the simulated station alone, speaking the same messages. Channels (``
 
 The default URL is UDP multicast with ttl=0: the messages never leave this host.
 
-Drake's DrakeLcm carries the messages; its LcmSubscriberSystem and
-LcmPublisherSystem do not: with Python message types they cost ~1 ms a tick
-(the device side ran 1,450 us a tick with them against 400 without), so each
-receiver and sender (``systems/station_messages.py``) encodes and decodes
-itself, on vector ports.
+The ``lcm`` package carries the messages, not Drake's LCM systems: with Python
+message types LcmSubscriberSystem and LcmPublisherSystem cost ~1 ms a tick (the
+device side ran 1,450 us a tick with them against 400 without), and
+``DrakeLcm.HandleSubscriptions`` handles one message a call and drops those
+queued behind it (5 published, 1 handled, however often it is called), which a
+1 kHz loop cannot afford. Each receiver and sender
+(``systems/station_messages.py``) encodes and decodes itself, on vector ports.
 """
 
 
 from dataclasses import dataclass
 
+import lcm
 import numpy as np
-from pydrake.lcm import DrakeLcm
 from pydrake.systems.framework import Diagram, DiagramBuilder
 
 from maglev_haptics.hardware.config_checks import positive, require
@@ -108,7 +110,7 @@ def MakeLcmStation(scenario) -> Diagram:
     def receive(name, message_type, size, decode, stale_value, stale_after_s, wait_s=0.0,
                 initial_value=None):
         return builder.AddNamedSystem(f"{name.lower()}_receiver", MessageReceiver(
-            lcm=DrakeLcm(station.url), channel=channel(station, name), message_type=message_type,
+            lcm=lcm.LCM(station.url), channel=channel(station, name), message_type=message_type,
             size=size, decode=decode, stale_value=stale_value, stale_after_s=stale_after_s,
             period_s=period_s, initial_value=initial_value, wait_s=wait_s))
 
@@ -127,7 +129,7 @@ def MakeLcmStation(scenario) -> Diagram:
                          None, np.inf, initial_value=np.zeros(1))
         builder.ExportOutput(status.GetOutputPort("value"), "handle_gripped")
     sender = builder.AddNamedSystem("coil_currents_commanded_sender", MessageSender(
-        lcm=DrakeLcm(station.url), channel=channel(station, COIL_CURRENTS_COMMANDED),
+        lcm=lcm.LCM(station.url), channel=channel(station, COIL_CURRENTS_COMMANDED),
         size=n_coils, encode=currents_message, period_s=period_s))
     builder.ExportInput(sender.GetInputPort("value"), "coil_currents_commanded")
     diagram = builder.Build()
