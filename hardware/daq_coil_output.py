@@ -1,0 +1,79 @@
+"""The coils' driver: commanded currents from LCM to the amplifiers' analog inputs.
+
+A small adapter for current-mode amplifiers driven by an NI analog-output card
+through ``nidaqmx``: each ``coil_currents_t`` command on the application's
+channel becomes one voltage per coil, ``current / amps_per_volt``, written to
+the card's channels in coil order. A command that breaks the contract (another
+coil count, a non-finite or over-limit current) is never written: the outputs
+go to 0 V (coils off) and the reason is returned. NI-DAQmx itself (the vendor's
+runtime) must be installed on the machine with the card.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import List, Optional, Tuple
+
+import numpy as np
+
+from maglev_haptics.hardware.extras import require_extra
+from maglev_haptics.hardware.lcm_messages import coil_currents_t
+
+
+@dataclass
+class CoilOutputContract:
+    """What the card may be asked for: ``n_coils`` currents within ``current_limit_a``
+    (A), at ``amps_per_volt`` (A/V) of amplifier transconductance."""
+
+    n_coils: int
+    current_limit_a: float
+    amps_per_volt: float
+
+
+def coil_voltages(message: coil_currents_t,
+                  contract: CoilOutputContract) -> Tuple[np.ndarray, Optional[str]]:
+    """(volts (n_coils,), None) for a command within the contract; else
+    (zeros, why): every coil off."""
+    off = np.zeros(contract.n_coils)
+    if message.num_coils != contract.n_coils:
+        return off, (f"command for {message.num_coils} coils: the card drives "
+                     f"{contract.n_coils}")
+    currents = np.asarray(message.current_a, dtype=float)
+    if not np.all(np.isfinite(currents)):
+        return off, "command holds a non-finite current"
+    worst = float(np.max(np.abs(currents))) if currents.size else 0.0
+    # A hair over from rounding is the limit; more is a broken command.
+    if worst > contract.current_limit_a * (1 + 1e-9):
+        return off, (f"command of {worst:.3f} A exceeds the {contract.current_limit_a} A "
+                     "current limit")
+    return currents / contract.amps_per_volt, None
+
+
+class DaqCoilOutput:
+    """Writes commanded coil currents to an NI card's analog outputs.
+
+    ``channels`` are NI-DAQmx physical channel names in coil order
+    (``["Dev1/ao0", ...]``). ``apply(message)`` writes one command and returns
+    None, or why it turned the coils off instead.
+    """
+
+    def __init__(self, channels: List[str], contract: CoilOutputContract):
+        nidaqmx = require_extra("nidaqmx", "The coil current output (NI DAQ)")
+        if len(channels) != contract.n_coils:
+            raise ValueError(f"channels has {len(channels)} entries: the contract has "
+                             f"{contract.n_coils} coils")
+        self._contract = contract
+        self._task = nidaqmx.Task()
+        limit_v = contract.current_limit_a / contract.amps_per_volt
+        for name in channels:
+            self._task.ao_channels.add_ao_voltage_chan(name, min_val=-limit_v, max_val=limit_v)
+
+    def apply(self, message: coil_currents_t) -> Optional[str]:
+        volts, why = coil_voltages(message, self._contract)
+        self._task.write(volts.tolist(), auto_start=True)
+        return why
+
+    def close(self) -> None:
+        self._task.write([0.0] * self._contract.n_coils, auto_start=True)  # coils off
+        self._task.close()
+
