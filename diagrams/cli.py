@@ -52,6 +52,13 @@ def _realtime_rate(text: str) -> float:
     return rate
 
 
+def _positive_rate(text: str) -> float:
+    rate = _realtime_rate(text)
+    if rate == 0:
+        raise argparse.ArgumentTypeError(f"{text!r}: must be > 0 (a station keeps a clock)")
+    return rate
+
+
 def _subsystem_levels(text: str) -> int:
     """argparse type of --depth: a whole number >= 0."""
     try:
@@ -179,7 +186,7 @@ def _cmd_device_sim(args) -> int:
           f"({lcm_config(scenario).url}); stops {device_sim.stop_after_silence_s:g} s after "
           "the application's last command, or after --duration", file=sys.stderr)
     simulator, wall_s, tick_times = simulate(
-        device_sim, args.duration, realtime_rate=1.0, label=f"device-sim {label}",
+        device_sim, args.duration, realtime_rate=args.realtime, label=f"device-sim {label}",
         interruptible=True, stop=device_sim.application_gone)
     context = simulator.get_context()
     receiver = device_sim.command_receiver
@@ -323,6 +330,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_scenario_arguments(device_sim)
     device_sim.add_argument("--duration", type=_positive_seconds, default=3600.0,
                             help="longest it runs (s; default 3600)")
+    device_sim.add_argument("--realtime", type=_positive_rate, default=1.0,
+                            help="real-time rate > 0 (default 1); the application must run "
+                            "at the same --realtime")
     device_sim.set_defaults(func=_cmd_device_sim)
 
     diagram = commands.add_parser(

@@ -60,7 +60,8 @@ def BuildDeviceSim(scenario) -> DeviceSim:
     builder = DiagramBuilder()
     station = builder.AddSystem(MakeStation(scenario, magnetics=load_magnetics(device)))
     commands = builder.AddNamedSystem("commands_receiver", MessageReceiver(
-        lcm=lcm.LCM(station_config.url), channel=channel(station_config, COIL_CURRENTS_COMMANDED),
+        lcm=lcm.LCM(station_config.command_url),
+        channel=channel(station_config, COIL_CURRENTS_COMMANDED),
         message_type=coil_currents_t, size=n_coils,
         decode=lambda message: np.array(message.current_a, dtype=float),
         stale_value=np.zeros(n_coils), stale_after_s=station_config.command_timeout_s,

@@ -36,7 +36,10 @@ from maglev_haptics.hardware.lcm_messages import (
 from maglev_haptics.systems.station_messages import (
     MessageReceiver, MessageSender, currents_message, markers_from_message)
 
-DEFAULT_LCM_URL = "udpm://239.255.76.67:7667?ttl=0"  # multicast that stays on this host
+# Multicast that stays on this host; one port a direction, so no process receives
+# its own messages (each one is a wake-up of LCM's receive thread).
+DEFAULT_LCM_URL = "udpm://239.255.76.67:7667?ttl=0"
+DEFAULT_COMMAND_URL = "udpm://239.255.76.67:7668?ttl=0"
 MARKERS = "MARKERS"
 COIL_CURRENTS_COMMANDED = "COIL_CURRENTS_COMMANDED"
 COIL_CURRENTS = "COIL_CURRENTS"
@@ -55,7 +58,8 @@ class SimStation:
 class LcmStation:
     """Whatever station answers on LCM: ``maglev device-sim`` or a lab's drivers."""
 
-    url: str = DEFAULT_LCM_URL
+    url: str = DEFAULT_LCM_URL  # the device's messages to the application
+    command_url: str = DEFAULT_COMMAND_URL  # the application's commands to the device
     channel_prefix: str = "MAGLEV_"
     # A marker message older than the tracker's period plus its latency plus this
     # is a sensor out of range: the markers read as unseen (s).
@@ -69,8 +73,10 @@ class LcmStation:
 
     def validate(self, path: str = "station") -> None:
         """Range checks; a ValueError names ``path.field``, its value and what is allowed."""
-        require(self.url.split("://")[0] in ("udpm", "memq", "file"), f"{path}.url",
-                self.url, "must be an LCM URL: udpm://..., memq:// or file://...")
+        for name in ("url", "command_url"):
+            value = getattr(self, name)
+            require(value.split("://")[0] == "udpm", f"{path}.{name}", value,
+                    "must be an LCM UDP multicast URL, udpm://GROUP:PORT?ttl=0")
         require(self.channel_prefix.replace("_", "").isalnum() or self.channel_prefix == "",
                 f"{path}.channel_prefix", self.channel_prefix,
                 "must be letters, digits and underscores")
@@ -106,11 +112,12 @@ def MakeLcmStation(scenario) -> Diagram:
     n_markers = len(device.instrument_spec().p_IK_m)
     period_s = 1.0 / scenario.control_rate_hz
     builder = DiagramBuilder()
+    inbound = lcm.LCM(station.url)  # shared: whichever receiver updates first reads for all
 
     def receive(name, message_type, size, decode, stale_value, stale_after_s, wait_s=0.0,
                 initial_value=None):
         return builder.AddNamedSystem(f"{name.lower()}_receiver", MessageReceiver(
-            lcm=lcm.LCM(station.url), channel=channel(station, name), message_type=message_type,
+            lcm=inbound, channel=channel(station, name), message_type=message_type,
             size=size, decode=decode, stale_value=stale_value, stale_after_s=stale_after_s,
             period_s=period_s, initial_value=initial_value, wait_s=wait_s))
 
@@ -129,7 +136,7 @@ def MakeLcmStation(scenario) -> Diagram:
                          None, np.inf, initial_value=np.zeros(1))
         builder.ExportOutput(status.GetOutputPort("value"), "handle_gripped")
     sender = builder.AddNamedSystem("coil_currents_commanded_sender", MessageSender(
-        lcm=lcm.LCM(station.url), channel=channel(station, COIL_CURRENTS_COMMANDED),
+        lcm=lcm.LCM(station.command_url), channel=channel(station, COIL_CURRENTS_COMMANDED),
         size=n_coils, encode=currents_message, period_s=period_s))
     builder.ExportInput(sender.GetInputPort("value"), "coil_currents_commanded")
     diagram = builder.Build()

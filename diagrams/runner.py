@@ -52,10 +52,18 @@ def realtime_report(times: TickTimes) -> Dict:
     }
 
 
+# The last stretch before a slot is spun, not slept: a core that idles wakes cold.
+# Spinning the whole wait (on the 2-core test machine levitate missed 1.7-1.8% of its
+# slots sleeping and 0.08-0.1% spinning, 15 s runs alternated) leaves no core for a
+# second process, such as the device's on LCM; so the wait sleeps until this much
+# before the slot.
+SPIN_BEFORE_SLOT_S = 0.0003
+
+
 def _wait_until(wall_s: float) -> None:
-    # Spun, not slept: a core that idles between ticks wakes cold. On the 2-core test
-    # machine levitate missed 1.7-1.8% of its slots with sleep and 0.08-0.1% spinning
-    # (15 s runs alternated). The loop owns its core; the lattice worker has the other.
+    ahead_s = wall_s - time.perf_counter() - SPIN_BEFORE_SLOT_S
+    if ahead_s > 0:
+        time.sleep(ahead_s)
     while time.perf_counter() < wall_s:
         pass
 

@@ -118,8 +118,9 @@ class MessageReceiver(LeafSystem):
         - value
 
     Every ``period_s`` (s) the update reads everything that arrived on ``channel``
-    of ``lcm`` (an ``lcm.LCM`` of its own, so no other system's polling takes its
-    messages), counts it, and keeps the newest, ``decode(message) -> (size,)``.
+    of ``lcm`` (an ``lcm.LCM``, which receivers may share: whichever drains it hands
+    each its own messages), counts it, and keeps the newest,
+    ``decode(message) -> (size,)``.
     ``stale_value`` (or None: hold the newest) is output before the first message
     and once the newest is older than ``stale_after_s`` (s, on this diagram's
     clock, which a paced run keeps on the wall clock). With ``wait_s`` > 0,

@@ -90,6 +90,7 @@ def test_run_against_no_station_on_lcm_says_so_in_one_line(capsys):
     code, err = exit_code_and_stderr([
         "run", "levitate", "--no-meshcat", "--duration", "0.1", "--scenario-text",
         "{station: !LcmStation {url: 'udpm://239.255.76.67:7999?ttl=0', "
+        "command_url: 'udpm://239.255.76.67:7998?ttl=0', "
         "channel_prefix: NOBODY_, wait_for_station_s: 0.2}}"], capsys)
     assert code == 2
     assert err.strip().splitlines()[-1] == ("maglev run: error: no message on LCM channel 'NOBODY_MARKERS' "

@@ -39,16 +39,18 @@ def test_lcm_station_refuses_what_it_cannot_carry(tmp_path):
         load_scenario("levitate", scenario_text="{station: !LcmStation {}, stereo: {}}")
 
 
-@pytest.fixture(scope="module")
-def lockstep_run():
+@pytest.fixture(scope="module", params=[("levitate", 2.0), ("peg_in_hole", 3.0)],
+                ids=["levitate", "peg_in_hole"])
+def lockstep_run(request):
     """The application and device-sim diagrams stepped in lock-step in this process,
     talking only through LCM (multicast that stays on this host): the instrument flies
     as in the all-in-one run, within what the messages' added tick of latency explains.
     Returns (scenario, duration_s, application, its context, the run's log)."""
-    port = 7700 + os.getpid() % 200  # no other test run's traffic
-    scenario = load_scenario("levitate", scenario_text=(
+    name, duration_s = request.param
+    port = 7700 + 4 * (os.getpid() % 50) + 2 * (name == "peg_in_hole")  # no other run's traffic
+    scenario = load_scenario(name, scenario_text=(
         f"{{station: !LcmStation {{url: 'udpm://239.255.76.67:{port}?ttl=0', "
-        "channel_prefix: TEST_}}"))
+        f"command_url: 'udpm://239.255.76.67:{port + 1}?ttl=0', channel_prefix: TEST_}}}}"))
     application = BuildDiagram(scenario)  # subscribes before the device publishes
     device = BuildDeviceSim(scenario)
     device_simulator = Simulator(device.diagram)
@@ -56,20 +58,20 @@ def lockstep_run():
     device_simulator.AdvanceTo(0.001)  # its first tracker sample, for the application's start
     simulator = Simulator(application.diagram)
     simulator.Initialize()
-    duration_s, tick_s = 2.0, application.tick_s
+    tick_s = application.tick_s
     for k in range(int(round(duration_s / tick_s))):
         simulator.AdvanceTo((k + 1) * tick_s)
         device_simulator.AdvanceTo(0.001 + (k + 1) * tick_s)
     log = log_arrays(application.logger, application.log_layout, simulator.get_context(),
                      scenario.device)
-    return scenario, duration_s, application, simulator.get_context(), log
+    return name, scenario, duration_s, application, simulator.get_context(), log
 
 
 def test_levitation_over_lcm_follows_the_all_in_one_run(lockstep_run):
-    scenario, duration_s, _, _, log = lockstep_run
+    name, scenario, duration_s, _, _, log = lockstep_run
     assert "p_WI_true" not in log  # no truth from a station on LCM
 
-    reference = BuildDiagram(load_scenario("levitate"))
+    reference = BuildDiagram(load_scenario(name))
     reference_simulator = Simulator(reference.diagram)
     reference_simulator.Initialize()
     reference_simulator.AdvanceTo(duration_s)
@@ -80,11 +82,14 @@ def test_levitation_over_lcm_follows_the_all_in_one_run(lockstep_run):
     assert flying.sum() > 500
     deviation_m = np.abs(log["p_WI_measured"][:n] - expected["p_WI_measured"][:n])[flying]
     assert deviation_m.max() < 0.5e-3
+    if name == "peg_in_hole":  # the hand's grip arrives in the device's status: haptics engages
+        assert np.any(log["handle_gripped"] > 0.5)
+        np.testing.assert_array_equal(log["haptic_mode"][-200:], expected["haptic_mode"][n - 200:n])
 
 
 def test_no_message_is_lost_in_steady_state(lockstep_run):
     """Every tracker sample and measured current the device sent is read and counted."""
-    scenario, duration_s, application, context, _ = lockstep_run
+    _, scenario, duration_s, application, context, _ = lockstep_run
     counts = station_counts(application.diagram, context)
     markers = counts["channels"]["markers"]
     assert markers["messages_received"] > 0.95 * duration_s * scenario.device.tracker.rate_hz

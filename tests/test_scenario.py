@@ -45,7 +45,7 @@ def test_levitate_names_the_required_scenarios():
     ("a: {marker_dropout_probability: 1.5}", "marker_dropout_probability = 1.5: must be in [0, 1]"),
     ("a: {hardware: real}", "hardware: unknown field"),
     ("a: {station: {url: x}}", "station: needs a tag to choose its kind, one of !SimStation, !LcmStation"),
-    ("a: {station: !LcmStation {url: 'tcp://10.0.0.1'}}", "station.url = 'tcp://10.0.0.1': must be an LCM URL"),
+    ("a: {station: !LcmStation {url: 'tcp://10.0.0.1'}}", "station.url = 'tcp://10.0.0.1': must be an LCM UDP multicast URL"),
     ("a: {station: !LcmStation {stale_margin_s: -1}}", "station.stale_margin_s = -1"),
 ])
 def test_bad_values_name_the_field(tmp_path, text, fragment):
