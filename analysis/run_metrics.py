@@ -120,6 +120,7 @@ def _optional_arrays(data) -> Dict[str, np.ndarray]:
         arrays["coupling_clamped"] = data["coupling_clamped"][:, 0]
     if "head_pose" in data:
         arrays["head_pose"] = data["head_pose"]
+    if "glasses_measured" in data:
         arrays["glasses_measured"] = data["glasses_measured"]
         arrays["X_WG_predicted"] = data["X_WG_predicted"]
         arrays["X_WG_latest"] = data["X_WG_latest"]

@@ -104,6 +104,6 @@ def run_scenario(scenario: Scenario, *, label: str, out_dir: Optional[Path] = No
             plot_haptics(log, out_dir, title=label)
         if tick_times is not None:
             plot_tick_times(tick_times, out_dir, title=label)
-        if scenario.stereo is not None:
+        if "head_pose" in log:  # the true head: a simulated station's
             plot_colocation(log, scenario, out_dir, title=label)
     return RunResult(summary=summary, log=log, meshcat=viewer)

@@ -128,9 +128,11 @@ def colocation_summary(log: Dict[str, np.ndarray], scenario) -> Dict:
 
 
 def stereo_summary(log, scenario, parts, video_summary) -> Dict:
-    """summary.json's ``stereo``: co-location errors, and the frames rendered and written."""
-    summary = {"colocation": colocation_summary(log, scenario),
-               "view_rate_hz": 1.0 / parts.view.view_period_s}
+    """summary.json's ``stereo``: co-location errors (against the true head, so only
+    with a simulated station), and the frames rendered and written."""
+    summary = {"view_rate_hz": 1.0 / parts.view.view_period_s}
+    if "head_pose" in log:
+        summary["colocation"] = colocation_summary(log, scenario)
     renderer = parts.renderer
     if renderer is not None:
         summary["images"] = {

@@ -151,7 +151,8 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
         stereo = AddStereoDisplay(builder, scenario=scenario, station=station,
                                   query_object_port=virtual_world, meshcat=meshcat,
                                   frame_sink=frame_sink, realtime=realtime, surface=surface)
-        logged_ports["head_pose"] = station.GetOutputPort("head_pose")
+        if simulated:  # the true head
+            logged_ports["head_pose"] = station.GetOutputPort("head_pose")
         logged_ports["glasses_measured"] = station.GetOutputPort("glasses_measured")
         for name in ("X_WG_predicted", "X_WG_latest"):
             logged_ports[name] = stereo.predictor.GetOutputPort(name)

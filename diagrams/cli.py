@@ -155,7 +155,7 @@ def _cmd_run(args) -> int:
     printed = {k: v for k, v in result.summary.items() if k != "holds"}
     print(json.dumps(printed, indent=2))
     plots = "levitation.png" + (", haptics.png" if scenario.haptics is not None else "")
-    plots += ", stereo.png" if scenario.stereo is not None else ""
+    plots += ", stereo.png" if "head_pose" in result.log else ""
     plots += ", realtime.png" if "realtime" in result.summary else ""
     print(f"wrote {out}/log.npz, {out}/summary.json, {out}/{plots}")
     realtime_summary = result.summary.get("realtime")

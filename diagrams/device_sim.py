@@ -18,17 +18,19 @@ from pydrake.systems.primitives import ConstantVectorSource, Multiplexer
 
 from maglev_haptics.diagrams.haptics import AddHandCommands
 from maglev_haptics.diagrams.lcm_station import (
-    COIL_CURRENTS, COIL_CURRENTS_COMMANDED, DEVICE_STATUS, MARKERS, channel, lcm_config)
+    COIL_CURRENTS, COIL_CURRENTS_COMMANDED, DEVICE_STATUS, GLASSES, MARKERS, channel,
+    lcm_config)
 from maglev_haptics.diagrams.station import MakeStation
 from maglev_haptics.hardware.lcm_messages import coil_currents_t, device_status_t
 from maglev_haptics.hardware.magnetics import load_magnetics
 from maglev_haptics.hardware.thermal import coil_thermal
 from maglev_haptics.systems.coil_thermal import CoilTemperatures
 from maglev_haptics.systems.station_messages import (
-    MessageReceiver, MessageSender, currents_message, markers_message, status_message)
+    MessageReceiver, MessageSender, currents_message, glasses_measurement_message,
+    markers_message, status_message)
 
-# The grip sensor and the coils' temperatures (time constant ~1 min) need no more
-# than 100 Hz.
+# The grip sensor, the coils' temperatures (time constant ~1 min) and the 10 Hz head
+# tracker need no more than 100 Hz.
 STATUS_PERIOD_S = 0.01
 
 
@@ -63,7 +65,7 @@ def BuildDeviceSim(scenario) -> DeviceSim:
         lcm=lcm.LCM(station_config.command_url),
         channel=channel(station_config, COIL_CURRENTS_COMMANDED),
         message_type=coil_currents_t, size=n_coils,
-        decode=lambda message: np.array(message.current_a, dtype=float),
+        decode=lambda message, _: np.array(message.current_a, dtype=float),
         stale_value=np.zeros(n_coils), stale_after_s=station_config.command_timeout_s,
         period_s=period_s))
     builder.Connect(commands.GetOutputPort("value"),
@@ -101,6 +103,11 @@ def BuildDeviceSim(scenario) -> DeviceSim:
              device_status_t.FAULT_COIL_OVER_TEMPERATURE if np.any(value[1:] > thermal.max_c)
              else 0, value[1:]),
          STATUS_PERIOD_S)
+    if scenario.stereo is not None:
+        # The head tracker's latency ends between its 10 Hz samples: sent at 100 Hz,
+        # each sample leaves within 10 ms of its release.
+        send(GLASSES, station.GetOutputPort("glasses_measured"), glasses_measurement_message,
+             STATUS_PERIOD_S)
     diagram = builder.Build()
     diagram.set_name("device_sim")
     return DeviceSim(diagram=diagram, tick_s=period_s, command_receiver=commands,

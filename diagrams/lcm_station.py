@@ -10,7 +10,9 @@ other end: the simulated station alone, speaking the same messages. Channels (``
 - ``COIL_CURRENTS_COMMANDED`` (coil_currents_t, application -> device, the control rate);
 - ``COIL_CURRENTS`` (coil_currents_t, device -> application: what flows);
 - ``DEVICE_STATUS`` (device_status_t, device -> application: grip, faults, coil
-  temperatures).
+  temperatures);
+- ``GLASSES`` (glasses_t, device -> application, with the stereo display: the
+  head tracker's samples).
 
 The default URL is UDP multicast with ttl=0: the messages never leave this host.
 
@@ -32,9 +34,10 @@ from pydrake.systems.framework import Diagram, DiagramBuilder
 
 from maglev_haptics.hardware.config_checks import positive, require
 from maglev_haptics.hardware.lcm_messages import (
-    coil_currents_t, device_status_t, markers_t)
+    coil_currents_t, device_status_t, glasses_t, markers_t)
 from maglev_haptics.systems.station_messages import (
-    MessageReceiver, MessageSender, currents_message, markers_from_message)
+    MessageReceiver, MessageSender, currents_message, glasses_measurement_from_message,
+    markers_from_message)
 
 # Multicast that stays on this host; one port a direction, so no process receives
 # its own messages (each one is a wake-up of LCM's receive thread).
@@ -44,6 +47,8 @@ MARKERS = "MARKERS"
 COIL_CURRENTS_COMMANDED = "COIL_CURRENTS_COMMANDED"
 COIL_CURRENTS = "COIL_CURRENTS"
 DEVICE_STATUS = "DEVICE_STATUS"
+GLASSES = "GLASSES"
+GLASSES_MEASUREMENT_SIZE = 9  # [capture time, q_WG (wxyz), p_WG, ok]: systems/head_sensor.py
 
 
 @dataclass
@@ -103,7 +108,8 @@ def marker_stale_after_s(scenario, station: LcmStation) -> float:
 def MakeLcmStation(scenario) -> Diagram:
     """The application's station for ``scenario.station`` (an LcmStation), named
     ``station``: input ``coil_currents_commanded``; outputs ``markers_measured``,
-    ``coil_currents`` and, with a hand in the scenario, ``handle_gripped``. Its
+    ``coil_currents``, with a hand in the scenario ``handle_gripped``, with the
+    stereo display ``glasses_measured``. Its
     receivers (``markers_receiver``, ...) count the messages they read and lost;
     building it waits up to ``wait_for_station_s`` for the station's markers."""
     station = scenario.station
@@ -122,19 +128,24 @@ def MakeLcmStation(scenario) -> Diagram:
             period_s=period_s, initial_value=initial_value, wait_s=wait_s))
 
     markers = receive(MARKERS, markers_t, 3 * n_markers,
-                      lambda message: markers_from_message(message, n_markers),
+                      lambda message, _: markers_from_message(message, n_markers),
                       np.full(3 * n_markers, np.nan), marker_stale_after_s(scenario, station),
                       wait_s=station.wait_for_station_s)
     builder.ExportOutput(markers.GetOutputPort("value"), "markers_measured")
     currents = receive(COIL_CURRENTS, coil_currents_t, n_coils,
-                       lambda message: np.array(message.current_a, dtype=float),
+                       lambda message, _: np.array(message.current_a, dtype=float),
                        None, np.inf, initial_value=np.zeros(n_coils))
     builder.ExportOutput(currents.GetOutputPort("value"), "coil_currents")
     if scenario.hand is not None:
         status = receive(DEVICE_STATUS, device_status_t, 1,
-                         lambda message: np.array([float(message.handle_gripped)]),
+                         lambda message, _: np.array([float(message.handle_gripped)]),
                          None, np.inf, initial_value=np.zeros(1))
         builder.ExportOutput(status.GetOutputPort("value"), "handle_gripped")
+    if scenario.stereo is not None:
+        glasses = receive(GLASSES, glasses_t, GLASSES_MEASUREMENT_SIZE,
+                          glasses_measurement_from_message, None, np.inf,
+                          initial_value=glasses_measurement_from_message(glasses_t(), 0.0))
+        builder.ExportOutput(glasses.GetOutputPort("value"), "glasses_measured")
     sender = builder.AddNamedSystem("coil_currents_commanded_sender", MessageSender(
         lcm=lcm.LCM(station.command_url), channel=channel(station, COIL_CURRENTS_COMMANDED),
         size=n_coils, encode=currents_message, period_s=period_s))
@@ -148,7 +159,7 @@ def station_counts(diagram, context) -> dict:
     """What the application's LCM station read and lost, per channel, and in all."""
     station = diagram.GetSubsystemByName("station")
     counts = {}
-    for name in (MARKERS, COIL_CURRENTS, DEVICE_STATUS):
+    for name in (MARKERS, COIL_CURRENTS, DEVICE_STATUS, GLASSES):
         system_name = f"{name.lower()}_receiver"
         if station.HasSubsystemNamed(system_name):
             receiver = station.GetSubsystemByName(system_name)

@@ -157,9 +157,9 @@ class Scenario:
             self.stereo.validate(f"{label}: stereo", self.device, f"{label}: device")
         self.station.validate(f"{label}: station")
         if isinstance(self.station, LcmStation):
-            require(self.stereo is None, f"{label}: stereo", "set",
-                    "must be null with station: !LcmStation (the glasses' messages are not "
-                    "carried yet)")
+            require(self.stereo is None or self.haptics is not None, f"{label}: stereo", "set",
+                    "needs a haptic scene with station: !LcmStation (without one the display "
+                    "draws the simulated station's instrument, which a real station has not)")
             require(not isinstance(self.hand, MeshcatHand), f"{label}: hand", "!MeshcatHand",
                     "must be a !ScriptedHand or null with station: !LcmStation (the simulated "
                     "hand is the device's, and device-sim has no Meshcat)")

@@ -6,8 +6,7 @@ values, so the application cannot tell a simulated station from a real one.
 Times on the wire are integer microseconds on the sender's clock.
 
 Each receiver counts what it got: ``received`` messages it read, ``lost`` the
-gaps in their ``sequence`` numbers (a message never read, whether the network
-dropped it or a newer one overtook it between two ticks). A receiver whose
+gaps in their ``sequence`` numbers (messages that never arrived). A receiver whose
 newest message is older than ``stale_after_s`` reports it the way the hardware
 would report a missing signal: markers all NaN (so the estimator loses
 tracking and the controller lands blind), currents and grip held.
@@ -22,7 +21,8 @@ import time
 import numpy as np
 from pydrake.systems.framework import LeafSystem
 
-from maglev_haptics.hardware.lcm_messages import coil_currents_t, device_status_t, markers_t
+from maglev_haptics.hardware.lcm_messages import (
+    coil_currents_t, device_status_t, glasses_t, markers_t)
 
 US_PER_S = 1_000_000
 # Receiver state: [newest sequence read, its arrival time (s), first sequence, received]
@@ -59,6 +59,31 @@ def markers_from_message(message: markers_t, n_markers: int) -> np.ndarray:
     p_WK = np.array(message.position_m, dtype=float).reshape(n_markers, 3)
     p_WK[~np.array(message.visible, dtype=bool)] = np.nan
     return p_WK.ravel()
+
+
+def glasses_measurement_message(sequence: int, t_s: float,
+                                measurement: np.ndarray) -> glasses_t:
+    """The head sensor's ``glasses_measured`` (9: [capture time (s), q_WG (wxyz),
+    p_WG (m), ok]) as a ``glasses_t`` published at ``t_s``."""
+    message = glasses_t()
+    message.sequence = int(sequence)
+    seen = measurement[8] > 0.5 and math.isfinite(measurement[0])
+    message.capture_utime = to_utime(measurement[0] if seen else t_s)
+    message.publish_utime = to_utime(t_s)
+    message.quaternion_wxyz = measurement[1:5].tolist() if seen else [1.0, 0.0, 0.0, 0.0]
+    message.position_m = measurement[5:8].tolist() if seen else [0.0, 0.0, 0.0]
+    message.ok = bool(seen)
+    return message
+
+
+def glasses_measurement_from_message(message: glasses_t, arrival_s: float) -> np.ndarray:
+    """``glasses_measured`` (9) from a ``glasses_t`` that arrived at ``arrival_s`` (s,
+    the receiver's clock): its capture time is the arrival less the age the sender
+    stamped on it (publish - capture), since the two clocks differ."""
+    if not message.ok:
+        return np.array([-math.inf] + [math.nan] * 7 + [0.0])
+    age_s = (message.publish_utime - message.capture_utime) / US_PER_S
+    return np.array([arrival_s - age_s, *message.quaternion_wxyz, *message.position_m, 1.0])
 
 
 def currents_message(sequence: int, t_s: float, currents_a: np.ndarray) -> coil_currents_t:
@@ -170,8 +195,8 @@ class MessageReceiver(LeafSystem):
         for data in self._arrived:
             counters = receiver_step(counters, message_sequence(data), context.get_time())
         discrete_state.set_value(self._counters, counters)
-        discrete_state.set_value(
-            self._held, self._decode(self._message_type.decode(self._arrived[-1])))
+        discrete_state.set_value(self._held, self._decode(
+            self._message_type.decode(self._arrived[-1]), context.get_time()))
         self._arrived.clear()
 
     def _calc_value(self, context, output):

@@ -12,9 +12,10 @@ from maglev_haptics.diagrams.application import BuildDiagram
 from maglev_haptics.diagrams.device_sim import BuildDeviceSim
 from maglev_haptics.diagrams.lcm_station import station_counts
 from maglev_haptics.diagrams.scenario import ScenarioError, load_scenario
-from maglev_haptics.hardware.lcm_messages import markers_t
+from maglev_haptics.hardware.lcm_messages import glasses_t, markers_t
 from maglev_haptics.systems.station_messages import (
-    markers_from_message, markers_message, message_sequence, receiver_counts, receiver_step)
+    glasses_measurement_from_message, glasses_measurement_message, markers_from_message,
+    markers_message, message_sequence, receiver_counts, receiver_step)
 
 
 def test_markers_round_trip_with_hidden_markers():
@@ -34,9 +35,21 @@ def test_receiver_counts_gaps_as_lost_and_ignores_repeats():
     assert receiver_counts(state) == {"messages_received": 4, "messages_lost": 2}
 
 
-def test_lcm_station_refuses_what_it_cannot_carry(tmp_path):
-    with pytest.raises(ScenarioError, match="stereo"):
+def test_lcm_station_refuses_what_it_cannot_carry():
+    with pytest.raises(ScenarioError, match="stereo = 'set': needs a haptic scene"):
         load_scenario("levitate", scenario_text="{station: !LcmStation {}, stereo: {}}")
+
+
+def test_glasses_sample_keeps_its_age_across_clocks():
+    measurement = np.array([0.970, 1.0, 0.0, 0.0, 0.0, 0.01, -0.3, 0.45, 1.0])
+    message = glasses_t.decode(glasses_measurement_message(3, 1.0, measurement).encode())
+    assert message.ok and message.publish_utime - message.capture_utime == 30_000
+    received = glasses_measurement_from_message(message, 5.002)  # another clock
+    np.testing.assert_allclose(received, [4.972, *measurement[1:]], atol=1e-12)
+    unseen = measurement.copy()
+    unseen[8] = 0.0
+    assert glasses_measurement_from_message(
+        glasses_t.decode(glasses_measurement_message(4, 1.1, unseen).encode()), 5.1)[8] == 0.0
 
 
 @pytest.fixture(scope="module", params=[("levitate", 2.0), ("peg_in_hole", 3.0)],
@@ -48,9 +61,12 @@ def lockstep_run(request):
     Returns (scenario, duration_s, application, its context, the run's log)."""
     name, duration_s = request.param
     port = 7700 + 4 * (os.getpid() % 50) + 2 * (name == "peg_in_hole")  # no other run's traffic
+    # peg_in_hole with the stereo display (views only): the glasses come over LCM too.
+    stereo = ", stereo: {images: {rate_hz: 0}}" if name == "peg_in_hole" else ""
     scenario = load_scenario(name, scenario_text=(
         f"{{station: !LcmStation {{url: 'udpm://239.255.76.67:{port}?ttl=0', "
-        f"command_url: 'udpm://239.255.76.67:{port + 1}?ttl=0', channel_prefix: TEST_}}}}"))
+        f"command_url: 'udpm://239.255.76.67:{port + 1}?ttl=0', channel_prefix: TEST_}}"
+        f"{stereo}}}"))
     application = BuildDiagram(scenario)  # subscribes before the device publishes
     device = BuildDeviceSim(scenario)
     device_simulator = Simulator(device.diagram)
@@ -85,6 +101,9 @@ def test_levitation_over_lcm_follows_the_all_in_one_run(lockstep_run):
     if name == "peg_in_hole":  # the hand's grip arrives in the device's status: haptics engages
         assert np.any(log["handle_gripped"] > 0.5)
         np.testing.assert_array_equal(log["haptic_mode"][-200:], expected["haptic_mode"][n - 200:n])
+        seen = log["glasses_measured"][:, 8] > 0.5
+        assert seen[-1000:].mean() > 0.9  # the head tracker's samples arrive
+        assert np.all(np.isfinite(log["X_WG_predicted"][-100:]))
 
 
 def test_no_message_is_lost_in_steady_state(lockstep_run):
