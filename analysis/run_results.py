@@ -54,9 +54,10 @@ def run_scenario(scenario: Scenario, *, label: str, out_dir: Optional[Path] = No
     if record:
         viewer.StartRecording()
     try:
-        simulator, wall_s, tick_times = simulate(built, duration_s, realtime_rate=realtime_rate,
-                                     progress=progress, label=label,
-                                     interruptible=built.meshcat_hand is not None)
+        simulator, wall_s, tick_times = simulate(
+            built, duration_s, realtime_rate=realtime_rate, progress=progress, label=label,
+            interruptible=built.meshcat_hand is not None,
+            shares_cores=isinstance(scenario.station, LcmStation))
     finally:
         if built.meshcat_hand is not None:
             built.meshcat_hand.Delete()

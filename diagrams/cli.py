@@ -187,7 +187,7 @@ def _cmd_device_sim(args) -> int:
           "the application's last command, or after --duration", file=sys.stderr)
     simulator, wall_s, tick_times = simulate(
         device_sim, args.duration, realtime_rate=args.realtime, label=f"device-sim {label}",
-        interruptible=True, stop=device_sim.application_gone)
+        interruptible=True, stop=device_sim.application_gone, shares_cores=True)
     context = simulator.get_context()
     receiver = device_sim.command_receiver
     print(json.dumps({"scenario": label, "duration_s": context.get_time(), "wall_time_s": wall_s,

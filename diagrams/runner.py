@@ -11,6 +11,7 @@ ticks (a haptic loop may not drop its samples).
 from __future__ import annotations
 
 import gc
+import math
 import time
 from dataclasses import dataclass
 from typing import Dict
@@ -52,20 +53,21 @@ def realtime_report(times: TickTimes) -> Dict:
     }
 
 
-# The last stretch before a slot is spun, not slept: a core that idles wakes cold.
-# Spinning the whole wait (on the 2-core test machine levitate missed 1.7-1.8% of its
-# slots sleeping and 0.08-0.1% spinning, 15 s runs alternated) leaves no core for a
-# second process, such as the device's on LCM; so the wait sleeps until this much
-# before the slot.
-SPIN_BEFORE_SLOT_S = 0.0003
-
-
-def _wait_until(wall_s: float) -> None:
-    ahead_s = wall_s - time.perf_counter() - SPIN_BEFORE_SLOT_S
+def _wait_until(wall_s: float, spin_s: float) -> None:
+    # The last ``spin_s`` before the slot is spun, not slept: a core that idles wakes
+    # cold. On the 2-core test machine levitate missed 1.7-1.8% of its slots sleeping
+    # and 0.08-0.1% spinning the whole wait (15 s runs alternated; another day, 59-71%
+    # sleeping until 0.3 ms before the slot against 22-37% spinning throughout).
+    ahead_s = wall_s - time.perf_counter() - spin_s
     if ahead_s > 0:
         time.sleep(ahead_s)
     while time.perf_counter() < wall_s:
         pass
+
+
+# A paced process that shares the machine with another (the device's, on LCM) sleeps
+# until this much before each slot, so the other one gets a core (s).
+SHARED_SPIN_S = 0.0003
 
 
 class PacedTicks:
@@ -84,16 +86,17 @@ class PacedTicks:
 
 
 def advance_paced(simulator, duration_s: float, tick_s: float, ticks: PacedTicks, bar,
-                  stop=None):
+                  stop=None, spin_s: float = math.inf):
     """Tick by tick to ``duration_s``, each released at its wall-clock slot; ``stop(context)``,
-    asked every PROGRESS_CHUNK_S, ends the run early when it returns True."""
+    asked every PROGRESS_CHUNK_S, ends the run early when it returns True. The wait for
+    a slot spins for its last ``spin_s`` (s) and sleeps before that."""
     start_s = simulator.get_context().get_time()
     ticks_per_update = max(1, int(round(PROGRESS_CHUNK_S / tick_s)))
     clock_zero = time.perf_counter()
     try:
         for k in range(ticks.compute_s.size):
             release = clock_zero + k * ticks.slot_s
-            _wait_until(release)
+            _wait_until(release, spin_s)
             begin = time.perf_counter()
             simulator.AdvanceTo(start_s + (k + 1) * tick_s)
             end = time.perf_counter()
@@ -111,11 +114,13 @@ def advance_paced(simulator, duration_s: float, tick_s: float, ticks: PacedTicks
 
 
 def simulate(built, duration_s: float, *, realtime_rate: float = 0.0,
-             progress: bool = True, label: str = "", interruptible: bool = False, stop=None):
+             progress: bool = True, label: str = "", interruptible: bool = False, stop=None,
+             shares_cores: bool = False):
     """Advance the diagram to ``duration_s``; returns (simulator, wall seconds,
     TickTimes of the paced ticks or None when not paced).
     ``interruptible``: Ctrl-C ends the run early instead of raising. ``stop(context)``
-    ends a paced run early (``advance_paced``)."""
+    ends a paced run early (``advance_paced``). ``shares_cores``: another paced process
+    runs on this machine, so the wait between ticks sleeps (``SHARED_SPIN_S``)."""
     # Nothing compiles inside the loop: every kernel is ready before the clock starts.
     compile_kernels(progress=progress)
     simulator = Simulator(built.diagram)
@@ -134,7 +139,8 @@ def simulate(built, duration_s: float, *, realtime_rate: float = 0.0,
                   bar_format="{l_bar}{bar}| {n:.2f}/{total:.2f} sim s [{elapsed}{postfix}]"
                   ) as bar:
             if paced is not None:
-                advance_paced(simulator, duration_s, built.tick_s, paced, bar, stop)
+                advance_paced(simulator, duration_s, built.tick_s, paced, bar, stop,
+                              SHARED_SPIN_S if shares_cores else math.inf)
             else:
                 chunks = np.append(np.arange(PROGRESS_CHUNK_S, duration_s, PROGRESS_CHUNK_S),
                                    duration_s)

@@ -25,6 +25,7 @@ from maglev_haptics.hardware.lcm_messages import (
     coil_currents_t, device_status_t, glasses_t, markers_t)
 
 US_PER_S = 1_000_000
+MESSAGE_QUEUE_CAPACITY = 1000  # messages a subscription holds between two reads
 # Receiver state: [newest sequence read, its arrival time (s), first sequence, received]
 _NEVER = np.array([-1.0, -math.inf, -1.0, 0.0])
 
@@ -166,7 +167,10 @@ class MessageReceiver(LeafSystem):
         self._stale = None if stale_value is None else np.asarray(stale_value, float)
         # Raw messages that LCM handed over since the last update: I/O, not state.
         self._arrived = []
-        lcm.subscribe(channel, lambda _, data: self._arrived.append(data))
+        subscription = lcm.subscribe(channel, lambda _, data: self._arrived.append(data))
+        # LCM drops what queues past a subscription's capacity (30 by default): a tick
+        # late by tens of ms must still read every message.
+        subscription.set_queue_capacity(MESSAGE_QUEUE_CAPACITY)
         self._counters = self.DeclareDiscreteState(_NEVER)
         initial = self._stale if initial_value is None else np.asarray(initial_value, float)
         self._held = self.DeclareDiscreteState(initial)
