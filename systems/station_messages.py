@@ -188,6 +188,11 @@ class MessageReceiver(LeafSystem):
                     "is the station running (maglev device-sim SCENARIO, or the device's "
                     "drivers) on the same LCM URL?")
             self._lcm.handle_timeout(100)
+        # What queued while the diagram was built is history, some of it dropped
+        # past the queue's capacity: the run counts from the newest message on.
+        while self._lcm.handle_timeout(0) > 0:
+            pass
+        del self._arrived[:-1]
         self._update(context, discrete_state)
 
     def _update(self, context, discrete_state):
