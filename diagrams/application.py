@@ -51,13 +51,16 @@ class BuiltDiagram:
 
 def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
                  label: str = "scenario", frame_sink=None, realtime: bool = False,
-                 hand_target_offset_input: bool = False) -> BuiltDiagram:
+                 hand_target_offset_input: bool = False,
+                 device_api: bool = False) -> BuiltDiagram:
     """The whole diagram for ``scenario``; ``label`` names it in error messages.
 
     With the stereo display, ``frame_sink(t, left, right)`` receives the rendered
     eye images (none rendered without it); ``realtime`` lets rendering skip frames.
     ``hand_target_offset_input``: export ``hand_target_offset`` (analysis only; the
-    caller must fix it).
+    caller must fix it). ``device_api``: the setpoint (``setpoint``), the force ramp
+    (``enable_ramp``) and the feed-forward wrench (``haptic_feedforward``) are
+    constant sources that the device API sets, instead of the motion script.
     """
     device = scenario.device
     spec = device.instrument_spec()
@@ -72,9 +75,18 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
     estimator = builder.AddNamedSystem("pose_estimator", PoseEstimator(
         instrument=spec, tracker=device.tracker, config=scenario.estimator))
     plan = flight_plan(scenario.motion, spec.rest_height_m)
-    setpoint = builder.AddNamedSystem(
-        "setpoint", TrajectorySource(plan.setpoint, output_derivative_order=1))
-    enable = builder.AddNamedSystem("enable_ramp", TrajectorySource(plan.enable))
+    if device_api:
+        # The device API sets these between ticks (diagrams/device_api.py).
+        if scenario.haptics is not None:
+            raise ValueError(f"{label}: the device API flies levitation scenarios only "
+                             "(haptics: null)")
+        setpoint = builder.AddNamedSystem("setpoint", ConstantVectorSource(
+            plan.setpoint.value(0.0).ravel().tolist() + [0.0] * 6))
+        enable = builder.AddNamedSystem("enable_ramp", ConstantVectorSource([0.0]))
+    else:
+        setpoint = builder.AddNamedSystem(
+            "setpoint", TrajectorySource(plan.setpoint, output_derivative_order=1))
+        enable = builder.AddNamedSystem("enable_ramp", TrajectorySource(plan.enable))
     controller = builder.AddNamedSystem("levitation_controller", LevitationController(
         config=scenario.controller, mass_kg=spec.mass_kg,
         inertia_diag=np.diag(spec.inertia_about_I()),

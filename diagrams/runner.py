@@ -53,7 +53,8 @@ def realtime_report(times: TickTimes) -> Dict:
     }
 
 
-def _wait_until(wall_s: float, spin_s: float) -> None:
+def wait_until(wall_s: float, spin_s: float) -> None:
+    """Return at ``wall_s`` (time.perf_counter's clock, s), spinning its last ``spin_s``."""
     # The last ``spin_s`` before the slot is spun, not slept: a core that idles wakes
     # cold. On the 2-core test machine levitate missed 1.7-1.8% of its slots sleeping
     # and 0.08-0.1% spinning the whole wait (15 s runs alternated; another day, 59-71%
@@ -96,7 +97,7 @@ def advance_paced(simulator, duration_s: float, tick_s: float, ticks: PacedTicks
     try:
         for k in range(ticks.compute_s.size):
             release = clock_zero + k * ticks.slot_s
-            _wait_until(release, spin_s)
+            wait_until(release, spin_s)
             begin = time.perf_counter()
             simulator.AdvanceTo(start_s + (k + 1) * tick_s)
             end = time.perf_counter()

@@ -15,7 +15,7 @@ from typing import List, Optional
 
 import numpy as np
 from pydrake.common.value import AbstractValue
-from pydrake.systems.framework import LeafSystem, ValueProducer
+from pydrake.systems.framework import BasicVector, LeafSystem, ValueProducer
 
 from maglev_haptics.hardware.config_checks import each, nonnegative, positive
 from maglev_haptics.hardware.constants import GRAVITY_M_S2
@@ -174,7 +174,9 @@ class LevitationController(LeafSystem):
     control rate, so they always use the newest estimate.
 
     The discrete state (1 kHz) is the time since tracking was lost (s;
-    0 while tracking), which the outputs read together with the inputs.
+    0 while tracking), which the outputs read together with the inputs. The PD
+    gains ``kp`` and ``kd`` (6 each, ``pd_gains``) are numeric parameters 0 and 1
+    (``set_gains``).
     """
 
     def __init__(self, *, config: ControllerConfig, mass_kg: float, inertia_diag,
@@ -183,7 +185,10 @@ class LevitationController(LeafSystem):
         self._config = config
         self._mass_kg = float(mass_kg)
         self._period_s = float(period_s)
-        self._kp, self._kd = pd_gains(config, mass_kg, np.asarray(inertia_diag, dtype=float))
+        kp, kd = pd_gains(config, mass_kg, np.asarray(inertia_diag, dtype=float))
+        # Parameters, not constants: the device API sets them between ticks.
+        self._kp = self.DeclareNumericParameter(BasicVector(kp))
+        self._kd = self.DeclareNumericParameter(BasicVector(kd))
         self._magnetics = magnetics
         self._p_WA = np.asarray(p_WA, dtype=float)
         self._current_limit_a = float(current_limit_a)
@@ -210,7 +215,7 @@ class LevitationController(LeafSystem):
             "command",
             ValueProducer(allocate=lambda: AbstractValue.Make(np.zeros(18 + n)),
                           calc=self._calc_command),
-            {self.all_input_ports_ticket(), self.xd_ticket()})
+            {self.all_input_ports_ticket(), self.xd_ticket(), self.all_parameters_ticket()})
         for name, rows in (("wrench_commanded_W", slice(0, 6)),
                            ("wrench_rendered_W", slice(6, 12)),
                            ("coil_currents_commanded", slice(12, 12 + n)),
@@ -221,6 +226,22 @@ class LevitationController(LeafSystem):
                     self._command.Eval(context)[rows]),
                 {self._command.ticket()})
         self.DeclareStateOutputPort("lost_time", self._lost_time)
+
+    def set_gains(self, context, kp=None, kd=None) -> None:
+        """Per-axis gains in ``context`` (N/m, N*m/rad; N*s/m, N*m*s/rad; the axes of
+        ``ControllerConfig``), from the next evaluation on; None keeps one."""
+        for index, gains, name in ((self._kp, kp, "kp"), (self._kd, kd, "kd")):
+            if gains is None:
+                continue
+            gains = np.asarray(gains, dtype=float)
+            if gains.shape != (6,) or not np.all(np.isfinite(gains)) or np.any(gains < 0):
+                raise ValueError(f"{name} = {gains.tolist()}: must be 6 finite gains >= 0")
+            context.get_mutable_numeric_parameter(index).SetFromVector(gains)
+
+    def gains(self, context):
+        """(kp, kd) in ``context``."""
+        return (context.get_numeric_parameter(self._kp).CopyToVector(),
+                context.get_numeric_parameter(self._kd).CopyToVector())
 
     def _scalar(self, port, context) -> float:
         # A scalar input without Eval's copy into a new array (~4 us a read).
@@ -245,7 +266,8 @@ class LevitationController(LeafSystem):
             self._scalar(self._enable, context), self._scalar(self._pd_gain, context),
             self._scalar(self._brake_gain, context), self._feedforward.Eval(context),
             context.get_discrete_state(self._lost_time).GetAtIndex(0),
-            self._kp, self._kd, self._mass_kg, self._config)
+            context.get_numeric_parameter(self._kp).CopyToVector(),
+            context.get_numeric_parameter(self._kd).CopyToVector(), self._mass_kg, self._config)
         currents, shortfall, _ = allocate_currents(
             self._matrix.Eval(context), commanded, self._current_limit_a)
         command.set_value(np.concatenate((commanded, rendered, currents, shortfall)))

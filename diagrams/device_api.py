@@ -1,0 +1,344 @@
+"""A device API in the spirit of the MLHI library: fly the instrument from Python.
+
+``MaglevDevice`` builds the application's diagram for a levitation scenario (with
+the simulated station, or whatever answers on LCM), and steps it tick by tick:
+
+    device = MaglevDevice("levitate")
+    device.connect()
+    device.takeoff()                       # blocks until hovering, or raises
+    device.set_gains(kp=[...], kd=[...])   # per axis, from the next tick
+    device.set_desired_pose([0.01, 0, 0.02, 0, 0, 0.5])
+    device.set_feedforward_wrench([0, 0, 0.1, 0, 0, 0])
+    device.on_tick(lambda state: ...)      # every tick, with a TickState
+    device.set_boundary([0, 0, 0.02], 0.03)
+    device.on_fault(lambda bits: ...)      # when a fault bit rises
+    device.run_for(2.0)
+    device.land()
+    device.disconnect()
+
+Faults (the bits of ``device_status_t``): sensor out of range (tracking lost,
+or the instrument outside the boundary sphere), coil over-temperature (the
+thermal model's estimate from the currents that flow), coil over-current,
+over-speed. A fault latches until ``reset_faults``; any but a lost sensor lands
+the instrument (a lost one is landed blind by the controller itself).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from typing import Callable, List, Optional, Union
+
+import numpy as np
+from pydrake.systems.analysis import Simulator
+from pydrake.trajectories import PiecewisePolynomial
+
+from maglev_haptics.diagrams.application import BuildDiagram
+from maglev_haptics.diagrams.lcm_station import LcmStation
+from maglev_haptics.diagrams.runner import SHARED_SPIN_S, wait_until
+from maglev_haptics.diagrams.scenario import Scenario, load_scenario
+from maglev_haptics.hardware.kernels import compile_kernels
+from maglev_haptics.hardware.lcm_messages import device_status_t
+from maglev_haptics.hardware.thermal import coil_thermal, temperature_after_c
+from maglev_haptics.systems.blends import LANDING_PRESS_M, minimum_jerk_plan
+
+FAULT_SENSOR_OUT_OF_RANGE = device_status_t.FAULT_SENSOR_OUT_OF_RANGE
+FAULT_COIL_OVER_TEMPERATURE = device_status_t.FAULT_COIL_OVER_TEMPERATURE
+FAULT_COIL_OVER_CURRENT = device_status_t.FAULT_COIL_OVER_CURRENT
+FAULT_OVER_SPEED = device_status_t.FAULT_OVER_SPEED
+HOVER_TOLERANCE_M = 0.5e-3  # takeoff is done within this of the hover pose (m)
+SETTLED_SPEED_M_S = 0.01  # ... moving slower than this (m/s)
+
+
+class DeviceTimeoutError(TimeoutError):
+    """takeoff or land did not finish in time; the device was set to land or shut off."""
+
+
+@dataclass
+class TickState:
+    """What the device knows after a tick."""
+    t_s: float
+    X_WI: np.ndarray  # measured pose [qw qx qy qz x y z] (m)
+    V_WI: np.ndarray  # measured spatial velocity [w; v] in W (rad/s, m/s)
+    tracking_ok: bool
+    coil_currents_a: np.ndarray  # what flows (A)
+    coil_temperature_c: np.ndarray  # estimated winding temperatures (C)
+    faults: int  # latched FAULT_* bits
+
+
+def detect_faults(state: TickState, *, current_limit_a: float, temperature_limit_c: float,
+                  max_speed_m_s: float, boundary_center_m, boundary_radius_m) -> int:
+    """The FAULT_* bits that ``state`` raises (before latching)."""
+    bits = 0
+    outside = (boundary_radius_m is not None and np.linalg.norm(
+        state.X_WI[4:7] - np.asarray(boundary_center_m)) > boundary_radius_m)
+    if not state.tracking_ok or outside:
+        bits |= FAULT_SENSOR_OUT_OF_RANGE
+    if np.any(state.coil_temperature_c > temperature_limit_c):
+        bits |= FAULT_COIL_OVER_TEMPERATURE
+    # The amplifiers clamp at the limit: a measured current past it is a fault.
+    if np.any(np.abs(state.coil_currents_a) > current_limit_a * (1 + 1e-6)):
+        bits |= FAULT_COIL_OVER_CURRENT
+    if np.linalg.norm(state.V_WI[3:6]) > max_speed_m_s:
+        bits |= FAULT_OVER_SPEED
+    return bits
+
+
+@dataclass
+class _Motion:
+    """A setpoint and force-ramp profile from ``start_s`` on (s)."""
+    setpoint: PiecewisePolynomial  # 6 rows, time from start_s
+    enable: PiecewisePolynomial  # 1 row
+    start_s: float
+    end_s: float  # absolute (s)
+    landing: bool
+
+
+class MaglevDevice:
+    """The levitated instrument as a device (see the module docstring).
+
+    ``scenario``: a Scenario, or a shipped file's name or a path (``name`` picks one
+    in it); its device, controller and station are used, its motion script only for
+    the rest place, the hover pose (the first waypoint) and the ramp and landing
+    times. ``realtime_rate`` > 0 paces each tick to the wall clock (needed with a
+    station on LCM). ``max_speed_m_s``: the over-speed limit (m/s).
+    """
+
+    def __init__(self, scenario: Union[Scenario, str] = "levitate", *,
+                 name: Optional[str] = None, realtime_rate: float = 0.0,
+                 max_speed_m_s: float = 0.5):
+        self.scenario = scenario if isinstance(scenario, Scenario) else load_scenario(
+            scenario, name)
+        self._realtime_rate = float(realtime_rate)
+        self._max_speed_m_s = float(max_speed_m_s)
+        self._thermal = coil_thermal(self.scenario.device)
+        self._tick_callbacks: List[Callable[[TickState], None]] = []
+        self._fault_callbacks: List[Callable[[int], None]] = []
+        self._boundary = (None, None)
+        self._simulator = None
+        self.faults = 0
+
+    # --- connection ---------------------------------------------------------
+
+    def connect(self) -> None:
+        """Build the diagram and start the device: resting on the glass, coils off."""
+        compile_kernels(progress=False)
+        self._built = BuildDiagram(self.scenario, device_api=True, label="device")
+        diagram = self._built.diagram
+        self._simulator = Simulator(diagram)
+        self._simulator.Initialize()
+        root = self._simulator.get_mutable_context()
+        self._setpoint = diagram.GetSubsystemByName("setpoint")
+        self._enable = diagram.GetSubsystemByName("enable_ramp")
+        self._feedforward = diagram.GetSubsystemByName("haptic_feedforward")
+        self._controller = diagram.GetSubsystemByName("levitation_controller")
+        estimator = diagram.GetSubsystemByName("pose_estimator")
+        station = diagram.GetSubsystemByName("station")
+        self._contexts = {system: system.GetMyMutableContextFromRoot(root) for system in (
+            self._setpoint, self._enable, self._feedforward, self._controller, estimator,
+            station)}
+        self._ports = [estimator.GetOutputPort(name) for name in
+                       ("X_WI_measured", "V_WI_measured", "tracking_ok")]
+        self._estimator, self._station = estimator, station
+        self._temperature_c = np.full(self.scenario.device.n_coils, self._thermal.ambient_c)
+        self._motion: Optional[_Motion] = None
+        self._shares_cores = isinstance(self.scenario.station, LcmStation)
+        self._clock_zero, self._ticks = time.perf_counter(), 0
+        self.state = self._read_state()
+
+    def disconnect(self) -> None:
+        """Coils off at once (no landing: land first), and the diagram released."""
+        self._require_connection()
+        self._write_setpoint_and_enable(self._current_setpoint(), 0.0)
+        self.set_feedforward_wrench(np.zeros(6))
+        self._tick()
+        self._simulator = None
+
+    # --- commands (each takes effect on the next tick) ---------------------
+
+    def set_gains(self, kp=None, kd=None) -> None:
+        """Per-axis PD gains [x, y, z translation in W; rotations about I's axes]
+        (N/m, N*m/rad; N*s/m, N*m*s/rad)."""
+        self._require_connection()
+        self._controller.set_gains(self._contexts[self._controller], kp, kd)
+
+    def gains(self):
+        """(kp, kd) in effect."""
+        self._require_connection()
+        return self._controller.gains(self._contexts[self._controller])
+
+    def set_desired_pose(self, pose, rates=None) -> None:
+        """Hover at ``pose`` [x, y, z, roll, pitch, yaw] (m, rad) with setpoint
+        ``rates`` (m/s, rad/s; default zero); ends a takeoff or landing in progress."""
+        self._require_connection()
+        pose = _vector("pose", pose, 6)
+        rates = np.zeros(6) if rates is None else _vector("rates", rates, 6)
+        self._motion = None
+        self._write_setpoint_and_enable(np.concatenate((pose, rates)), None)
+
+    def set_feedforward_wrench(self, wrench) -> None:
+        """Added wrench [f; tau] in W (N, N*m about I's origin)."""
+        self._require_connection()
+        self._feedforward.get_mutable_source_value(self._contexts[self._feedforward]) \
+            .SetFromVector(_vector("wrench", wrench, 6))
+
+    def on_tick(self, callback: Callable[[TickState], None]) -> None:
+        """``callback(state)`` after every tick."""
+        self._tick_callbacks.append(callback)
+
+    def on_fault(self, callback: Callable[[int], None]) -> None:
+        """``callback(bits)`` when a fault bit rises, with the latched bits."""
+        self._fault_callbacks.append(callback)
+
+    def set_boundary(self, center_m, radius_m: Optional[float]) -> None:
+        """Leaving the sphere (m; None: no boundary) raises sensor out of range."""
+        if radius_m is not None and not radius_m > 0:
+            raise ValueError(f"radius_m = {radius_m}: must be > 0 (m), or None")
+        self._boundary = (_vector("center_m", center_m, 3), radius_m)
+
+    def reset_faults(self) -> None:
+        self.faults = 0
+
+    def coil_temperatures_c(self) -> np.ndarray:
+        """The coils' estimated winding temperatures (C)."""
+        return self._temperature_c.copy()
+
+    # --- motions -----------------------------------------------------------
+
+    def takeoff(self, pose=None, timeout_s: float = 5.0) -> None:
+        """Ramp the force up and rise to ``pose`` (default: the scenario's first
+        waypoint); blocks until hovering there, else lands and raises
+        DeviceTimeoutError."""
+        self._require_connection()
+        motion = self.scenario.motion
+        target = np.asarray(motion.waypoints[0].pose if pose is None else
+                            _vector("pose", pose, 6), dtype=float)
+        start = self._current_setpoint()[0:6]
+        ramp_s = motion.force_ramp_s
+        self._start_motion(minimum_jerk_plan(start, ramp_s, [(target, motion.waypoints[0].move_s,
+                                                               0.0)], 0.0),
+                           PiecewisePolynomial.FirstOrderHold([0.0, ramp_s], [[0.0, 1.0]]))
+
+        def hovering():
+            return (self._motion is None
+                    and np.linalg.norm(self.state.X_WI[4:7] - target[0:3]) < HOVER_TOLERANCE_M
+                    and np.linalg.norm(self.state.V_WI[3:6]) < SETTLED_SPEED_M_S)
+        self._run_until(hovering, timeout_s, "takeoff", on_timeout=self.land)
+
+    def land(self, timeout_s: float = 5.0) -> None:
+        """Descend onto the glass and ramp the force down; blocks until done, else
+        cuts the coils and raises DeviceTimeoutError."""
+        self._require_connection()
+        if not (self._motion is not None and self._motion.landing):
+            self._start_landing()
+        self._run_until(lambda: self._motion is None, timeout_s, "land",
+                        on_timeout=lambda: self._write_setpoint_and_enable(
+                            self._current_setpoint(), 0.0))
+
+    def run_for(self, duration_s: float) -> None:
+        """Tick for ``duration_s`` (s), holding or carrying on what was commanded."""
+        self._require_connection()
+        for _ in range(int(round(duration_s / self._built.tick_s))):
+            self._tick()
+
+    # --- the loop ----------------------------------------------------------
+
+    def _start_motion(self, setpoint, enable, landing: bool = False) -> None:
+        start_s = self._simulator.get_context().get_time()
+        end_s = start_s + max(setpoint.end_time(), enable.end_time())
+        self._motion = _Motion(setpoint=setpoint, enable=enable, start_s=start_s, end_s=end_s,
+                               landing=landing)
+
+    def _run_until(self, done, timeout_s: float, what: str, on_timeout) -> None:
+        deadline_s = self._simulator.get_context().get_time() + timeout_s
+        while not done():
+            if self._simulator.get_context().get_time() >= deadline_s:
+                on_timeout()
+                raise DeviceTimeoutError(
+                    f"{what} not done within {timeout_s:g} s (faults {self.faults:#x})")
+            self._tick()
+
+    def _tick(self) -> None:
+        context = self._simulator.get_context()
+        t_next = context.get_time() + self._built.tick_s
+        if self._motion is not None:
+            elapsed = min(t_next, self._motion.end_s) - self._motion.start_s
+            setpoint = np.concatenate((self._motion.setpoint.value(elapsed).ravel(),
+                                       self._motion.setpoint.EvalDerivative(elapsed, 1).ravel()))
+            self._write_setpoint_and_enable(setpoint, self._motion.enable.value(elapsed)[0, 0])
+            if t_next >= self._motion.end_s:
+                self._motion = None
+        if self._realtime_rate > 0:  # each tick released at its wall-clock slot
+            self._ticks += 1
+            wait_until(self._clock_zero + self._ticks * self._built.tick_s / self._realtime_rate,
+                       SHARED_SPIN_S if self._shares_cores else math.inf)
+        self._simulator.AdvanceTo(t_next)
+        currents = self._station.GetOutputPort("coil_currents").Eval(self._contexts[self._station])
+        self._temperature_c = temperature_after_c(self._thermal, self._temperature_c, currents,
+                                                  self._built.tick_s)
+        self.state = self._read_state(currents)
+        center, radius = self._boundary
+        raised = detect_faults(
+            self.state, current_limit_a=self.scenario.device.amplifier.current_limit_a,
+            temperature_limit_c=self._thermal.max_c, max_speed_m_s=self._max_speed_m_s,
+            boundary_center_m=center, boundary_radius_m=radius)
+        new = raised & ~self.faults
+        if new:
+            self.faults |= new
+            self.state.faults = self.faults
+            for callback in self._fault_callbacks:
+                callback(self.faults)
+            if not (self._motion is not None and self._motion.landing):
+                self._start_landing()
+        for callback in self._tick_callbacks:
+            callback(self.state)
+
+    def _start_landing(self) -> None:
+        """From the current setpoint: down onto the glass, settle, ramp the force down."""
+        motion = self.scenario.motion
+        pose = self._current_setpoint()[0:6]
+        rest_height_m = self.scenario.device.instrument_spec().rest_height_m
+        touchdown = np.array([pose[0], pose[1], rest_height_m - LANDING_PRESS_M,
+                              0.0, 0.0, pose[5]])
+        down_s = motion.landing_s + motion.settle_s
+        enable = self._current_enable()
+        self._start_motion(
+            minimum_jerk_plan(pose, 0.0, [(touchdown, motion.landing_s, 0.0)], 0.0),
+            PiecewisePolynomial.FirstOrderHold(
+                [0.0, down_s, down_s + motion.force_ramp_s], [[enable, enable, 0.0]]),
+            landing=True)
+
+    def _read_state(self, currents=None) -> TickState:
+        estimator_context = self._contexts[self._estimator]
+        X, V, ok = (port.Eval(estimator_context) for port in self._ports)
+        if currents is None:
+            currents = self._station.GetOutputPort("coil_currents").Eval(
+                self._contexts[self._station])
+        return TickState(t_s=self._simulator.get_context().get_time(), X_WI=X, V_WI=V,
+                         tracking_ok=bool(ok[0] > 0.5), coil_currents_a=currents,
+                         coil_temperature_c=self._temperature_c.copy(), faults=self.faults)
+
+    def _current_enable(self) -> float:
+        return self._enable.get_source_value(self._contexts[self._enable]).GetAtIndex(0)
+
+    def _current_setpoint(self) -> np.ndarray:
+        return self._setpoint.get_source_value(self._contexts[self._setpoint]).CopyToVector()
+
+    def _write_setpoint_and_enable(self, setpoint, enable: Optional[float]) -> None:
+        self._setpoint.get_mutable_source_value(self._contexts[self._setpoint]) \
+            .SetFromVector(setpoint)
+        if enable is not None:
+            self._enable.get_mutable_source_value(self._contexts[self._enable]) \
+                .SetFromVector([enable])
+
+    def _require_connection(self) -> None:
+        if self._simulator is None:
+            raise RuntimeError("the device is not connected: call connect() first")
+
+
+def _vector(name: str, value, size: int) -> np.ndarray:
+    array = np.asarray(value, dtype=float).ravel()
+    if array.shape != (size,) or not np.all(np.isfinite(array)):
+        raise ValueError(f"{name} = {np.asarray(value).tolist()}: must be {size} finite numbers")
+    return array

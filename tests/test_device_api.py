@@ -1,0 +1,88 @@
+"""The MLHI-style device API: blocking takeoff and landing, commands on the next tick,
+the tick callback, the boundary sphere's fault, estimated coil temperatures."""
+
+import numpy as np
+import pytest
+
+from maglev_haptics.diagrams.device_api import (
+    FAULT_SENSOR_OUT_OF_RANGE, DeviceTimeoutError, MaglevDevice)
+
+REST_Z_M = 0.0067  # the two-magnet instrument's origin resting on the glass (about, m)
+
+
+def commanded_wrench(device):
+    controller = device._controller
+    return controller.GetOutputPort("wrench_commanded_W").Eval(
+        device._contexts[controller])
+
+
+def test_fly_with_the_api():
+    device = MaglevDevice("levitate")
+    with pytest.raises(RuntimeError, match="not connected"):
+        device.takeoff()
+    device.connect()
+    times = []
+    device.on_tick(lambda state: times.append(state.t_s))
+    device.takeoff()  # blocks until hovering at the first waypoint
+    hover = np.asarray(device.scenario.motion.waypoints[0].pose)
+    assert np.linalg.norm(device.state.X_WI[4:7] - hover[0:3]) < 0.5e-3
+    assert len(times) == round(device.state.t_s / 1e-3)  # every tick, from the first
+
+    # A setpoint, gains and a feed-forward wrench are what the next tick computes with.
+    controller = device._controller
+    controller_context = device._contexts[controller]
+    device.set_desired_pose(hover + [0, 0, 1e-3, 0, 0, 0])
+    setpoint = controller.GetInputPort("setpoint").Eval(controller_context)
+    np.testing.assert_allclose(setpoint[0:6], hover + [0, 0, 1e-3, 0, 0, 0])
+    z_error_m = setpoint[2] - controller.GetInputPort("X_WI_measured").Eval(controller_context)[6]
+    kp, kd = device.gains()
+    before = commanded_wrench(device)
+    device.set_gains(kp=2 * kp)
+    np.testing.assert_allclose(device.gains()[0], 2 * kp)
+    # Translation is PD in W: doubling kp adds kp (z error) to the z force.
+    assert commanded_wrench(device)[2] - before[2] == pytest.approx(kp[2] * z_error_m, rel=1e-9)
+    before = commanded_wrench(device)
+    device.set_feedforward_wrench([0, 0, 0.05, 0, 0, 0.001])
+    np.testing.assert_allclose(commanded_wrench(device) - before, [0, 0, 0.05, 0, 0, 0.001],
+                               atol=1e-12)
+    device.set_feedforward_wrench(np.zeros(6))
+    device.set_gains(kp=kp)
+    device.run_for(1.0)
+    assert device.state.X_WI[6] == pytest.approx(hover[2] + 1e-3, abs=0.1e-3)
+
+    temperatures = device.coil_temperatures_c()
+    assert temperatures.max() > device._thermal.ambient_c + 0.1  # hovering heats the coils
+    device.land()
+    assert device.state.X_WI[6] == pytest.approx(REST_Z_M, abs=1.5e-3)
+    assert device._current_enable() == 0.0 and device.faults == 0
+    device.disconnect()
+
+
+def test_leaving_the_boundary_raises_its_fault_and_lands():
+    device = MaglevDevice("levitate")
+    device.connect()
+    device.takeoff()
+    hover = np.asarray(device.scenario.motion.waypoints[0].pose)
+    raised = []
+    device.on_fault(raised.append)
+    device.set_boundary(hover[0:3], 0.005)
+    device.set_desired_pose(hover + [0.01, 0, 0, 0, 0, 0])  # out of the sphere
+    device.run_for(4.0)
+    assert raised and raised[0] & FAULT_SENSOR_OUT_OF_RANGE
+    assert device.faults & FAULT_SENSOR_OUT_OF_RANGE  # latched
+    assert device.state.X_WI[6] == pytest.approx(REST_Z_M, abs=1.5e-3)  # landed
+    assert device._current_enable() == 0.0
+    device.reset_faults()
+    assert device.faults == 0
+
+
+def test_a_takeoff_that_cannot_finish_times_out_and_lands():
+    device = MaglevDevice("levitate")
+    device.connect()
+    with pytest.raises(DeviceTimeoutError, match="takeoff not done within 0.3 s"):
+        device.takeoff(timeout_s=0.3)  # the force ramp alone takes longer
+    assert device._current_enable() == 0.0  # landed and ramped down
+    with pytest.raises(ValueError, match=r"pose = \[0.0, 0.0, 0.02\]: must be 6 finite"):
+        device.set_desired_pose([0.0, 0.0, 0.02])
+    with pytest.raises(ValueError, match="kp = .*must be 6 finite gains >= 0"):
+        device.set_gains(kp=[-1.0] * 6)
