@@ -4,7 +4,8 @@
 ``station`` with the simulated station's port names and units
 (``diagrams/station.py``), whose values come from LCM messages and go out as
 LCM messages (``hardware/lcm_messages``). ``diagrams/device_sim.py`` is the
-other end: the simulated station alone, speaking the same messages. Channels (``channel_prefix`` + name):
+other end: the simulated station alone, speaking the same messages. Channels
+(``channel_prefix`` + name):
 
 - ``MARKERS`` (markers_t, device -> application, the tracker's rate);
 - ``COIL_CURRENTS_COMMANDED`` (coil_currents_t, application -> device, the control rate);
@@ -14,7 +15,9 @@ other end: the simulated station alone, speaking the same messages. Channels (``
 - ``GLASSES`` (glasses_t, device -> application, with the stereo display: the
   head tracker's samples).
 
-The default URL is UDP multicast with ttl=0: the messages never leave this host.
+The device's messages go on ``url``, the commands on ``command_url``: UDP
+multicast with ttl=0 by default, so they never leave this host, one port a
+direction, so no process receives what it sends.
 
 The ``lcm`` package carries the messages, not Drake's LCM systems: with Python
 message types LcmSubscriberSystem and LcmPublisherSystem cost ~1 ms a tick (the
@@ -39,8 +42,6 @@ from maglev_haptics.systems.station_messages import (
     MessageReceiver, MessageSender, currents_message, glasses_measurement_from_message,
     markers_from_message)
 
-# Multicast that stays on this host; one port a direction, so no process receives
-# its own messages (each one is a wake-up of LCM's receive thread).
 DEFAULT_LCM_URL = "udpm://239.255.76.67:7667?ttl=0"
 DEFAULT_COMMAND_URL = "udpm://239.255.76.67:7668?ttl=0"
 MARKERS = "MARKERS"
