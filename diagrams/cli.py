@@ -1,4 +1,5 @@
-"""The ``maglev`` command line: run, device-sim, diagram, bench, analyze (docs/architecture.md)."""
+"""The ``maglev`` command line: run, device-sim, driver, diagram, bench, analyze
+(docs/architecture.md)."""
 
 from __future__ import annotations
 
@@ -6,6 +7,7 @@ import argparse
 import dataclasses
 import json
 import math
+import re
 import shutil
 import sys
 import tempfile
@@ -15,6 +17,7 @@ from pathlib import Path
 
 from maglev_haptics.diagrams.lcm_station import LcmStation, lcm_config
 from maglev_haptics.diagrams.runner import MISS_WARNING_FRACTION
+from maglev_haptics.hardware.extras import MissingExtraError
 from maglev_haptics.diagrams.scenario import (
     ScenarioError, load_scenario, resolve_scenario_file, scenario_names, shipped_scenario_files,
     validate_scenario)
@@ -196,6 +199,63 @@ def _cmd_device_sim(args) -> int:
     return 0
 
 
+def _daq_channels(text: str) -> list:
+    """NI physical channels, a comma list or NI's range (Dev1/ao0:26), in coil order."""
+    channels = []
+    for part in text.split(","):
+        match = re.fullmatch(r"(.*?)(\d+):(\d+)", part.strip())
+        if match:
+            prefix, first, last = match[1], int(match[2]), int(match[3])
+            channels += [f"{prefix}{i}" for i in range(first, last + 1)]
+        elif part.strip():
+            channels.append(part.strip())
+    return channels
+
+
+def _cmd_driver(args) -> int:
+    from pydrake.math import RigidTransform, RollPitchYaw
+
+    import lcm
+
+    from maglev_haptics.diagrams.lcm_station import COIL_CURRENTS_COMMANDED, GLASSES, channel
+
+    scenario, label = _load(args)
+    config = lcm_config(scenario)
+    device = scenario.device
+    if args.kind == "head-tracker":
+        from maglev_haptics.hardware.ndi_head_tracker import NdiHeadTracker
+
+        if not args.romfile:
+            raise ValueError("--romfile: the glasses' NDI tool definition (.rom) is required")
+        settings = {"tracker type": args.tracker, "romfiles": args.romfile}
+        if args.serial_port:
+            settings["serial port"] = args.serial_port
+        if args.ip_address:
+            settings["ip address"] = args.ip_address
+        x, y, z, roll, pitch, yaw = args.X_WN
+        tracker = NdiHeadTracker(settings, lcm=lcm.LCM(config.url),
+                                 channel=channel(config, GLASSES),
+                                 X_WN=RigidTransform(RollPitchYaw(roll, pitch, yaw), [x, y, z]),
+                                 latency_s=device.head_tracker.latency_s)
+        try:
+            sent = tracker.run(device.head_tracker.rate_hz, args.duration)
+        finally:
+            tracker.close()
+        print(json.dumps({"driver": args.kind, "scenario": label, "glasses_messages": sent}))
+        return 0
+    from maglev_haptics.hardware.daq_coil_output import CoilOutputContract, DaqCoilOutput
+
+    if not args.channels or args.amps_per_volt is None:
+        raise ValueError("--channels and --amps-per-volt: both are required for coil-daq")
+    output = DaqCoilOutput(_daq_channels(args.channels), CoilOutputContract(
+        n_coils=device.n_coils, current_limit_a=device.amplifier.current_limit_a,
+        amps_per_volt=args.amps_per_volt))
+    counts = output.serve(lcm.LCM(config.command_url), channel(config, COIL_CURRENTS_COMMANDED),
+                          args.duration)
+    print(json.dumps({"driver": args.kind, "scenario": label, **counts}))
+    return 0
+
+
 def _cmd_diagram(args) -> int:
     import pydot
 
@@ -335,6 +395,36 @@ def build_parser() -> argparse.ArgumentParser:
                             "at the same --realtime")
     device_sim.set_defaults(func=_cmd_device_sim)
 
+    driver = commands.add_parser(
+        "driver", formatter_class=formatter,
+        help="a real device's driver on LCM (needs the hardware extra)",
+        description="Run one of the real device's drivers against the scenario's LCM "
+        "station: head-tracker publishes the glasses from an NDI Polaris or Vega "
+        "(scikit-surgerynditracker); coil-daq writes the commanded coil currents to an NI "
+        "card's analog outputs (nidaqmx). pip install 'maglev-haptics[hardware]'.",
+        epilog=_epilog("""
+            maglev driver head-tracker levitate --romfile glasses.rom --serial-port /dev/ttyUSB0
+            maglev driver coil-daq levitate --channels Dev1/ao0:26 --amps-per-volt 0.4
+            """))
+    driver.add_argument("kind", choices=("head-tracker", "coil-daq"))
+    _add_scenario_arguments(driver)
+    driver.add_argument("--duration", type=_positive_seconds, default=3600.0,
+                        help="how long it runs (s; default 3600)")
+    driver.add_argument("--tracker", choices=("polaris", "vega", "aurora", "dummy"),
+                        default="polaris", help="head-tracker: the NDI tracker's kind")
+    driver.add_argument("--romfile", action="append",
+                        help="head-tracker: the glasses' tool definition (.rom)")
+    driver.add_argument("--serial-port", help="head-tracker: Polaris or Aurora serial port")
+    driver.add_argument("--ip-address", help="head-tracker: Vega's address")
+    driver.add_argument("--X-WN", type=_finite_number, nargs=6, default=[0.0] * 6,
+                        metavar=("X", "Y", "Z", "ROLL", "PITCH", "YAW"),
+                        help="head-tracker: the tracker's pose in W (m, rad; default identity)")
+    driver.add_argument("--channels", help="coil-daq: NI analog outputs in coil order, "
+                        "a comma list or a range (Dev1/ao0:26)")
+    driver.add_argument("--amps-per-volt", type=_finite_number,
+                        help="coil-daq: the amplifiers' transconductance (A/V)")
+    driver.set_defaults(func=_cmd_driver)
+
     diagram = commands.add_parser(
         "diagram", formatter_class=formatter,
         help="draw the system diagram (pydot + graphviz)",
@@ -391,7 +481,7 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except (ScenarioError, ValueError, OSError) as error:
+    except (ScenarioError, ValueError, OSError, MissingExtraError) as error:
         print(f"maglev {args.command}: error: {error}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -11,12 +11,13 @@ runtime) must be installed on the machine with the card.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 from typing import List, Optional, Tuple
 
 import numpy as np
 
-from maglev_haptics.hardware.extras import require_extra
+from maglev_haptics.hardware.extras import MissingDriverError, require_extra
 from maglev_haptics.hardware.lcm_messages import coil_currents_t
 
 
@@ -63,7 +64,12 @@ class DaqCoilOutput:
             raise ValueError(f"channels has {len(channels)} entries: the contract has "
                              f"{contract.n_coils} coils")
         self._contract = contract
-        self._task = nidaqmx.Task()
+        try:
+            self._task = nidaqmx.Task()
+        except nidaqmx.errors.DaqNotFoundError:
+            raise MissingDriverError(
+                "The coil current output needs NI-DAQmx, National Instruments' driver, on "
+                "this machine (ni.com/downloads): nidaqmx found none") from None
         limit_v = contract.current_limit_a / contract.amps_per_volt
         for name in channels:
             self._task.ao_channels.add_ao_voltage_chan(name, min_val=-limit_v, max_val=limit_v)
@@ -72,6 +78,24 @@ class DaqCoilOutput:
         volts, why = coil_voltages(message, self._contract)
         self._task.write(volts.tolist(), auto_start=True)
         return why
+
+    def serve(self, lcm, channel: str, duration_s: float) -> dict:
+        """Apply every command on ``channel`` of ``lcm`` for ``duration_s`` s (wall
+        clock), then turn the coils off; {"applied", "refused"} counts."""
+        counts = {"applied": 0, "refused": 0}
+
+        def apply(_, data):
+            why = self.apply(coil_currents_t.decode(data))
+            counts["refused" if why else "applied"] += 1
+
+        lcm.subscribe(channel, apply)
+        end = time.monotonic() + duration_s
+        try:
+            while time.monotonic() < end:
+                lcm.handle_timeout(100)
+        finally:
+            self.close()
+        return counts
 
     def close(self) -> None:
         self._task.write([0.0] * self._contract.n_coils, auto_start=True)  # coils off

@@ -19,3 +19,7 @@ def require_extra(module: str, purpose: str):
         raise MissingExtraError(
             f"{purpose} needs the Python package {module!r}, which is not installed: "
             f"{HARDWARE_EXTRA}") from None
+
+
+class MissingDriverError(OSError):
+    """A vendor's driver (not a Python package) is missing on this machine."""

@@ -85,6 +85,18 @@ class NdiHeadTracker:
         self._lcm.publish(self._channel, message.encode())
         return message
 
+    def run(self, rate_hz: float, duration_s: float) -> int:
+        """Publish a frame every 1 / ``rate_hz`` s for ``duration_s`` s (wall clock);
+        returns how many were sent."""
+        period_s = 1.0 / rate_hz
+        start = time.monotonic()
+        sent = 0
+        while time.monotonic() - start < duration_s:
+            self.publish_frame()
+            sent += 1
+            time.sleep(max(0.0, start + sent * period_s - time.monotonic()))
+        return sent
+
     def close(self) -> None:
         if not self._dummy:
             self._tracker.stop_tracking()

@@ -8,7 +8,7 @@ import pytest
 from maglev_haptics.diagrams.cli import DIAGRAM_FORMATS, main
 from maglev_haptics.diagrams.scenario import scenario_names, shipped_scenario_files
 
-COMMANDS = ("run", "device-sim", "diagram", "bench", "analyze")
+COMMANDS = ("run", "device-sim", "driver", "diagram", "bench", "analyze")
 
 
 def exit_code_and_stderr(argv, capsys):

@@ -1,6 +1,7 @@
 """The hardware adapters: the NDI head tracker (its dummy tracker) and the DAQ coil output's
 message contract; a missing extra says which in one line."""
 
+import json
 import math
 import time
 
@@ -9,6 +10,7 @@ import numpy as np
 import pytest
 from pydrake.math import RigidTransform, RollPitchYaw
 
+from maglev_haptics.diagrams.cli import _daq_channels, main
 from maglev_haptics.hardware.daq_coil_output import CoilOutputContract, coil_voltages
 from maglev_haptics.hardware.extras import MissingExtraError, require_extra
 from maglev_haptics.hardware.lcm_messages import coil_currents_t, glasses_t
@@ -87,3 +89,24 @@ def test_missing_extra_says_which_in_one_line():
     assert str(error.value) == (
         "The frobnicator needs the Python package 'no_such_driver_package', which is not "
         "installed: pip install 'maglev-haptics[hardware]'")
+
+
+def test_daq_channel_ranges_expand_in_coil_order():
+    assert _daq_channels("Dev1/ao0:26") == [f"Dev1/ao{i}" for i in range(27)]
+    assert _daq_channels("Dev1/ao0:1, Dev2/ao0") == ["Dev1/ao0", "Dev1/ao1", "Dev2/ao0"]
+
+
+def test_driver_commands_run_or_say_what_is_missing(tmp_path, capsys):
+    pytest.importorskip("sksurgerynditracker", reason="the hardware extra is not installed")
+    romfile = tmp_path / "glasses.rom"
+    romfile.write_bytes(b"")
+    station = "{station: !LcmStation {url: 'udpm://239.255.76.67:7732?ttl=0'}}"
+    assert main(["driver", "head-tracker", "levitate", "--scenario-text", station,
+                 "--tracker", "dummy", "--romfile", str(romfile), "--duration", "0.25"]) == 0
+    assert json.loads(capsys.readouterr().out)["glasses_messages"] == 3  # 10 Hz for 0.25 s
+    # No NI card or driver here: one line saying what is missing, not a traceback.
+    assert main(["driver", "coil-daq", "levitate", "--channels", "Dev1/ao0:26",
+                 "--amps-per-volt", "0.4", "--duration", "0.1"]) == 2
+    error = capsys.readouterr().err.strip()
+    assert len(error.splitlines()) == 1
+    assert error.startswith("maglev driver: error: The coil current output needs ")
