@@ -27,6 +27,8 @@ from maglev_haptics.diagrams.scenario import Scenario
 from maglev_haptics.diagrams.station import MakeStation
 from maglev_haptics.diagrams.stereo_display import AddStereoDisplay
 from maglev_haptics.hardware.magnetics import load_magnetics
+from maglev_haptics.hardware.thermal import coil_thermal
+from maglev_haptics.systems.coil_thermal import CoilTemperatures
 from maglev_haptics.systems.device_visualizer import DeviceVisualizer
 from maglev_haptics.systems.lattice_visualizer import JELLY_RGBA, LatticeVisualizer, surface_faces
 from maglev_haptics.systems.levitation_controller import LevitationController
@@ -233,6 +235,11 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
                     builder.Connect(scene.surface.GetOutputPort(name),
                                     surface_visualizer.GetInputPort(name))
                 builder.Connect(scene.X_WT_output, surface_visualizer.GetInputPort("X_WT"))
+    if device_api:  # the API's estimate of the coil temperatures (its over-temperature fault)
+        temperatures = builder.AddNamedSystem("coil_temperatures", CoilTemperatures(
+            model=coil_thermal(device), n_coils=device.n_coils,
+            period_s=1.0 / scenario.control_rate_hz))
+        builder.Connect(station.GetOutputPort("coil_currents"), temperatures.get_input_port())
     diagram = builder.Build()
     diagram.set_name("maglev_haptics")
     return BuiltDiagram(diagram=diagram, plan=plan, logger=logger, log_layout=log_layout,

@@ -19,8 +19,13 @@ the simulated station, or whatever answers on LCM), and steps it tick by tick:
 Faults (the bits of ``device_status_t``): sensor out of range (tracking lost,
 or the instrument outside the boundary sphere), coil over-temperature (the
 thermal model's estimate from the currents that flow), coil over-current,
-over-speed. A fault latches until ``reset_faults``; any but a lost sensor lands
-the instrument (a lost one is landed blind by the controller itself).
+over-speed. A fault latches until ``reset_faults``, and a new one lands the
+instrument (a lost one the controller lands blind, whatever the setpoint); while
+any is latched, takeoff and a new desired pose are refused.
+
+The device ticks only inside calls (``takeoff``, ``land``, ``run_for``): with a
+station on LCM, a pause between calls longer than the device's command timeout
+(10 ms) turns its coils off, so keep calling ``run_for`` while hovering.
 """
 
 from __future__ import annotations
@@ -40,8 +45,9 @@ from maglev_haptics.diagrams.runner import SHARED_SPIN_S, wait_until
 from maglev_haptics.diagrams.scenario import Scenario, load_scenario
 from maglev_haptics.hardware.kernels import compile_kernels
 from maglev_haptics.hardware.lcm_messages import device_status_t
-from maglev_haptics.hardware.thermal import coil_thermal, temperature_after_c
-from maglev_haptics.systems.blends import LANDING_PRESS_M, minimum_jerk_plan
+from maglev_haptics.diagrams.motion import landing_poses
+from maglev_haptics.hardware.thermal import coil_thermal
+from maglev_haptics.systems.blends import minimum_jerk_plan
 
 FAULT_SENSOR_OUT_OF_RANGE = device_status_t.FAULT_SENSOR_OUT_OF_RANGE
 FAULT_COIL_OVER_TEMPERATURE = device_status_t.FAULT_COIL_OVER_TEMPERATURE
@@ -53,6 +59,10 @@ SETTLED_SPEED_M_S = 0.01  # ... moving slower than this (m/s)
 
 class DeviceTimeoutError(TimeoutError):
     """takeoff or land did not finish in time; the device was set to land or shut off."""
+
+
+class DeviceFaultError(RuntimeError):
+    """A command refused, or a takeoff ended, by a latched fault."""
 
 
 @dataclass
@@ -102,7 +112,8 @@ class MaglevDevice:
     in it); its device, controller and station are used, its motion script only for
     the rest place, the hover pose (the first waypoint) and the ramp and landing
     times. ``realtime_rate`` > 0 paces each tick to the wall clock (needed with a
-    station on LCM). ``max_speed_m_s``: the over-speed limit (m/s).
+    station on LCM, where it is 1 unless given). ``max_speed_m_s``: the over-speed
+    limit (m/s).
     """
 
     def __init__(self, scenario: Union[Scenario, str] = "levitate", *,
@@ -110,9 +121,10 @@ class MaglevDevice:
                  max_speed_m_s: float = 0.5):
         self.scenario = scenario if isinstance(scenario, Scenario) else load_scenario(
             scenario, name)
-        self._realtime_rate = float(realtime_rate)
+        on_lcm = isinstance(self.scenario.station, LcmStation)
+        self._realtime_rate = float(realtime_rate) if realtime_rate > 0 or not on_lcm else 1.0
         self._max_speed_m_s = float(max_speed_m_s)
-        self._thermal = coil_thermal(self.scenario.device)
+        self._temperature_limit_c = coil_thermal(self.scenario.device).max_c
         self._tick_callbacks: List[Callable[[TickState], None]] = []
         self._fault_callbacks: List[Callable[[int], None]] = []
         self._boundary = (None, None)
@@ -135,13 +147,13 @@ class MaglevDevice:
         self._controller = diagram.GetSubsystemByName("levitation_controller")
         estimator = diagram.GetSubsystemByName("pose_estimator")
         station = diagram.GetSubsystemByName("station")
+        self._temperatures = diagram.GetSubsystemByName("coil_temperatures")
         self._contexts = {system: system.GetMyMutableContextFromRoot(root) for system in (
             self._setpoint, self._enable, self._feedforward, self._controller, estimator,
-            station)}
+            station, self._temperatures)}
         self._ports = [estimator.GetOutputPort(name) for name in
                        ("X_WI_measured", "V_WI_measured", "tracking_ok")]
         self._estimator, self._station = estimator, station
-        self._temperature_c = np.full(self.scenario.device.n_coils, self._thermal.ambient_c)
         self._motion: Optional[_Motion] = None
         self._shares_cores = isinstance(self.scenario.station, LcmStation)
         self._clock_zero, self._ticks = time.perf_counter(), 0
@@ -150,6 +162,7 @@ class MaglevDevice:
     def disconnect(self) -> None:
         """Coils off at once (no landing: land first), and the diagram released."""
         self._require_connection()
+        self._motion = None
         self._write_setpoint_and_enable(self._current_setpoint(), 0.0)
         self.set_feedforward_wrench(np.zeros(6))
         self._tick()
@@ -171,7 +184,7 @@ class MaglevDevice:
     def set_desired_pose(self, pose, rates=None) -> None:
         """Hover at ``pose`` [x, y, z, roll, pitch, yaw] (m, rad) with setpoint
         ``rates`` (m/s, rad/s; default zero); ends a takeoff or landing in progress."""
-        self._require_connection()
+        self._require_no_faults("set_desired_pose")
         pose = _vector("pose", pose, 6)
         rates = np.zeros(6) if rates is None else _vector("rates", rates, 6)
         self._motion = None
@@ -202,7 +215,7 @@ class MaglevDevice:
 
     def coil_temperatures_c(self) -> np.ndarray:
         """The coils' estimated winding temperatures (C)."""
-        return self._temperature_c.copy()
+        return self.state.coil_temperature_c.copy()
 
     # --- motions -----------------------------------------------------------
 
@@ -210,7 +223,7 @@ class MaglevDevice:
         """Ramp the force up and rise to ``pose`` (default: the scenario's first
         waypoint); blocks until hovering there, else lands and raises
         DeviceTimeoutError."""
-        self._require_connection()
+        self._require_no_faults("takeoff")
         motion = self.scenario.motion
         target = np.asarray(motion.waypoints[0].pose if pose is None else
                             _vector("pose", pose, 6), dtype=float)
@@ -221,6 +234,8 @@ class MaglevDevice:
                            PiecewisePolynomial.FirstOrderHold([0.0, ramp_s], [[0.0, 1.0]]))
 
         def hovering():
+            if self.faults:
+                raise DeviceFaultError(f"takeoff ended by fault {self.faults:#x}; landing")
             return (self._motion is None
                     and np.linalg.norm(self.state.X_WI[4:7] - target[0:3]) < HOVER_TOLERANCE_M
                     and np.linalg.norm(self.state.V_WI[3:6]) < SETTLED_SPEED_M_S)
@@ -233,8 +248,7 @@ class MaglevDevice:
         if not (self._motion is not None and self._motion.landing):
             self._start_landing()
         self._run_until(lambda: self._motion is None, timeout_s, "land",
-                        on_timeout=lambda: self._write_setpoint_and_enable(
-                            self._current_setpoint(), 0.0))
+                        on_timeout=self._coils_off)
 
     def run_for(self, duration_s: float) -> None:
         """Tick for ``duration_s`` (s), holding or carrying on what was commanded."""
@@ -270,18 +284,19 @@ class MaglevDevice:
             if t_next >= self._motion.end_s:
                 self._motion = None
         if self._realtime_rate > 0:  # each tick released at its wall-clock slot
+            slot_s = self._built.tick_s / self._realtime_rate
             self._ticks += 1
-            wait_until(self._clock_zero + self._ticks * self._built.tick_s / self._realtime_rate,
+            if time.perf_counter() > self._clock_zero + (self._ticks + 1) * slot_s:
+                # Idle between calls, not late: the clock starts again from now.
+                self._clock_zero = time.perf_counter() - self._ticks * slot_s
+            wait_until(self._clock_zero + self._ticks * slot_s,
                        SHARED_SPIN_S if self._shares_cores else math.inf)
         self._simulator.AdvanceTo(t_next)
-        currents = self._station.GetOutputPort("coil_currents").Eval(self._contexts[self._station])
-        self._temperature_c = temperature_after_c(self._thermal, self._temperature_c, currents,
-                                                  self._built.tick_s)
-        self.state = self._read_state(currents)
+        self.state = self._read_state()
         center, radius = self._boundary
         raised = detect_faults(
             self.state, current_limit_a=self.scenario.device.amplifier.current_limit_a,
-            temperature_limit_c=self._thermal.max_c, max_speed_m_s=self._max_speed_m_s,
+            temperature_limit_c=self._temperature_limit_c, max_speed_m_s=self._max_speed_m_s,
             boundary_center_m=center, boundary_radius_m=radius)
         new = raised & ~self.faults
         if new:
@@ -298,26 +313,30 @@ class MaglevDevice:
         """From the current setpoint: down onto the glass, settle, ramp the force down."""
         motion = self.scenario.motion
         pose = self._current_setpoint()[0:6]
-        rest_height_m = self.scenario.device.instrument_spec().rest_height_m
-        touchdown = np.array([pose[0], pose[1], rest_height_m - LANDING_PRESS_M,
-                              0.0, 0.0, pose[5]])
-        down_s = motion.landing_s + motion.settle_s
+        moves = [(goal, motion.landing_s, 0.0) for goal in landing_poses(
+            pose, self.scenario.device.instrument_spec().rest_height_m)]
+        down_s = len(moves) * motion.landing_s + motion.settle_s
         enable = self._current_enable()
         self._start_motion(
-            minimum_jerk_plan(pose, 0.0, [(touchdown, motion.landing_s, 0.0)], 0.0),
+            minimum_jerk_plan(pose, 0.0, moves, 0.0),
             PiecewisePolynomial.FirstOrderHold(
                 [0.0, down_s, down_s + motion.force_ramp_s], [[enable, enable, 0.0]]),
             landing=True)
 
-    def _read_state(self, currents=None) -> TickState:
+    def _read_state(self) -> TickState:
         estimator_context = self._contexts[self._estimator]
         X, V, ok = (port.Eval(estimator_context) for port in self._ports)
-        if currents is None:
-            currents = self._station.GetOutputPort("coil_currents").Eval(
-                self._contexts[self._station])
+        currents = self._station.GetOutputPort("coil_currents").Eval(
+            self._contexts[self._station])
+        temperatures = self._temperatures.get_output_port().Eval(
+            self._contexts[self._temperatures])
         return TickState(t_s=self._simulator.get_context().get_time(), X_WI=X, V_WI=V,
                          tracking_ok=bool(ok[0] > 0.5), coil_currents_a=currents,
-                         coil_temperature_c=self._temperature_c.copy(), faults=self.faults)
+                         coil_temperature_c=temperatures, faults=self.faults)
+
+    def _coils_off(self) -> None:
+        self._motion = None
+        self._write_setpoint_and_enable(self._current_setpoint(), 0.0)
 
     def _current_enable(self) -> float:
         return self._enable.get_source_value(self._contexts[self._enable]).GetAtIndex(0)
@@ -331,6 +350,12 @@ class MaglevDevice:
         if enable is not None:
             self._enable.get_mutable_source_value(self._contexts[self._enable]) \
                 .SetFromVector([enable])
+
+    def _require_no_faults(self, what: str) -> None:
+        self._require_connection()
+        if self.faults:
+            raise DeviceFaultError(f"{what} refused: fault {self.faults:#x} is latched "
+                                   "(reset_faults() once it is cleared)")
 
     def _require_connection(self) -> None:
         if self._simulator is None:

@@ -38,6 +38,18 @@ def rest_pose(start_xy_yaw, rest_height_m: float) -> np.ndarray:
     return np.array([x, y, rest_height_m, 0.0, 0.0, yaw])
 
 
+def landing_poses(pose, rest_height_m: float) -> List[np.ndarray]:
+    """The poses a landing from ``pose`` [x, y, z, roll, pitch, yaw] moves through:
+    level first where tilted (so no edge of the base meets the glass first), then
+    down to just below the rest height, over the same x, y and yaw."""
+    pose = np.asarray(pose, dtype=float)
+    poses = []
+    if np.any(pose[3:5] != 0.0):
+        poses.append(np.array([*pose[0:3], 0.0, 0.0, pose[5]]))
+    poses.append(rest_pose([pose[0], pose[1], pose[5]], rest_height_m - LANDING_PRESS_M))
+    return poses
+
+
 def flight_plan(motion, rest_height_m: float) -> FlightPlan:
     """Setpoint and enable trajectories for ``motion`` (a MotionScript)."""
     times: List[float] = []
@@ -69,17 +81,13 @@ def flight_plan(motion, rest_height_m: float) -> FlightPlan:
         holds.append((t, t + waypoint.hold_s))
         t += waypoint.hold_s
         pose = target
-    if np.any(pose[3:5] != 0.0):
-        # Level out before descending, so no edge of the base meets the glass first.
-        level = np.array([*pose[0:3], 0.0, 0.0, pose[5]])
-        move(pose, level, t, motion.landing_s)
+    for goal in landing_poses(pose, rest_height_m):
+        move(pose, goal, t, motion.landing_s)
         t += motion.landing_s
-        pose = level
-    touchdown = rest_pose([pose[0], pose[1], pose[5]], rest_height_m - LANDING_PRESS_M)
-    move(pose, touchdown, t, motion.landing_s)
-    t += motion.landing_s + motion.settle_s
+        pose = goal
+    t += motion.settle_s
     ramp_down_end = t + motion.force_ramp_s
-    hold(touchdown, t, ramp_down_end)
+    hold(pose, t, ramp_down_end)
     setpoint = PiecewisePolynomial.CubicHermite(
         np.array(times), np.array(values).T, np.array(rates).T)
     ramp_up_start = motion.takeoff_at_s

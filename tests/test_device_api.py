@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from maglev_haptics.diagrams.device_api import (
-    FAULT_SENSOR_OUT_OF_RANGE, DeviceTimeoutError, MaglevDevice)
+    FAULT_SENSOR_OUT_OF_RANGE, DeviceFaultError, DeviceTimeoutError, MaglevDevice)
 
 REST_Z_M = 0.0067  # the two-magnet instrument's origin resting on the glass (about, m)
 
@@ -51,7 +51,8 @@ def test_fly_with_the_api():
     assert device.state.X_WI[6] == pytest.approx(hover[2] + 1e-3, abs=0.1e-3)
 
     temperatures = device.coil_temperatures_c()
-    assert temperatures.max() > device._thermal.ambient_c + 0.1  # hovering heats the coils
+    ambient_c = device.scenario.device.thermal.ambient_temperature_c
+    assert temperatures.max() > ambient_c + 0.1  # hovering heats the coils
     device.land()
     assert device.state.X_WI[6] == pytest.approx(REST_Z_M, abs=1.5e-3)
     assert device._current_enable() == 0.0 and device.faults == 0
@@ -72,6 +73,8 @@ def test_leaving_the_boundary_raises_its_fault_and_lands():
     assert device.faults & FAULT_SENSOR_OUT_OF_RANGE  # latched
     assert device.state.X_WI[6] == pytest.approx(REST_Z_M, abs=1.5e-3)  # landed
     assert device._current_enable() == 0.0
+    with pytest.raises(DeviceFaultError, match="takeoff refused: fault 0x1 is latched"):
+        device.takeoff()
     device.reset_faults()
     assert device.faults == 0
 
@@ -82,6 +85,11 @@ def test_a_takeoff_that_cannot_finish_times_out_and_lands():
     with pytest.raises(DeviceTimeoutError, match="takeoff not done within 0.3 s"):
         device.takeoff(timeout_s=0.3)  # the force ramp alone takes longer
     assert device._current_enable() == 0.0  # landed and ramped down
+    device.takeoff()
+    with pytest.raises(DeviceTimeoutError, match="land not done within 0.01 s"):
+        device.land(timeout_s=0.01)
+    device.run_for(0.005)
+    assert device._current_enable() == 0.0  # the coils stay off: no landing ramp resumes
     with pytest.raises(ValueError, match=r"pose = \[0.0, 0.0, 0.02\]: must be 6 finite"):
         device.set_desired_pose([0.0, 0.0, 0.02])
     with pytest.raises(ValueError, match="kp = .*must be 6 finite gains >= 0"):
