@@ -60,9 +60,8 @@ def log_arrays(logger, log_layout, context, device) -> Dict[str, np.ndarray]:
     return {
         "t": t,
         "p_WI_measured": measured[:, 4:7],
-        **_truth(data, "p"),
         "rpy_WI_measured": rpy_from_quaternions(measured[:, 0:4]),
-        **_truth(data, "rpy"),
+        **_truth(data),
         # What the device renders on the hand beyond carrying the weight while
         # haptics is engaged; zero otherwise (levitation has no user's wrench).
         "f_user": user_wrench[:, 0:3],
@@ -72,8 +71,6 @@ def log_arrays(logger, log_layout, context, device) -> Dict[str, np.ndarray]:
         "coil_temperature_c": temperatures,
         "p_WI_desired": data["setpoint"][:, 0:3],
         "rpy_WI_desired": data["setpoint"][:, 3:6],
-        **_truth(data, "q"),
-        **_truth(data, "V"),
         "q_WI_measured": measured[:, 0:4],
         "V_WI_measured": data["V_WI_measured"],
         "tracking_ok": data["tracking_ok"][:, 0],
@@ -84,21 +81,22 @@ def log_arrays(logger, log_layout, context, device) -> Dict[str, np.ndarray]:
     }
 
 
-def _truth(data, quantity: str) -> Dict[str, np.ndarray]:
-    """``{quantity}_WI_true`` from the true state, which only a simulated station
-    has; nothing with a station on LCM."""
+def _truth(data) -> Dict[str, np.ndarray]:
+    """p, rpy, q and V of I in W from the true state, which only a simulated station
+    has; NaN with a station on LCM (log.npz keeps the contract's keys)."""
     if "instrument_state" not in data:
-        return {}
+        n = len(data["X_WI_measured"])
+        return {f"{name}_WI_true": np.full((n, size), np.nan)
+                for name, size in (("p", 3), ("rpy", 3), ("q", 4), ("V", 6))}
     state = data["instrument_state"]
-    value = {"p": lambda: state[:, 4:7], "q": lambda: state[:, 0:4], "V": lambda: state[:, 7:13],
-             "rpy": lambda: rpy_from_quaternions(state[:, 0:4])}[quantity]()
-    return {f"{quantity}_WI_true": value}
+    return {"p_WI_true": state[:, 4:7], "rpy_WI_true": rpy_from_quaternions(state[:, 0:4]),
+            "q_WI_true": state[:, 0:4], "V_WI_true": state[:, 7:13]}
 
 
 def recorded_pose(log: Dict[str, np.ndarray]):
     """(p_WI, q_WI, V_WI, source) that the metrics read: the true pose where the
     station is simulated, the tracker's estimate ("measured") where it is not."""
-    if "p_WI_true" in log:
+    if not np.all(np.isnan(log["p_WI_true"])):
         return log["p_WI_true"], log["q_WI_true"], log["V_WI_true"], "true"
     return log["p_WI_measured"], log["q_WI_measured"], log["V_WI_measured"], "measured"
 

@@ -15,7 +15,7 @@ import textwrap
 from importlib.metadata import version
 from pathlib import Path
 
-from maglev_haptics.diagrams.lcm_station import LcmStation, lcm_config
+from maglev_haptics.diagrams.lcm_station import LcmStation, SimStation, lcm_config
 from maglev_haptics.diagrams.runner import MISS_WARNING_FRACTION
 from maglev_haptics.hardware.extras import MissingExtraError
 from maglev_haptics.diagrams.scenario import (
@@ -137,9 +137,10 @@ def _cmd_run(args) -> int:
 
     scenario, label = _load(args)
     duration = args.duration
-    if args.station == "lcm" and not isinstance(scenario.station, LcmStation):
-        scenario = dataclasses.replace(scenario, station=LcmStation())
-        validate_scenario(scenario, label)
+    if args.station is not None:
+        station = SimStation() if args.station == "sim" else (
+            scenario.station if isinstance(scenario.station, LcmStation) else LcmStation())
+        scenario = dataclasses.replace(scenario, station=station)
     if args.stereo and scenario.stereo is None:
         scenario = with_stereo(scenario, label)
     if args.interactive:
@@ -147,6 +148,7 @@ def _cmd_run(args) -> int:
             raise ScenarioError("--interactive drives the hand from Meshcat: drop --no-meshcat")
         scenario = interactive_variant(scenario, duration)
         duration = scenario.duration_s
+    validate_scenario(scenario, label)
     out = _writable_folder(Path(args.out) if args.out else Path("out") / label.replace(":", "-"))
     if args.interactive:
         print("interactive: move the hand with the sliders in Meshcat's Controls panel; "
@@ -215,9 +217,8 @@ def _daq_channels(text: str) -> list:
 def _cmd_driver(args) -> int:
     from pydrake.math import RigidTransform, RollPitchYaw
 
-    import lcm
-
-    from maglev_haptics.diagrams.lcm_station import COIL_CURRENTS_COMMANDED, GLASSES, channel
+    from maglev_haptics.diagrams.lcm_station import (
+        COIL_CURRENTS_COMMANDED, GLASSES, channel, open_lcm)
 
     scenario, label = _load(args)
     config = lcm_config(scenario)
@@ -233,7 +234,7 @@ def _cmd_driver(args) -> int:
         if args.ip_address:
             settings["ip address"] = args.ip_address
         x, y, z, roll, pitch, yaw = args.X_WN
-        tracker = NdiHeadTracker(settings, lcm=lcm.LCM(config.url),
+        tracker = NdiHeadTracker(settings, lcm=open_lcm(config.url),
                                  channel=channel(config, GLASSES),
                                  X_WN=RigidTransform(RollPitchYaw(roll, pitch, yaw), [x, y, z]),
                                  latency_s=device.head_tracker.latency_s)
@@ -250,8 +251,9 @@ def _cmd_driver(args) -> int:
     output = DaqCoilOutput(_daq_channels(args.channels), CoilOutputContract(
         n_coils=device.n_coils, current_limit_a=device.amplifier.current_limit_a,
         amps_per_volt=args.amps_per_volt))
-    counts = output.serve(lcm.LCM(config.command_url), channel(config, COIL_CURRENTS_COMMANDED),
-                          args.duration)
+    counts = output.serve(open_lcm(config.command_url),
+                          channel(config, COIL_CURRENTS_COMMANDED), args.duration,
+                          config.command_timeout_s)
     print(json.dumps({"driver": args.kind, "scenario": label, **counts}))
     return 0
 

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import lcm
 import numpy as np
 from pydrake.systems.framework import Diagram, DiagramBuilder
 from pydrake.systems.primitives import ConstantVectorSource, Multiplexer
@@ -19,7 +18,7 @@ from pydrake.systems.primitives import ConstantVectorSource, Multiplexer
 from maglev_haptics.diagrams.haptics import AddHandCommands
 from maglev_haptics.diagrams.lcm_station import (
     COIL_CURRENTS, COIL_CURRENTS_COMMANDED, DEVICE_STATUS, GLASSES, MARKERS, channel,
-    lcm_config)
+    lcm_config, open_lcm)
 from maglev_haptics.diagrams.station import MakeStation
 from maglev_haptics.hardware.lcm_messages import coil_currents_t, device_status_t
 from maglev_haptics.hardware.magnetics import load_magnetics
@@ -62,7 +61,7 @@ def BuildDeviceSim(scenario) -> DeviceSim:
     builder = DiagramBuilder()
     station = builder.AddSystem(MakeStation(scenario, magnetics=load_magnetics(device)))
     commands = builder.AddNamedSystem("commands_receiver", MessageReceiver(
-        lcm=lcm.LCM(station_config.command_url),
+        lcm=open_lcm(station_config.command_url),
         channel=channel(station_config, COIL_CURRENTS_COMMANDED),
         message_type=coil_currents_t, size=n_coils,
         decode=lambda message, _: np.array(message.current_a, dtype=float),
@@ -71,7 +70,7 @@ def BuildDeviceSim(scenario) -> DeviceSim:
     builder.Connect(commands.GetOutputPort("value"),
                     station.GetInputPort("coil_currents_commanded"))
 
-    publisher = lcm.LCM(station_config.url)
+    publisher = open_lcm(station_config.url)
 
     def send(name, value_port, encode, send_period_s):
         sender = builder.AddNamedSystem(f"{name.lower()}_sender", MessageSender(
@@ -79,9 +78,12 @@ def BuildDeviceSim(scenario) -> DeviceSim:
             encode=encode, period_s=send_period_s))
         builder.Connect(value_port, sender.GetInputPort("value"))
 
-    latency_s = device.tracker.latency_s
+    # A publish at t reads the sensor before its update at t: the sample it carries
+    # was published one tracker period earlier (an extra period of latency, ~1.2 ms,
+    # on top of the tracker's own; see the issue 14 note).
+    sample_age_s = tracker_period_s + device.tracker.latency_s
     send(MARKERS, station.GetOutputPort("markers_measured"),
-         lambda sequence, t, value: markers_message(sequence, t - latency_s, t, value),
+         lambda sequence, t, value: markers_message(sequence, t - sample_age_s, t, value),
          tracker_period_s)
     send(COIL_CURRENTS, station.GetOutputPort("coil_currents"),
          currents_message, period_s)

@@ -91,6 +91,14 @@ class LcmStation:
             positive(f"{path}.{name}", getattr(self, name))
 
 
+def open_lcm(url: str):
+    """``lcm.LCM(url)``; an OSError naming the URL where LCM cannot open it."""
+    try:
+        return lcm.LCM(url)
+    except RuntimeError as error:
+        raise OSError(f"LCM URL {url!r}: {error}") from None
+
+
 def channel(station, name: str) -> str:
     return station.channel_prefix + name
 
@@ -119,7 +127,7 @@ def MakeLcmStation(scenario) -> Diagram:
     n_markers = len(device.instrument_spec().p_IK_m)
     period_s = 1.0 / scenario.control_rate_hz
     builder = DiagramBuilder()
-    inbound = lcm.LCM(station.url)  # shared: whichever receiver updates first reads for all
+    inbound = open_lcm(station.url)  # shared: whichever receiver updates first reads for all
 
     def receive(name, message_type, size, decode, stale_value, stale_after_s, wait_s=0.0,
                 initial_value=None):
@@ -148,7 +156,7 @@ def MakeLcmStation(scenario) -> Diagram:
                           initial_value=glasses_measurement_from_message(glasses_t(), 0.0))
         builder.ExportOutput(glasses.GetOutputPort("value"), "glasses_measured")
     sender = builder.AddNamedSystem("coil_currents_commanded_sender", MessageSender(
-        lcm=lcm.LCM(station.command_url), channel=channel(station, COIL_CURRENTS_COMMANDED),
+        lcm=open_lcm(station.command_url), channel=channel(station, COIL_CURRENTS_COMMANDED),
         size=n_coils, encode=currents_message, period_s=period_s))
     builder.ExportInput(sender.GetInputPort("value"), "coil_currents_commanded")
     diagram = builder.Build()

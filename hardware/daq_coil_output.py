@@ -30,6 +30,11 @@ class CoilOutputContract:
     current_limit_a: float
     amps_per_volt: float
 
+    def __post_init__(self):
+        if not (np.isfinite(self.amps_per_volt) and self.amps_per_volt > 0):
+            raise ValueError(f"amps_per_volt = {self.amps_per_volt}: must be a finite "
+                             "number > 0 (A/V)")
+
 
 def coil_voltages(message: coil_currents_t,
                   contract: CoilOutputContract) -> Tuple[np.ndarray, Optional[str]]:
@@ -71,28 +76,44 @@ class DaqCoilOutput:
                 "The coil current output needs NI-DAQmx, National Instruments' driver, on "
                 "this machine (ni.com/downloads): nidaqmx found none") from None
         limit_v = contract.current_limit_a / contract.amps_per_volt
-        for name in channels:
-            self._task.ao_channels.add_ao_voltage_chan(name, min_val=-limit_v, max_val=limit_v)
+        try:
+            for name in channels:
+                self._task.ao_channels.add_ao_voltage_chan(name, min_val=-limit_v,
+                                                           max_val=limit_v)
+        except nidaqmx.errors.DaqError as error:
+            self._task.close()
+            raise OSError(f"channels: NI-DAQmx refused {channels}: "
+                          f"{str(error).splitlines()[0]}") from None
 
     def apply(self, message: coil_currents_t) -> Optional[str]:
         volts, why = coil_voltages(message, self._contract)
         self._task.write(volts.tolist(), auto_start=True)
         return why
 
-    def serve(self, lcm, channel: str, duration_s: float) -> dict:
+    def serve(self, lcm, channel: str, duration_s: float, command_timeout_s: float) -> dict:
         """Apply every command on ``channel`` of ``lcm`` for ``duration_s`` s (wall
-        clock), then turn the coils off; {"applied", "refused"} counts."""
-        counts = {"applied": 0, "refused": 0}
+        clock), the coils off whenever the newest is older than ``command_timeout_s``
+        (s: the application stopped) and at the end; {"applied", "refused",
+        "timeouts"} counts."""
+        counts = {"applied": 0, "refused": 0, "timeouts": 0}
+        newest = [-float("inf")]  # when the newest command was applied (monotonic s)
 
         def apply(_, data):
             why = self.apply(coil_currents_t.decode(data))
             counts["refused" if why else "applied"] += 1
+            newest[0] = time.monotonic()
 
         lcm.subscribe(channel, apply)
         end = time.monotonic() + duration_s
+        off = True
         try:
             while time.monotonic() < end:
-                lcm.handle_timeout(100)
+                lcm.handle_timeout(1)
+                stale = time.monotonic() - newest[0] > command_timeout_s
+                if stale and not off:
+                    self._task.write([0.0] * self._contract.n_coils, auto_start=True)
+                    counts["timeouts"] += 1
+                off = stale
         finally:
             self.close()
         return counts

@@ -10,7 +10,9 @@ from maglev_haptics.hardware.thermal import CoilThermal, temperature_after_c
 
 class CoilTemperatures(LeafSystem):
     """Each coil's winding temperature (C), the thermal model's exact RC step
-    (``hardware/thermal.py``) for the currents held over each period.
+    (``hardware/thermal.py``) with each coil's current sampled once a period and held
+    over it: exact for currents that change no faster (at 100 Hz, a sampled
+    estimate of the 1 kHz currents; the time constant is ~1 min).
 
     .. pydrake_system::
 

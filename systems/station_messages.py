@@ -26,8 +26,8 @@ from maglev_haptics.hardware.lcm_messages import (
 
 US_PER_S = 1_000_000
 MESSAGE_QUEUE_CAPACITY = 1000  # messages a subscription holds between two reads
-# Receiver state: [newest sequence read, its arrival time (s), first sequence, received]
-_NEVER = np.array([-1.0, -math.inf, -1.0, 0.0])
+# Receiver state: [newest sequence read, its arrival time (s), received, lost]
+_NEVER = np.array([-1.0, -math.inf, 0.0, 0.0])
 
 
 def to_utime(t_s: float) -> int:
@@ -111,21 +111,20 @@ def status_message(sequence: int, t_s: float, handle_gripped: bool, fault_bits: 
 def receiver_step(state: np.ndarray, sequence: int, t_s: float) -> np.ndarray:
     """The receiver's counters after reading a message numbered ``sequence`` at ``t_s``.
 
-    ``state`` is [newest sequence, its arrival (s), first sequence, received]; a
-    sequence it has already read changes nothing."""
-    newest, _, first, received = state
-    if sequence == newest:
+    ``state`` is [newest sequence, its arrival (s), received, lost]; a sequence it
+    has already read changes nothing; a lower one is the sender starting again,
+    which loses nothing."""
+    newest, _, received, lost = state
+    if received > 0 and sequence == newest:
         return state
-    if first < 0 or sequence < newest:  # the first message, or the sender restarted
-        first = sequence - received
-    return np.array([sequence, t_s, first, received + 1])
+    if received > 0 and sequence > newest:
+        lost += sequence - newest - 1
+    return np.array([sequence, t_s, received + 1, lost])
 
 
 def receiver_counts(state: np.ndarray) -> dict:
     """{"messages_received", "messages_lost"} from a receiver's state."""
-    newest, _, first, received = state
-    expected = newest - first + 1 if received > 0 else 0
-    return {"messages_received": int(received), "messages_lost": int(expected - received)}
+    return {"messages_received": int(state[2]), "messages_lost": int(state[3])}
 
 
 def message_sequence(data: bytes) -> int:

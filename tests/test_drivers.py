@@ -109,4 +109,5 @@ def test_driver_commands_run_or_say_what_is_missing(tmp_path, capsys):
                  "--amps-per-volt", "0.4", "--duration", "0.1"]) == 2
     error = capsys.readouterr().err.strip()
     assert len(error.splitlines()) == 1
-    assert error.startswith("maglev driver: error: The coil current output needs ")
+    # nidaqmx missing (the hardware extra) or NI-DAQmx missing (the vendor driver).
+    assert error.startswith("maglev driver: error: The coil current output")

@@ -8,7 +8,7 @@ from io import BytesIO
 import struct
 
 class device_status_t(object):
-    """ The station's state of health, published at the control rate. """
+    """ The station's state of health (device-sim publishes it at 100 Hz). """
 
     __slots__ = ["sequence", "utime", "fault_bits", "handle_gripped", "num_coils", "coil_temperature_c"]
 
