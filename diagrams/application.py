@@ -21,7 +21,7 @@ from pydrake.systems.primitives import (
     ConstantVectorSource, LogVectorOutput, Multiplexer, TrajectorySource, ZeroOrderHold)
 
 from maglev_haptics.diagrams.haptics import AddHandCommands, AddHaptics
-from maglev_haptics.diagrams.lcm_station import LcmStation, MakeLcmStation
+from maglev_haptics.diagrams.lcm_station import LcmStation
 from maglev_haptics.diagrams.motion import FlightPlan, check_waypoints_reachable, flight_plan
 from maglev_haptics.diagrams.scenario import Scenario
 from maglev_haptics.diagrams.station import MakeStation
@@ -70,9 +70,7 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
     check_waypoints_reachable(scenario.motion, device, magnetics, label)
     builder = DiagramBuilder()
     simulated = not isinstance(scenario.station, LcmStation)
-    station = builder.AddSystem(
-        MakeStation(scenario, magnetics=magnetics) if simulated
-        else MakeLcmStation(scenario))
+    station = builder.AddSystem(MakeStation(scenario, magnetics=magnetics))
 
     estimator = builder.AddNamedSystem("pose_estimator", PoseEstimator(
         instrument=spec, tracker=device.tracker, config=scenario.estimator))

@@ -17,8 +17,8 @@ from pydrake.systems.primitives import ConstantVectorSource, Multiplexer
 
 from maglev_haptics.diagrams.haptics import AddHandCommands
 from maglev_haptics.diagrams.lcm_station import (
-    COIL_CURRENTS, COIL_CURRENTS_COMMANDED, DEVICE_STATUS, GLASSES, MARKERS, channel,
-    lcm_config, open_lcm)
+    COIL_CURRENTS, COIL_CURRENTS_COMMANDED, DEVICE_STATUS, GLASSES, MARKERS, SimStation,
+    channel, lcm_config, open_lcm)
 from maglev_haptics.diagrams.station import MakeStation
 from maglev_haptics.hardware.lcm_messages import coil_currents_t, device_status_t
 from maglev_haptics.hardware.magnetics import load_magnetics
@@ -59,7 +59,8 @@ def BuildDeviceSim(scenario) -> DeviceSim:
     period_s = 1.0 / scenario.control_rate_hz
     tracker_period_s = 1.0 / device.tracker.rate_hz
     builder = DiagramBuilder()
-    station = builder.AddSystem(MakeStation(scenario, magnetics=load_magnetics(device)))
+    station = builder.AddSystem(MakeStation(scenario, magnetics=load_magnetics(device),
+                                            station=SimStation()))
     commands = builder.AddNamedSystem("commands_receiver", MessageReceiver(
         lcm=open_lcm(station_config.command_url),
         channel=channel(station_config, COIL_CURRENTS_COMMANDED),

@@ -1,7 +1,8 @@
 """The station: what real hardware replaces (docs/architecture.md).
 
-``MakeStation`` returns a Diagram named ``station`` with the same ports the
-real hardware drivers will have:
+``MakeStation`` returns a Diagram named ``station``, simulated here or, with
+``station: !LcmStation``, the LCM interface to a real or simulated device
+(``diagrams/lcm_station.py``), with the same ports either way:
 
 - input ``coil_currents_commanded`` (n_coils, A);
 - outputs ``markers_measured`` (3 * n_markers, m, NaN when hidden),
@@ -34,6 +35,7 @@ from pydrake.systems.primitives import (
     Adder, LinearSystem, MatrixGain, Saturation, TrajectorySource)
 
 from maglev_haptics.diagrams.head_script import head_plan
+from maglev_haptics.diagrams.lcm_station import LcmStation, MakeLcmStation
 from maglev_haptics.diagrams.scenario import Scenario, ScenarioError
 from maglev_haptics.plant_models import PACKAGE_XML
 from maglev_haptics.systems.hand import HAND_MODEL_URL, SimulatedHand
@@ -114,8 +116,12 @@ def hand_start_transform(scenario: Scenario) -> RigidTransform:
     return RigidTransform(RollPitchYaw(roll, pitch, yaw), [x, y, z])
 
 
-def MakeStation(scenario: Scenario, *, magnetics) -> Diagram:
-    """The simulated station for ``scenario`` (``hardware: sim``)."""
+def MakeStation(scenario: Scenario, *, magnetics, station=None) -> Diagram:
+    """The station of ``scenario`` (or ``station``, a SimStation or an LcmStation, in
+    its place): simulated here, or the LCM interface with the same ports
+    (``diagrams/lcm_station.py``)."""
+    if isinstance(station or scenario.station, LcmStation):
+        return MakeLcmStation(scenario)
     device = scenario.device
     spec = device.instrument_spec()
     if abs(device.display.thickness_m - DISPLAY_MODEL_THICKNESS_M) > 1e-9:
