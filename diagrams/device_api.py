@@ -45,7 +45,7 @@ from maglev_haptics.diagrams.runner import SHARED_SPIN_S, wait_until
 from maglev_haptics.diagrams.scenario import Scenario, load_scenario
 from maglev_haptics.hardware.kernels import compile_kernels
 from maglev_haptics.hardware.lcm_messages import device_status_t
-from maglev_haptics.diagrams.motion import landing_poses
+from maglev_haptics.diagrams.motion import check_pose_reachable, landing_poses
 from maglev_haptics.hardware.thermal import coil_thermal
 from maglev_haptics.systems.blends import minimum_jerk_plan
 
@@ -183,9 +183,11 @@ class MaglevDevice:
 
     def set_desired_pose(self, pose, rates=None) -> None:
         """Hover at ``pose`` [x, y, z, roll, pitch, yaw] (m, rad) with setpoint
-        ``rates`` (m/s, rad/s; default zero); ends a takeoff or landing in progress."""
+        ``rates`` (m/s, rad/s; default zero); ends a takeoff or landing in progress.
+        A pose inside the glass or beyond what the coils can hold is refused."""
         self._require_no_faults("set_desired_pose")
         pose = _vector("pose", pose, 6)
+        check_pose_reachable(pose, self.scenario.device, self._built.magnetics, "pose")
         rates = np.zeros(6) if rates is None else _vector("rates", rates, 6)
         self._motion = None
         self._write_setpoint_and_enable(np.concatenate((pose, rates)), None)
@@ -227,6 +229,7 @@ class MaglevDevice:
         motion = self.scenario.motion
         target = np.asarray(motion.waypoints[0].pose if pose is None else
                             _vector("pose", pose, 6), dtype=float)
+        check_pose_reachable(target, self.scenario.device, self._built.magnetics, "pose")
         start = self._current_setpoint()[0:6]
         ramp_s = motion.force_ramp_s
         self._start_motion(minimum_jerk_plan(start, ramp_s, [(target, motion.waypoints[0].move_s,

@@ -108,42 +108,49 @@ def base_clearance_m(pose, spec) -> float:
 
 
 def check_waypoints_reachable(motion, device, magnetics, label: str) -> None:
-    """Raise ScenarioError for a waypoint inside the glass or not holdable within the limits.
+    """Raise ScenarioError for a waypoint inside the glass or not holdable within the
+    limits (``check_pose_reachable``)."""
+    for i, waypoint in enumerate(motion.waypoints):
+        check_pose_reachable(waypoint.pose, device, magnetics,
+                             f"{label}: motion.waypoints[{i}].pose")
+
+
+def check_pose_reachable(pose_value, device, magnetics, field_name: str) -> None:
+    """Raise ScenarioError naming ``field_name`` for a pose [x, y, z, roll, pitch, yaw]
+    (m, rad) inside the glass, tilted beyond the model, or not holdable within the limits.
 
     Holdable means the coils can carry HOLD_MARGIN times the weight without any
-    exceeding its limit, so control keeps some authority at every waypoint.
+    exceeding its limit, so control keeps some authority there.
     """
     spec = device.instrument_spec()
     limit = device.amplifier.current_limit_a
     lift = np.array([0.0, 0.0, HOLD_MARGIN * spec.mass_kg * GRAVITY_M_S2, 0.0, 0.0, 0.0])
-    for i, waypoint in enumerate(motion.waypoints):
-        pose = np.asarray(waypoint.pose, float)
-        field_name = f"{label}: motion.waypoints[{i}].pose"
-        R_WI = RollPitchYaw(pose[3:6]).ToRotationMatrix().matrix()
-        tilt_deg = np.degrees(np.arccos(np.clip(R_WI[2, 2], -1, 1)))
-        if tilt_deg > MAX_TILT_DEG:
-            raise ScenarioError(
-                f"{field_name} = {waypoint.pose}: tilt {tilt_deg:.1f} deg is beyond the "
-                f"{MAX_TILT_DEG:.0f} deg the electromagnetic model is validated for")
-        clearance = base_clearance_m(pose, spec)
-        if clearance < 0:
-            raise ScenarioError(
-                f"{field_name} = {waypoint.pose}: unreachable, the instrument's base would be "
-                f"{-1e3 * clearance:.1f} mm inside the display glass (z must keep it above W's z = 0)")
-        A = magnetics.wrench_matrix_from(pose[0:3] - device.p_WA, R_WI)
-        if np.linalg.matrix_rank(A) < 6:
-            cutoffs = magnetics.cutoffs()
-            raise ScenarioError(
-                f"{field_name} = {waypoint.pose}: unreachable, the magnets are out of the "
-                f"coils' reach there (the electromagnetic model covers magnets within "
-                f"{1e3 * cutoffs['rho_max_m']:.0f} mm of a coil's axis and "
-                f"{1e3 * cutoffs['z_max_m']:.0f} mm above its top)")
-        _, shortfall, _ = allocate_currents(A, lift, limit)
-        if np.linalg.norm(shortfall) > 1e-6 * lift[2]:
-            minimum_power = np.max(np.abs(np.linalg.pinv(A) @ lift))
-            raise ScenarioError(
-                f"{field_name} = {waypoint.pose}: unreachable, carrying {HOLD_MARGIN} x the "
-                f"instrument's weight there takes {minimum_power:.2f} A in the busiest coil at "
-                f"minimum power, and even spread over all coils it falls "
-                f"{np.linalg.norm(shortfall):.2f} N short within the "
-                f"{limit} A limit (device.amplifier.current_limit_a)")
+    pose = np.asarray(pose_value, float)
+    R_WI = RollPitchYaw(pose[3:6]).ToRotationMatrix().matrix()
+    tilt_deg = np.degrees(np.arccos(np.clip(R_WI[2, 2], -1, 1)))
+    if tilt_deg > MAX_TILT_DEG:
+        raise ScenarioError(
+            f"{field_name} = {list(pose_value)}: tilt {tilt_deg:.1f} deg is beyond the "
+            f"{MAX_TILT_DEG:.0f} deg the electromagnetic model is validated for")
+    clearance = base_clearance_m(pose, spec)
+    if clearance < 0:
+        raise ScenarioError(
+            f"{field_name} = {list(pose_value)}: unreachable, the instrument's base would be "
+            f"{-1e3 * clearance:.1f} mm inside the display glass (z must keep it above W's z = 0)")
+    A = magnetics.wrench_matrix_from(pose[0:3] - device.p_WA, R_WI)
+    if np.linalg.matrix_rank(A) < 6:
+        cutoffs = magnetics.cutoffs()
+        raise ScenarioError(
+            f"{field_name} = {list(pose_value)}: unreachable, the magnets are out of the "
+            f"coils' reach there (the electromagnetic model covers magnets within "
+            f"{1e3 * cutoffs['rho_max_m']:.0f} mm of a coil's axis and "
+            f"{1e3 * cutoffs['z_max_m']:.0f} mm above its top)")
+    _, shortfall, _ = allocate_currents(A, lift, limit)
+    if np.linalg.norm(shortfall) > 1e-6 * lift[2]:
+        minimum_power = np.max(np.abs(np.linalg.pinv(A) @ lift))
+        raise ScenarioError(
+            f"{field_name} = {list(pose_value)}: unreachable, carrying {HOLD_MARGIN} x the "
+            f"instrument's weight there takes {minimum_power:.2f} A in the busiest coil at "
+            f"minimum power, and even spread over all coils it falls "
+            f"{np.linalg.norm(shortfall):.2f} N short within the "
+            f"{limit} A limit (device.amplifier.current_limit_a)")

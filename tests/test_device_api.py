@@ -92,5 +92,9 @@ def test_a_takeoff_that_cannot_finish_times_out_and_lands():
     assert device._current_enable() == 0.0  # the coils stay off: no landing ramp resumes
     with pytest.raises(ValueError, match=r"pose = \[0.0, 0.0, 0.02\]: must be 6 finite"):
         device.set_desired_pose([0.0, 0.0, 0.02])
+    with pytest.raises(ValueError, match="pose = .*inside the display glass"):
+        device.set_desired_pose([0.0, 0.0, 0.001, 0.0, 0.0, 0.0])
+    with pytest.raises(ValueError, match="pose = .*out of the coils' reach"):
+        device.set_desired_pose([0.0, 0.0, 0.2, 0.0, 0.0, 0.0])
     with pytest.raises(ValueError, match="kp = .*must be 6 finite gains >= 0"):
         device.set_gains(kp=[-1.0] * 6)
