@@ -37,15 +37,18 @@ def plot_run(log: Dict[str, np.ndarray], out_dir: Path, *, title: str,
     # With a station on LCM there is no truth: the tracker's estimate stands in for it.
     p_WI, q_WI, _, source = recorded_pose(log)
     rpy_WI = log["rpy_WI_true"] if source == "true" else log["rpy_WI_measured"]
+    shown = np.ones(len(t), dtype=bool) if source == "true" else measured
     fig, axes = plt.subplots(5, 1, figsize=(12.5, 14), sharex=True)
 
     ax = axes[0]
     for i, axis in enumerate("xyz"):
         ax.plot(t, 1e3 * log["p_WI_desired"][:, i], color=AXIS_COLORS[i], lw=1, ls="--",
                 label=f"{axis} commanded")
-        ax.plot(t, 1e3 * p_WI[:, i], color=AXIS_COLORS[i], lw=1.2, label=f"{axis} {source}")
-        ax.plot(t[measured], 1e3 * log["p_WI_measured"][measured, i], color="k", lw=0.5,
-                alpha=0.5, label="measured" if i == 0 else None)
+        ax.plot(t[shown], 1e3 * p_WI[shown, i], color=AXIS_COLORS[i], lw=1.2,
+                label=f"{axis} {source}")
+        if source == "true":  # the estimate over the truth
+            ax.plot(t[measured], 1e3 * log["p_WI_measured"][measured, i], color="k", lw=0.5,
+                    alpha=0.5, label="measured" if i == 0 else None)
     ax.set_ylabel("position of I in W [mm]")
     _legend_outside(ax)
 
