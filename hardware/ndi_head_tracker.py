@@ -19,6 +19,7 @@ from pydrake.math import RigidTransform
 
 from maglev_haptics.hardware.extras import require_extra
 from maglev_haptics.hardware.lcm_messages import glasses_t
+from maglev_haptics.systems.station_messages import publish
 
 MM_PER_M = 1000.0
 
@@ -82,7 +83,7 @@ class NdiHeadTracker:
         else:
             message = glasses_message(self._sequence, now_s, now_s, self._X_WN,
                                       [math.nan] * 4, [math.nan] * 3)
-        self._lcm.publish(self._channel, message.encode())
+        publish(self._lcm, self._channel, message)
         return message
 
     def run(self, rate_hz: float, duration_s: float) -> int:

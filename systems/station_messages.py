@@ -6,7 +6,10 @@ values, so the application cannot tell a simulated station from a real one.
 Times on the wire are integer microseconds on the sender's clock.
 
 Each receiver counts what it got: ``received`` messages it read, ``lost`` the
-gaps in their ``sequence`` numbers (messages that never arrived). A receiver whose
+gaps in their ``sequence`` numbers (messages that never arrived), and the latency
+the link added: from a message's ``sent_wall_utime`` to the tick that read it, on
+the wall clock (meaningful where sender and receiver share it: one host, or
+clocks kept in step by PTP). A receiver whose
 newest message is older than ``stale_after_s`` reports it the way the hardware
 would report a missing signal: markers all NaN (so the estimator loses
 tracking and the controller lands blind), currents and grip held.
@@ -26,8 +29,15 @@ from maglev_haptics.hardware.lcm_messages import (
 
 US_PER_S = 1_000_000
 MESSAGE_QUEUE_CAPACITY = 1000  # messages a subscription holds between two reads
-# Receiver state: [newest sequence read, its arrival time (s), received, lost]
-_NEVER = np.array([-1.0, -math.inf, 0.0, 0.0])
+# Receiver state: [newest sequence read, its arrival time (s), received, lost,
+# sum and largest of the latencies (s, wall clock)]
+_NEVER = np.array([-1.0, -math.inf, 0.0, 0.0, 0.0, 0.0])
+
+
+def publish(lcm, channel: str, message) -> None:
+    """Stamp ``message.sent_wall_utime`` with the wall clock and publish it."""
+    message.sent_wall_utime = time.time_ns() // 1000
+    lcm.publish(channel, message.encode())
 
 
 def to_utime(t_s: float) -> int:
@@ -108,29 +118,36 @@ def status_message(sequence: int, t_s: float, handle_gripped: bool, fault_bits: 
     return message
 
 
-def receiver_step(state: np.ndarray, sequence: int, t_s: float) -> np.ndarray:
-    """The receiver's counters after reading a message numbered ``sequence`` at ``t_s``.
+def receiver_step(state: np.ndarray, sequence: int, t_s: float,
+                  latency_s: float = 0.0) -> np.ndarray:
+    """The receiver's counters after reading a message numbered ``sequence`` at ``t_s``
+    (s, the receiver's diagram clock), ``latency_s`` (s) after it was sent.
 
-    ``state`` is [newest sequence, its arrival (s), received, lost]; a sequence it
-    has already read changes nothing; a lower one is the sender starting again,
-    which loses nothing."""
-    newest, _, received, lost = state
+    ``state`` is [newest sequence, its arrival (s), received, lost, latency sum (s),
+    largest latency (s)]; a sequence it has already read changes nothing; a lower
+    one is the sender starting again, which loses nothing."""
+    newest, _, received, lost, latency_sum, latency_max = state
     if received > 0 and sequence == newest:
         return state
     if received > 0 and sequence > newest:
         lost += sequence - newest - 1
-    return np.array([sequence, t_s, received + 1, lost])
+    return np.array([sequence, t_s, received + 1, lost, latency_sum + latency_s,
+                     max(latency_max, latency_s)])
 
 
 def receiver_counts(state: np.ndarray) -> dict:
-    """{"messages_received", "messages_lost"} from a receiver's state."""
-    return {"messages_received": int(state[2]), "messages_lost": int(state[3])}
+    """{"messages_received", "messages_lost", "latency_ms_mean", "latency_ms_max"} from
+    a receiver's state (latencies None before the first message)."""
+    received = int(state[2])
+    return {"messages_received": received, "messages_lost": int(state[3]),
+            "latency_ms_mean": 1e3 * state[4] / received if received else None,
+            "latency_ms_max": 1e3 * state[5] if received else None}
 
 
-def message_sequence(data: bytes) -> int:
-    """The ``sequence`` of an encoded station message: every type here has it first,
-    right after LCM's 8-byte fingerprint (big-endian int64)."""
-    return struct.unpack_from(">q", data, 8)[0]
+def message_sequence(data: bytes) -> tuple:
+    """(``sequence``, ``sent_wall_utime``) of an encoded station message: every type
+    here has them first, right after LCM's 8-byte fingerprint (big-endian int64s)."""
+    return struct.unpack_from(">qq", data, 8)
 
 
 class MessageReceiver(LeafSystem):
@@ -200,8 +217,11 @@ class MessageReceiver(LeafSystem):
         if not self._arrived:
             return
         counters = context.get_discrete_state(self._counters).get_value()
+        now_utime = time.time_ns() // 1000
         for data in self._arrived:
-            counters = receiver_step(counters, message_sequence(data), context.get_time())
+            sequence, sent_wall_utime = message_sequence(data)
+            counters = receiver_step(counters, sequence, context.get_time(),
+                                     (now_utime - sent_wall_utime) / US_PER_S)
         discrete_state.set_value(self._counters, counters)
         discrete_state.set_value(self._held, self._decode(
             self._message_type.decode(self._arrived[-1]), context.get_time()))
@@ -219,7 +239,7 @@ class MessageReceiver(LeafSystem):
         return context.get_discrete_state(self._counters).GetAtIndex(1)
 
     def counts(self, context) -> dict:
-        """{"messages_received", "messages_lost"} so far, from this system's context."""
+        """What ``receiver_counts`` says so far, from this system's context."""
         return receiver_counts(context.get_discrete_state(self._counters).get_value())
 
 
@@ -247,5 +267,5 @@ class MessageSender(LeafSystem):
 
     def _publish(self, context):
         t = context.get_time()
-        message = self._encode(round(t / self._period_s) + 1, t, self._value.Eval(context))
-        self._lcm.publish(self._channel, message.encode())
+        publish(self._lcm, self._channel,
+                self._encode(round(t / self._period_s) + 1, t, self._value.Eval(context)))

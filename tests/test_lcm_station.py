@@ -19,7 +19,7 @@ from maglev_haptics.diagrams.scenario import ScenarioError, load_scenario
 from maglev_haptics.hardware.lcm_messages import glasses_t, markers_t
 from maglev_haptics.systems.station_messages import (
     MessageReceiver, glasses_measurement_from_message, glasses_measurement_message, markers_from_message,
-    markers_message, message_sequence, receiver_counts, receiver_step)
+    markers_message, message_sequence, publish, receiver_counts, receiver_step)
 
 
 def test_markers_round_trip_with_hidden_markers():
@@ -29,18 +29,24 @@ def test_markers_round_trip_with_hidden_markers():
     np.testing.assert_array_equal(markers_from_message(message, 3), markers)
     # Another instrument's message (2 markers) reads as nothing seen.
     assert np.all(np.isnan(markers_from_message(message, 2)))
-    assert message_sequence(message.encode()) == 7
+    message.sent_wall_utime = 123
+    assert message_sequence(message.encode()) == (7, 123)
 
 
 def test_receiver_counts_gaps_as_lost_and_ignores_repeats():
-    state = np.array([-1.0, -np.inf, 0.0, 0.0])
-    for sequence in (5, 6, 6, 9, 10):
-        state = receiver_step(state, sequence, 0.0)
-    assert receiver_counts(state) == {"messages_received": 4, "messages_lost": 2}
+    state = np.array([-1.0, -np.inf, 0.0, 0.0, 0.0, 0.0])
+    assert receiver_counts(state)["latency_ms_mean"] is None
+    for sequence, latency_s in ((5, 0.001), (6, 0.002), (6, 0.5), (9, 0.004), (10, 0.001)):
+        state = receiver_step(state, sequence, 0.0, latency_s)
+    # The repeat of 6 counts for nothing, its latency included.
+    assert receiver_counts(state) == {"messages_received": 4, "messages_lost": 2,
+                                      "latency_ms_mean": pytest.approx(2.0),
+                                      "latency_ms_max": pytest.approx(4.0)}
     # The sender starts again: nothing lost by that, and later gaps still count.
     for sequence in (1, 2, 5, 9, 10):
         state = receiver_step(state, sequence, 0.0)
-    assert receiver_counts(state) == {"messages_received": 9, "messages_lost": 7}
+    counts = receiver_counts(state)
+    assert (counts["messages_received"], counts["messages_lost"]) == (9, 7)
 
 
 def test_lcm_station_refuses_what_it_cannot_carry():
@@ -125,22 +131,30 @@ def test_no_message_is_lost_in_steady_state(lockstep_run):
     assert counts["messages_lost"] == 0
 
 
-def test_device_sim_and_application_in_two_processes(tmp_path):
+# Half speed: each process gets 2 ms of wall clock a tick, so two paced processes keep
+# their slots on a 2-core host that also runs pytest; at full speed that is issue 13's
+# measurement (README: speed), not this wiring's.
+TWO_PROCESS_RATE = 0.5
+
+
+@pytest.mark.parametrize("name", ["levitate", "peg_in_hole"])
+def test_device_sim_and_application_in_two_processes(tmp_path, name):
     """The acceptance run: `maglev device-sim` and `maglev run --station lcm`, each its
-    own paced process, on a loopback-only multicast port of this test's own. The device
-    stops by itself once the application is done; the instrument takes off, hovers and
-    lands as in the all-in-one run; no message is lost once both are running."""
+    own paced process, on a loopback-only multicast port of this test's own, 10 s. The
+    device stops by itself once the application is done; the flight, and in
+    peg_in_hole the hand's haptics, follow the all-in-one run; no message is lost."""
     port = 7900 + 2 * (os.getpid() % 50)
     station = (f"{{station: !LcmStation {{url: 'udpm://239.255.76.67:{port}?ttl=0', "
                f"command_url: 'udpm://239.255.76.67:{port + 1}?ttl=0'}}}}")
     maglev = [sys.executable, "-m", "maglev_haptics.diagrams.cli"]
-    device = subprocess.Popen(maglev + ["device-sim", "levitate", "--scenario-text", station,
-                                        "--duration", "60"],
+    paced = ["--scenario-text", station, "--realtime", str(TWO_PROCESS_RATE)]
+    duration_s = 10.0
+    device = subprocess.Popen(maglev + ["device-sim", name, *paced, "--duration", "120"],
                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         application = subprocess.run(
-            maglev + ["run", "levitate", "--scenario-text", station, "--no-meshcat",
-                      "--duration", "6", "--out", str(tmp_path / "run")],
+            maglev + ["run", name, *paced, "--no-meshcat", "--duration", str(duration_s),
+                      "--out", str(tmp_path / "run")],
             capture_output=True, text=True, timeout=180)
         assert application.returncode == 0, application.stderr[-2000:]
         device_out, device_err = device.communicate(timeout=60)  # stops by itself
@@ -148,29 +162,43 @@ def test_device_sim_and_application_in_two_processes(tmp_path):
         device.kill()
     assert device.returncode == 0, device_err[-2000:]
     device_summary = json.loads(device_out)
-    assert device_summary["commands"]["messages_lost"] == 0
     summary = json.loads((tmp_path / "run" / "summary.json").read_text())
     missed = (summary["realtime"]["miss_fraction"], device_summary["realtime"]["miss_fraction"])
     if max(missed) > 0.5:  # then the device's command timeout lands it, as it should
         pytest.skip(f"this machine did not keep two paced processes on time (missed "
                     f"{missed[0]:.0%} and {missed[1]:.0%} of their slots)")
+    assert device_summary["commands"]["messages_lost"] == 0
     assert summary["station"]["messages_lost"] == 0
+    # The link's latency (wall clock, the wait for the reading tick included) is
+    # measured, and on average under two of the reader's ticks (measured: markers
+    # 1.4 ms at half speed, 0.86 ms at full speed, where a tick is 2 and 1 ms).
+    tick_ms = 1.0 / TWO_PROCESS_RATE
+    for counts in (*summary["station"]["channels"].values(), device_summary["commands"]):
+        assert 0.0 < counts["latency_ms_mean"] <= counts["latency_ms_max"]
+        assert counts["latency_ms_mean"] < 2 * tick_ms
     assert summary["pose_source"] == "measured"
     assert summary["hover_position_error_rms_mm"] < 0.1
-    assert summary["touchdown"]["speed_m_s"] < 0.05 and summary["touchdown"]["tilt_deg"] < 1.0
     log = np.load(tmp_path / "run" / "log.npz")
-    reference = BuildDiagram(load_scenario("levitate"))
+    reference = BuildDiagram(load_scenario(name))
     simulator = Simulator(reference.diagram)
     simulator.Initialize()
-    simulator.AdvanceTo(6.0)
+    simulator.AdvanceTo(duration_s)
     expected = log_arrays(reference.logger, reference.log_layout, simulator.get_context(),
                           reference.magnetics.config)
     n = min(len(log["t"]), len(expected["t"]))
     flying = expected["p_WI_measured"][:n, 2] > 0.015
-    # Both loops late now and then (paced on two shared cores), the messages a tick or
-    # two behind: the flight follows the all-in-one run (measured: within 0.11 mm).
+    assert flying.sum() > 3000
+    # Each message read at the tick after it came, now and then a late tick more:
+    # the flight follows the all-in-one run within a tick or two of motion at up to
+    # 0.1 m/s, 0.1-0.2 mm (measured: levitate 0.09 mm, peg_in_hole 0.19 mm).
     deviation_m = np.abs(log["p_WI_measured"][:n] - expected["p_WI_measured"][:n])[flying]
     assert deviation_m.max() < 0.5e-3
+    if name == "peg_in_hole":
+        assert summary["touchdown"] is None and summary["haptics_engaged_s"] > 5.0
+        np.testing.assert_array_equal(log["haptic_mode"][-200:],
+                                      expected["haptic_mode"][n - 200:n])
+    else:
+        assert summary["touchdown"]["speed_m_s"] < 0.05 and summary["touchdown"]["tilt_deg"] < 1.0
 
 
 @pytest.mark.parametrize("stale_value", [np.full(9, np.nan), np.zeros(9)],
@@ -187,7 +215,7 @@ def test_an_old_message_reads_as_the_stale_value(stale_value):
     context = receiver.CreateDefaultContext()
     markers = np.arange(9) * 0.01
     np.testing.assert_array_equal(receiver.get_output_port().Eval(context), stale_value)
-    bus.publish("M", markers_message(1, 0.0, 0.0, markers).encode())
+    publish(bus, "M", markers_message(1, 0.0, 0.0, markers))
     context.SetTime(0.001)
     context.SetDiscreteState(receiver.EvalUniquePeriodicDiscreteUpdate(context))
     np.testing.assert_allclose(receiver.get_output_port().Eval(context), markers)
@@ -195,4 +223,6 @@ def test_an_old_message_reads_as_the_stale_value(stale_value):
     np.testing.assert_allclose(receiver.get_output_port().Eval(context), markers)
     context.SetTime(0.0065)
     np.testing.assert_array_equal(receiver.get_output_port().Eval(context), stale_value)
-    assert receiver.counts(context) == {"messages_received": 1, "messages_lost": 0}
+    counts = receiver.counts(context)
+    assert (counts["messages_received"], counts["messages_lost"]) == (1, 0)
+    assert 0.0 <= counts["latency_ms_mean"] == counts["latency_ms_max"] < 1000.0

@@ -13,18 +13,25 @@ class coil_currents_t(object):
     by the station's amplifiers.
     """
 
-    __slots__ = ["sequence", "utime", "num_coils", "current_a"]
+    __slots__ = ["sequence", "sent_wall_utime", "utime", "num_coils", "current_a"]
 
-    __typenames__ = ["int64_t", "int64_t", "int16_t", "double"]
+    __typenames__ = ["int64_t", "int64_t", "int64_t", "int16_t", "double"]
 
-    __dimensions__ = [None, None, None, ["num_coils"]]
+    __dimensions__ = [None, None, None, None, ["num_coils"]]
 
     def __init__(self):
         self.sequence = 0
         """ LCM Type: int64_t """
-        self.utime = 0
+        self.sent_wall_utime = 0
         """
         counts up by one a message: a gap is a lost message
+        LCM Type: int64_t
+        """
+
+        self.utime = 0
+        """
+        Unix time when it left the sender (us): against a receiver's clock
+        kept in step (one host, or PTP) it gives the transport's latency
         LCM Type: int64_t
         """
 
@@ -44,7 +51,7 @@ class coil_currents_t(object):
         return buf.getvalue()
 
     def _encode_one(self, buf):
-        buf.write(struct.pack(">qqh", self.sequence, self.utime, self.num_coils))
+        buf.write(struct.pack(">qqqh", self.sequence, self.sent_wall_utime, self.utime, self.num_coils))
         buf.write(struct.pack('>%dd' % self.num_coils, *self.current_a[:self.num_coils]))
 
     @staticmethod
@@ -60,14 +67,14 @@ class coil_currents_t(object):
     @staticmethod
     def _decode_one(buf):
         self = coil_currents_t()
-        self.sequence, self.utime, self.num_coils = struct.unpack(">qqh", buf.read(18))
+        self.sequence, self.sent_wall_utime, self.utime, self.num_coils = struct.unpack(">qqqh", buf.read(26))
         self.current_a = struct.unpack('>%dd' % self.num_coils, buf.read(self.num_coils * 8))
         return self
 
     @staticmethod
     def _get_hash_recursive(parents):
         if coil_currents_t in parents: return 0
-        tmphash = (0xd6c1d7200d3fbfa3) & 0xffffffffffffffff
+        tmphash = (0x22f80e60fb6f5314) & 0xffffffffffffffff
         tmphash  = (((tmphash<<1)&0xffffffffffffffff) + (tmphash>>63)) & 0xffffffffffffffff
         return tmphash
     _packed_fingerprint = None

@@ -10,11 +10,11 @@ import struct
 class device_status_t(object):
     """ The station's state of health (device-sim publishes it at 100 Hz). """
 
-    __slots__ = ["sequence", "utime", "fault_bits", "handle_gripped", "num_coils", "coil_temperature_c"]
+    __slots__ = ["sequence", "sent_wall_utime", "utime", "fault_bits", "handle_gripped", "num_coils", "coil_temperature_c"]
 
-    __typenames__ = ["int64_t", "int64_t", "int32_t", "boolean", "int16_t", "double"]
+    __typenames__ = ["int64_t", "int64_t", "int64_t", "int32_t", "boolean", "int16_t", "double"]
 
-    __dimensions__ = [None, None, None, None, None, ["num_coils"]]
+    __dimensions__ = [None, None, None, None, None, None, ["num_coils"]]
 
     FAULT_SENSOR_OUT_OF_RANGE = 1
     """ estimated or measured winding temperatures (C) """
@@ -25,8 +25,15 @@ class device_status_t(object):
     def __init__(self):
         self.sequence = 0
         """ LCM Type: int64_t """
-        self.utime = 0
+        self.sent_wall_utime = 0
         """ LCM Type: int64_t """
+        self.utime = 0
+        """
+        Unix time when it left the sender (us): against a receiver's clock
+        kept in step (one host, or PTP) it gives the transport's latency
+        LCM Type: int64_t
+        """
+
         self.fault_bits = 0
         """
         (us)
@@ -55,7 +62,7 @@ class device_status_t(object):
         return buf.getvalue()
 
     def _encode_one(self, buf):
-        buf.write(struct.pack(">qqibh", self.sequence, self.utime, self.fault_bits, self.handle_gripped, self.num_coils))
+        buf.write(struct.pack(">qqqibh", self.sequence, self.sent_wall_utime, self.utime, self.fault_bits, self.handle_gripped, self.num_coils))
         buf.write(struct.pack('>%dd' % self.num_coils, *self.coil_temperature_c[:self.num_coils]))
 
     @staticmethod
@@ -71,7 +78,7 @@ class device_status_t(object):
     @staticmethod
     def _decode_one(buf):
         self = device_status_t()
-        self.sequence, self.utime, self.fault_bits = struct.unpack(">qqi", buf.read(20))
+        self.sequence, self.sent_wall_utime, self.utime, self.fault_bits = struct.unpack(">qqqi", buf.read(28))
         self.handle_gripped = bool(struct.unpack('b', buf.read(1))[0])
         self.num_coils = struct.unpack(">h", buf.read(2))[0]
         self.coil_temperature_c = struct.unpack('>%dd' % self.num_coils, buf.read(self.num_coils * 8))
@@ -80,7 +87,7 @@ class device_status_t(object):
     @staticmethod
     def _get_hash_recursive(parents):
         if device_status_t in parents: return 0
-        tmphash = (0xe7db1f167ac86562) & 0xffffffffffffffff
+        tmphash = (0x5e06109808f49d0c) & 0xffffffffffffffff
         tmphash  = (((tmphash<<1)&0xffffffffffffffff) + (tmphash>>63)) & 0xffffffffffffffff
         return tmphash
     _packed_fingerprint = None

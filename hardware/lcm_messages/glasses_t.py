@@ -10,17 +10,24 @@ import struct
 class glasses_t(object):
     """ One sample of the head tracker: the glasses' pose in W. """
 
-    __slots__ = ["sequence", "capture_utime", "publish_utime", "quaternion_wxyz", "position_m", "ok"]
+    __slots__ = ["sequence", "sent_wall_utime", "capture_utime", "publish_utime", "quaternion_wxyz", "position_m", "ok"]
 
-    __typenames__ = ["int64_t", "int64_t", "int64_t", "double", "double", "boolean"]
+    __typenames__ = ["int64_t", "int64_t", "int64_t", "int64_t", "double", "double", "boolean"]
 
-    __dimensions__ = [None, None, None, [4], [3], None]
+    __dimensions__ = [None, None, None, None, [4], [3], None]
 
     def __init__(self):
         self.sequence = 0
         """ LCM Type: int64_t """
-        self.capture_utime = 0
+        self.sent_wall_utime = 0
         """ LCM Type: int64_t """
+        self.capture_utime = 0
+        """
+        Unix time when it left the sender (us): against a receiver's clock
+        kept in step (one host, or PTP) it gives the transport's latency
+        LCM Type: int64_t
+        """
+
         self.publish_utime = 0
         """
         (us)
@@ -53,7 +60,7 @@ class glasses_t(object):
         return buf.getvalue()
 
     def _encode_one(self, buf):
-        buf.write(struct.pack(">qqq", self.sequence, self.capture_utime, self.publish_utime))
+        buf.write(struct.pack(">qqqq", self.sequence, self.sent_wall_utime, self.capture_utime, self.publish_utime))
         buf.write(struct.pack('>4d', *self.quaternion_wxyz[:4]))
         buf.write(struct.pack('>3d', *self.position_m[:3]))
         buf.write(struct.pack(">b", self.ok))
@@ -71,7 +78,7 @@ class glasses_t(object):
     @staticmethod
     def _decode_one(buf):
         self = glasses_t()
-        self.sequence, self.capture_utime, self.publish_utime = struct.unpack(">qqq", buf.read(24))
+        self.sequence, self.sent_wall_utime, self.capture_utime, self.publish_utime = struct.unpack(">qqqq", buf.read(32))
         self.quaternion_wxyz = struct.unpack('>4d', buf.read(32))
         self.position_m = struct.unpack('>3d', buf.read(24))
         self.ok = bool(struct.unpack('b', buf.read(1))[0])
@@ -80,7 +87,7 @@ class glasses_t(object):
     @staticmethod
     def _get_hash_recursive(parents):
         if glasses_t in parents: return 0
-        tmphash = (0x440a25e00773c0c5) & 0xffffffffffffffff
+        tmphash = (0x614a3b5b1635d56e) & 0xffffffffffffffff
         tmphash  = (((tmphash<<1)&0xffffffffffffffff) + (tmphash>>63)) & 0xffffffffffffffff
         return tmphash
     _packed_fingerprint = None

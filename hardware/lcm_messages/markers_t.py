@@ -10,18 +10,25 @@ import struct
 class markers_t(object):
     """ One sample of the instrument's optical tracker (published at its rate, 860 Hz). """
 
-    __slots__ = ["sequence", "capture_utime", "publish_utime", "num_markers", "position_m", "visible"]
+    __slots__ = ["sequence", "sent_wall_utime", "capture_utime", "publish_utime", "num_markers", "position_m", "visible"]
 
-    __typenames__ = ["int64_t", "int64_t", "int64_t", "int16_t", "double", "boolean"]
+    __typenames__ = ["int64_t", "int64_t", "int64_t", "int64_t", "int16_t", "double", "boolean"]
 
-    __dimensions__ = [None, None, None, None, ["num_markers", 3], ["num_markers"]]
+    __dimensions__ = [None, None, None, None, None, ["num_markers", 3], ["num_markers"]]
 
     def __init__(self):
         self.sequence = 0
         """ LCM Type: int64_t """
-        self.capture_utime = 0
+        self.sent_wall_utime = 0
         """
         counts up by one a sample: a gap is a lost message
+        LCM Type: int64_t
+        """
+
+        self.capture_utime = 0
+        """
+        Unix time when it left the sender (us): against a receiver's clock
+        kept in step (one host, or PTP) it gives the transport's latency
         LCM Type: int64_t
         """
 
@@ -53,7 +60,7 @@ class markers_t(object):
         return buf.getvalue()
 
     def _encode_one(self, buf):
-        buf.write(struct.pack(">qqqh", self.sequence, self.capture_utime, self.publish_utime, self.num_markers))
+        buf.write(struct.pack(">qqqqh", self.sequence, self.sent_wall_utime, self.capture_utime, self.publish_utime, self.num_markers))
         for i0 in range(self.num_markers):
             buf.write(struct.pack('>3d', *self.position_m[i0][:3]))
         buf.write(struct.pack('>%db' % self.num_markers, *self.visible[:self.num_markers]))
@@ -71,7 +78,7 @@ class markers_t(object):
     @staticmethod
     def _decode_one(buf):
         self = markers_t()
-        self.sequence, self.capture_utime, self.publish_utime, self.num_markers = struct.unpack(">qqqh", buf.read(26))
+        self.sequence, self.sent_wall_utime, self.capture_utime, self.publish_utime, self.num_markers = struct.unpack(">qqqqh", buf.read(34))
         self.position_m = []
         for i0 in range(self.num_markers):
             self.position_m.append(struct.unpack('>3d', buf.read(24)))
@@ -81,7 +88,7 @@ class markers_t(object):
     @staticmethod
     def _get_hash_recursive(parents):
         if markers_t in parents: return 0
-        tmphash = (0x53fb6371121c1ae0) & 0xffffffffffffffff
+        tmphash = (0xbbc2ad97ddb33cdf) & 0xffffffffffffffff
         tmphash  = (((tmphash<<1)&0xffffffffffffffff) + (tmphash>>63)) & 0xffffffffffffffff
         return tmphash
     _packed_fingerprint = None
