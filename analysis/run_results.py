@@ -21,6 +21,7 @@ from maglev_haptics.diagrams.runner import realtime_report, simulate
 from maglev_haptics.diagrams.scenario import Scenario
 from maglev_haptics.hardware.thermal import coil_thermal
 from maglev_haptics.systems.device_visualizer import aim_camera_at_device
+from maglev_haptics.systems.meshcat_hand import wait_for_browser
 
 
 @dataclass
@@ -54,6 +55,8 @@ def run_scenario(scenario: Scenario, *, label: str, out_dir: Optional[Path] = No
     if record:
         viewer.StartRecording()
     try:
+        if built.meshcat_hand is not None:
+            wait_for_browser(viewer)
         simulator, wall_s, tick_times = simulate(
             built, duration_s, realtime_rate=realtime_rate, progress=progress, label=label,
             interruptible=built.meshcat_hand is not None,

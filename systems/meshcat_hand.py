@@ -11,6 +11,8 @@ jolting the hand.
 """
 
 import math
+import sys
+import time
 
 import numpy as np
 from pydrake.systems.framework import LeafSystem
@@ -27,6 +29,17 @@ SLIDERS = (
 )
 GRIP_BUTTON = "Grip / release"
 GRIP_KEY = "KeyG"
+
+
+def wait_for_browser(meshcat, *, poll_s: float = 0.1) -> None:
+    """Block until a browser has Meshcat's page open (Ctrl-C gives up): the sliders
+    drive the run, so its clock starts only once someone can move them."""
+    if meshcat.GetNumActiveConnections() > 0:
+        return
+    print(f"interactive: open {meshcat.web_url()} in a browser; the run starts when it "
+          "connects", file=sys.stderr, flush=True)
+    while meshcat.GetNumActiveConnections() == 0:
+        time.sleep(poll_s)
 
 
 def critically_damped_response(value, rate, goal, omega, elapsed_s):

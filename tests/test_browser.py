@@ -82,7 +82,7 @@ def test_meshcat_hand_grips_and_lifts_the_instrument(tmp_path):
             # Small: the page renders in software on the core the run leaves free.
             page = browser.new_page(viewport={"width": 640, "height": 400})
             page.goto(output.url)
-            page.get_by_text("Open Controls").click()
+            page.get_by_text("Open Controls").dispatch_event("click")
             hand_z = page.locator("li.cr.number", has_text="Hand z (mm)").locator("input")
             hand_z.wait_for(timeout=STARTUP_TIMEOUT_S * 1000)
             start_z_mm = float(hand_z.input_value())
@@ -96,8 +96,11 @@ def test_meshcat_hand_grips_and_lifts_the_instrument(tmp_path):
             hand_z.evaluate("(input, value) => { input.value = value; "
                             "input.dispatchEvent(new Event('change')); }",
                             f"{start_z_mm + LIFT_MM:.1f}")
+            # The page stays open to the end, as a user's would: closing it could drop
+            # what its websocket has not sent yet.
+            returncode = process.wait(timeout=120)
             browser.close()
-        assert process.wait(timeout=120) == 0, "\n".join(output.text[-20:])
+        assert returncode == 0, "\n".join(output.text[-20:])
     finally:
         if process.poll() is None:
             process.kill()
