@@ -18,8 +18,8 @@ from pydrake.common.eigen_geometry import Quaternion
 from pydrake.math import RigidTransform
 
 from maglev_haptics.hardware.extras import require_extra
+from maglev_haptics.hardware.lcm_link import publish
 from maglev_haptics.hardware.lcm_messages import glasses_t
-from maglev_haptics.systems.station_messages import publish
 
 MM_PER_M = 1000.0
 

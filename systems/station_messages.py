@@ -24,6 +24,7 @@ import time
 import numpy as np
 from pydrake.systems.framework import LeafSystem
 
+from maglev_haptics.hardware.lcm_link import publish
 from maglev_haptics.hardware.lcm_messages import (
     coil_currents_t, device_status_t, glasses_t, markers_t)
 
@@ -32,12 +33,6 @@ MESSAGE_QUEUE_CAPACITY = 1000  # messages a subscription holds between two reads
 # Receiver state: [newest sequence read, its arrival time (s), received, lost,
 # sum and largest of the latencies (s, wall clock)]
 _NEVER = np.array([-1.0, -math.inf, 0.0, 0.0, 0.0, 0.0])
-
-
-def publish(lcm, channel: str, message) -> None:
-    """Stamp ``message.sent_wall_utime`` with the wall clock and publish it."""
-    message.sent_wall_utime = time.time_ns() // 1000
-    lcm.publish(channel, message.encode())
 
 
 def to_utime(t_s: float) -> int:

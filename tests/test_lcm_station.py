@@ -16,10 +16,11 @@ from maglev_haptics.diagrams.application import BuildDiagram
 from maglev_haptics.diagrams.device_sim import BuildDeviceSim
 from maglev_haptics.diagrams.lcm_station import station_counts
 from maglev_haptics.diagrams.scenario import ScenarioError, load_scenario
+from maglev_haptics.hardware.lcm_link import publish
 from maglev_haptics.hardware.lcm_messages import glasses_t, markers_t
 from maglev_haptics.systems.station_messages import (
     MessageReceiver, glasses_measurement_from_message, glasses_measurement_message, markers_from_message,
-    markers_message, message_sequence, publish, receiver_counts, receiver_step)
+    markers_message, message_sequence, receiver_counts, receiver_step)
 
 
 def test_markers_round_trip_with_hidden_markers():
