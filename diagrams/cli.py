@@ -194,9 +194,8 @@ def _cmd_device_sim(args) -> int:
         device_sim, args.duration, realtime_rate=args.realtime, label=f"device-sim {label}",
         interruptible=True, stop=device_sim.application_gone, shares_cores=True)
     context = simulator.get_context()
-    receiver = device_sim.command_receiver
     print(json.dumps({"scenario": label, "duration_s": context.get_time(), "wall_time_s": wall_s,
-                      "commands": receiver.counts(receiver.GetMyContextFromRoot(context)),
+                      "commands": device_sim.command_counts(context),
                       "realtime": realtime_report(tick_times)}, indent=2))
     return 0
 

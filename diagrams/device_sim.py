@@ -25,12 +25,13 @@ from maglev_haptics.hardware.magnetics import load_magnetics
 from maglev_haptics.hardware.thermal import coil_thermal
 from maglev_haptics.systems.coil_thermal import CoilTemperatures
 from maglev_haptics.systems.station_messages import (
-    MessageReceiver, MessageSender, currents_message, glasses_measurement_message,
-    markers_message, status_message)
+    MessageReceiver, MessageSender, ReceivedChannel, currents_message,
+    glasses_measurement_message, markers_message, status_message)
 
 # The grip sensor, the coils' temperatures (time constant ~1 min) and the 10 Hz head
 # tracker need no more than 100 Hz.
 STATUS_PERIOD_S = 0.01
+COMMANDS_PORT = "coil_currents_commanded"  # the station's input the commands feed
 
 
 @dataclass
@@ -42,11 +43,16 @@ class DeviceSim:
 
     def application_gone(self, context) -> bool:
         """Whether commands came and then stopped for ``stop_after_silence_s``."""
-        receiver_context = self.command_receiver.GetMyContextFromRoot(context)
-        if self.command_receiver.counts(receiver_context)["messages_received"] == 0:
+        if self.command_counts(context)["messages_received"] == 0:
             return False
-        arrival_s = self.command_receiver.newest_arrival_s(receiver_context)
+        arrival_s = self.command_receiver.newest_arrival_s(
+            self.command_receiver.GetMyContextFromRoot(context), COMMANDS_PORT)
         return context.get_time() - arrival_s > self.stop_after_silence_s
+
+    def command_counts(self, context) -> dict:
+        """What the device read and lost of the application's commands (``receiver_counts``)."""
+        return self.command_receiver.counts(
+            self.command_receiver.GetMyContextFromRoot(context), COMMANDS_PORT)
 
 
 def BuildDeviceSim(scenario) -> DeviceSim:
@@ -62,14 +68,14 @@ def BuildDeviceSim(scenario) -> DeviceSim:
     station = builder.AddSystem(MakeStation(scenario, magnetics=load_magnetics(device),
                                             station=SimStation()))
     commands = builder.AddNamedSystem("commands_receiver", MessageReceiver(
-        lcm=open_lcm(station_config.command_url),
-        channel=channel(station_config, COIL_CURRENTS_COMMANDED),
-        message_type=coil_currents_t, size=n_coils,
-        decode=lambda message, _: np.array(message.current_a, dtype=float),
-        stale_value=np.zeros(n_coils), stale_after_s=station_config.command_timeout_s,
+        lcm=open_lcm(station_config.command_url), channels=[ReceivedChannel(
+            port=COMMANDS_PORT, channel=channel(station_config, COIL_CURRENTS_COMMANDED),
+            message_type=coil_currents_t, size=n_coils,
+            decode=lambda message, _: np.array(message.current_a, dtype=float),
+            stale_value=np.zeros(n_coils), stale_after_s=station_config.command_timeout_s)],
         period_s=period_s))
-    builder.Connect(commands.GetOutputPort("value"),
-                    station.GetInputPort("coil_currents_commanded"))
+    builder.Connect(commands.GetOutputPort(COMMANDS_PORT),
+                    station.GetInputPort(COMMANDS_PORT))
 
     publisher = open_lcm(station_config.url)
 

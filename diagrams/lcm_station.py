@@ -24,8 +24,8 @@ message types LcmSubscriberSystem and LcmPublisherSystem cost ~1 ms a tick (the
 device side ran 1,450 us a tick with them against 400 without), and
 ``DrakeLcm.HandleSubscriptions`` handles one message a call and drops those
 queued behind it (5 published, 1 handled, however often it is called), which a
-1 kHz loop cannot afford. Each receiver and sender
-(``systems/station_messages.py``) encodes and decodes itself, on vector ports.
+1 kHz loop cannot afford. One receiver reads every inbound channel in one
+update a tick, and each sender encodes its own port (``systems/station_messages.py``).
 """
 
 
@@ -39,8 +39,8 @@ from maglev_haptics.hardware.config_checks import positive, require
 from maglev_haptics.hardware.lcm_messages import (
     coil_currents_t, device_status_t, glasses_t, markers_t)
 from maglev_haptics.systems.station_messages import (
-    MessageReceiver, MessageSender, currents_message, glasses_measurement_from_message,
-    markers_from_message)
+    MessageReceiver, MessageSender, ReceivedChannel, currents_message,
+    glasses_measurement_from_message, markers_from_message)
 
 DEFAULT_LCM_URL = "udpm://239.255.76.67:7667?ttl=0"
 DEFAULT_COMMAND_URL = "udpm://239.255.76.67:7668?ttl=0"
@@ -50,6 +50,9 @@ COIL_CURRENTS = "COIL_CURRENTS"
 DEVICE_STATUS = "DEVICE_STATUS"
 GLASSES = "GLASSES"
 GLASSES_MEASUREMENT_SIZE = 9  # [capture time, q_WG (wxyz), p_WG, ok]: systems/head_sensor.py
+# The station's output port each inbound channel feeds.
+INBOUND_PORTS = {MARKERS: "markers_measured", COIL_CURRENTS: "coil_currents",
+                 DEVICE_STATUS: "handle_gripped", GLASSES: "glasses_measured"}
 
 
 @dataclass
@@ -118,43 +121,41 @@ def MakeLcmStation(scenario) -> Diagram:
     """The application's station for ``scenario.station`` (an LcmStation), named
     ``station``: input ``coil_currents_commanded``; outputs ``markers_measured``,
     ``coil_currents``, with a hand in the scenario ``handle_gripped``, with the
-    stereo display ``glasses_measured``. Its
-    receivers (``markers_receiver``, ...) count the messages they read and lost;
-    building it waits up to ``wait_for_station_s`` for the station's markers."""
+    stereo display ``glasses_measured``. Its ``receiver`` counts the messages it
+    read and lost on each channel; building it waits up to ``wait_for_station_s``
+    for the station's markers."""
     station = scenario.station
     device = scenario.device
     n_coils = device.n_coils
     n_markers = len(device.instrument_spec().p_IK_m)
     period_s = 1.0 / scenario.control_rate_hz
     builder = DiagramBuilder()
-    inbound = open_lcm(station.url)  # shared: whichever receiver updates first reads for all
 
-    def receive(name, message_type, size, decode, stale_value, stale_after_s, wait_s=0.0,
-                initial_value=None):
-        return builder.AddNamedSystem(f"{name.lower()}_receiver", MessageReceiver(
-            lcm=inbound, channel=channel(station, name), message_type=message_type,
-            size=size, decode=decode, stale_value=stale_value, stale_after_s=stale_after_s,
-            period_s=period_s, initial_value=initial_value, wait_s=wait_s))
+    def inbound(name, message_type, size, decode, **options):
+        return ReceivedChannel(port=INBOUND_PORTS[name], channel=channel(station, name),
+                               message_type=message_type, size=size, decode=decode, **options)
 
-    markers = receive(MARKERS, markers_t, 3 * n_markers,
-                      lambda message, _: markers_from_message(message, n_markers),
-                      np.full(3 * n_markers, np.nan), marker_stale_after_s(scenario, station),
-                      wait_s=station.wait_for_station_s)
-    builder.ExportOutput(markers.GetOutputPort("value"), "markers_measured")
-    currents = receive(COIL_CURRENTS, coil_currents_t, n_coils,
-                       lambda message, _: np.array(message.current_a, dtype=float),
-                       None, np.inf, initial_value=np.zeros(n_coils))
-    builder.ExportOutput(currents.GetOutputPort("value"), "coil_currents")
+    channels = [
+        inbound(MARKERS, markers_t, 3 * n_markers,
+                lambda message, _: markers_from_message(message, n_markers),
+                stale_value=np.full(3 * n_markers, np.nan),
+                stale_after_s=marker_stale_after_s(scenario, station),
+                wait_s=station.wait_for_station_s),
+        inbound(COIL_CURRENTS, coil_currents_t, n_coils,
+                lambda message, _: np.array(message.current_a, dtype=float),
+                initial_value=np.zeros(n_coils))]
     if scenario.hand is not None:
-        status = receive(DEVICE_STATUS, device_status_t, 1,
-                         lambda message, _: np.array([float(message.handle_gripped)]),
-                         None, np.inf, initial_value=np.zeros(1))
-        builder.ExportOutput(status.GetOutputPort("value"), "handle_gripped")
+        channels.append(inbound(DEVICE_STATUS, device_status_t, 1,
+                                lambda message, _: np.array([float(message.handle_gripped)]),
+                                initial_value=np.zeros(1)))
     if scenario.stereo is not None:
-        glasses = receive(GLASSES, glasses_t, GLASSES_MEASUREMENT_SIZE,
-                          glasses_measurement_from_message, None, np.inf,
-                          initial_value=glasses_measurement_from_message(glasses_t(), 0.0))
-        builder.ExportOutput(glasses.GetOutputPort("value"), "glasses_measured")
+        channels.append(inbound(GLASSES, glasses_t, GLASSES_MEASUREMENT_SIZE,
+                                glasses_measurement_from_message,
+                                initial_value=glasses_measurement_from_message(glasses_t(), 0.0)))
+    receiver = builder.AddNamedSystem("receiver", MessageReceiver(
+        lcm=open_lcm(station.url), channels=channels, period_s=period_s))
+    for port in receiver.ports():
+        builder.ExportOutput(receiver.GetOutputPort(port), port)
     sender = builder.AddNamedSystem("coil_currents_commanded_sender", MessageSender(
         lcm=open_lcm(station.command_url), channel=channel(station, COIL_CURRENTS_COMMANDED),
         size=n_coils, encode=currents_message, period_s=period_s))
@@ -166,13 +167,10 @@ def MakeLcmStation(scenario) -> Diagram:
 
 def station_counts(diagram, context) -> dict:
     """What the application's LCM station read and lost, per channel, and in all."""
-    station = diagram.GetSubsystemByName("station")
-    counts = {}
-    for name in (MARKERS, COIL_CURRENTS, DEVICE_STATUS, GLASSES):
-        system_name = f"{name.lower()}_receiver"
-        if station.HasSubsystemNamed(system_name):
-            receiver = station.GetSubsystemByName(system_name)
-            counts[name.lower()] = receiver.counts(receiver.GetMyContextFromRoot(context))
+    receiver = diagram.GetSubsystemByName("station").GetSubsystemByName("receiver")
+    receiver_context = receiver.GetMyContextFromRoot(context)
+    counts = {name.lower(): receiver.counts(receiver_context, port)
+              for name, port in INBOUND_PORTS.items() if port in receiver.ports()}
     return {"messages_received": sum(c["messages_received"] for c in counts.values()),
             "messages_lost": sum(c["messages_lost"] for c in counts.values()),
             "channels": counts}

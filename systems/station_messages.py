@@ -20,6 +20,8 @@ from __future__ import annotations
 import math
 import struct
 import time
+from dataclasses import dataclass
+from typing import Callable, Optional, Sequence
 
 import numpy as np
 from pydrake.systems.framework import LeafSystem
@@ -113,21 +115,20 @@ def status_message(sequence: int, t_s: float, handle_gripped: bool, fault_bits: 
     return message
 
 
-def receiver_step(state: np.ndarray, sequence: int, t_s: float,
-                  latency_s: float = 0.0) -> np.ndarray:
+def receiver_step(state, sequence: int, t_s: float, latency_s: float = 0.0) -> list:
     """The receiver's counters after reading a message numbered ``sequence`` at ``t_s``
     (s, the receiver's diagram clock), ``latency_s`` (s) after it was sent.
 
     ``state`` is [newest sequence, its arrival (s), received, lost, latency sum (s),
     largest latency (s)]; a sequence it has already read changes nothing; a lower
     one is the sender starting again, which loses nothing."""
-    newest, _, received, lost, latency_sum, latency_max = state
+    newest, arrival, received, lost, latency_sum, latency_max = state
     if received > 0 and sequence == newest:
-        return state
+        return [newest, arrival, received, lost, latency_sum, latency_max]
     if received > 0 and sequence > newest:
         lost += sequence - newest - 1
-    return np.array([sequence, t_s, received + 1, lost, latency_sum + latency_s,
-                     max(latency_max, latency_s)])
+    return [sequence, t_s, received + 1, lost, latency_sum + latency_s,
+            max(latency_max, latency_s)]
 
 
 def receiver_counts(state: np.ndarray) -> dict:
@@ -145,97 +146,122 @@ def message_sequence(data: bytes) -> tuple:
     return struct.unpack_from(">qq", data, 8)
 
 
+@dataclass(frozen=True)
+class ReceivedChannel:
+    """One LCM channel a ``MessageReceiver`` reads, and the vector port it feeds.
+
+    ``port``: the output port's name; ``decode(message, arrival_s) -> (size,)``;
+    ``stale_value`` (or None: hold the newest) is output before the first message
+    and once the newest is older than ``stale_after_s`` (s, on the diagram's clock,
+    which a paced run keeps on the wall clock); ``initial_value`` (default the
+    stale value) is held before the first message; with ``wait_s`` > 0,
+    initialization waits that long (wall-clock seconds) for a first message and
+    raises a TimeoutError naming the channel if none comes."""
+    port: str
+    channel: str
+    message_type: type
+    size: int
+    decode: Callable
+    stale_value: Optional[np.ndarray] = None
+    stale_after_s: float = math.inf
+    initial_value: Optional[np.ndarray] = None
+    wait_s: float = 0.0
+
+
 class MessageReceiver(LeafSystem):
-    """One LCM channel's newest message as a station vector port.
+    """The newest message of each of several LCM channels as station vector ports.
 
     .. pydrake_system::
 
         name: MessageReceiver
         output_ports:
-        - value
+        - (one per channel, named by its port)
 
-    Every ``period_s`` (s) the update reads everything that arrived on ``channel``
-    of ``lcm`` (an ``lcm.LCM``, which receivers may share: whichever drains it hands
-    each its own messages), counts it, and keeps the newest,
-    ``decode(message) -> (size,)``.
-    ``stale_value`` (or None: hold the newest) is output before the first message
-    and once the newest is older than ``stale_after_s`` (s, on this diagram's
-    clock, which a paced run keeps on the wall clock). With ``wait_s`` > 0,
-    initialization waits that long (wall-clock seconds) for a first message and
-    raises a TimeoutError naming the channel if none comes.
+    Every ``period_s`` (s) one update reads everything that arrived on ``lcm`` (an
+    ``lcm.LCM``), counts it per channel and keeps each channel's newest message:
+    one Python call a tick for every channel, since each call is what a 1 kHz
+    tick pays for.
     """
 
-    def __init__(self, *, lcm, channel: str, message_type, size: int, decode, stale_value,
-                 stale_after_s: float, period_s: float, initial_value=None,
-                 wait_s: float = 0.0):
+    def __init__(self, *, lcm, channels: Sequence[ReceivedChannel], period_s: float):
         super().__init__()
         self._lcm = lcm
-        self._channel = channel
-        self._message_type = message_type
-        self._decode = decode
-        self._stale_after_s = float(stale_after_s)
-        self._wait_s = float(wait_s)
-        self._stale = None if stale_value is None else np.asarray(stale_value, float)
+        self._channels = {spec.port: spec for spec in channels}
         # Raw messages that LCM handed over since the last update: I/O, not state.
-        self._arrived = []
-        subscription = lcm.subscribe(channel, lambda _, data: self._arrived.append(data))
-        # LCM drops what queues past a subscription's capacity (30 by default): a tick
-        # late by tens of ms must still read every message.
-        subscription.set_queue_capacity(MESSAGE_QUEUE_CAPACITY)
-        self._counters = self.DeclareDiscreteState(_NEVER)
-        initial = self._stale if initial_value is None else np.asarray(initial_value, float)
-        self._held = self.DeclareDiscreteState(initial)
+        self._arrived = {spec.port: [] for spec in channels}
+        self._counters, self._held = {}, {}
+        for spec in channels:
+            subscription = lcm.subscribe(spec.channel,
+                                         lambda _, data, arrived=self._arrived[spec.port]:
+                                         arrived.append(data))
+            # LCM drops what queues past a subscription's capacity (30 by default): a
+            # tick late by tens of ms must still read every message.
+            subscription.set_queue_capacity(MESSAGE_QUEUE_CAPACITY)
+            self._counters[spec.port] = self.DeclareDiscreteState(_NEVER)
+            initial = spec.stale_value if spec.initial_value is None else spec.initial_value
+            self._held[spec.port] = self.DeclareDiscreteState(np.asarray(initial, float))
+            self.DeclareVectorOutputPort(
+                spec.port, spec.size,
+                lambda context, output, spec=spec: self._calc_value(spec, context, output),
+                {self.xd_ticket(), self.time_ticket()})
         self.DeclarePeriodicDiscreteUpdateEvent(period_s, 0.0, self._update)
         self.DeclareInitializationDiscreteUpdateEvent(self._initialize)
-        self.DeclareVectorOutputPort("value", size, self._calc_value,
-                                     {self.xd_ticket(), self.time_ticket()})
 
     def _initialize(self, context, discrete_state):
-        deadline = time.monotonic() + self._wait_s
-        while self._wait_s > 0 and not self._arrived:
-            if time.monotonic() > deadline:
-                raise TimeoutError(
-                    f"no message on LCM channel {self._channel!r} within {self._wait_s:g} s: "
-                    "is the station running (maglev device-sim SCENARIO, or the device's "
-                    "drivers) on the same LCM URL?")
-            self._lcm.handle_timeout(100)
+        for spec in self._channels.values():
+            deadline = time.monotonic() + spec.wait_s
+            while spec.wait_s > 0 and not self._arrived[spec.port]:
+                if time.monotonic() > deadline:
+                    raise TimeoutError(
+                        f"no message on LCM channel {spec.channel!r} within {spec.wait_s:g} "
+                        "s: is the station running (maglev device-sim SCENARIO, or the "
+                        "device's drivers) on the same LCM URL?")
+                self._lcm.handle_timeout(100)
         # What queued while the diagram was built is history, some of it dropped
         # past the queue's capacity: the run counts from the newest message on.
         while self._lcm.handle_timeout(0) > 0:
             pass
-        del self._arrived[:-1]
+        for arrived in self._arrived.values():
+            del arrived[:-1]
         self._update(context, discrete_state)
 
     def _update(self, context, discrete_state):
         while self._lcm.handle_timeout(0) > 0:  # one message a call: drain them all
             pass
-        if not self._arrived:
-            return
-        counters = context.get_discrete_state(self._counters).get_value()
+        t_s = context.get_time()
         now_utime = time.time_ns() // 1000
-        for data in self._arrived:
-            sequence, sent_wall_utime = message_sequence(data)
-            counters = receiver_step(counters, sequence, context.get_time(),
-                                     (now_utime - sent_wall_utime) / US_PER_S)
-        discrete_state.set_value(self._counters, counters)
-        discrete_state.set_value(self._held, self._decode(
-            self._message_type.decode(self._arrived[-1]), context.get_time()))
-        self._arrived.clear()
+        for port, arrived in self._arrived.items():
+            if not arrived:
+                continue
+            spec = self._channels[port]
+            counters = context.get_discrete_state(self._counters[port]).get_value().tolist()
+            for data in arrived:
+                sequence, sent_wall_utime = message_sequence(data)
+                counters = receiver_step(counters, sequence, t_s,
+                                         (now_utime - sent_wall_utime) / US_PER_S)
+            discrete_state.set_value(self._counters[port], counters)
+            discrete_state.set_value(self._held[port], spec.decode(
+                spec.message_type.decode(arrived[-1]), t_s))
+            arrived.clear()
 
-    def _calc_value(self, context, output):
-        arrival = context.get_discrete_state(self._counters).GetAtIndex(1)
-        if self._stale is not None and context.get_time() - arrival > self._stale_after_s:
-            output.SetFromVector(self._stale)
+    def _calc_value(self, spec, context, output):
+        arrival = context.get_discrete_state(self._counters[spec.port]).GetAtIndex(1)
+        if spec.stale_value is not None and context.get_time() - arrival > spec.stale_after_s:
+            output.SetFromVector(spec.stale_value)
         else:
-            output.SetFromVector(context.get_discrete_state(self._held).get_value())
+            output.SetFromVector(context.get_discrete_state(self._held[spec.port]).get_value())
 
-    def newest_arrival_s(self, context) -> float:
-        """When the newest message was read (s on this diagram's clock; -inf: never)."""
-        return context.get_discrete_state(self._counters).GetAtIndex(1)
+    def ports(self) -> list:
+        """The output ports' names, one a channel."""
+        return list(self._channels)
 
-    def counts(self, context) -> dict:
-        """What ``receiver_counts`` says so far, from this system's context."""
-        return receiver_counts(context.get_discrete_state(self._counters).get_value())
+    def newest_arrival_s(self, context, port: str) -> float:
+        """When ``port``'s newest message was read (s on this diagram's clock; -inf: never)."""
+        return context.get_discrete_state(self._counters[port]).GetAtIndex(1)
+
+    def counts(self, context, port: str) -> dict:
+        """What ``receiver_counts`` says so far for ``port``'s channel."""
+        return receiver_counts(context.get_discrete_state(self._counters[port]).get_value())
 
 
 class MessageSender(LeafSystem):

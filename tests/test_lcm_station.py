@@ -19,8 +19,9 @@ from maglev_haptics.diagrams.scenario import ScenarioError, load_scenario
 from maglev_haptics.hardware.lcm_link import publish
 from maglev_haptics.hardware.lcm_messages import glasses_t, markers_t
 from maglev_haptics.systems.station_messages import (
-    MessageReceiver, glasses_measurement_from_message, glasses_measurement_message, markers_from_message,
-    markers_message, message_sequence, receiver_counts, receiver_step)
+    MessageReceiver, ReceivedChannel, glasses_measurement_from_message,
+    glasses_measurement_message, markers_from_message, markers_message, message_sequence,
+    receiver_counts, receiver_step)
 
 
 def test_markers_round_trip_with_hidden_markers():
@@ -207,23 +208,30 @@ def test_device_sim_and_application_in_two_processes(tmp_path, name):
 def test_an_old_message_reads_as_the_stale_value(stale_value):
     """The application's marker receiver (NaN: the estimator loses tracking, the
     controller lands blind) and the device's command receiver (zeros: coils off) once
-    their newest message is older than allowed."""
+    their newest message is older than allowed; a second channel of the same receiver
+    is read and counted apart."""
     bus = lcm.LCM("memq://")
-    receiver = MessageReceiver(
-        lcm=bus, channel="M", message_type=markers_t, size=9,
-        decode=lambda message, _: markers_from_message(message, 3), stale_value=stale_value,
-        stale_after_s=0.005, period_s=0.001)
+    decode = lambda message, _: markers_from_message(message, 3)  # noqa: E731
+    receiver = MessageReceiver(lcm=bus, period_s=0.001, channels=[
+        ReceivedChannel(port="markers", channel="M", message_type=markers_t, size=9,
+                        decode=decode, stale_value=stale_value, stale_after_s=0.005),
+        ReceivedChannel(port="other", channel="N", message_type=markers_t, size=9,
+                        decode=decode, initial_value=np.ones(9))])
     context = receiver.CreateDefaultContext()
-    markers = np.arange(9) * 0.01
-    np.testing.assert_array_equal(receiver.get_output_port().Eval(context), stale_value)
-    publish(bus, "M", markers_message(1, 0.0, 0.0, markers))
+    markers = receiver.GetOutputPort("markers")
+    expected = np.arange(9) * 0.01
+    np.testing.assert_array_equal(markers.Eval(context), stale_value)
+    publish(bus, "M", markers_message(1, 0.0, 0.0, expected))
     context.SetTime(0.001)
     context.SetDiscreteState(receiver.EvalUniquePeriodicDiscreteUpdate(context))
-    np.testing.assert_allclose(receiver.get_output_port().Eval(context), markers)
+    np.testing.assert_allclose(markers.Eval(context), expected)
     context.SetTime(0.0055)  # 4.5 ms old: still fresh
-    np.testing.assert_allclose(receiver.get_output_port().Eval(context), markers)
+    np.testing.assert_allclose(markers.Eval(context), expected)
     context.SetTime(0.0065)
-    np.testing.assert_array_equal(receiver.get_output_port().Eval(context), stale_value)
-    counts = receiver.counts(context)
+    np.testing.assert_array_equal(markers.Eval(context), stale_value)
+    counts = receiver.counts(context, "markers")
     assert (counts["messages_received"], counts["messages_lost"]) == (1, 0)
     assert 0.0 <= counts["latency_ms_mean"] == counts["latency_ms_max"] < 1000.0
+    # Nothing came on N: it holds its initial value (no stale value: never stale).
+    np.testing.assert_array_equal(receiver.GetOutputPort("other").Eval(context), np.ones(9))
+    assert receiver.counts(context, "other")["messages_received"] == 0
