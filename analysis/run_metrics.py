@@ -40,12 +40,17 @@ def coil_temperatures_c(t: np.ndarray, currents: np.ndarray, thermal) -> np.ndar
 def log_arrays(logger, log_layout, context, device) -> Dict[str, np.ndarray]:
     """The run's log as named arrays; the public contract's keys first (docs/haptic_loop.md, "What a run writes")."""
     log = logger.FindLog(context)
+    return log_arrays_from(log.sample_times(), log.data(), log_layout, coil_thermal(device))
+
+
+def log_arrays_from(times: np.ndarray, samples: np.ndarray, log_layout,
+                    thermal) -> Dict[str, np.ndarray]:
+    """``log_arrays`` from the logger's sample times (N,) [s] and samples (rows, N),
+    ``log_layout`` (name -> its rows) and the coils' ``thermal`` model."""
     # The logger reads a sample-and-hold: what it publishes at t was sampled one
     # period earlier, and its t = 0 entry is the hold's blank initial state.
     keep = slice(1, None)
-    data = {name: log.data()[rows, keep].T for name, rows in log_layout.items()}
-    thermal = coil_thermal(device)
-    times = log.sample_times()
+    data = {name: samples[rows, keep].T for name, rows in log_layout.items()}
     if len(times) < 2:
         raise ValueError(f"the run logged {len(times)} sample(s) in {times[-1] if len(times) else 0} "
                          "s: simulate at least two log periods")

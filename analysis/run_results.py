@@ -11,6 +11,7 @@ import numpy as np
 from pydrake.geometry import StartMeshcat
 
 from maglev_haptics.analysis.haptic_metrics import haptic_summary
+from maglev_haptics.analysis.run_log import RunLogWriter
 from maglev_haptics.analysis.run_metrics import log_arrays, summarize
 from maglev_haptics.analysis.run_plots import plot_haptics, plot_run, plot_tick_times
 from maglev_haptics.analysis.stereo_metrics import plot_colocation, stereo_summary
@@ -54,13 +55,18 @@ def run_scenario(scenario: Scenario, *, label: str, out_dir: Optional[Path] = No
     record = viewer is not None and built.meshcat_hand is None
     if record:
         viewer.StartRecording()
+    thermal = coil_thermal(scenario.device)
+    # The log goes to disk as the run goes: a run that is killed leaves it readable.
+    log_writer = (RunLogWriter(Path(out_dir), built.logger, built.log_layout, thermal)
+                  if out_dir is not None else None)
     try:
         if built.meshcat_hand is not None:
             wait_for_browser(viewer)
         simulator, wall_s, tick_times = simulate(
             built, duration_s, realtime_rate=realtime_rate, progress=progress, label=label,
             interruptible=built.meshcat_hand is not None,
-            shares_cores=isinstance(scenario.station, LcmStation))
+            shares_cores=isinstance(scenario.station, LcmStation),
+            on_progress=log_writer.drain if log_writer is not None else None)
     finally:
         if built.meshcat_hand is not None:
             built.meshcat_hand.Delete()
@@ -70,7 +76,8 @@ def run_scenario(scenario: Scenario, *, label: str, out_dir: Optional[Path] = No
         viewer.PublishRecording()
         aim_camera_at_device(viewer, close=scenario.haptics is not None)
     duration_s = simulator.get_context().get_time()
-    log = log_arrays(built.logger, built.log_layout, simulator.get_context(), scenario.device)
+    log = (log_writer.finish(simulator.get_context()) if log_writer is not None else
+           log_arrays(built.logger, built.log_layout, simulator.get_context(), scenario.device))
     spec = scenario.device.instrument_spec()
     summary = {
         "scenario": label,
@@ -80,7 +87,7 @@ def run_scenario(scenario: Scenario, *, label: str, out_dir: Optional[Path] = No
         "realtime_factor": float(duration_s / wall_s),
         "control_rate_hz": scenario.control_rate_hz,
         **summarize(log, built.plan, rest_height_m=spec.rest_height_m,
-                    thermal=coil_thermal(scenario.device),
+                    thermal=thermal,
                     holds_before_s=(scenario.haptics.enable_at_s
                                     if scenario.haptics is not None else None)),
         **haptic_summary(log, scenario, rest_height_m=spec.rest_height_m),
@@ -100,7 +107,6 @@ def run_scenario(scenario: Scenario, *, label: str, out_dir: Optional[Path] = No
     if out_dir is not None:
         out_dir = Path(out_dir)
         out_dir.mkdir(parents=True, exist_ok=True)
-        np.savez_compressed(out_dir / "log.npz", **log)
         (out_dir / "summary.json").write_text(json.dumps(summary, indent=2))
         plot_run(log, out_dir, title=label,
                  current_limit_a=scenario.device.amplifier.current_limit_a)

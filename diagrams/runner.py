@@ -87,10 +87,11 @@ class PacedTicks:
 
 
 def advance_paced(simulator, duration_s: float, tick_s: float, ticks: PacedTicks, bar,
-                  stop=None, spin_s: float = math.inf):
+                  stop=None, spin_s: float = math.inf, on_progress=None):
     """Tick by tick to ``duration_s``, each released at its wall-clock slot; ``stop(context)``,
-    asked every PROGRESS_CHUNK_S, ends the run early when it returns True. The wait for
-    a slot spins for its last ``spin_s`` (s) and sleeps before that."""
+    asked every PROGRESS_CHUNK_S, ends the run early when it returns True; so often
+    ``on_progress(context)`` is called too. The wait for a slot spins for its last
+    ``spin_s`` (s) and sleeps before that."""
     start_s = simulator.get_context().get_time()
     ticks_per_update = max(1, int(round(PROGRESS_CHUNK_S / tick_s)))
     clock_zero = time.perf_counter()
@@ -108,6 +109,8 @@ def advance_paced(simulator, duration_s: float, tick_s: float, ticks: PacedTicks
             if ticks.done % ticks_per_update == 0:
                 bar.update(simulator.get_context().get_time() - bar.n)
                 bar.set_postfix_str(f"missed {ticks.missed}/{ticks.done}", refresh=False)
+                if on_progress is not None:
+                    on_progress(simulator.get_context())
                 if stop is not None and stop(simulator.get_context()):
                     break
     finally:
@@ -116,12 +119,13 @@ def advance_paced(simulator, duration_s: float, tick_s: float, ticks: PacedTicks
 
 def simulate(built, duration_s: float, *, realtime_rate: float = 0.0,
              progress: bool = True, label: str = "", interruptible: bool = False, stop=None,
-             shares_cores: bool = False):
+             shares_cores: bool = False, on_progress=None):
     """Advance the diagram to ``duration_s``; returns (simulator, wall seconds,
     TickTimes of the paced ticks or None when not paced).
     ``interruptible``: Ctrl-C ends the run early instead of raising. ``stop(context)``
     ends a paced run early (``advance_paced``). ``shares_cores``: another paced process
-    runs on this machine, so the wait between ticks sleeps (``SHARED_SPIN_S``)."""
+    runs on this machine, so the wait between ticks sleeps (``SHARED_SPIN_S``).
+    ``on_progress(context)`` is called every PROGRESS_CHUNK_S of simulated time."""
     # Nothing compiles inside the loop: every kernel is ready before the clock starts.
     compile_kernels(progress=progress)
     simulator = Simulator(built.diagram)
@@ -141,13 +145,15 @@ def simulate(built, duration_s: float, *, realtime_rate: float = 0.0,
                   ) as bar:
             if paced is not None:
                 advance_paced(simulator, duration_s, built.tick_s, paced, bar, stop,
-                              SHARED_SPIN_S if shares_cores else math.inf)
+                              SHARED_SPIN_S if shares_cores else math.inf, on_progress)
             else:
                 chunks = np.append(np.arange(PROGRESS_CHUNK_S, duration_s, PROGRESS_CHUNK_S),
                                    duration_s)
                 for t in chunks:
                     simulator.AdvanceTo(float(t))
                     bar.update(float(t) - bar.n)
+                    if on_progress is not None:
+                        on_progress(simulator.get_context())
     except KeyboardInterrupt:
         if not interruptible:
             raise

@@ -1,0 +1,77 @@
+"""The run's log goes to disk as the run goes: the chunks add up to the in-memory log,
+and a run killed with SIGKILL leaves a log that load_run_log reads to within a
+second of the kill."""
+
+import os
+import re
+import signal
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from maglev_haptics.analysis import load_run_log
+from maglev_haptics.analysis import run_log
+from maglev_haptics.analysis.run_results import run_scenario
+from maglev_haptics.diagrams.scenario import load_scenario
+
+
+def test_chunked_log_is_the_in_memory_log(tmp_path, monkeypatch):
+    monkeypatch.setattr(run_log, "CHUNK_WALL_S", 0.0)  # a chunk every progress step
+    scenario = load_scenario("levitate")
+    in_memory = run_scenario(scenario, label="levitate", duration_s=1.3, progress=False).log
+    written = run_scenario(scenario, label="levitate", duration_s=1.3, progress=False,
+                           out_dir=tmp_path).log
+    assert not (tmp_path / run_log.CHUNK_DIR).exists()  # the finished run keeps log.npz only
+    loaded = load_run_log(tmp_path)
+    assert set(loaded) == set(in_memory) == set(written)
+    for name, array in in_memory.items():
+        np.testing.assert_array_equal(loaded[name], array, err_msg=name)
+        np.testing.assert_array_equal(written[name], array, err_msg=name)
+    assert len(loaded["t"]) == 1300
+
+
+def test_a_folder_without_a_log_is_named(tmp_path):
+    with pytest.raises(FileNotFoundError, match=re.escape(str(tmp_path))):
+        load_run_log(tmp_path)
+
+
+def test_a_killed_run_leaves_its_log_to_within_a_second(tmp_path):
+    """A paced run killed with SIGKILL mid-flight: no log.npz, but the chunks hold the
+    flight up to less than a second before the kill."""
+    process = subprocess.Popen(
+        [sys.executable, "-m", "maglev_haptics.diagrams.cli", "run", "levitate", "--no-meshcat",
+         "--realtime", "1.0", "--duration", "60", "--out", str(tmp_path)],
+        stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    shown = []  # the simulated times its progress bar shows (s)
+
+    def read_progress():
+        text = ""
+        while chunk := process.stderr.read(1):
+            text = "" if chunk in "\r\n" else text + chunk
+            if (match := re.search(r"([\d.]+)/[\d.]+ sim s", text)):
+                shown.append(float(match.group(1)))
+
+    threading.Thread(target=read_progress, daemon=True).start()
+    try:
+        deadline = time.monotonic() + 240.0  # building, and on a fresh install compiling
+        while not shown or shown[-1] < 3.0:
+            assert process.poll() is None and time.monotonic() < deadline, "the run never flew"
+            time.sleep(0.05)
+        process.send_signal(signal.SIGKILL)
+        killed_at_s = shown[-1]  # at least this far when killed
+        assert process.wait(timeout=10) == -signal.SIGKILL
+    finally:
+        if process.poll() is None:
+            process.kill()
+    assert not (tmp_path / "log.npz").exists()
+    log = load_run_log(tmp_path)
+    assert log["t"][-1] > killed_at_s - 1.0
+    assert np.all(np.diff(log["t"]) > 0) and log["t"][0] == 0.0
+    assert log["coil_currents"].shape == (len(log["t"]), 27)
+    # It took off (resting at 7 mm, 18 mm up by 3 s).
+    assert np.max(log["p_WI_true"][:, 2]) > 0.015 and np.all(np.isfinite(log["p_WI_measured"]))
+    assert os.listdir(tmp_path / run_log.CHUNK_DIR)
