@@ -18,7 +18,7 @@ from maglev_haptics.analysis.stereo_metrics import plot_colocation, stereo_summa
 from maglev_haptics.analysis.stereo_video import StereoVideoWriter
 from maglev_haptics.diagrams.application import BuildDiagram
 from maglev_haptics.diagrams.lcm_station import LcmStation, station_counts
-from maglev_haptics.diagrams.runner import realtime_report, simulate
+from maglev_haptics.diagrams.runner import StopOnSignal, realtime_report, simulate
 from maglev_haptics.diagrams.scenario import Scenario
 from maglev_haptics.hardware.thermal import coil_thermal
 from maglev_haptics.systems.device_visualizer import aim_camera_at_device
@@ -62,11 +62,13 @@ def run_scenario(scenario: Scenario, *, label: str, out_dir: Optional[Path] = No
     try:
         if built.meshcat_hand is not None:
             wait_for_browser(viewer)
-        simulator, wall_s, tick_times = simulate(
-            built, duration_s, realtime_rate=realtime_rate, progress=progress, label=label,
-            interruptible=built.meshcat_hand is not None,
-            shares_cores=isinstance(scenario.station, LcmStation),
-            on_progress=log_writer.drain if log_writer is not None else None)
+        # Ctrl-C or SIGTERM ends the run between ticks, and what it ran is written.
+        with StopOnSignal() as stop_signal:
+            simulator, wall_s, tick_times = simulate(
+                built, duration_s, realtime_rate=realtime_rate, progress=progress, label=label,
+                interruptible=built.meshcat_hand is not None, stop=stop_signal,
+                shares_cores=isinstance(scenario.station, LcmStation),
+                on_progress=log_writer.drain if log_writer is not None else None)
     finally:
         if built.meshcat_hand is not None:
             built.meshcat_hand.Delete()
@@ -92,6 +94,8 @@ def run_scenario(scenario: Scenario, *, label: str, out_dir: Optional[Path] = No
                                     if scenario.haptics is not None else None)),
         **haptic_summary(log, scenario, rest_height_m=spec.rest_height_m),
     }
+    if stop_signal.received is not None:
+        summary["stopped_by"] = stop_signal.received
     if tick_times is not None:
         summary["realtime"] = {"rate": realtime_rate, **realtime_report(tick_times)}
     if isinstance(scenario.station, LcmStation):

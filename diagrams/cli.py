@@ -9,6 +9,7 @@ import json
 import math
 import re
 import shutil
+import signal
 import sys
 import tempfile
 import textwrap
@@ -173,6 +174,11 @@ def _cmd_run(args) -> int:
               file=sys.stderr)
     for name in result.summary.get("stereo", {}).get("video", {}).get("files", []):
         print(f"wrote {out}/{name}")
+    stopped_by = result.summary.get("stopped_by")
+    if stopped_by is not None:
+        print(f"{label}: stopped by {stopped_by} at {result.summary['duration_s']:.3f} s; "
+              f"the run so far is in {out}", file=sys.stderr)
+        return 128 + signal.Signals[stopped_by].value
     if result.meshcat is not None:
         replay = "" if args.interactive else " (the run's recording is replayable there)"
         print(f"Meshcat: {result.meshcat.web_url()}{replay}")

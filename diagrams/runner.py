@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import gc
 import math
+import signal
+import threading
 import time
 from dataclasses import dataclass
 from typing import Dict
@@ -71,6 +73,35 @@ def wait_until(wall_s: float, spin_s: float) -> None:
 SHARED_SPIN_S = 0.0003
 
 
+class StopOnSignal:
+    """While entered: SIGINT (Ctrl-C) and SIGTERM ask the run to stop instead of killing
+    it. Passed as ``simulate``'s ``stop``, the run ends at its next check, between
+    ticks (the handler only sets a flag: nothing is raised inside a kernel), so its
+    results are written. ``received``: the signal's name, or None."""
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self):
+        self.received = None
+        self._previous = {}
+
+    def __enter__(self) -> "StopOnSignal":
+        if threading.current_thread() is threading.main_thread():  # where Python allows it
+            for number in self.SIGNALS:
+                self._previous[number] = signal.signal(number, self._handle)
+        return self
+
+    def __exit__(self, *exception) -> None:
+        for number, handler in self._previous.items():
+            signal.signal(number, handler)
+
+    def _handle(self, number, frame) -> None:
+        self.received = signal.Signals(number).name
+
+    def __call__(self, context) -> bool:
+        return self.received is not None
+
+
 class PacedTicks:
     """The timing of a paced run as it goes: kept when Ctrl-C ends the run early."""
 
@@ -122,8 +153,8 @@ def simulate(built, duration_s: float, *, realtime_rate: float = 0.0,
              shares_cores: bool = False, on_progress=None):
     """Advance the diagram to ``duration_s``; returns (simulator, wall seconds,
     TickTimes of the paced ticks or None when not paced).
-    ``interruptible``: Ctrl-C ends the run early instead of raising. ``stop(context)``
-    ends a paced run early (``advance_paced``). ``shares_cores``: another paced process
+    ``interruptible``: Ctrl-C ends the run early instead of raising. ``stop(context)``,
+    asked every PROGRESS_CHUNK_S of simulated time, ends the run early when True. ``shares_cores``: another paced process
     runs on this machine, so the wait between ticks sleeps (``SHARED_SPIN_S``).
     ``on_progress(context)`` is called every PROGRESS_CHUNK_S of simulated time."""
     # Nothing compiles inside the loop: every kernel is ready before the clock starts.
@@ -154,6 +185,8 @@ def simulate(built, duration_s: float, *, realtime_rate: float = 0.0,
                     bar.update(float(t) - bar.n)
                     if on_progress is not None:
                         on_progress(simulator.get_context())
+                    if stop is not None and stop(simulator.get_context()):
+                        break
     except KeyboardInterrupt:
         if not interruptible:
             raise

@@ -1,7 +1,8 @@
 """The run's log goes to disk as the run goes: the chunks add up to the in-memory log,
 and a run killed with SIGKILL leaves a log that load_run_log reads to within a
-second of the kill."""
+second of the kill; SIGTERM or Ctrl-C ends a run with its results written."""
 
+import json
 import os
 import re
 import signal
@@ -75,3 +76,28 @@ def test_a_killed_run_leaves_its_log_to_within_a_second(tmp_path):
     # It took off (resting at 7 mm, 18 mm up by 3 s).
     assert np.max(log["p_WI_true"][:, 2]) > 0.015 and np.all(np.isfinite(log["p_WI_measured"]))
     assert os.listdir(tmp_path / run_log.CHUNK_DIR)
+
+
+@pytest.mark.parametrize("stop_signal", [signal.SIGTERM, signal.SIGINT])
+def test_a_stopped_run_writes_its_results_and_says_so_in_one_line(tmp_path, stop_signal):
+    """SIGTERM or Ctrl-C on a scripted run: it ends between ticks, writes the log, the
+    summary and the plots of what it ran, and says so in one line (no traceback)."""
+    process = subprocess.Popen(
+        [sys.executable, "-m", "maglev_haptics.diagrams.cli", "run", "levitate", "--no-meshcat",
+         "--realtime", "1.0", "--duration", "60", "--out", str(tmp_path)],
+        stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 240.0
+    while not list((tmp_path / run_log.CHUNK_DIR).glob("chunk_000003.npy")):  # ~2 s flown
+        assert process.poll() is None and time.monotonic() < deadline, "the run never flew"
+        time.sleep(0.05)
+    process.send_signal(stop_signal)
+    _, stderr = process.communicate(timeout=60)
+    assert process.returncode == 128 + stop_signal.value
+    last_line = stderr.strip().splitlines()[-1]
+    assert f"stopped by {stop_signal.name}" in last_line and "Traceback" not in stderr
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["stopped_by"] == stop_signal.name and 1.5 < summary["duration_s"] < 30.0
+    log = load_run_log(tmp_path)
+    assert (tmp_path / "log.npz").exists() and not (tmp_path / run_log.CHUNK_DIR).exists()
+    assert log["t"][-1] == pytest.approx(summary["duration_s"], abs=0.002)
+    assert (tmp_path / "levitation.png").exists()
