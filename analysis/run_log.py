@@ -5,11 +5,11 @@ A run with an output folder moves its logger's samples to disk every
 ``log_chunks/``, written under a temporary name and renamed, so a kill (even
 SIGKILL) leaves only whole chunks, and the logger never holds more than a chunk
 (an interactive run of an hour stays as small as one of a minute). The loop only
-copies the samples out (~40 us); a thread writes them, since writing a chunk
-takes a tick's whole slot or more (1.4-1.9 ms for 0.5 s of levitate's log on the
-test VM). The finished
-run writes ``log.npz`` and removes the chunks. ``load_run_log(out_dir)`` reads
-either: ``log.npz``, or what the chunks of a killed run hold.
+copies the samples out (0.15-0.4 ms each half second); a thread writes them, since
+writing a chunk takes a tick's whole slot or more (1.4-1.9 ms for half a second of
+levitate's log on the test VM). The finished run writes ``log.npz`` and removes
+the chunks. ``load_run_log(out_dir)`` reads either: ``log.npz``, or what the
+chunks of a killed run hold.
 """
 
 from __future__ import annotations
