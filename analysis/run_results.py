@@ -66,7 +66,7 @@ def run_scenario(scenario: Scenario, *, label: str, out_dir: Optional[Path] = No
         with StopOnSignal() as stop_signal:
             simulator, wall_s, tick_times = simulate(
                 built, duration_s, realtime_rate=realtime_rate, progress=progress, label=label,
-                interruptible=built.meshcat_hand is not None, stop=stop_signal,
+                stop=stop_signal,
                 shares_cores=isinstance(scenario.station, LcmStation),
                 on_progress=log_writer.drain if log_writer is not None else None)
     finally:

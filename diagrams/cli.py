@@ -189,16 +189,18 @@ def _cmd_run(args) -> int:
 
 def _cmd_device_sim(args) -> int:
     from maglev_haptics.diagrams.device_sim import BuildDeviceSim
-    from maglev_haptics.diagrams.runner import realtime_report, simulate
+    from maglev_haptics.diagrams.runner import StopOnSignal, realtime_report, simulate
 
     scenario, label = _load(args)
     device_sim = BuildDeviceSim(scenario)
     print(f"device-sim {label}: the simulated station on LCM "
           f"({lcm_config(scenario).url}); stops {device_sim.stop_after_silence_s:g} s after "
           "the application's last command, or after --duration", file=sys.stderr)
-    simulator, wall_s, tick_times = simulate(
-        device_sim, args.duration, realtime_rate=args.realtime, label=f"device-sim {label}",
-        interruptible=True, stop=device_sim.application_gone, shares_cores=True)
+    with StopOnSignal() as stop_signal:  # Ctrl-C or SIGTERM: stop between ticks, report
+        simulator, wall_s, tick_times = simulate(
+            device_sim, args.duration, realtime_rate=args.realtime, label=f"device-sim {label}",
+            stop=lambda context: stop_signal(context) or device_sim.application_gone(context),
+            shares_cores=True)
     context = simulator.get_context()
     print(json.dumps({"scenario": label, "duration_s": context.get_time(), "wall_time_s": wall_s,
                       "commands": device_sim.command_counts(context),

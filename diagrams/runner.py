@@ -149,13 +149,14 @@ def advance_paced(simulator, duration_s: float, tick_s: float, ticks: PacedTicks
 
 
 def simulate(built, duration_s: float, *, realtime_rate: float = 0.0,
-             progress: bool = True, label: str = "", interruptible: bool = False, stop=None,
+             progress: bool = True, label: str = "", stop=None,
              shares_cores: bool = False, on_progress=None):
     """Advance the diagram to ``duration_s``; returns (simulator, wall seconds,
     TickTimes of the paced ticks or None when not paced).
-    ``interruptible``: Ctrl-C ends the run early instead of raising. ``stop(context)``,
-    asked every PROGRESS_CHUNK_S of simulated time, ends the run early when True. ``shares_cores``: another paced process
-    runs on this machine, so the wait between ticks sleeps (``SHARED_SPIN_S``).
+    ``stop(context)``, asked every PROGRESS_CHUNK_S of simulated time, ends the run
+    early when True (``StopOnSignal`` for Ctrl-C and SIGTERM). ``shares_cores``:
+    another paced process runs on this machine, so the wait between ticks sleeps
+    (``SHARED_SPIN_S``).
     ``on_progress(context)`` is called every PROGRESS_CHUNK_S of simulated time."""
     # Nothing compiles inside the loop: every kernel is ready before the clock starts.
     compile_kernels(progress=progress)
@@ -187,10 +188,6 @@ def simulate(built, duration_s: float, *, realtime_rate: float = 0.0,
                         on_progress(simulator.get_context())
                     if stop is not None and stop(simulator.get_context()):
                         break
-    except KeyboardInterrupt:
-        if not interruptible:
-            raise
-        # Ctrl-C ends an interactive run early; what was simulated is kept.
     finally:
         gc.enable()
     wall_s = time.perf_counter() - start
