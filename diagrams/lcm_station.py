@@ -166,11 +166,13 @@ def MakeLcmStation(scenario) -> Diagram:
 
 
 def station_counts(diagram, context) -> dict:
-    """What the application's LCM station read and lost, per channel, and in all."""
+    """What the application's LCM station read and lost, and the gaps in which a
+    channel went stale, per channel and in all."""
     receiver = diagram.GetSubsystemByName("station").GetSubsystemByName("receiver")
     receiver_context = receiver.GetMyContextFromRoot(context)
     counts = {name.lower(): receiver.counts(receiver_context, port)
               for name, port in INBOUND_PORTS.items() if port in receiver.ports()}
     return {"messages_received": sum(c["messages_received"] for c in counts.values()),
             "messages_lost": sum(c["messages_lost"] for c in counts.values()),
+            "stale_gaps": sum(c["stale_gaps"] for c in counts.values()),
             "channels": counts}

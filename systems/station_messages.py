@@ -33,8 +33,9 @@ from maglev_haptics.hardware.lcm_messages import (
 US_PER_S = 1_000_000
 MESSAGE_QUEUE_CAPACITY = 1000  # messages a subscription holds between two reads
 # Receiver state: [newest sequence read, its arrival time (s), received, lost,
-# sum and largest of the latencies (s, wall clock)]
-_NEVER = np.array([-1.0, -math.inf, 0.0, 0.0, 0.0, 0.0])
+# sum and largest of the latencies (s, wall clock), longest wait between two
+# messages (s, diagram clock), waits long enough that a tick read the stale value]
+_NEVER = np.array([-1.0, -math.inf, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
 
 
 def to_utime(t_s: float) -> int:
@@ -120,29 +121,37 @@ def status_message(sequence: int, t_s: float, handle_gripped: bool, fault_bits: 
     return message
 
 
-def receiver_step(state, sequence: int, t_s: float, latency_s: float = 0.0) -> list:
+def receiver_step(state, sequence: int, t_s: float, latency_s: float = 0.0,
+                  stale_gap_s: float = math.inf) -> list:
     """The receiver's counters after reading a message numbered ``sequence`` at ``t_s``
     (s, the receiver's diagram clock), ``latency_s`` (s) after it was sent.
 
     ``state`` is [newest sequence, its arrival (s), received, lost, latency sum (s),
-    largest latency (s)]; a sequence it has already read changes nothing; a lower
-    one is the sender starting again, which loses nothing."""
-    newest, arrival, received, lost, latency_sum, latency_max = state
+    largest latency (s), longest gap (s), stale gaps]; a gap between two messages
+    longer than ``stale_gap_s`` (s) is a stale gap. A sequence it has already read
+    changes nothing; a lower one is the sender starting again, which loses nothing."""
+    newest, arrival, received, lost, latency_sum, latency_max, gap_max, stale_gaps = state
     if received > 0 and sequence == newest:
-        return [newest, arrival, received, lost, latency_sum, latency_max]
-    if received > 0 and sequence > newest:
-        lost += sequence - newest - 1
+        return list(state)
+    if received > 0:
+        if sequence > newest:
+            lost += sequence - newest - 1
+        gap_max = max(gap_max, t_s - arrival)
+        stale_gaps += t_s - arrival > stale_gap_s
     return [sequence, t_s, received + 1, lost, latency_sum + latency_s,
-            max(latency_max, latency_s)]
+            max(latency_max, latency_s), gap_max, stale_gaps]
 
 
-def receiver_counts(state: np.ndarray) -> dict:
-    """{"messages_received", "messages_lost", "latency_ms_mean", "latency_ms_max"} from
-    a receiver's state (latencies None before the first message)."""
+def receiver_counts(state) -> dict:
+    """{"messages_received", "messages_lost", "latency_ms_mean", "latency_ms_max",
+    "longest_gap_ms", "stale_gaps"} from a receiver's state (latencies None before the
+    first message). Gaps count once a message ends them: the silence after a sender
+    stops is not one."""
     received = int(state[2])
     return {"messages_received": received, "messages_lost": int(state[3]),
             "latency_ms_mean": 1e3 * state[4] / received if received else None,
-            "latency_ms_max": 1e3 * state[5] if received else None}
+            "latency_ms_max": 1e3 * state[5] if received else None,
+            "longest_gap_ms": 1e3 * state[6], "stale_gaps": int(state[7])}
 
 
 def message_sequence(data: bytes) -> tuple:
@@ -185,13 +194,18 @@ class MessageReceiver(LeafSystem):
     Every ``period_s`` (s) one update reads everything that arrived on ``lcm`` (an
     ``lcm.LCM``), counts it per channel and keeps each channel's newest message:
     one Python call a tick for every channel, since each call is what a 1 kHz
-    tick pays for.
+    tick pays for. A gap between two messages in which a tick read the channel's
+    stale value counts as a stale gap (``counts``).
     """
 
     def __init__(self, *, lcm, channels: Sequence[ReceivedChannel], period_s: float):
         super().__init__()
         self._lcm = lcm
         self._channels = {spec.port: spec for spec in channels}
+        # A tick reads a channel stale once its newest message is older than
+        # stale_after_s: the gap to the next message is then longer than this (s).
+        self._stale_gap_s = {spec.port: (spec.stale_after_s + period_s if spec.stale_value
+                                         is not None else math.inf) for spec in channels}
         # Raw messages that LCM handed over since the last update: I/O, not state.
         self._arrived = {spec.port: [] for spec in channels}
         self._counters, self._held = {}, {}
@@ -243,7 +257,8 @@ class MessageReceiver(LeafSystem):
             for data in arrived:
                 sequence, sent_wall_utime = message_sequence(data)
                 counters = receiver_step(counters, sequence, t_s,
-                                         (now_utime - sent_wall_utime) / US_PER_S)
+                                         (now_utime - sent_wall_utime) / US_PER_S,
+                                         self._stale_gap_s[port])
             discrete_state.set_value(self._counters[port], counters)
             discrete_state.set_value(self._held[port], spec.decode(
                 spec.message_type.decode(arrived[-1]), t_s))

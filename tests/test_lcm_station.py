@@ -14,7 +14,7 @@ from pydrake.systems.analysis import Simulator
 from maglev_haptics.analysis.run_metrics import log_arrays
 from maglev_haptics.diagrams.application import BuildDiagram
 from maglev_haptics.diagrams.device_sim import BuildDeviceSim
-from maglev_haptics.diagrams.lcm_station import station_counts
+from maglev_haptics.diagrams.lcm_station import LcmStation, marker_stale_after_s, station_counts
 from maglev_haptics.diagrams.scenario import ScenarioError, load_scenario
 from maglev_haptics.hardware.lcm_link import publish
 from maglev_haptics.hardware.lcm_messages import glasses_t, markers_t
@@ -36,17 +36,20 @@ def test_markers_round_trip_with_hidden_markers():
 
 
 def test_receiver_counts_gaps_as_lost_and_ignores_repeats():
-    state = np.array([-1.0, -np.inf, 0.0, 0.0, 0.0, 0.0])
+    state = np.array([-1.0, -np.inf, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
     assert receiver_counts(state)["latency_ms_mean"] is None
-    for sequence, latency_s in ((5, 0.001), (6, 0.002), (6, 0.5), (9, 0.004), (10, 0.001)):
-        state = receiver_step(state, sequence, 0.0, latency_s)
-    # The repeat of 6 counts for nothing, its latency included.
+    for sequence, t_s, latency_s in ((5, 0.000, 0.001), (6, 0.001, 0.002), (6, 0.002, 0.5),
+                                     (9, 0.009, 0.004), (10, 0.010, 0.001)):
+        state = receiver_step(state, sequence, t_s, latency_s, stale_gap_s=0.005)
+    # The repeat of 6 counts for nothing, its latency included; the 8 ms wait for 9
+    # is the longest gap, and the one past 5 ms.
     assert receiver_counts(state) == {"messages_received": 4, "messages_lost": 2,
                                       "latency_ms_mean": pytest.approx(2.0),
-                                      "latency_ms_max": pytest.approx(4.0)}
+                                      "latency_ms_max": pytest.approx(4.0),
+                                      "longest_gap_ms": pytest.approx(8.0), "stale_gaps": 1}
     # The sender starts again: nothing lost by that, and later gaps still count.
     for sequence in (1, 2, 5, 9, 10):
-        state = receiver_step(state, sequence, 0.0)
+        state = receiver_step(state, sequence, 0.011)
     counts = receiver_counts(state)
     assert (counts["messages_received"], counts["messages_lost"]) == (9, 7)
 
@@ -165,10 +168,6 @@ def test_device_sim_and_application_in_two_processes(tmp_path, name):
     assert device.returncode == 0, device_err[-2000:]
     device_summary = json.loads(device_out)
     summary = json.loads((tmp_path / "run" / "summary.json").read_text())
-    missed = (summary["realtime"]["miss_fraction"], device_summary["realtime"]["miss_fraction"])
-    if max(missed) > 0.5:  # then the device's command timeout lands it, as it should
-        pytest.skip(f"this machine did not keep two paced processes on time (missed "
-                    f"{missed[0]:.0%} and {missed[1]:.0%} of their slots)")
     assert device_summary["commands"]["messages_lost"] == 0
     assert summary["station"]["messages_lost"] == 0
     # The link's latency (wall clock, the wait for the reading tick included) is
@@ -179,9 +178,19 @@ def test_device_sim_and_application_in_two_processes(tmp_path, name):
         assert 0.0 < counts["latency_ms_mean"] <= counts["latency_ms_max"]
         assert counts["latency_ms_mean"] < 2 * tick_ms
     assert summary["pose_source"] == "measured"
-    assert summary["hover_position_error_rms_mm"] < 0.1
+    # A channel goes stale (markers unseen: the controller carries the weight alone,
+    # then drops the instrument; commands: the coils off) when the host pauses a
+    # process past the link's timeouts less a tracker period.
+    scenario = load_scenario(name)
+    tolerated_ms = 1e3 * (min(marker_stale_after_s(scenario, LcmStation()),
+                              LcmStation().command_timeout_s)
+                          - 1.0 / scenario.device.tracker.rate_hz) / TWO_PROCESS_RATE  # wall
+    stale_gaps = summary["station"]["stale_gaps"] + device_summary["commands"]["stale_gaps"]
+    stalls_ms = (summary["realtime"]["longest_stall_ms"],
+                 device_summary["realtime"]["longest_stall_ms"])
+
     log = np.load(tmp_path / "run" / "log.npz")
-    reference = BuildDiagram(load_scenario(name))
+    reference = BuildDiagram(scenario)
     simulator = Simulator(reference.diagram)
     simulator.Initialize()
     simulator.AdvanceTo(duration_s)
@@ -193,14 +202,28 @@ def test_device_sim_and_application_in_two_processes(tmp_path, name):
     # Each message read at the tick after it came, now and then a late tick more:
     # the flight follows the all-in-one run within a tick or two of motion at up to
     # 0.1 m/s, 0.1-0.2 mm (measured: levitate 0.09 mm, peg_in_hole 0.19 mm).
-    deviation_m = np.abs(log["p_WI_measured"][:n] - expected["p_WI_measured"][:n])[flying]
-    assert deviation_m.max() < 0.5e-3
+    deviation_mm = 1e3 * np.abs(log["p_WI_measured"][:n] - expected["p_WI_measured"][:n])[
+        flying].max()
+    flight_checks = {
+        f"hover RMS {summary['hover_position_error_rms_mm']:.3f} mm < 0.1":
+            summary["hover_position_error_rms_mm"] < 0.1,
+        f"flight within {deviation_mm:.2f} mm < 0.5 of the all-in-one run": deviation_mm < 0.5}
     if name == "peg_in_hole":
-        assert summary["touchdown"] is None and summary["haptics_engaged_s"] > 5.0
-        np.testing.assert_array_equal(log["haptic_mode"][-200:],
-                                      expected["haptic_mode"][n - 200:n])
+        flight_checks |= {
+            "no touchdown, haptics engaged > 5 s":
+                summary["touchdown"] is None and summary["haptics_engaged_s"] > 5.0,
+            "the same haptic mode over the last 200 ticks": np.array_equal(
+                log["haptic_mode"][-200:], expected["haptic_mode"][n - 200:n])}
     else:
-        assert summary["touchdown"]["speed_m_s"] < 0.05 and summary["touchdown"]["tilt_deg"] < 1.0
+        flight_checks["a soft, level touchdown"] = (summary["touchdown"] is not None and
+                                                   summary["touchdown"]["speed_m_s"] < 0.05
+                                                   and summary["touchdown"]["tilt_deg"] < 1.0)
+    failed = [check for check, ok in flight_checks.items() if not ok]
+    if failed and stale_gaps and max(stalls_ms) > tolerated_ms:
+        pytest.skip(f"this machine paused a process for {max(stalls_ms):.0f} ms, past the "
+                    f"link's {tolerated_ms:.1f} ms ({stale_gaps} stale gaps); then, as it "
+                    f"should, the flight left the all-in-one run: {failed}")
+    assert not failed
 
 
 @pytest.mark.parametrize("stale_value", [np.full(9, np.nan), np.zeros(9)],
@@ -235,3 +258,12 @@ def test_an_old_message_reads_as_the_stale_value(stale_value):
     # Nothing came on N: it holds its initial value (no stale value: never stale).
     np.testing.assert_array_equal(receiver.GetOutputPort("other").Eval(context), np.ones(9))
     assert receiver.counts(context, "other")["messages_received"] == 0
+    # The next message ends a stale gap (the tick at 7 ms read the stale value); one 2 ms
+    # later ends a fresh one.
+    for sequence, t_s in ((2, 0.008), (3, 0.010)):
+        publish(bus, "M", markers_message(sequence, t_s, t_s, expected))
+        context.SetTime(t_s)
+        context.SetDiscreteState(receiver.EvalUniquePeriodicDiscreteUpdate(context))
+    np.testing.assert_allclose(markers.Eval(context), expected)
+    counts = receiver.counts(context, "markers")
+    assert counts["stale_gaps"] == 1 and counts["longest_gap_ms"] == pytest.approx(7.0)
