@@ -12,7 +12,8 @@ kernels (one numeric strategy, no AutoDiffXd), and ``linearization.py``'s tests 
 the differences once against AutoDiff and a hand derivation on a 1-DOF loop built
 from Drake's own systems. States
 that only record or display (the logger's hold, the stereo display) feed nothing
-back and are left out.
+back and are left out; the coils' temperatures and the device supervisor's fault
+mode are held.
 """
 
 import dataclasses
@@ -44,6 +45,9 @@ from maglev_haptics.diagrams.station import hand_start_pose  # noqa: E402
 
 # Systems whose states feed nothing back into the loop (name prefixes).
 RECORDING_ONLY = ("log_sample", "station/head", "head_pose_predictor", "stereo_view")
+# Held at the operating point: the coils' temperatures (a time constant of ~1 min,
+# read only by the watchdogs) and the device supervisor's fault mode.
+HELD_STATES = ("coil_temperatures", "device_supervisor")
 # Discrete modes, compared exactly (a nudge would switch the mode): held, as the
 # linearization is about a fixed mode.
 MODE_COORDINATES = ("haptic_supervisor/d0[0]",)
@@ -195,7 +199,8 @@ def loop_map(scenario, *, progress: Optional[Callable[[int, int], None]] = None,
     built = BuildDiagram(scenario, hand_target_offset_input=with_hand)
     names = state_names(built.diagram)
     kept = [i for i, name in enumerate(names)
-            if not name.startswith(RECORDING_ONLY) and name not in MODE_COORDINATES]
+            if not name.startswith(RECORDING_ONLY + HELD_STATES)
+            and name not in MODE_COORDINATES]
     kept_names = [names[i] for i in kept]
     timings = _update_timings(built.diagram)
     period = hyperperiod_s(_periods(timings, kept_names))

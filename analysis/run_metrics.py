@@ -9,8 +9,7 @@ from scipy.spatial.transform import Rotation
 
 from maglev_haptics.diagrams.motion import FlightPlan
 from maglev_haptics.hardware.thermal import (
-    coil_thermal, continuous_current_limit_a, steady_state_temperature_c, temperature_after_c,
-    winding_resistance_ohm)
+    coil_thermal, continuous_current_limit_a, steady_state_temperature_c, winding_resistance_ohm)
 from maglev_haptics.systems.haptic_supervisor import HAPTIC
 from maglev_haptics.systems.rotations import rotation_matrix, rotations_of_quaternions
 
@@ -21,20 +20,6 @@ def rpy_from_quaternions(q: np.ndarray) -> np.ndarray:
     """(N, 3) roll-pitch-yaw (rad, each unwrapped over time) from (N, 4) [w, x, y, z]."""
     rpy = rotations_of_quaternions(q).as_euler("xyz")  # extrinsic: Drake's roll-pitch-yaw
     return np.unwrap(rpy, axis=0)
-
-
-def coil_temperatures_c(t: np.ndarray, currents: np.ndarray, thermal) -> np.ndarray:
-    """(N, n_coils) winding temperatures [deg C] from ambient at t[0], currents held per sample.
-
-    Exact for the thermal RC (currents are held between control ticks); the
-    thermal state does not feed back into the loop yet.
-    """
-    temperatures = np.empty_like(currents)
-    temperatures[0] = thermal.ambient_c
-    for k in range(1, len(t)):
-        temperatures[k] = temperature_after_c(thermal, temperatures[k - 1], currents[k - 1],
-                                              t[k] - t[k - 1])
-    return temperatures
 
 
 def log_arrays(logger, log_layout, context, device) -> Dict[str, np.ndarray]:
@@ -61,7 +46,7 @@ def log_arrays_from(times: np.ndarray, samples: np.ndarray, log_layout,
                else np.zeros(len(t), dtype=bool))
     user_wrench = rendered * engaged[:, None]
     currents = data["coil_currents"]
-    temperatures = coil_temperatures_c(t, currents, thermal)
+    temperatures = data["coil_temperature_c"]  # the loop's thermal model's
     return {
         "t": t,
         "p_WI_measured": measured[:, 4:7],
@@ -79,6 +64,7 @@ def log_arrays_from(times: np.ndarray, samples: np.ndarray, log_layout,
         "q_WI_measured": measured[:, 0:4],
         "V_WI_measured": data["V_WI_measured"],
         "tracking_ok": data["tracking_ok"][:, 0],
+        "fault_bits": data["fault_bits"][:, 0].astype(np.int64),
         "wrench_commanded_W": data["wrench_commanded_W"],
         "wrench_rendered_W": rendered,
         "allocation_shortfall_W": data["allocation_shortfall_W"],

@@ -18,7 +18,8 @@ from maglev_haptics.analysis.stereo_metrics import plot_colocation, stereo_summa
 from maglev_haptics.analysis.stereo_video import StereoVideoWriter
 from maglev_haptics.diagrams.application import BuildDiagram
 from maglev_haptics.diagrams.lcm_station import LcmStation, station_counts
-from maglev_haptics.diagrams.runner import StopOnSignal, realtime_report, simulate
+from maglev_haptics.diagrams.runner import (
+    LandBeforeStopping, StopOnSignal, realtime_report, simulate)
 from maglev_haptics.diagrams.scenario import Scenario
 from maglev_haptics.hardware.thermal import coil_thermal
 from maglev_haptics.systems.device_visualizer import aim_camera_at_device
@@ -62,11 +63,14 @@ def run_scenario(scenario: Scenario, *, label: str, out_dir: Optional[Path] = No
     try:
         if built.meshcat_hand is not None:
             wait_for_browser(viewer)
-        # Ctrl-C or SIGTERM ends the run between ticks, and what it ran is written.
+        # Ctrl-C or SIGTERM lands a flying instrument, ends the run between ticks,
+        # and what it ran is written (a second one ends it at once).
         with StopOnSignal() as stop_signal:
+            stop = LandBeforeStopping(built.diagram.GetSubsystemByName("device_supervisor"),
+                                      stop_signal)
             simulator, wall_s, tick_times = simulate(
                 built, duration_s, realtime_rate=realtime_rate, progress=progress, label=label,
-                stop=stop_signal,
+                stop=stop,
                 shares_cores=isinstance(scenario.station, LcmStation),
                 on_progress=log_writer.drain if log_writer is not None else None)
     finally:
@@ -96,6 +100,7 @@ def run_scenario(scenario: Scenario, *, label: str, out_dir: Optional[Path] = No
     }
     if stop_signal.received is not None:
         summary["stopped_by"] = stop_signal.received
+        summary["landed_before_stopping"] = stop.landing_end_s is not None
     if tick_times is not None:
         summary["realtime"] = {"rate": realtime_rate, **realtime_report(tick_times)}
     if isinstance(scenario.station, LcmStation):

@@ -1,7 +1,8 @@
 """The application half (docs/architecture.md) wired to a station: the whole diagram.
 
-``BuildDiagram(scenario)`` adds the station, the pose estimator, the scripted
-setpoint and enable ramps, the levitation controller (which allocates the currents),
+``BuildDiagram(scenario)`` adds the station, the pose estimator, the coils' thermal
+model, the device supervisor (which flies the motion script and lands on a
+fault), the levitation controller (which allocates the currents),
 with haptics the scene, coupling and supervisor (``diagrams/haptics.py``),
 with a hand its commands, with the stereo display its predictor, views and
 renderer (``diagrams/stereo_display.py``), a logger at ``log_rate_hz`` and, when
@@ -18,17 +19,20 @@ from pydrake.geometry import Meshcat, MeshcatVisualizer, MeshcatVisualizerParams
 from pydrake.multibody.meshcat import ContactVisualizer, ContactVisualizerParams
 from pydrake.systems.framework import Diagram, DiagramBuilder
 from pydrake.systems.primitives import (
-    ConstantVectorSource, LogVectorOutput, Multiplexer, TrajectorySource, ZeroOrderHold)
+    ConstantVectorSource, LogVectorOutput, Multiplexer, ZeroOrderHold)
 
 from maglev_haptics.diagrams.haptics import AddHandCommands, AddHaptics
 from maglev_haptics.diagrams.lcm_station import LcmStation
-from maglev_haptics.diagrams.motion import FlightPlan, check_waypoints_reachable, flight_plan
+from maglev_haptics.diagrams.motion import (
+    FlightPlan, check_waypoints_reachable, flight_plan, landing_planner)
 from maglev_haptics.diagrams.scenario import Scenario
 from maglev_haptics.diagrams.station import MakeStation
 from maglev_haptics.diagrams.stereo_display import AddStereoDisplay
 from maglev_haptics.hardware.magnetics import load_magnetics
 from maglev_haptics.hardware.thermal import coil_thermal
 from maglev_haptics.systems.coil_thermal import CoilTemperatures
+from maglev_haptics.systems.device_supervisor import (
+    DeviceSupervisor, WatchLimits, hold_motion, make_motion)
 from maglev_haptics.systems.device_visualizer import DeviceVisualizer
 from maglev_haptics.systems.lattice_visualizer import JELLY_RGBA, LatticeVisualizer, surface_faces
 from maglev_haptics.systems.levitation_controller import LevitationController
@@ -36,6 +40,19 @@ from maglev_haptics.systems.pose_estimator import PoseEstimator
 from maglev_haptics.systems.stereo_renderer import AddStereoRenderer, SurfaceLayer
 
 MESHCAT_PERIOD_S = 1 / 30
+# The coils' thermal model runs at 100 Hz: its time constant is ~1 min (s).
+THERMAL_PERIOD_S = 0.01
+
+
+def watch_limits(scenario: Scenario) -> WatchLimits:
+    """The supervisor's limits: the scenario's watchdog and the device's own."""
+    watchdog = scenario.watchdog
+    return WatchLimits(
+        current_limit_a=scenario.device.amplifier.current_limit_a,
+        temperature_limit_c=coil_thermal(scenario.device).max_c,
+        max_speed_m_s=watchdog.max_speed_m_s,
+        boundary_center_m=tuple(watchdog.boundary_center_m),
+        boundary_radius_m=watchdog.boundary_radius_m)
 
 
 @dataclass
@@ -60,9 +77,10 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
     With the stereo display, ``frame_sink(t, left, right)`` receives the rendered
     eye images (none rendered without it); ``realtime`` lets rendering skip frames.
     ``hand_target_offset_input``: export ``hand_target_offset`` (analysis only; the
-    caller must fix it). ``device_api``: the setpoint (``setpoint``), the force ramp
-    (``enable_ramp``) and the feed-forward wrench (``haptic_feedforward``) are
-    constant sources that the device API sets, instead of the motion script.
+    caller must fix it). ``device_api``: the ``device_supervisor`` starts resting on
+    the glass, coils off, for the device API to command (instead of flying the
+    motion script), and the feed-forward wrench (``haptic_feedforward``) is a
+    constant source that the API sets.
     """
     device = scenario.device
     spec = device.instrument_spec()
@@ -75,18 +93,28 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
     estimator = builder.AddNamedSystem("pose_estimator", PoseEstimator(
         instrument=spec, tracker=device.tracker, config=scenario.estimator))
     plan = flight_plan(scenario.motion, spec.rest_height_m)
-    if device_api:
-        # The device API sets these between ticks (diagrams/device_api.py).
+    if device_api:  # resting on the glass, coils off, until the API commands
         if scenario.haptics is not None:
             raise ValueError(f"{label}: the device API flies levitation scenarios only "
                              "(haptics: null)")
-        setpoint = builder.AddNamedSystem("setpoint", ConstantVectorSource(
-            plan.setpoint.value(0.0).ravel().tolist() + [0.0] * 6))
-        enable = builder.AddNamedSystem("enable_ramp", ConstantVectorSource([0.0]))
+        initial_motion = hold_motion(np.concatenate((plan.setpoint.value(0.0).ravel(),
+                                                     np.zeros(6))), 0.0, 0.0)
     else:
-        setpoint = builder.AddNamedSystem(
-            "setpoint", TrajectorySource(plan.setpoint, output_derivative_order=1))
-        enable = builder.AddNamedSystem("enable_ramp", TrajectorySource(plan.enable))
+        initial_motion = make_motion(plan.setpoint, plan.enable, 0.0)
+    temperatures = builder.AddNamedSystem("coil_temperatures", CoilTemperatures(
+        model=coil_thermal(device), n_coils=device.n_coils, period_s=THERMAL_PERIOD_S))
+    builder.Connect(station.GetOutputPort("coil_currents"), temperatures.get_input_port())
+    supervisor = builder.AddNamedSystem("device_supervisor", DeviceSupervisor(
+        initial_motion=initial_motion, limits=watch_limits(scenario),
+        plan_landing=landing_planner(scenario.motion, spec.rest_height_m),
+        n_coils=device.n_coils, period_s=1.0 / scenario.control_rate_hz))
+    for name in ("X_WI_measured", "V_WI_measured", "tracking_ok"):
+        builder.Connect(estimator.GetOutputPort(name), supervisor.GetInputPort(name))
+    builder.Connect(station.GetOutputPort("coil_currents"),
+                    supervisor.GetInputPort("coil_currents"))
+    builder.Connect(temperatures.get_output_port(), supervisor.GetInputPort("coil_temperature_c"))
+    setpoint = supervisor.GetOutputPort("setpoint")
+    enable = supervisor.GetOutputPort("enable")
     controller = builder.AddNamedSystem("levitation_controller", LevitationController(
         config=scenario.controller, mass_kg=spec.mass_kg,
         inertia_diag=np.diag(spec.inertia_about_I()),
@@ -99,8 +127,8 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
         builder.Connect(estimator.GetOutputPort(name), controller.GetInputPort(name))
     haptics = None
     if scenario.haptics is None:
-        builder.Connect(setpoint.get_output_port(), controller.GetInputPort("setpoint"))
-        builder.Connect(enable.get_output_port(), controller.GetInputPort("enable"))
+        builder.Connect(setpoint, controller.GetInputPort("setpoint"))
+        builder.Connect(enable, controller.GetInputPort("enable"))
         pd_gain = builder.AddNamedSystem("pd_gain", ConstantVectorSource([1.0]))
         builder.Connect(pd_gain.get_output_port(), controller.GetInputPort("pd_gain"))
         brake_gain = builder.AddNamedSystem("brake_gain", ConstantVectorSource([0.0]))
@@ -112,10 +140,9 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
     else:
         haptics = AddHaptics(builder, scenario=scenario, magnetics=magnetics, station=station,
                              estimator=estimator, controller=controller,
-                             scripted_setpoint=setpoint.get_output_port(),
-                             scripted_enable=enable.get_output_port())
-    # The setpoint the controller tracks: the script's, or the supervisor's with haptics.
-    controller_setpoint = (setpoint.get_output_port() if haptics is None
+                             scripted_setpoint=setpoint, scripted_enable=enable)
+    # The setpoint the controller tracks: the device supervisor's, or with haptics the haptic one's.
+    controller_setpoint = (setpoint if haptics is None
                            else haptics.supervisor.GetOutputPort("setpoint"))
     meshcat_hand = None
     if scenario.hand is not None and simulated:  # else the device's process moves the hand
@@ -137,6 +164,8 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
         "wrench_commanded_W": controller.GetOutputPort("wrench_commanded_W"),
         "wrench_rendered_W": controller.GetOutputPort("wrench_rendered_W"),
         "allocation_shortfall_W": controller.GetOutputPort("allocation_shortfall_W"),
+        "coil_temperature_c": temperatures.get_output_port(),
+        "fault_bits": supervisor.GetOutputPort("fault_bits"),
     }
     if scenario.hand is not None:
         logged_ports["handle_gripped"] = station.GetOutputPort("handle_gripped")
@@ -233,11 +262,6 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
                     builder.Connect(scene.surface.GetOutputPort(name),
                                     surface_visualizer.GetInputPort(name))
                 builder.Connect(scene.X_WT_output, surface_visualizer.GetInputPort("X_WT"))
-    if device_api:  # the API's estimate of the coil temperatures (its over-temperature fault)
-        temperatures = builder.AddNamedSystem("coil_temperatures", CoilTemperatures(
-            model=coil_thermal(device), n_coils=device.n_coils,
-            period_s=1.0 / scenario.control_rate_hz))
-        builder.Connect(station.GetOutputPort("coil_currents"), temperatures.get_input_port())
     diagram = builder.Build()
     diagram.set_name("maglev_haptics")
     return BuiltDiagram(diagram=diagram, plan=plan, logger=logger, log_layout=log_layout,

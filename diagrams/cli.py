@@ -176,8 +176,9 @@ def _cmd_run(args) -> int:
         print(f"wrote {out}/{name}")
     stopped_by = result.summary.get("stopped_by")
     if stopped_by is not None:
-        print(f"{label}: stopped by {stopped_by} at {result.summary['duration_s']:.3f} s; "
-              f"the run so far is in {out}", file=sys.stderr)
+        landed = " after landing" if result.summary["landed_before_stopping"] else ""
+        print(f"{label}: stopped by {stopped_by} at {result.summary['duration_s']:.3f} s"
+              f"{landed}; the run so far is in {out}", file=sys.stderr)
         return 128 + signal.Signals[stopped_by].value
     if result.meshcat is not None:
         replay = "" if args.interactive else " (the run's recording is replayable there)"

@@ -16,12 +16,15 @@ the simulated station, or whatever answers on LCM), and steps it tick by tick:
     device.land()
     device.disconnect()
 
-Faults (the bits of ``device_status_t``): sensor out of range (tracking lost,
-or the instrument outside the boundary sphere), coil over-temperature (the
-thermal model's estimate from the currents that flow), coil over-current,
-over-speed. A fault latches until ``reset_faults``, and a new one lands the
-instrument (a lost one the controller lands blind, whatever the setpoint); while
-any is latched, takeoff and a new desired pose are refused.
+The motions, the watchdogs and the landing on a fault are the diagram's own
+``device_supervisor`` (``systems/device_supervisor.py``), the same that flies
+``maglev run``'s script: the API sets its motion between ticks. Faults (the bits
+of ``device_status_t``): sensor out of range (tracking lost, or the instrument
+outside the boundary sphere), coil over-temperature (the thermal model's
+estimate from the currents that flow), coil over-current, over-speed. A fault
+latches until ``reset_faults``, and a new one lands the instrument (a lost one
+the controller lands blind, whatever the setpoint); while any is latched,
+takeoff and a new desired pose are refused.
 
 The device ticks only inside calls (``takeoff``, ``land``, ``run_for``): with a
 station on LCM, a pause between calls longer than the device's command timeout
@@ -30,6 +33,7 @@ station on LCM, a pause between calls longer than the device's command timeout
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass
@@ -41,18 +45,15 @@ from pydrake.trajectories import PiecewisePolynomial
 
 from maglev_haptics.diagrams.application import BuildDiagram
 from maglev_haptics.diagrams.lcm_station import LcmStation
+from maglev_haptics.diagrams.motion import check_pose_reachable
 from maglev_haptics.diagrams.runner import SHARED_SPIN_S, wait_until
 from maglev_haptics.diagrams.scenario import Scenario, load_scenario
 from maglev_haptics.hardware.kernels import compile_kernels
-from maglev_haptics.hardware.lcm_messages import device_status_t
-from maglev_haptics.diagrams.motion import check_pose_reachable, landing_poses
-from maglev_haptics.hardware.thermal import coil_thermal
 from maglev_haptics.systems.blends import minimum_jerk_plan
+from maglev_haptics.systems.device_supervisor import (  # noqa: F401 (the API's fault bits)
+    FAULT_COIL_OVER_CURRENT, FAULT_COIL_OVER_TEMPERATURE, FAULT_OVER_SPEED,
+    FAULT_SENSOR_OUT_OF_RANGE, hold_motion, make_motion)
 
-FAULT_SENSOR_OUT_OF_RANGE = device_status_t.FAULT_SENSOR_OUT_OF_RANGE
-FAULT_COIL_OVER_TEMPERATURE = device_status_t.FAULT_COIL_OVER_TEMPERATURE
-FAULT_COIL_OVER_CURRENT = device_status_t.FAULT_COIL_OVER_CURRENT
-FAULT_OVER_SPEED = device_status_t.FAULT_OVER_SPEED
 HOVER_TOLERANCE_M = 0.5e-3  # takeoff is done within this of the hover pose (m)
 SETTLED_SPEED_M_S = 0.01  # ... moving slower than this (m/s)
 
@@ -77,43 +78,15 @@ class TickState:
     faults: int  # latched FAULT_* bits
 
 
-def detect_faults(state: TickState, *, current_limit_a: float, temperature_limit_c: float,
-                  max_speed_m_s: float, boundary_center_m, boundary_radius_m) -> int:
-    """The FAULT_* bits that ``state`` raises (before latching)."""
-    bits = 0
-    outside = (boundary_radius_m is not None and np.linalg.norm(
-        state.X_WI[4:7] - np.asarray(boundary_center_m)) > boundary_radius_m)
-    if not state.tracking_ok or outside:
-        bits |= FAULT_SENSOR_OUT_OF_RANGE
-    if np.any(state.coil_temperature_c > temperature_limit_c):
-        bits |= FAULT_COIL_OVER_TEMPERATURE
-    # The amplifiers clamp at the limit: a measured current past it is a fault.
-    if np.any(np.abs(state.coil_currents_a) > current_limit_a * (1 + 1e-6)):
-        bits |= FAULT_COIL_OVER_CURRENT
-    if np.linalg.norm(state.V_WI[3:6]) > max_speed_m_s:
-        bits |= FAULT_OVER_SPEED
-    return bits
-
-
-@dataclass
-class _Motion:
-    """A setpoint and force-ramp profile from ``start_s`` on (s)."""
-    setpoint: PiecewisePolynomial  # 6 rows, time from start_s
-    enable: PiecewisePolynomial  # 1 row
-    start_s: float
-    end_s: float  # absolute (s)
-    landing: bool
-
-
 class MaglevDevice:
     """The levitated instrument as a device (see the module docstring).
 
     ``scenario``: a Scenario, or a shipped file's name or a path (``name`` picks one
-    in it); its device, controller and station are used, its motion script only for
-    the rest place, the hover pose (the first waypoint) and the ramp and landing
-    times. ``realtime_rate`` > 0 paces each tick to the wall clock (needed with a
-    station on LCM, where it is 1 unless given). ``max_speed_m_s``: the over-speed
-    limit (m/s).
+    in it); its device, controller, watchdog and station are used, its motion script
+    only for the rest place, the hover pose (the first waypoint) and the ramp and
+    landing times. ``realtime_rate`` > 0 paces each tick to the wall clock (needed
+    with a station on LCM, where it is 1 unless given). ``max_speed_m_s``: the
+    over-speed limit (m/s).
     """
 
     def __init__(self, scenario: Union[Scenario, str] = "levitate", *,
@@ -124,12 +97,9 @@ class MaglevDevice:
         on_lcm = isinstance(self.scenario.station, LcmStation)
         self._realtime_rate = float(realtime_rate) if realtime_rate > 0 or not on_lcm else 1.0
         self._max_speed_m_s = float(max_speed_m_s)
-        self._temperature_limit_c = coil_thermal(self.scenario.device).max_c
         self._tick_callbacks: List[Callable[[TickState], None]] = []
         self._fault_callbacks: List[Callable[[int], None]] = []
-        self._boundary = (None, None)
         self._simulator = None
-        self.faults = 0
 
     # --- connection ---------------------------------------------------------
 
@@ -141,20 +111,21 @@ class MaglevDevice:
         self._simulator = Simulator(diagram)
         self._simulator.Initialize()
         root = self._simulator.get_mutable_context()
-        self._setpoint = diagram.GetSubsystemByName("setpoint")
-        self._enable = diagram.GetSubsystemByName("enable_ramp")
+        self._supervisor = diagram.GetSubsystemByName("device_supervisor")
         self._feedforward = diagram.GetSubsystemByName("haptic_feedforward")
         self._controller = diagram.GetSubsystemByName("levitation_controller")
         estimator = diagram.GetSubsystemByName("pose_estimator")
         station = diagram.GetSubsystemByName("station")
         self._temperatures = diagram.GetSubsystemByName("coil_temperatures")
         self._contexts = {system: system.GetMyMutableContextFromRoot(root) for system in (
-            self._setpoint, self._enable, self._feedforward, self._controller, estimator,
-            station, self._temperatures)}
+            self._supervisor, self._feedforward, self._controller, estimator, station,
+            self._temperatures)}
         self._ports = [estimator.GetOutputPort(name) for name in
                        ("X_WI_measured", "V_WI_measured", "tracking_ok")]
         self._estimator, self._station = estimator, station
-        self._motion: Optional[_Motion] = None
+        supervisor_context = self._contexts[self._supervisor]
+        self._supervisor.set_limits(supervisor_context, dataclasses.replace(
+            self._supervisor.limits(supervisor_context), max_speed_m_s=self._max_speed_m_s))
         self._shares_cores = isinstance(self.scenario.station, LcmStation)
         self._clock_zero, self._ticks = time.perf_counter(), 0
         self.state = self._read_state()
@@ -162,13 +133,18 @@ class MaglevDevice:
     def disconnect(self) -> None:
         """Coils off at once (no landing: land first), and the diagram released."""
         self._require_connection()
-        self._motion = None
-        self._write_setpoint_and_enable(self._current_setpoint(), 0.0)
+        self._coils_off()
         self.set_feedforward_wrench(np.zeros(6))
         self._tick()
         self._simulator = None
 
     # --- commands (each takes effect on the next tick) ---------------------
+
+    @property
+    def faults(self) -> int:
+        """The latched FAULT_* bits."""
+        self._require_connection()
+        return self._supervisor.faults(self._contexts[self._supervisor])
 
     def set_gains(self, kp=None, kd=None) -> None:
         """Per-axis PD gains [x, y, z translation in W; rotations about I's axes]
@@ -189,8 +165,8 @@ class MaglevDevice:
         pose = _vector("pose", pose, 6)
         check_pose_reachable(pose, self.scenario.device, self._built.magnetics, "pose")
         rates = np.zeros(6) if rates is None else _vector("rates", rates, 6)
-        self._motion = None
-        self._write_setpoint_and_enable(np.concatenate((pose, rates)), None)
+        self._set_motion(hold_motion(np.concatenate((pose, rates)), self._current()[1],
+                                     self._now()))
 
     def set_feedforward_wrench(self, wrench) -> None:
         """Added wrench [f; tau] in W (N, N*m about I's origin)."""
@@ -208,12 +184,19 @@ class MaglevDevice:
 
     def set_boundary(self, center_m, radius_m: Optional[float]) -> None:
         """Leaving the sphere (m; None: no boundary) raises sensor out of range."""
+        self._require_connection()
         if radius_m is not None and not radius_m > 0:
             raise ValueError(f"radius_m = {radius_m}: must be > 0 (m), or None")
-        self._boundary = (_vector("center_m", center_m, 3), radius_m)
+        context = self._contexts[self._supervisor]
+        self._supervisor.set_limits(context, dataclasses.replace(
+            self._supervisor.limits(context),
+            boundary_center_m=tuple(_vector("center_m", center_m, 3)),
+            boundary_radius_m=radius_m))
 
     def reset_faults(self) -> None:
-        self.faults = 0
+        """Clear the latched faults (a fault's landing stays what is flown)."""
+        self._require_connection()
+        self._supervisor.reset_faults(self._contexts[self._supervisor])
 
     def coil_temperatures_c(self) -> np.ndarray:
         """The coils' estimated winding temperatures (C)."""
@@ -230,16 +213,16 @@ class MaglevDevice:
         target = np.asarray(motion.waypoints[0].pose if pose is None else
                             _vector("pose", pose, 6), dtype=float)
         check_pose_reachable(target, self.scenario.device, self._built.magnetics, "pose")
-        start = self._current_setpoint()[0:6]
+        start = self._current()[0][0:6]
         ramp_s = motion.force_ramp_s
-        self._start_motion(minimum_jerk_plan(start, ramp_s, [(target, motion.waypoints[0].move_s,
-                                                               0.0)], 0.0),
-                           PiecewisePolynomial.FirstOrderHold([0.0, ramp_s], [[0.0, 1.0]]))
+        self._set_motion(make_motion(
+            minimum_jerk_plan(start, ramp_s, [(target, motion.waypoints[0].move_s, 0.0)], 0.0),
+            PiecewisePolynomial.FirstOrderHold([0.0, ramp_s], [[0.0, 1.0]]), self._now()))
 
         def hovering():
             if self.faults:
                 raise DeviceFaultError(f"takeoff ended by fault {self.faults:#x}; landing")
-            return (self._motion is None
+            return (self._motion_done()
                     and np.linalg.norm(self.state.X_WI[4:7] - target[0:3]) < HOVER_TOLERANCE_M
                     and np.linalg.norm(self.state.V_WI[3:6]) < SETTLED_SPEED_M_S)
         self._run_until(hovering, timeout_s, "takeoff", on_timeout=self.land)
@@ -248,10 +231,10 @@ class MaglevDevice:
         """Descend onto the glass and ramp the force down; blocks until done, else
         cuts the coils and raises DeviceTimeoutError."""
         self._require_connection()
-        if not (self._motion is not None and self._motion.landing):
-            self._start_landing()
-        self._run_until(lambda: self._motion is None, timeout_s, "land",
-                        on_timeout=self._coils_off)
+        context = self._contexts[self._supervisor]
+        if not self._supervisor.active_motion(context).landing:
+            self._supervisor.land(context)
+        self._run_until(self._motion_done, timeout_s, "land", on_timeout=self._coils_off)
 
     def run_for(self, duration_s: float) -> None:
         """Tick for ``duration_s`` (s), holding or carrying on what was commanded."""
@@ -261,31 +244,16 @@ class MaglevDevice:
 
     # --- the loop ----------------------------------------------------------
 
-    def _start_motion(self, setpoint, enable, landing: bool = False) -> None:
-        start_s = self._simulator.get_context().get_time()
-        end_s = start_s + max(setpoint.end_time(), enable.end_time())
-        self._motion = _Motion(setpoint=setpoint, enable=enable, start_s=start_s, end_s=end_s,
-                               landing=landing)
-
     def _run_until(self, done, timeout_s: float, what: str, on_timeout) -> None:
-        deadline_s = self._simulator.get_context().get_time() + timeout_s
+        deadline_s = self._now() + timeout_s
         while not done():
-            if self._simulator.get_context().get_time() >= deadline_s:
+            if self._now() >= deadline_s:
                 on_timeout()
                 raise DeviceTimeoutError(
                     f"{what} not done within {timeout_s:g} s (faults {self.faults:#x})")
             self._tick()
 
     def _tick(self) -> None:
-        context = self._simulator.get_context()
-        t_next = context.get_time() + self._built.tick_s
-        if self._motion is not None:
-            elapsed = min(t_next, self._motion.end_s) - self._motion.start_s
-            setpoint = np.concatenate((self._motion.setpoint.value(elapsed).ravel(),
-                                       self._motion.setpoint.EvalDerivative(elapsed, 1).ravel()))
-            self._write_setpoint_and_enable(setpoint, self._motion.enable.value(elapsed)[0, 0])
-            if t_next >= self._motion.end_s:
-                self._motion = None
         if self._realtime_rate > 0:  # each tick released at its wall-clock slot
             slot_s = self._built.tick_s / self._realtime_rate
             self._ticks += 1
@@ -294,37 +262,14 @@ class MaglevDevice:
                 self._clock_zero = time.perf_counter() - self._ticks * slot_s
             wait_until(self._clock_zero + self._ticks * slot_s,
                        SHARED_SPIN_S if self._shares_cores else math.inf)
-        self._simulator.AdvanceTo(t_next)
+        latched = self.faults
+        self._simulator.AdvanceTo(self._now() + self._built.tick_s)
         self.state = self._read_state()
-        center, radius = self._boundary
-        raised = detect_faults(
-            self.state, current_limit_a=self.scenario.device.amplifier.current_limit_a,
-            temperature_limit_c=self._temperature_limit_c, max_speed_m_s=self._max_speed_m_s,
-            boundary_center_m=center, boundary_radius_m=radius)
-        new = raised & ~self.faults
-        if new:
-            self.faults |= new
-            self.state.faults = self.faults
+        if self.state.faults & ~latched:
             for callback in self._fault_callbacks:
-                callback(self.faults)
-            if not (self._motion is not None and self._motion.landing):
-                self._start_landing()
+                callback(self.state.faults)
         for callback in self._tick_callbacks:
             callback(self.state)
-
-    def _start_landing(self) -> None:
-        """From the current setpoint: down onto the glass, settle, ramp the force down."""
-        motion = self.scenario.motion
-        pose = self._current_setpoint()[0:6]
-        moves = [(goal, motion.landing_s, 0.0) for goal in landing_poses(
-            pose, self.scenario.device.instrument_spec().rest_height_m)]
-        down_s = len(moves) * motion.landing_s + motion.settle_s
-        enable = self._current_enable()
-        self._start_motion(
-            minimum_jerk_plan(pose, 0.0, moves, 0.0),
-            PiecewisePolynomial.FirstOrderHold(
-                [0.0, down_s, down_s + motion.force_ramp_s], [[enable, enable, 0.0]]),
-            landing=True)
 
     def _read_state(self) -> TickState:
         estimator_context = self._contexts[self._estimator]
@@ -333,26 +278,30 @@ class MaglevDevice:
             self._contexts[self._station])
         temperatures = self._temperatures.get_output_port().Eval(
             self._contexts[self._temperatures])
-        return TickState(t_s=self._simulator.get_context().get_time(), X_WI=X, V_WI=V,
-                         tracking_ok=bool(ok[0] > 0.5), coil_currents_a=currents,
-                         coil_temperature_c=temperatures, faults=self.faults)
+        return TickState(t_s=self._now(), X_WI=X, V_WI=V, tracking_ok=bool(ok[0] > 0.5),
+                         coil_currents_a=currents, coil_temperature_c=temperatures,
+                         faults=self.faults)
+
+    def _now(self) -> float:
+        return self._simulator.get_context().get_time()
+
+    def _current(self):
+        """(setpoint (12), enable) the supervisor outputs now."""
+        context = self._contexts[self._supervisor]
+        return self._supervisor.active_motion(context).at(self._now())
+
+    def _motion_done(self) -> bool:
+        return self._supervisor.active_motion(self._contexts[self._supervisor]).end_s <= \
+            self._now()
+
+    def _set_motion(self, motion) -> None:
+        self._supervisor.set_motion(self._contexts[self._supervisor], motion)
 
     def _coils_off(self) -> None:
-        self._motion = None
-        self._write_setpoint_and_enable(self._current_setpoint(), 0.0)
+        self._set_motion(hold_motion(self._current()[0], 0.0, self._now()))
 
     def _current_enable(self) -> float:
-        return self._enable.get_source_value(self._contexts[self._enable]).GetAtIndex(0)
-
-    def _current_setpoint(self) -> np.ndarray:
-        return self._setpoint.get_source_value(self._contexts[self._setpoint]).CopyToVector()
-
-    def _write_setpoint_and_enable(self, setpoint, enable: Optional[float]) -> None:
-        self._setpoint.get_mutable_source_value(self._contexts[self._setpoint]) \
-            .SetFromVector(setpoint)
-        if enable is not None:
-            self._enable.get_mutable_source_value(self._contexts[self._enable]) \
-                .SetFromVector([enable])
+        return self._current()[1]
 
     def _require_no_faults(self, what: str) -> None:
         self._require_connection()

@@ -17,7 +17,8 @@ from pydrake.trajectories import PiecewisePolynomial
 
 from maglev_haptics.diagrams.scenario import ScenarioError
 from maglev_haptics.hardware.constants import GRAVITY_M_S2
-from maglev_haptics.systems.blends import LANDING_PRESS_M, minimum_jerk_samples
+from maglev_haptics.systems.blends import (
+    LANDING_PRESS_M, minimum_jerk_plan, minimum_jerk_samples)
 from maglev_haptics.systems.current_allocator import allocate_currents
 
 IDLE_AFTER_S = 0.2  # the script ends this long after the currents are ramped to zero
@@ -48,6 +49,20 @@ def landing_poses(pose, rest_height_m: float) -> List[np.ndarray]:
         poses.append(np.array([*pose[0:3], 0.0, 0.0, pose[5]]))
     poses.append(rest_pose([pose[0], pose[1], pose[5]], rest_height_m - LANDING_PRESS_M))
     return poses
+
+
+def landing_planner(motion, rest_height_m: float):
+    """``plan(pose, enable) -> (setpoint, enable)`` trajectories (from 0) of a landing
+    from ``pose`` [x, y, z, roll, pitch, yaw] (m, rad) with force gain ``enable``:
+    ``landing_poses`` at ``motion``'s landing time each, its settling on the glass,
+    then its force ramp down (a MotionScript's times)."""
+    def plan(pose, enable: float):
+        moves = [(goal, motion.landing_s, 0.0) for goal in landing_poses(pose, rest_height_m)]
+        down_s = len(moves) * motion.landing_s + motion.settle_s
+        return (minimum_jerk_plan(pose, 0.0, moves, 0.0),
+                PiecewisePolynomial.FirstOrderHold(
+                    [0.0, down_s, down_s + motion.force_ramp_s], [[enable, enable, 0.0]]))
+    return plan
 
 
 def flight_plan(motion, rest_height_m: float) -> FlightPlan:

@@ -83,6 +83,7 @@ class StopOnSignal:
 
     def __init__(self):
         self.received = None
+        self.count = 0  # signals received
         self._previous = {}
 
     def __enter__(self) -> "StopOnSignal":
@@ -97,9 +98,35 @@ class StopOnSignal:
 
     def _handle(self, number, frame) -> None:
         self.received = signal.Signals(number).name
+        self.count += 1
 
     def __call__(self, context) -> bool:
         return self.received is not None
+
+
+class LandBeforeStopping:
+    """``simulate``'s ``stop`` that lands first: once ``requested`` (a StopOnSignal)
+    has a signal, a flying instrument lands (the device supervisor's landing, as on
+    a fault) and the run stops once that is done; a second signal stops at once.
+    ``landing_end_s``: when the landing it started ends (s; None: none started)."""
+
+    def __init__(self, supervisor, requested: StopOnSignal):
+        self._supervisor = supervisor
+        self._requested = requested
+        self.landing_end_s = None
+
+    def __call__(self, context) -> bool:
+        if not self._requested(context):
+            return False
+        if self._requested.count > 1:
+            return True
+        supervisor_context = self._supervisor.GetMyMutableContextFromRoot(context)
+        motion = self._supervisor.active_motion(supervisor_context)
+        t_s = context.get_time()
+        if self.landing_end_s is None and not motion.landing and motion.at(t_s)[1] > 0.0:
+            motion = self._supervisor.land(supervisor_context)
+            self.landing_end_s = motion.end_s
+        return t_s >= motion.end_s or motion.at(t_s)[1] == 0.0
 
 
 class PacedTicks:

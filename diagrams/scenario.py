@@ -28,6 +28,7 @@ from maglev_haptics.diagrams.stereo_display import StereoConfig
 from maglev_haptics.diagrams.waypoints import Waypoint
 from maglev_haptics.hardware.config_checks import nonnegative, positive, require, vector
 from maglev_haptics.hardware.device import DeviceConfig
+from maglev_haptics.systems.device_supervisor import WatchdogConfig
 from maglev_haptics.systems.haptic_coupling import CouplingConfig
 from maglev_haptics.systems.haptic_supervisor import SupervisorConfig
 from maglev_haptics.systems.levitation_controller import ControllerConfig
@@ -122,6 +123,8 @@ class Scenario:
     # The station: simulated in this diagram, or whatever answers on LCM
     # (``maglev device-sim`` or a lab's drivers; diagrams/lcm_station.py).
     station: Union[SimStation, LcmStation] = field(default_factory=SimStation)
+    # The device supervisor's watchdogs (systems/device_supervisor.py).
+    watchdog: WatchdogConfig = field(default_factory=WatchdogConfig)
 
     def validate(self, label: str) -> None:
         """Range checks of every config, each error naming ``label: path.field``, its
@@ -129,6 +132,7 @@ class Scenario:
         self.device.validate(f"{label}: device")
         self.controller.validate(f"{label}: controller")
         self.motion.validate(f"{label}: motion")
+        self.watchdog.validate(f"{label}: watchdog")
         n_markers = len(self.device.instrument_spec().p_IK_m)
         for i, o in enumerate(self.occlusions):
             require(o.marker is None or 0 <= o.marker < n_markers,

@@ -80,8 +80,9 @@ def test_a_killed_run_leaves_its_log_to_within_a_second(tmp_path):
 
 @pytest.mark.parametrize("stop_signal", [signal.SIGTERM, signal.SIGINT])
 def test_a_stopped_run_writes_its_results_and_says_so_in_one_line(tmp_path, stop_signal):
-    """SIGTERM or Ctrl-C on a scripted run: it ends between ticks, writes the log, the
-    summary and the plots of what it ran, and says so in one line (no traceback)."""
+    """SIGTERM or Ctrl-C on a scripted run: the flying instrument lands, the run ends
+    between ticks, writes the log, the summary and the plots of what it ran, and says
+    so in one line (no traceback)."""
     process = subprocess.Popen(
         [sys.executable, "-m", "maglev_haptics.diagrams.cli", "run", "levitate", "--no-meshcat",
          "--realtime", "1.0", "--duration", "60", "--out", str(tmp_path)],
@@ -94,10 +95,15 @@ def test_a_stopped_run_writes_its_results_and_says_so_in_one_line(tmp_path, stop
     _, stderr = process.communicate(timeout=60)
     assert process.returncode == 128 + stop_signal.value
     last_line = stderr.strip().splitlines()[-1]
-    assert f"stopped by {stop_signal.name}" in last_line and "Traceback" not in stderr
+    assert f"stopped by {stop_signal.name}" in last_line and "after landing" in last_line
+    assert "Traceback" not in stderr
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["stopped_by"] == stop_signal.name and 1.5 < summary["duration_s"] < 30.0
+    # Down softly and level, the coils ramped off, before the run ended.
+    assert summary["landed_before_stopping"]
+    assert summary["touchdown"]["speed_m_s"] < 0.05 and summary["touchdown"]["tilt_deg"] < 1.0
     log = load_run_log(tmp_path)
     assert (tmp_path / "log.npz").exists() and not (tmp_path / run_log.CHUNK_DIR).exists()
     assert log["t"][-1] == pytest.approx(summary["duration_s"], abs=0.002)
     assert (tmp_path / "levitation.png").exists()
+    assert np.all(np.abs(log["coil_currents"][-10:]) < 1e-9)

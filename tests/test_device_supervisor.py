@@ -1,0 +1,112 @@
+"""The device supervisor: the scripted flight as its first motion, the watchdogs'
+fault bits, and the landing a new fault starts."""
+
+import math
+
+import numpy as np
+import pytest
+from pydrake.systems.primitives import TrajectorySource
+
+from maglev_haptics.diagrams.motion import flight_plan, landing_planner
+from maglev_haptics.diagrams.scenario import ScenarioError, load_scenario
+from maglev_haptics.systems.blends import LANDING_PRESS_M
+from maglev_haptics.systems.device_supervisor import (
+    FAULT_COIL_OVER_CURRENT, FAULT_COIL_OVER_TEMPERATURE, FAULT_OVER_SPEED,
+    FAULT_SENSOR_OUT_OF_RANGE, DeviceSupervisor, WatchLimits, detect_faults, make_motion)
+
+N_COILS = 27
+LIMITS = WatchLimits(current_limit_a=4.0, temperature_limit_c=100.0, max_speed_m_s=0.5,
+                     boundary_center_m=(0.0, 0.0, 0.02), boundary_radius_m=0.01)
+HEALTHY = dict(position_m=[0.0, 0.0, 0.02], velocity_m_s=[0.0, 0.0, 0.1], tracking_ok=True,
+               coil_currents_a=np.full(N_COILS, 1.0), coil_temperature_c=np.full(N_COILS, 40.0),
+               carrying=True, limits=LIMITS)
+
+
+@pytest.mark.parametrize("change, bit", [
+    ({"tracking_ok": False}, FAULT_SENSOR_OUT_OF_RANGE),
+    ({"position_m": [0.0, 0.011, 0.02]}, FAULT_SENSOR_OUT_OF_RANGE),  # out of the sphere
+    ({"velocity_m_s": [0.4, 0.0, -0.4]}, FAULT_OVER_SPEED),
+    ({"coil_currents_a": np.r_[np.zeros(26), -4.01]}, FAULT_COIL_OVER_CURRENT),
+    ({"coil_temperature_c": np.r_[np.zeros(26), 100.5]}, FAULT_COIL_OVER_TEMPERATURE),
+])
+def test_each_watchdog_raises_its_bit(change, bit):
+    assert detect_faults(**HEALTHY) == 0
+    assert detect_faults(**(HEALTHY | change)) == bit
+
+
+def test_the_instruments_faults_count_only_while_the_coils_carry_it():
+    resting = HEALTHY | {"carrying": False, "tracking_ok": False,
+                         "velocity_m_s": [0.0, 0.0, -1.0]}
+    assert detect_faults(**resting) == 0
+    # The coils' own faults count whatever they carry.
+    assert detect_faults(**(resting | {"coil_currents_a": np.full(N_COILS, 4.5)})) == \
+        FAULT_COIL_OVER_CURRENT
+
+
+def build(scenario):
+    spec = scenario.device.instrument_spec()
+    plan = flight_plan(scenario.motion, spec.rest_height_m)
+    supervisor = DeviceSupervisor(
+        initial_motion=make_motion(plan.setpoint, plan.enable, 0.0), limits=LIMITS,
+        plan_landing=landing_planner(scenario.motion, spec.rest_height_m), n_coils=N_COILS,
+        period_s=1e-3)
+    context = supervisor.CreateDefaultContext()
+    pose = np.array([1.0, 0, 0, 0, 0.0, 0.0, 0.02])
+    for port, value in (("X_WI_measured", pose), ("V_WI_measured", np.zeros(6)),
+                        ("tracking_ok", [1.0]), ("coil_currents", np.zeros(N_COILS)),
+                        ("coil_temperature_c", np.full(N_COILS, 25.0))):
+        supervisor.GetInputPort(port).FixValue(context, value)
+    return supervisor, context, plan, spec
+
+
+def test_the_script_flies_as_the_trajectories_it_replaced():
+    """The same setpoint and force gain, bit for bit, as Drake's TrajectorySource
+    of the flight plan (what `maglev run` flew before the supervisor)."""
+    supervisor, context, plan, _ = build(load_scenario("levitate"))
+    source = TrajectorySource(plan.setpoint, output_derivative_order=1)
+    source_context = source.CreateDefaultContext()
+    for t in np.linspace(0.0, plan.end_s, 97):
+        context.SetTime(t)
+        source_context.SetTime(t)
+        np.testing.assert_array_equal(supervisor.GetOutputPort("setpoint").Eval(context),
+                                      source.get_output_port().Eval(source_context))
+        assert supervisor.GetOutputPort("enable").Eval(context)[0] == plan.enable.value(t)[0, 0]
+
+
+def test_a_new_fault_latches_and_lands_from_the_setpoint():
+    supervisor, context, plan, spec = build(load_scenario("levitate"))
+    hold_start_s, _ = plan.holds[0]
+    t_fault = hold_start_s + 0.5
+    context.SetTime(t_fault)
+    hover = supervisor.GetOutputPort("setpoint").Eval(context).copy()
+    supervisor.GetInputPort("tracking_ok").FixValue(context, [0.0])
+    context.SetDiscreteState(supervisor.EvalUniquePeriodicDiscreteUpdate(context))
+    assert supervisor.faults(context) == FAULT_SENSOR_OUT_OF_RANGE
+    assert supervisor.GetOutputPort("fault_bits").Eval(context)[0] == FAULT_SENSOR_OUT_OF_RANGE
+    landing = supervisor.active_motion(context)
+    assert landing.landing and landing.start_s == t_fault
+    np.testing.assert_allclose(supervisor.GetOutputPort("setpoint").Eval(context), hover,
+                               atol=1e-12)  # continuous where the landing starts
+    # Another fault adds its bit; the landing under way goes on.
+    context.SetTime(t_fault + 0.1)
+    supervisor.GetInputPort("coil_currents").FixValue(context, np.full(N_COILS, 5.0))
+    context.SetDiscreteState(supervisor.EvalUniquePeriodicDiscreteUpdate(context))
+    assert supervisor.faults(context) == FAULT_SENSOR_OUT_OF_RANGE | FAULT_COIL_OVER_CURRENT
+    assert supervisor.active_motion(context).start_s == t_fault
+    # Down onto the glass (just below the rest height) and the force ramped to zero.
+    context.SetTime(landing.end_s + 1.0)
+    setpoint = supervisor.GetOutputPort("setpoint").Eval(context)
+    assert setpoint[2] == pytest.approx(spec.rest_height_m - LANDING_PRESS_M, abs=1e-12)
+    assert supervisor.GetOutputPort("enable").Eval(context)[0] == 0.0
+    # Reset: the bits clear, the landing stays what is flown.
+    supervisor.reset_faults(context)
+    assert supervisor.faults(context) == 0
+    assert supervisor.active_motion(context).start_s == t_fault
+    assert math.isnan(context.get_discrete_state(0).GetAtIndex(1))
+
+
+def test_a_bad_watchdog_names_its_field():
+    with pytest.raises(ScenarioError, match=r"watchdog.boundary_radius_m = -0.01: must be > 0"):
+        load_scenario("levitate", scenario_text="{watchdog: {boundary_radius_m: -0.01}}")
+    with pytest.raises(ScenarioError, match=r"watchdog.max_speed_m_s = 0.0"):
+        load_scenario("levitate", scenario_text="{watchdog: {max_speed_m_s: 0.0}}")
