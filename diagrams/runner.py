@@ -22,6 +22,7 @@ import numpy as np
 from pydrake.systems.analysis import Simulator
 from tqdm import tqdm
 
+from maglev_haptics.diagrams.motion import IDLE_AFTER_S
 from maglev_haptics.hardware.kernels import compile_kernels
 
 PROGRESS_CHUNK_S = 0.25  # simulated seconds between progress-bar updates
@@ -108,7 +109,7 @@ class LandBeforeStopping:
     """``simulate``'s ``stop`` that lands first: once ``requested`` (a StopOnSignal)
     has a signal, a flying instrument lands (the device supervisor's landing, as on
     a fault) and the run stops once that is done; a second signal stops at once.
-    ``landing_end_s``: when the landing it started ends (s; None: none started)."""
+    ``landing_end_s``: when the landing it waited for ends (s; None: none)."""
 
     def __init__(self, supervisor, requested: StopOnSignal):
         self._supervisor = supervisor
@@ -120,13 +121,17 @@ class LandBeforeStopping:
             return False
         if self._requested.count > 1:
             return True
-        supervisor_context = self._supervisor.GetMyMutableContextFromRoot(context)
-        motion = self._supervisor.active_motion(supervisor_context)
         t_s = context.get_time()
-        if self.landing_end_s is None and not motion.landing and motion.at(t_s)[1] > 0.0:
-            motion = self._supervisor.land(supervisor_context)
+        if self.landing_end_s is None:
+            supervisor_context = self._supervisor.GetMyMutableContextFromRoot(context)
+            motion = self._supervisor.active_motion(supervisor_context)
+            if motion.at(t_s)[1] == 0.0:
+                return True  # the coils carry nothing: nothing to land
+            if not motion.landing:
+                motion = self._supervisor.land(supervisor_context)
             self.landing_end_s = motion.end_s
-        return t_s >= motion.end_s or motion.at(t_s)[1] == 0.0
+        # As a script ends: a while after the force has ramped to zero.
+        return t_s >= self.landing_end_s + IDLE_AFTER_S
 
 
 class PacedTicks:

@@ -21,7 +21,7 @@ from typing import Callable, List, Optional
 
 import numpy as np
 from pydrake.common.value import AbstractValue
-from pydrake.systems.framework import BasicVector, LeafSystem, ValueProducer
+from pydrake.systems.framework import BasicVector, LeafSystem
 from pydrake.trajectories import PiecewisePolynomial
 
 from maglev_haptics.hardware.config_checks import positive, require, vector
@@ -115,16 +115,21 @@ def detect_faults(*, position_m, velocity_m_s, tracking_ok: bool, coil_currents_
     ``carrying`` it: resting with the coils off it is in no danger."""
     bits = 0
     if carrying:
+        # Plain floats: math on numpy scalars costs several us a call.
         outside = (limits.boundary_radius_m is not None and math.dist(
-            position_m, limits.boundary_center_m) > limits.boundary_radius_m)
+            np.asarray(position_m).tolist(), limits.boundary_center_m)
+            > limits.boundary_radius_m)
         if not tracking_ok or outside:
             bits |= FAULT_SENSOR_OUT_OF_RANGE
-        if math.hypot(*velocity_m_s) > limits.max_speed_m_s:
+        if math.hypot(*np.asarray(velocity_m_s).tolist()) > limits.max_speed_m_s:
             bits |= FAULT_OVER_SPEED
-    # One numpy reduction each: a Python loop over 27 numpy scalars costs ~6 us.
-    if np.max(coil_temperature_c) > limits.temperature_limit_c:
+    # Array methods: np.max's dispatch costs ~4 us more a call.
+    coil_temperature_c = np.asarray(coil_temperature_c)
+    coil_currents_a = np.asarray(coil_currents_a)
+    if coil_temperature_c.max() > limits.temperature_limit_c:
         bits |= FAULT_COIL_OVER_TEMPERATURE
-    if np.max(np.abs(coil_currents_a)) > limits.current_limit_a * (1 + CURRENT_TOLERANCE):
+    if max(coil_currents_a.max(), -coil_currents_a.min()) > \
+            limits.current_limit_a * (1 + CURRENT_TOLERANCE):
         bits |= FAULT_COIL_OVER_CURRENT
     return bits
 
@@ -151,38 +156,36 @@ class DeviceSupervisor(LeafSystem):
     - ``enable`` (1): the controller's force gain 0..1.
     - ``fault_bits`` (1): the latched FAULT_* bits.
 
-    State: the commanded motion (abstract: ``initial_motion`` until set), and
-    [latched bits, the time a fault's landing started (NaN: none)], updated every
-    ``period_s`` (s). ``plan_landing(pose, enable) -> (setpoint, enable)``
-    trajectories (from 0) bring the instrument from ``pose`` onto the glass and ramp
-    its force gain from ``enable`` to zero.
+    State: the commanded motion (abstract: ``initial_motion`` until set); the
+    outputs as discrete state, each update at t writing the motion's values at the
+    next tick, so the loop reads them from C++ (one Python call a tick, the update);
+    and the time a fault's landing started (NaN: none). ``plan_landing(pose,
+    enable) -> (setpoint, enable)`` trajectories (from 0) bring the instrument from
+    ``pose`` onto the glass and ramp its force gain from ``enable`` to zero.
     """
 
     def __init__(self, *, initial_motion: Motion, limits: WatchLimits,
                  plan_landing: Callable, n_coils: int, period_s: float):
         super().__init__()
         self._plan_landing = plan_landing
+        self._period_s = float(period_s)
         self._pose = self.DeclareVectorInputPort("X_WI_measured", 7)
         self._velocity = self.DeclareVectorInputPort("V_WI_measured", 6)
         self._tracking_ok = self.DeclareVectorInputPort("tracking_ok", 1)
         self._currents = self.DeclareVectorInputPort("coil_currents", n_coils)
         self._temperatures = self.DeclareVectorInputPort("coil_temperature_c", n_coils)
         self._motion = self.DeclareAbstractState(AbstractValue.Make(initial_motion))
-        self._faults = self.DeclareDiscreteState(BasicVector([0.0, math.nan]))
+        setpoint, enable = initial_motion.at(0.0)
+        self._setpoint = self.DeclareDiscreteState(BasicVector(setpoint))
+        self._enable = self.DeclareDiscreteState(BasicVector([enable]))
+        self._fault_bits = self.DeclareDiscreteState(BasicVector([0.0]))
+        self._landing_start = self.DeclareDiscreteState(BasicVector([math.nan]))
         self._limits = self.DeclareAbstractParameter(AbstractValue.Make(limits))
-        # (setpoint, enable) now: both outputs and the update read it, computed once a tick.
-        self._now = self.DeclareCacheEntry(
-            description="setpoint and enable now",
-            value_producer=ValueProducer(allocate=AbstractValue.Make(()).Clone,
-                                         calc=self._calc_now),
-            prerequisites_of_calc={self.xa_ticket(), self.xd_ticket(), self.time_ticket()})
-        now_ticket = {self._now.ticket()}
-        self.DeclareVectorOutputPort("setpoint", 12, self._calc_setpoint, now_ticket)
-        self.DeclareVectorOutputPort("enable", 1, self._calc_enable, now_ticket)
-        self.DeclareVectorOutputPort("fault_bits", 1, self._calc_fault_bits,
-                                     {self.xd_ticket()})
+        self.DeclareStateOutputPort("setpoint", self._setpoint)
+        self.DeclareStateOutputPort("enable", self._enable)
+        self.DeclareStateOutputPort("fault_bits", self._fault_bits)
         self.DeclarePeriodicDiscreteUpdateEvent(period_s, 0.0, self._update)
-        # A landing is planned once per (motion, start): the output asks every tick.
+        # A landing is planned once per (motion, start), not each time it is asked for.
         self._landing = lru_cache(maxsize=4)(self._landing_from)
 
     # --- what the device API sets between ticks ---------------------------
@@ -190,7 +193,10 @@ class DeviceSupervisor(LeafSystem):
     def set_motion(self, context, motion: Motion) -> None:
         """Fly ``motion`` from now on (ends a fault's landing: the caller chose)."""
         context.SetAbstractState(self._motion, motion)
-        context.get_mutable_discrete_state(self._faults).SetAtIndex(1, math.nan)
+        context.SetDiscreteState(self._landing_start, [math.nan])
+        setpoint, enable = motion.at(context.get_time())
+        context.SetDiscreteState(self._setpoint, setpoint)
+        context.SetDiscreteState(self._enable, [enable])
 
     def land(self, context) -> Motion:
         """Start a landing from the active setpoint now; returns it."""
@@ -201,7 +207,7 @@ class DeviceSupervisor(LeafSystem):
     def reset_faults(self, context) -> None:
         """Clear the latched bits; a fault's landing stays the commanded motion."""
         self.set_motion(context, self.active_motion(context))
-        context.get_mutable_discrete_state(self._faults).SetAtIndex(0, 0.0)
+        context.SetDiscreteState(self._fault_bits, [0.0])
 
     def set_limits(self, context, limits: WatchLimits) -> None:
         context.get_mutable_abstract_parameter(self._limits).set_value(limits)
@@ -212,11 +218,11 @@ class DeviceSupervisor(LeafSystem):
     def active_motion(self, context) -> Motion:
         """The commanded motion, or the landing a fault started."""
         motion = context.get_abstract_state(self._motion).get_value()
-        landing_start_s = context.get_discrete_state(self._faults).GetAtIndex(1)
+        landing_start_s = context.get_discrete_state(self._landing_start).GetAtIndex(0)
         return motion if math.isnan(landing_start_s) else self._landing(motion, landing_start_s)
 
     def faults(self, context) -> int:
-        return int(context.get_discrete_state(self._faults).GetAtIndex(0))
+        return int(context.get_discrete_state(self._fault_bits).GetAtIndex(0))
 
     # --- the tick ----------------------------------------------------------
 
@@ -226,29 +232,24 @@ class DeviceSupervisor(LeafSystem):
         return make_motion(pose_trajectory, enable_trajectory, start_s, landing=True)
 
     def _update(self, context, discrete_state):
-        latched, landing_start_s = context.get_discrete_state(self._faults).get_value()
-        pose = self._pose.Eval(context)
+        t_s = context.get_time()
+        latched = self.faults(context)
         raised = detect_faults(
-            position_m=pose[4:7], velocity_m_s=self._velocity.Eval(context)[3:6],
-            tracking_ok=self._tracking_ok.Eval(context)[0] > 0.5,
-            coil_currents_a=self._currents.Eval(context),
-            coil_temperature_c=self._temperatures.Eval(context),
-            carrying=self._now.Eval(context)[1] > 0.0, limits=self.limits(context))
-        new = raised & ~int(latched)
-        if not new:
-            return
-        if not self.active_motion(context).landing:
-            landing_start_s = context.get_time()
-        discrete_state.set_value(self._faults, [int(latched) | new, landing_start_s])
-
-    def _calc_now(self, context, value):
-        value.set_value(self.active_motion(context).at(context.get_time()))
-
-    def _calc_setpoint(self, context, output):
-        output.SetFromVector(self._now.Eval(context)[0])
-
-    def _calc_enable(self, context, output):
-        output.SetAtIndex(0, self._now.Eval(context)[1])
-
-    def _calc_fault_bits(self, context, output):
-        output.SetAtIndex(0, context.get_discrete_state(self._faults).GetAtIndex(0))
+            position_m=self._pose.EvalBasicVector(context).get_value()[4:7],
+            velocity_m_s=self._velocity.EvalBasicVector(context).get_value()[3:6],
+            tracking_ok=self._tracking_ok.EvalBasicVector(context).GetAtIndex(0) > 0.5,
+            coil_currents_a=self._currents.EvalBasicVector(context).get_value(),
+            coil_temperature_c=self._temperatures.EvalBasicVector(context).get_value(),
+            carrying=context.get_discrete_state(self._enable).GetAtIndex(0) > 0.0,
+            limits=self.limits(context))
+        new = raised & ~latched
+        motion = self.active_motion(context)
+        if new:
+            discrete_state.get_mutable_vector(self._fault_bits).SetAtIndex(0, latched | new)
+            if not motion.landing:  # land from where the setpoint is now
+                discrete_state.get_mutable_vector(self._landing_start).SetAtIndex(0, t_s)
+                motion = self._landing(motion, t_s)
+        # The next tick's values, at its time as Drake computes it (n * period).
+        setpoint, enable = motion.at((round(t_s / self._period_s) + 1) * self._period_s)
+        discrete_state.get_mutable_vector(self._setpoint).SetFromVector(setpoint)
+        discrete_state.get_mutable_vector(self._enable).SetAtIndex(0, enable)

@@ -1,8 +1,6 @@
 """The device supervisor: the scripted flight as its first motion, the watchdogs'
 fault bits, and the landing a new fault starts."""
 
-import math
-
 import numpy as np
 import pytest
 from pydrake.systems.primitives import TrajectorySource
@@ -59,42 +57,51 @@ def build(scenario):
     return supervisor, context, plan, spec
 
 
+def step(supervisor, context, t_s):
+    """The supervisor's update at ``t_s`` (s), its result then read at the next tick."""
+    context.SetTime(t_s)
+    context.SetDiscreteState(supervisor.EvalUniquePeriodicDiscreteUpdate(context))
+    context.SetTime(t_s + 1e-3)
+
+
 def test_the_script_flies_as_the_trajectories_it_replaced():
-    """The same setpoint and force gain, bit for bit, as Drake's TrajectorySource
-    of the flight plan (what `maglev run` flew before the supervisor)."""
+    """The same setpoint and force gain, bit for bit, at every tick, as Drake's
+    TrajectorySource of the flight plan (what `maglev run` flew before the supervisor)."""
     supervisor, context, plan, _ = build(load_scenario("levitate"))
     source = TrajectorySource(plan.setpoint, output_derivative_order=1)
     source_context = source.CreateDefaultContext()
-    for t in np.linspace(0.0, plan.end_s, 97):
-        context.SetTime(t)
-        source_context.SetTime(t)
+    for k in range(int(plan.end_s / 1e-3) + 50):
+        t_s = k * 1e-3
+        source_context.SetTime(t_s)
         np.testing.assert_array_equal(supervisor.GetOutputPort("setpoint").Eval(context),
                                       source.get_output_port().Eval(source_context))
-        assert supervisor.GetOutputPort("enable").Eval(context)[0] == plan.enable.value(t)[0, 0]
+        assert supervisor.GetOutputPort("enable").Eval(context)[0] == plan.enable.value(t_s)[0, 0]
+        context.SetTime(t_s)
+        context.SetDiscreteState(supervisor.EvalUniquePeriodicDiscreteUpdate(context))
 
 
 def test_a_new_fault_latches_and_lands_from_the_setpoint():
     supervisor, context, plan, spec = build(load_scenario("levitate"))
     hold_start_s, _ = plan.holds[0]
     t_fault = hold_start_s + 0.5
-    context.SetTime(t_fault)
-    hover = supervisor.GetOutputPort("setpoint").Eval(context).copy()
+    step(supervisor, context, t_fault - 1e-3)
+    hover = supervisor.GetOutputPort("setpoint").Eval(context).copy()  # at t_fault
     supervisor.GetInputPort("tracking_ok").FixValue(context, [0.0])
-    context.SetDiscreteState(supervisor.EvalUniquePeriodicDiscreteUpdate(context))
+    step(supervisor, context, t_fault)
     assert supervisor.faults(context) == FAULT_SENSOR_OUT_OF_RANGE
     assert supervisor.GetOutputPort("fault_bits").Eval(context)[0] == FAULT_SENSOR_OUT_OF_RANGE
     landing = supervisor.active_motion(context)
     assert landing.landing and landing.start_s == t_fault
-    np.testing.assert_allclose(supervisor.GetOutputPort("setpoint").Eval(context), hover,
-                               atol=1e-12)  # continuous where the landing starts
+    np.testing.assert_allclose(landing.at(t_fault)[0], hover, atol=1e-12)  # continuous
+    np.testing.assert_allclose(supervisor.GetOutputPort("setpoint").Eval(context),
+                               landing.at(t_fault + 1e-3)[0], rtol=0, atol=1e-15)
     # Another fault adds its bit; the landing under way goes on.
-    context.SetTime(t_fault + 0.1)
     supervisor.GetInputPort("coil_currents").FixValue(context, np.full(N_COILS, 5.0))
-    context.SetDiscreteState(supervisor.EvalUniquePeriodicDiscreteUpdate(context))
+    step(supervisor, context, t_fault + 0.1)
     assert supervisor.faults(context) == FAULT_SENSOR_OUT_OF_RANGE | FAULT_COIL_OVER_CURRENT
     assert supervisor.active_motion(context).start_s == t_fault
     # Down onto the glass (just below the rest height) and the force ramped to zero.
-    context.SetTime(landing.end_s + 1.0)
+    step(supervisor, context, landing.end_s + 1.0)
     setpoint = supervisor.GetOutputPort("setpoint").Eval(context)
     assert setpoint[2] == pytest.approx(spec.rest_height_m - LANDING_PRESS_M, abs=1e-12)
     assert supervisor.GetOutputPort("enable").Eval(context)[0] == 0.0
@@ -102,7 +109,7 @@ def test_a_new_fault_latches_and_lands_from_the_setpoint():
     supervisor.reset_faults(context)
     assert supervisor.faults(context) == 0
     assert supervisor.active_motion(context).start_s == t_fault
-    assert math.isnan(context.get_discrete_state(0).GetAtIndex(1))
+    assert supervisor.GetOutputPort("enable").Eval(context)[0] == 0.0
 
 
 def test_a_bad_watchdog_names_its_field():

@@ -106,4 +106,5 @@ def test_a_stopped_run_writes_its_results_and_says_so_in_one_line(tmp_path, stop
     assert (tmp_path / "log.npz").exists() and not (tmp_path / run_log.CHUNK_DIR).exists()
     assert log["t"][-1] == pytest.approx(summary["duration_s"], abs=0.002)
     assert (tmp_path / "levitation.png").exists()
+    assert np.all(log["wrench_commanded_W"][-10:] == 0.0)
     assert np.all(np.abs(log["coil_currents"][-10:]) < 1e-9)
