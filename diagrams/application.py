@@ -51,6 +51,7 @@ def watch_limits(scenario: Scenario) -> WatchLimits:
         current_limit_a=scenario.device.amplifier.current_limit_a,
         temperature_limit_c=coil_thermal(scenario.device).max_c,
         max_speed_m_s=watchdog.max_speed_m_s,
+        lost_grace_s=scenario.controller.lost_grace_s,
         boundary_center_m=tuple(watchdog.boundary_center_m),
         boundary_radius_m=watchdog.boundary_radius_m)
 

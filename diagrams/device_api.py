@@ -85,18 +85,16 @@ class MaglevDevice:
     in it); its device, controller, watchdog and station are used, its motion script
     only for the rest place, the hover pose (the first waypoint) and the ramp and
     landing times. ``realtime_rate`` > 0 paces each tick to the wall clock (needed
-    with a station on LCM, where it is 1 unless given). ``max_speed_m_s``: the
-    over-speed limit (m/s).
+    with a station on LCM, where it is 1 unless given). The over-speed limit and
+    a boundary to start with are the scenario's ``watchdog``.
     """
 
     def __init__(self, scenario: Union[Scenario, str] = "levitate", *,
-                 name: Optional[str] = None, realtime_rate: float = 0.0,
-                 max_speed_m_s: float = 0.5):
+                 name: Optional[str] = None, realtime_rate: float = 0.0):
         self.scenario = scenario if isinstance(scenario, Scenario) else load_scenario(
             scenario, name)
         on_lcm = isinstance(self.scenario.station, LcmStation)
         self._realtime_rate = float(realtime_rate) if realtime_rate > 0 or not on_lcm else 1.0
-        self._max_speed_m_s = float(max_speed_m_s)
         self._tick_callbacks: List[Callable[[TickState], None]] = []
         self._fault_callbacks: List[Callable[[int], None]] = []
         self._simulator = None
@@ -123,9 +121,6 @@ class MaglevDevice:
         self._ports = [estimator.GetOutputPort(name) for name in
                        ("X_WI_measured", "V_WI_measured", "tracking_ok")]
         self._estimator, self._station = estimator, station
-        supervisor_context = self._contexts[self._supervisor]
-        self._supervisor.set_limits(supervisor_context, dataclasses.replace(
-            self._supervisor.limits(supervisor_context), max_speed_m_s=self._max_speed_m_s))
         self._shares_cores = isinstance(self.scenario.station, LcmStation)
         self._clock_zero, self._ticks = time.perf_counter(), 0
         self.state = self._read_state()

@@ -104,22 +104,26 @@ class WatchLimits:
     current_limit_a: float  # the amplifiers' limit (A)
     temperature_limit_c: float  # the windings' (C)
     max_speed_m_s: float  # the instrument's (m/s)
+    # Tracking lost longer than this is a fault (s): the controller's grace, which
+    # rides out shorter dropouts carrying the weight alone.
+    lost_grace_s: float = 0.0
     boundary_center_m: Optional[tuple] = None  # the sphere it must stay in, in W (m)
     boundary_radius_m: Optional[float] = None  # (m); None: no boundary
 
 
-def detect_faults(*, position_m, velocity_m_s, tracking_ok: bool, coil_currents_a,
+def detect_faults(*, position_m, velocity_m_s, tracking_lost_s: float, coil_currents_a,
                   coil_temperature_c, carrying: bool, limits: WatchLimits) -> int:
-    """The FAULT_* bits these measurements raise (before latching). The instrument's
-    faults (lost, outside the boundary, too fast) count only while the coils are
-    ``carrying`` it: resting with the coils off it is in no danger."""
+    """The FAULT_* bits these measurements raise (before latching), tracking having
+    been lost for ``tracking_lost_s`` (s; 0: tracked). The instrument's faults (lost,
+    outside the boundary, too fast) count only while the coils are ``carrying`` it:
+    resting with the coils off it is in no danger."""
     bits = 0
     if carrying:
         # Plain floats: math on numpy scalars costs several us a call.
         outside = (limits.boundary_radius_m is not None and math.dist(
             np.asarray(position_m).tolist(), limits.boundary_center_m)
             > limits.boundary_radius_m)
-        if not tracking_ok or outside:
+        if tracking_lost_s > limits.lost_grace_s or outside:
             bits |= FAULT_SENSOR_OUT_OF_RANGE
         if math.hypot(*np.asarray(velocity_m_s).tolist()) > limits.max_speed_m_s:
             bits |= FAULT_OVER_SPEED
@@ -180,6 +184,7 @@ class DeviceSupervisor(LeafSystem):
         self._enable = self.DeclareDiscreteState(BasicVector([enable]))
         self._fault_bits = self.DeclareDiscreteState(BasicVector([0.0]))
         self._landing_start = self.DeclareDiscreteState(BasicVector([math.nan]))
+        self._lost_s = self.DeclareDiscreteState(BasicVector([0.0]))  # tracking lost for (s)
         self._limits = self.DeclareAbstractParameter(AbstractValue.Make(limits))
         self.DeclareStateOutputPort("setpoint", self._setpoint)
         self.DeclareStateOutputPort("enable", self._enable)
@@ -234,10 +239,13 @@ class DeviceSupervisor(LeafSystem):
     def _update(self, context, discrete_state):
         t_s = context.get_time()
         latched = self.faults(context)
+        lost_s = (0.0 if self._tracking_ok.EvalBasicVector(context).GetAtIndex(0) > 0.5 else
+                  context.get_discrete_state(self._lost_s).GetAtIndex(0) + self._period_s)
+        discrete_state.get_mutable_vector(self._lost_s).SetAtIndex(0, lost_s)
         raised = detect_faults(
             position_m=self._pose.EvalBasicVector(context).get_value()[4:7],
             velocity_m_s=self._velocity.EvalBasicVector(context).get_value()[3:6],
-            tracking_ok=self._tracking_ok.EvalBasicVector(context).GetAtIndex(0) > 0.5,
+            tracking_lost_s=lost_s,
             coil_currents_a=self._currents.EvalBasicVector(context).get_value(),
             coil_temperature_c=self._temperatures.EvalBasicVector(context).get_value(),
             carrying=context.get_discrete_state(self._enable).GetAtIndex(0) > 0.0,

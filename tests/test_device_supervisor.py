@@ -14,14 +14,15 @@ from maglev_haptics.systems.device_supervisor import (
 
 N_COILS = 27
 LIMITS = WatchLimits(current_limit_a=4.0, temperature_limit_c=100.0, max_speed_m_s=0.5,
+                     lost_grace_s=0.02,
                      boundary_center_m=(0.0, 0.0, 0.02), boundary_radius_m=0.01)
-HEALTHY = dict(position_m=[0.0, 0.0, 0.02], velocity_m_s=[0.0, 0.0, 0.1], tracking_ok=True,
+HEALTHY = dict(position_m=[0.0, 0.0, 0.02], velocity_m_s=[0.0, 0.0, 0.1], tracking_lost_s=0.0,
                coil_currents_a=np.full(N_COILS, 1.0), coil_temperature_c=np.full(N_COILS, 40.0),
                carrying=True, limits=LIMITS)
 
 
 @pytest.mark.parametrize("change, bit", [
-    ({"tracking_ok": False}, FAULT_SENSOR_OUT_OF_RANGE),
+    ({"tracking_lost_s": 0.021}, FAULT_SENSOR_OUT_OF_RANGE),  # past the controller's grace
     ({"position_m": [0.0, 0.011, 0.02]}, FAULT_SENSOR_OUT_OF_RANGE),  # out of the sphere
     ({"velocity_m_s": [0.4, 0.0, -0.4]}, FAULT_OVER_SPEED),
     ({"coil_currents_a": np.r_[np.zeros(26), -4.01]}, FAULT_COIL_OVER_CURRENT),
@@ -29,11 +30,12 @@ HEALTHY = dict(position_m=[0.0, 0.0, 0.02], velocity_m_s=[0.0, 0.0, 0.1], tracki
 ])
 def test_each_watchdog_raises_its_bit(change, bit):
     assert detect_faults(**HEALTHY) == 0
+    assert detect_faults(**(HEALTHY | {"tracking_lost_s": 0.02})) == 0  # ridden out
     assert detect_faults(**(HEALTHY | change)) == bit
 
 
 def test_the_instruments_faults_count_only_while_the_coils_carry_it():
-    resting = HEALTHY | {"carrying": False, "tracking_ok": False,
+    resting = HEALTHY | {"carrying": False, "tracking_lost_s": 1.0,
                          "velocity_m_s": [0.0, 0.0, -1.0]}
     assert detect_faults(**resting) == 0
     # The coils' own faults count whatever they carry.
@@ -83,11 +85,18 @@ def test_the_script_flies_as_the_trajectories_it_replaced():
 def test_a_new_fault_latches_and_lands_from_the_setpoint():
     supervisor, context, plan, spec = build(load_scenario("levitate"))
     hold_start_s, _ = plan.holds[0]
-    t_fault = hold_start_s + 0.5
-    step(supervisor, context, t_fault - 1e-3)
-    hover = supervisor.GetOutputPort("setpoint").Eval(context).copy()  # at t_fault
+    # Tracking lost: ridden out for the controller's 20 ms grace, a fault within a
+    # tick of its end.
+    t_lost = hold_start_s + 0.5
     supervisor.GetInputPort("tracking_ok").FixValue(context, [0.0])
-    step(supervisor, context, t_fault)
+    t_fault = t_lost
+    while True:
+        hover = supervisor.GetOutputPort("setpoint").Eval(context).copy()  # at t_fault
+        step(supervisor, context, t_fault)
+        if supervisor.faults(context):
+            break
+        t_fault += 1e-3
+    assert t_fault - t_lost == pytest.approx(0.02, abs=1.1e-3)
     assert supervisor.faults(context) == FAULT_SENSOR_OUT_OF_RANGE
     assert supervisor.GetOutputPort("fault_bits").Eval(context)[0] == FAULT_SENSOR_OUT_OF_RANGE
     landing = supervisor.active_motion(context)
