@@ -42,6 +42,8 @@ from maglev_haptics.systems.stereo_renderer import AddStereoRenderer, SurfaceLay
 MESHCAT_PERIOD_S = 1 / 30
 # The coils' thermal model runs at 100 Hz: its time constant is ~1 min (s).
 THERMAL_PERIOD_S = 0.01
+# The device supervisor's watchdogs check at 200 Hz (s; its docstring says why).
+WATCHDOG_PERIOD_S = 0.005
 
 
 def watch_limits(scenario: Scenario) -> WatchLimits:
@@ -94,21 +96,22 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
     estimator = builder.AddNamedSystem("pose_estimator", PoseEstimator(
         instrument=spec, tracker=device.tracker, config=scenario.estimator))
     plan = flight_plan(scenario.motion, spec.rest_height_m)
+    tick_s = 1.0 / scenario.control_rate_hz
     if device_api:  # resting on the glass, coils off, until the API commands
         if scenario.haptics is not None:
             raise ValueError(f"{label}: the device API flies levitation scenarios only "
                              "(haptics: null)")
         initial_motion = hold_motion(np.concatenate((plan.setpoint.value(0.0).ravel(),
-                                                     np.zeros(6))), 0.0, 0.0)
+                                                     np.zeros(6))), 0.0, 0.0, tick_s)
     else:
-        initial_motion = make_motion(plan.setpoint, plan.enable, 0.0)
+        initial_motion = make_motion(plan.setpoint, plan.enable, 0.0, tick_s)
     temperatures = builder.AddNamedSystem("coil_temperatures", CoilTemperatures(
         model=coil_thermal(device), n_coils=device.n_coils, period_s=THERMAL_PERIOD_S))
     builder.Connect(station.GetOutputPort("coil_currents"), temperatures.get_input_port())
     supervisor = builder.AddNamedSystem("device_supervisor", DeviceSupervisor(
         initial_motion=initial_motion, limits=watch_limits(scenario),
         plan_landing=landing_planner(scenario.motion, spec.rest_height_m),
-        n_coils=device.n_coils, period_s=1.0 / scenario.control_rate_hz))
+        n_coils=device.n_coils, watchdog_period_s=WATCHDOG_PERIOD_S))
     for name in ("X_WI_measured", "V_WI_measured", "tracking_ok"):
         builder.Connect(estimator.GetOutputPort(name), supervisor.GetInputPort(name))
     builder.Connect(station.GetOutputPort("coil_currents"),
@@ -119,7 +122,7 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
     controller = builder.AddNamedSystem("levitation_controller", LevitationController(
         config=scenario.controller, mass_kg=spec.mass_kg,
         inertia_diag=np.diag(spec.inertia_about_I()),
-        period_s=1.0 / scenario.control_rate_hz, magnetics=magnetics, p_WA=device.p_WA,
+        period_s=tick_s, magnetics=magnetics, p_WA=device.p_WA,
         current_limit_a=device.amplifier.current_limit_a))
 
     builder.Connect(station.GetOutputPort("markers_measured"),

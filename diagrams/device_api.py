@@ -161,7 +161,7 @@ class MaglevDevice:
         check_pose_reachable(pose, self.scenario.device, self._built.magnetics, "pose")
         rates = np.zeros(6) if rates is None else _vector("rates", rates, 6)
         self._set_motion(hold_motion(np.concatenate((pose, rates)), self._current()[1],
-                                     self._now()))
+                                     self._now(), self._built.tick_s))
 
     def set_feedforward_wrench(self, wrench) -> None:
         """Added wrench [f; tau] in W (N, N*m about I's origin)."""
@@ -212,7 +212,8 @@ class MaglevDevice:
         ramp_s = motion.force_ramp_s
         self._set_motion(make_motion(
             minimum_jerk_plan(start, ramp_s, [(target, motion.waypoints[0].move_s, 0.0)], 0.0),
-            PiecewisePolynomial.FirstOrderHold([0.0, ramp_s], [[0.0, 1.0]]), self._now()))
+            PiecewisePolynomial.FirstOrderHold([0.0, ramp_s], [[0.0, 1.0]]), self._now(),
+            self._built.tick_s))
 
         def hovering():
             if self.faults:
@@ -293,7 +294,7 @@ class MaglevDevice:
         self._supervisor.set_motion(self._contexts[self._supervisor], motion)
 
     def _coils_off(self) -> None:
-        self._set_motion(hold_motion(self._current()[0], 0.0, self._now()))
+        self._set_motion(hold_motion(self._current()[0], 0.0, self._now(), self._built.tick_s))
 
     def _current_enable(self) -> float:
         return self._current()[1]

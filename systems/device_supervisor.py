@@ -38,13 +38,16 @@ CURRENT_TOLERANCE = 1e-6
 
 @dataclass(frozen=True, eq=False)
 class Motion:
-    """A setpoint and force-ramp profile from ``start_s`` (s) on; before it and after
-    ``end_s`` (s, absolute) its ends hold. Compared by identity (it is state)."""
-    setpoint: PiecewisePolynomial  # 6 rows: pose [x y z roll pitch yaw] of I in W (m, rad)
-    rates: PiecewisePolynomial  # 6 rows: the setpoint's rates (m/s, rad/s)
-    enable: PiecewisePolynomial  # 1 row: the controller's force gain 0..1
-    start_s: float
-    end_s: float
+    """A setpoint and force-ramp profile sampled at the control ticks (a row a tick:
+    the loop looks its command up rather than evaluating trajectories, ~1 us against
+    ~13 us a tick); before ``first_tick`` its first row holds, after its last its last.
+    Compared by identity (it is state)."""
+    # (n, 13): [pose [x y z roll pitch yaw] of I in W (m, rad); its rates (m/s,
+    # rad/s); the controller's force gain 0..1] at ticks first_tick .. first_tick+n-1.
+    commands: np.ndarray
+    first_tick: int
+    period_s: float  # the tick (s)
+    start_s: float  # commanded from (s)
     landing: bool = False
 
     # Immutable: a cloned context (the analyses clone thousands) shares it.
@@ -54,30 +57,56 @@ class Motion:
     def __deepcopy__(self, memo):
         return self
 
+    @property
+    def last_tick(self) -> int:
+        return self.first_tick + len(self.commands) - 1
+
+    @property
+    def end_s(self) -> float:
+        """When its last row starts to hold (s)."""
+        return self.last_tick * self.period_s
+
+    def at_tick(self, tick: int) -> np.ndarray:
+        """The command row (13) at tick number ``tick`` (time tick * period_s)."""
+        return self.commands[min(max(tick - self.first_tick, 0), len(self.commands) - 1)]
+
     def at(self, t_s: float):
-        """(setpoint [pose; rates] (12), enable) at ``t_s`` (s)."""
-        elapsed = min(max(t_s, self.start_s), self.end_s) - self.start_s
-        return (np.concatenate((self.setpoint.value(elapsed).ravel(),
-                                self.rates.value(elapsed).ravel())),
-                self.enable.value(elapsed)[0, 0])
+        """(setpoint [pose; rates] (12), enable) at the tick nearest ``t_s`` (s)."""
+        row = self.at_tick(round(t_s / self.period_s))
+        return row[0:12].copy(), float(row[12])
+
+
+def first_tick_at(t_s: float, period_s: float) -> int:
+    """The first tick at or after ``t_s`` (s), forgiving the rounding of t_s."""
+    return math.ceil(round(t_s / period_s, 9))
 
 
 def make_motion(setpoint: PiecewisePolynomial, enable: PiecewisePolynomial, start_s: float,
-                landing: bool = False) -> Motion:
+                period_s: float, landing: bool = False) -> Motion:
     """A motion of ``setpoint`` (6 rows) and ``enable`` (1 row), both timed from
-    ``start_s`` (s); it ends when the later of them does."""
+    ``start_s`` (s), sampled at ticks of ``period_s`` (s) as Drake's TrajectorySource
+    evaluates them (value and first derivative at the tick's time); it ends when the
+    later of them does."""
     duration_s = max(setpoint.end_time(), enable.end_time())
-    return Motion(setpoint=setpoint, rates=setpoint.MakeDerivative(1), enable=enable,
-                  start_s=float(start_s), end_s=float(start_s) + duration_s, landing=landing)
+    first_tick = first_tick_at(start_s, period_s)
+    ticks = np.arange(first_tick, first_tick_at(start_s + duration_s, period_s) + 1)
+    elapsed_s = np.clip(ticks * period_s - start_s, 0.0, None)
+
+    def sampled(trajectory):  # each held at its own end, as TrajectorySource does
+        return trajectory.vector_values(np.minimum(elapsed_s, trajectory.end_time()))
+    commands = np.vstack((sampled(setpoint), sampled(setpoint.MakeDerivative(1)),
+                          sampled(enable))).T
+    return Motion(commands=commands, first_tick=first_tick, period_s=float(period_s),
+                  start_s=float(start_s), landing=landing)
 
 
-def hold_motion(setpoint, enable: float, start_s: float) -> Motion:
+def hold_motion(setpoint, enable: float, start_s: float, period_s: float) -> Motion:
     """Hold ``setpoint`` ([pose (6); rates (6)]: the rates are what the controller's
-    damping tracks, not integrated) at force gain ``enable`` from ``start_s`` (s)."""
-    setpoint = np.asarray(setpoint, dtype=float)
-    constant = lambda value: PiecewisePolynomial(np.reshape(value, (-1, 1)))  # noqa: E731
-    return Motion(setpoint=constant(setpoint[0:6]), rates=constant(setpoint[6:12]),
-                  enable=constant([enable]), start_s=float(start_s), end_s=float(start_s))
+    damping tracks, not integrated) at force gain ``enable`` from ``start_s`` (s) on,
+    at ticks of ``period_s`` (s)."""
+    commands = np.append(np.asarray(setpoint, dtype=float), enable).reshape(1, 13)
+    return Motion(commands=commands, first_tick=first_tick_at(start_s, period_s),
+                  period_s=float(period_s), start_s=float(start_s))
 
 
 @dataclass
@@ -156,32 +185,41 @@ class DeviceSupervisor(LeafSystem):
         - fault_bits
 
     - ``setpoint`` (12): [x y z roll pitch yaw] of I in W and their rates (m, rad;
-      m/s, rad/s), the active motion's at the context's time.
+      m/s, rad/s), the active motion's at the context's tick.
     - ``enable`` (1): the controller's force gain 0..1.
     - ``fault_bits`` (1): the latched FAULT_* bits.
 
     State: the commanded motion (abstract: ``initial_motion`` until set); the
-    outputs as discrete state, each update at t writing the motion's values at the
-    next tick, so the loop reads them from C++ (one Python call a tick, the update);
-    and the time a fault's landing started (NaN: none). ``plan_landing(pose,
-    enable) -> (setpoint, enable)`` trajectories (from 0) bring the instrument from
-    ``pose`` onto the glass and ramp its force gain from ``enable`` to zero.
+    outputs as discrete state, each tick's update writing the next tick's command
+    (so the loop reads them from C++: one Python call a tick, which past a motion's
+    end only reads); the time a fault's landing started (NaN: none); how long
+    tracking has been lost (s). The watchdogs check every ``watchdog_period_s`` (s,
+    to the nearest whole tick): reading the five measurements costs ~20 us, a fifth of
+    the loop's headroom at every tick, and no fault needs a faster answer (the
+    amplifiers clamp the current themselves, the coils heat over a minute, the
+    controller rides out or lands a lost instrument on its own).
+    ``plan_landing(pose, enable) -> (setpoint, enable)`` trajectories (from 0) bring
+    the instrument from ``pose`` onto the glass and ramp its force gain from
+    ``enable`` to zero.
     """
 
     def __init__(self, *, initial_motion: Motion, limits: WatchLimits,
-                 plan_landing: Callable, n_coils: int, period_s: float):
+                 plan_landing: Callable, n_coils: int, watchdog_period_s: float):
         super().__init__()
         self._plan_landing = plan_landing
-        self._period_s = float(period_s)
+        self._period_s = initial_motion.period_s
+        # Every whole number of ticks nearest watchdog_period_s, at least every tick.
+        self._watchdog_ticks = max(1, round(watchdog_period_s / self._period_s))
+        self._watchdog_period_s = self._watchdog_ticks * self._period_s
         self._pose = self.DeclareVectorInputPort("X_WI_measured", 7)
         self._velocity = self.DeclareVectorInputPort("V_WI_measured", 6)
         self._tracking_ok = self.DeclareVectorInputPort("tracking_ok", 1)
         self._currents = self.DeclareVectorInputPort("coil_currents", n_coils)
         self._temperatures = self.DeclareVectorInputPort("coil_temperature_c", n_coils)
         self._motion = self.DeclareAbstractState(AbstractValue.Make(initial_motion))
-        setpoint, enable = initial_motion.at(0.0)
-        self._setpoint = self.DeclareDiscreteState(BasicVector(setpoint))
-        self._enable = self.DeclareDiscreteState(BasicVector([enable]))
+        command = initial_motion.at_tick(0)
+        self._setpoint = self.DeclareDiscreteState(BasicVector(command[0:12]))
+        self._enable = self.DeclareDiscreteState(BasicVector(command[12:13]))
         self._fault_bits = self.DeclareDiscreteState(BasicVector([0.0]))
         self._landing_start = self.DeclareDiscreteState(BasicVector([math.nan]))
         self._lost_s = self.DeclareDiscreteState(BasicVector([0.0]))  # tracking lost for (s)
@@ -189,7 +227,9 @@ class DeviceSupervisor(LeafSystem):
         self.DeclareStateOutputPort("setpoint", self._setpoint)
         self.DeclareStateOutputPort("enable", self._enable)
         self.DeclareStateOutputPort("fault_bits", self._fault_bits)
-        self.DeclarePeriodicDiscreteUpdateEvent(period_s, 0.0, self._update)
+        # A context may start at any time: its command is that tick's from the start.
+        self.DeclareInitializationDiscreteUpdateEvent(self._initialize)
+        self.DeclarePeriodicDiscreteUpdateEvent(self._period_s, 0.0, self._update)
         # A landing is planned once per (motion, start), not each time it is asked for.
         self._landing = lru_cache(maxsize=4)(self._landing_from)
 
@@ -199,9 +239,8 @@ class DeviceSupervisor(LeafSystem):
         """Fly ``motion`` from now on (ends a fault's landing: the caller chose)."""
         context.SetAbstractState(self._motion, motion)
         context.SetDiscreteState(self._landing_start, [math.nan])
-        setpoint, enable = motion.at(context.get_time())
-        context.SetDiscreteState(self._setpoint, setpoint)
-        context.SetDiscreteState(self._enable, [enable])
+        self._write_command(context.get_mutable_discrete_state(), motion,
+                            self._tick(context))
 
     def land(self, context) -> Motion:
         """Start a landing from the active setpoint now; returns it."""
@@ -231,17 +270,42 @@ class DeviceSupervisor(LeafSystem):
 
     # --- the tick ----------------------------------------------------------
 
+    def _tick(self, context) -> int:
+        return round(context.get_time() / self._period_s)
+
     def _landing_from(self, motion: Motion, start_s: float) -> Motion:
         setpoint, enable = motion.at(start_s)
         pose_trajectory, enable_trajectory = self._plan_landing(setpoint[0:6], enable)
-        return make_motion(pose_trajectory, enable_trajectory, start_s, landing=True)
+        return make_motion(pose_trajectory, enable_trajectory, start_s, self._period_s,
+                           landing=True)
+
+    def _write_command(self, discrete_state, motion: Motion, tick: int) -> None:
+        command = motion.at_tick(tick)
+        discrete_state.get_mutable_vector(self._setpoint).SetFromVector(command[0:12])
+        discrete_state.get_mutable_vector(self._enable).SetAtIndex(0, command[12])
+
+    def _initialize(self, context, discrete_state):
+        self._write_command(discrete_state, self.active_motion(context), self._tick(context))
 
     def _update(self, context, discrete_state):
-        t_s = context.get_time()
-        latched = self.faults(context)
+        tick = self._tick(context)
+        motion = self.active_motion(context)
+        started_landing = tick % self._watchdog_ticks == 0 and self._watch(
+            context, discrete_state, motion)
+        if started_landing:  # from the commanded motion, now
+            motion = self._landing(motion, context.get_time())
+        # The state holds this tick's command; past the motion's end (or before its
+        # start) the next one is the same.
+        if started_landing or motion.first_tick <= tick < motion.last_tick:
+            self._write_command(discrete_state, motion, tick + 1)
+
+    def _watch(self, context, discrete_state, motion: Motion) -> bool:
+        """Check the watchdogs; latch new faults; True if that started a landing."""
         lost_s = (0.0 if self._tracking_ok.EvalBasicVector(context).GetAtIndex(0) > 0.5 else
-                  context.get_discrete_state(self._lost_s).GetAtIndex(0) + self._period_s)
+                  context.get_discrete_state(self._lost_s).GetAtIndex(0)
+                  + self._watchdog_period_s)
         discrete_state.get_mutable_vector(self._lost_s).SetAtIndex(0, lost_s)
+        latched = self.faults(context)
         raised = detect_faults(
             position_m=self._pose.EvalBasicVector(context).get_value()[4:7],
             velocity_m_s=self._velocity.EvalBasicVector(context).get_value()[3:6],
@@ -251,13 +315,11 @@ class DeviceSupervisor(LeafSystem):
             carrying=context.get_discrete_state(self._enable).GetAtIndex(0) > 0.0,
             limits=self.limits(context))
         new = raised & ~latched
-        motion = self.active_motion(context)
-        if new:
-            discrete_state.get_mutable_vector(self._fault_bits).SetAtIndex(0, latched | new)
-            if not motion.landing:  # land from where the setpoint is now
-                discrete_state.get_mutable_vector(self._landing_start).SetAtIndex(0, t_s)
-                motion = self._landing(motion, t_s)
-        # The next tick's values, at its time as Drake computes it (n * period).
-        setpoint, enable = motion.at((round(t_s / self._period_s) + 1) * self._period_s)
-        discrete_state.get_mutable_vector(self._setpoint).SetFromVector(setpoint)
-        discrete_state.get_mutable_vector(self._enable).SetAtIndex(0, enable)
+        if not new:
+            return False
+        discrete_state.get_mutable_vector(self._fault_bits).SetAtIndex(0, latched | new)
+        if motion.landing:
+            return False
+        # Land from where the setpoint is now.
+        discrete_state.get_mutable_vector(self._landing_start).SetAtIndex(0, context.get_time())
+        return True

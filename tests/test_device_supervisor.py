@@ -3,6 +3,7 @@ fault bits, and the landing a new fault starts."""
 
 import numpy as np
 import pytest
+from pydrake.systems.analysis import Simulator
 from pydrake.systems.primitives import TrajectorySource
 
 from maglev_haptics.diagrams.motion import flight_plan, landing_planner
@@ -13,6 +14,8 @@ from maglev_haptics.systems.device_supervisor import (
     FAULT_SENSOR_OUT_OF_RANGE, DeviceSupervisor, WatchLimits, detect_faults, make_motion)
 
 N_COILS = 27
+TICK_S = 1e-3
+WATCHDOG_PERIOD_S = 0.005
 LIMITS = WatchLimits(current_limit_a=4.0, temperature_limit_c=100.0, max_speed_m_s=0.5,
                      lost_grace_s=0.02,
                      boundary_center_m=(0.0, 0.0, 0.02), boundary_radius_m=0.01)
@@ -47,9 +50,9 @@ def build(scenario):
     spec = scenario.device.instrument_spec()
     plan = flight_plan(scenario.motion, spec.rest_height_m)
     supervisor = DeviceSupervisor(
-        initial_motion=make_motion(plan.setpoint, plan.enable, 0.0), limits=LIMITS,
+        initial_motion=make_motion(plan.setpoint, plan.enable, 0.0, TICK_S), limits=LIMITS,
         plan_landing=landing_planner(scenario.motion, spec.rest_height_m), n_coils=N_COILS,
-        period_s=1e-3)
+        watchdog_period_s=WATCHDOG_PERIOD_S)
     context = supervisor.CreateDefaultContext()
     pose = np.array([1.0, 0, 0, 0, 0.0, 0.0, 0.02])
     for port, value in (("X_WI_measured", pose), ("V_WI_measured", np.zeros(6)),
@@ -57,13 +60,6 @@ def build(scenario):
                         ("coil_temperature_c", np.full(N_COILS, 25.0))):
         supervisor.GetInputPort(port).FixValue(context, value)
     return supervisor, context, plan, spec
-
-
-def step(supervisor, context, t_s):
-    """The supervisor's update at ``t_s`` (s), its result then read at the next tick."""
-    context.SetTime(t_s)
-    context.SetDiscreteState(supervisor.EvalUniquePeriodicDiscreteUpdate(context))
-    context.SetTime(t_s + 1e-3)
 
 
 def test_the_script_flies_as_the_trajectories_it_replaced():
@@ -82,42 +78,59 @@ def test_the_script_flies_as_the_trajectories_it_replaced():
         context.SetDiscreteState(supervisor.EvalUniquePeriodicDiscreteUpdate(context))
 
 
+def test_a_run_started_late_flies_from_its_own_tick():
+    supervisor, context, plan, _ = build(load_scenario("levitate"))
+    simulator = Simulator(supervisor, context)
+    context.SetTime(3.0)  # hovering by then: the default state is the resting start
+    simulator.Initialize()
+    np.testing.assert_array_equal(supervisor.GetOutputPort("setpoint").Eval(context)[0:6],
+                                  plan.setpoint.value(3.0).ravel())
+    simulator.AdvanceTo(3.0105)
+    np.testing.assert_array_equal(supervisor.GetOutputPort("setpoint").Eval(context)[0:6],
+                                  plan.setpoint.value(3.011).ravel())
+
+
 def test_a_new_fault_latches_and_lands_from_the_setpoint():
     supervisor, context, plan, spec = build(load_scenario("levitate"))
+    simulator = Simulator(supervisor, context)  # each tick's update at its time
     hold_start_s, _ = plan.holds[0]
-    # Tracking lost: ridden out for the controller's 20 ms grace, a fault within a
-    # tick of its end.
+    # Tracking lost: ridden out for the controller's 20 ms grace, a fault at the
+    # watchdog's first check after it (every 5 ms).
     t_lost = hold_start_s + 0.5
+    simulator.AdvanceTo(t_lost)  # the update at t_lost still to come
     supervisor.GetInputPort("tracking_ok").FixValue(context, [0.0])
     t_fault = t_lost
     while True:
         hover = supervisor.GetOutputPort("setpoint").Eval(context).copy()  # at t_fault
-        step(supervisor, context, t_fault)
+        simulator.AdvanceTo(t_fault + TICK_S)  # the update at t_fault done
         if supervisor.faults(context):
             break
-        t_fault += 1e-3
-    assert t_fault - t_lost == pytest.approx(0.02, abs=1.1e-3)
+        t_fault += TICK_S
+    assert 0.02 <= t_fault - t_lost + 1e-9 and t_fault - t_lost < 0.02 + WATCHDOG_PERIOD_S
+    assert round(t_fault / TICK_S) % round(WATCHDOG_PERIOD_S / TICK_S) == 0
     assert supervisor.faults(context) == FAULT_SENSOR_OUT_OF_RANGE
     assert supervisor.GetOutputPort("fault_bits").Eval(context)[0] == FAULT_SENSOR_OUT_OF_RANGE
     landing = supervisor.active_motion(context)
-    assert landing.landing and landing.start_s == t_fault
+    assert landing.landing and landing.start_s == pytest.approx(t_fault, abs=1e-12)
     np.testing.assert_allclose(landing.at(t_fault)[0], hover, atol=1e-12)  # continuous
-    np.testing.assert_allclose(supervisor.GetOutputPort("setpoint").Eval(context),
-                               landing.at(t_fault + 1e-3)[0], rtol=0, atol=1e-15)
-    # Another fault adds its bit; the landing under way goes on.
+    np.testing.assert_array_equal(supervisor.GetOutputPort("setpoint").Eval(context),
+                                  landing.at(t_fault + TICK_S)[0])
+    # Another fault adds its bit at the next check; the landing under way goes on.
     supervisor.GetInputPort("coil_currents").FixValue(context, np.full(N_COILS, 5.0))
-    step(supervisor, context, t_fault + 0.1)
+    simulator.AdvanceTo(t_fault + WATCHDOG_PERIOD_S)
+    assert supervisor.faults(context) == FAULT_SENSOR_OUT_OF_RANGE
+    simulator.AdvanceTo(t_fault + WATCHDOG_PERIOD_S + TICK_S)
     assert supervisor.faults(context) == FAULT_SENSOR_OUT_OF_RANGE | FAULT_COIL_OVER_CURRENT
-    assert supervisor.active_motion(context).start_s == t_fault
+    assert supervisor.active_motion(context) is landing
     # Down onto the glass (just below the rest height) and the force ramped to zero.
-    step(supervisor, context, landing.end_s + 1.0)
+    simulator.AdvanceTo(landing.end_s + 1.0)
     setpoint = supervisor.GetOutputPort("setpoint").Eval(context)
     assert setpoint[2] == pytest.approx(spec.rest_height_m - LANDING_PRESS_M, abs=1e-12)
     assert supervisor.GetOutputPort("enable").Eval(context)[0] == 0.0
     # Reset: the bits clear, the landing stays what is flown.
     supervisor.reset_faults(context)
     assert supervisor.faults(context) == 0
-    assert supervisor.active_motion(context).start_s == t_fault
+    assert supervisor.active_motion(context) is landing
     assert supervisor.GetOutputPort("enable").Eval(context)[0] == 0.0
 
 
