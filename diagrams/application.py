@@ -112,7 +112,7 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
         initial_motion=initial_motion, limits=watch_limits(scenario),
         plan_landing=landing_planner(scenario.motion, spec.rest_height_m),
         n_coils=device.n_coils, watchdog_period_s=WATCHDOG_PERIOD_S))
-    for name in ("X_WI_measured", "V_WI_measured", "tracking_ok"):
+    for name in ("X_WI_measured", "V_WI_measured"):
         builder.Connect(estimator.GetOutputPort(name), supervisor.GetInputPort(name))
     builder.Connect(station.GetOutputPort("coil_currents"),
                     supervisor.GetInputPort("coil_currents"))
@@ -129,6 +129,8 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
                     estimator.GetInputPort("markers_measured"))
     for name in ("X_WI_measured", "V_WI_measured", "tracking_ok"):
         builder.Connect(estimator.GetOutputPort(name), controller.GetInputPort(name))
+    builder.Connect(controller.GetOutputPort("lost_time"),
+                    supervisor.GetInputPort("tracking_lost_s"))
     haptics = None
     if scenario.haptics is None:
         builder.Connect(setpoint, controller.GetInputPort("setpoint"))

@@ -176,7 +176,7 @@ class DeviceSupervisor(LeafSystem):
         input_ports:
         - X_WI_measured
         - V_WI_measured
-        - tracking_ok
+        - tracking_lost_s
         - coil_currents
         - coil_temperature_c
         output_ports:
@@ -192,12 +192,12 @@ class DeviceSupervisor(LeafSystem):
     State: the commanded motion (abstract: ``initial_motion`` until set); the
     outputs as discrete state, each tick's update writing the next tick's command
     (so the loop reads them from C++: one Python call a tick, which past a motion's
-    end only reads); the time a fault's landing started (NaN: none); how long
-    tracking has been lost (s). The watchdogs check every ``watchdog_period_s`` (s,
-    to the nearest whole tick): reading the five measurements costs ~20 us, a fifth of
-    the loop's headroom at every tick, and no fault needs a faster answer (the
-    amplifiers clamp the current themselves, the coils heat over a minute, the
-    controller rides out or lands a lost instrument on its own).
+    end only reads); the time a fault's landing started (NaN: none). The watchdogs
+    check every ``watchdog_period_s`` (s, to the nearest whole tick): reading the
+    measurements and checking them costs ~20-70 us, a large part of the loop's
+    headroom were it every tick, and no fault needs a faster answer (the amplifiers
+    clamp the current themselves, the coils heat over a minute, the controller lands
+    a lost instrument on its own).
     ``plan_landing(pose, enable) -> (setpoint, enable)`` trajectories (from 0) bring
     the instrument from ``pose`` onto the glass and ramp its force gain from
     ``enable`` to zero.
@@ -210,10 +210,11 @@ class DeviceSupervisor(LeafSystem):
         self._period_s = initial_motion.period_s
         # Every whole number of ticks nearest watchdog_period_s, at least every tick.
         self._watchdog_ticks = max(1, round(watchdog_period_s / self._period_s))
-        self._watchdog_period_s = self._watchdog_ticks * self._period_s
         self._pose = self.DeclareVectorInputPort("X_WI_measured", 7)
         self._velocity = self.DeclareVectorInputPort("V_WI_measured", 6)
-        self._tracking_ok = self.DeclareVectorInputPort("tracking_ok", 1)
+        # How long the controller has flown without tracking (s): its grace is the
+        # watchdog's, so the fault rises as the controller gives up and lands blind.
+        self._tracking_lost = self.DeclareVectorInputPort("tracking_lost_s", 1)
         self._currents = self.DeclareVectorInputPort("coil_currents", n_coils)
         self._temperatures = self.DeclareVectorInputPort("coil_temperature_c", n_coils)
         self._motion = self.DeclareAbstractState(AbstractValue.Make(initial_motion))
@@ -222,7 +223,6 @@ class DeviceSupervisor(LeafSystem):
         self._enable = self.DeclareDiscreteState(BasicVector(command[12:13]))
         self._fault_bits = self.DeclareDiscreteState(BasicVector([0.0]))
         self._landing_start = self.DeclareDiscreteState(BasicVector([math.nan]))
-        self._lost_s = self.DeclareDiscreteState(BasicVector([0.0]))  # tracking lost for (s)
         self._limits = self.DeclareAbstractParameter(AbstractValue.Make(limits))
         self.DeclareStateOutputPort("setpoint", self._setpoint)
         self.DeclareStateOutputPort("enable", self._enable)
@@ -301,15 +301,11 @@ class DeviceSupervisor(LeafSystem):
 
     def _watch(self, context, discrete_state, motion: Motion) -> bool:
         """Check the watchdogs; latch new faults; True if that started a landing."""
-        lost_s = (0.0 if self._tracking_ok.EvalBasicVector(context).GetAtIndex(0) > 0.5 else
-                  context.get_discrete_state(self._lost_s).GetAtIndex(0)
-                  + self._watchdog_period_s)
-        discrete_state.get_mutable_vector(self._lost_s).SetAtIndex(0, lost_s)
         latched = self.faults(context)
         raised = detect_faults(
             position_m=self._pose.EvalBasicVector(context).get_value()[4:7],
             velocity_m_s=self._velocity.EvalBasicVector(context).get_value()[3:6],
-            tracking_lost_s=lost_s,
+            tracking_lost_s=self._tracking_lost.EvalBasicVector(context).GetAtIndex(0),
             coil_currents_a=self._currents.EvalBasicVector(context).get_value(),
             coil_temperature_c=self._temperatures.EvalBasicVector(context).get_value(),
             carrying=context.get_discrete_state(self._enable).GetAtIndex(0) > 0.0,

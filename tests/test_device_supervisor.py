@@ -1,6 +1,8 @@
 """The device supervisor: the scripted flight as its first motion, the watchdogs'
 fault bits, and the landing a new fault starts."""
 
+import math
+
 import numpy as np
 import pytest
 from pydrake.systems.analysis import Simulator
@@ -56,7 +58,7 @@ def build(scenario):
     context = supervisor.CreateDefaultContext()
     pose = np.array([1.0, 0, 0, 0, 0.0, 0.0, 0.02])
     for port, value in (("X_WI_measured", pose), ("V_WI_measured", np.zeros(6)),
-                        ("tracking_ok", [1.0]), ("coil_currents", np.zeros(N_COILS)),
+                        ("tracking_lost_s", [0.0]), ("coil_currents", np.zeros(N_COILS)),
                         ("coil_temperature_c", np.full(N_COILS, 25.0))):
         supervisor.GetInputPort(port).FixValue(context, value)
     return supervisor, context, plan, spec
@@ -94,20 +96,25 @@ def test_a_new_fault_latches_and_lands_from_the_setpoint():
     supervisor, context, plan, spec = build(load_scenario("levitate"))
     simulator = Simulator(supervisor, context)  # each tick's update at its time
     hold_start_s, _ = plan.holds[0]
-    # Tracking lost: ridden out for the controller's 20 ms grace, a fault at the
-    # watchdog's first check after it (every 5 ms).
-    t_lost = hold_start_s + 0.5
+    # Tracking lost: ridden out for the controller's 20 ms grace, then a fault at the
+    # watchdog's first check (every 5 ms) after the controller gives up.
+    lost_input = supervisor.GetInputPort("tracking_lost_s")
+    # Hovering, two ticks after a check.
+    t_lost = math.ceil((hold_start_s + 0.5) / WATCHDOG_PERIOD_S) * WATCHDOG_PERIOD_S + 2 * TICK_S
     simulator.AdvanceTo(t_lost)  # the update at t_lost still to come
-    supervisor.GetInputPort("tracking_ok").FixValue(context, [0.0])
-    t_fault = t_lost
+    lost_input.FixValue(context, [LIMITS.lost_grace_s])
+    simulator.AdvanceTo(t_lost + 2 * WATCHDOG_PERIOD_S)
+    assert supervisor.faults(context) == 0
+    t_gave_up = t_lost + 2 * WATCHDOG_PERIOD_S
+    lost_input.FixValue(context, [LIMITS.lost_grace_s + TICK_S])
+    t_fault = t_gave_up
     while True:
         hover = supervisor.GetOutputPort("setpoint").Eval(context).copy()  # at t_fault
         simulator.AdvanceTo(t_fault + TICK_S)  # the update at t_fault done
         if supervisor.faults(context):
             break
         t_fault += TICK_S
-    assert 0.02 <= t_fault - t_lost + 1e-9 and t_fault - t_lost < 0.02 + WATCHDOG_PERIOD_S
-    assert round(t_fault / TICK_S) % round(WATCHDOG_PERIOD_S / TICK_S) == 0
+    assert t_fault - t_gave_up == pytest.approx(3 * TICK_S)  # the next multiple of 5 ms
     assert supervisor.faults(context) == FAULT_SENSOR_OUT_OF_RANGE
     assert supervisor.GetOutputPort("fault_bits").Eval(context)[0] == FAULT_SENSOR_OUT_OF_RANGE
     landing = supervisor.active_motion(context)
