@@ -5,9 +5,9 @@ It holds the commanded motion (a setpoint and a force-ramp trajectory from a sta
 time; a held pose is a motion that does not move) and the latched fault bits of
 ``device_status_t``: sensor out of range (tracking lost, or the instrument outside
 the boundary sphere), coil over-temperature (the thermal model's estimate), coil
-over-current, over-speed. Every tick it checks the measurements; a new fault latches
-and, unless a landing is under way, lands the instrument from where its setpoint is
-(a lost instrument the controller lands blind, whatever the setpoint).
+over-current, over-speed. Its watchdogs check the measurements every few ticks; a
+new fault latches and, unless a landing is under way, lands the instrument from where
+its setpoint is (a lost instrument the controller lands blind, whatever the setpoint).
 
 `maglev run`'s scripted flight is its first motion; the device API
 (``diagrams/device_api.py``) sets motions between ticks. So both fly, and fault,
