@@ -53,7 +53,6 @@ def watch_limits(scenario: Scenario) -> WatchLimits:
         current_limit_a=scenario.device.amplifier.current_limit_a,
         temperature_limit_c=coil_thermal(scenario.device).max_c,
         max_speed_m_s=watchdog.max_speed_m_s,
-        lost_grace_s=scenario.controller.lost_grace_s,
         boundary_center_m=tuple(watchdog.boundary_center_m),
         boundary_radius_m=watchdog.boundary_radius_m)
 
@@ -110,9 +109,10 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
     builder.Connect(station.GetOutputPort("coil_currents"), temperatures.get_input_port())
     supervisor = builder.AddNamedSystem("device_supervisor", DeviceSupervisor(
         initial_motion=initial_motion, limits=watch_limits(scenario),
+        lost_grace_s=scenario.controller.lost_grace_s,
         plan_landing=landing_planner(scenario.motion, spec.rest_height_m),
         n_coils=device.n_coils, watchdog_period_s=WATCHDOG_PERIOD_S))
-    for name in ("X_WI_measured", "V_WI_measured"):
+    for name in ("X_WI_measured", "V_WI_measured", "tracking_ok"):
         builder.Connect(estimator.GetOutputPort(name), supervisor.GetInputPort(name))
     builder.Connect(station.GetOutputPort("coil_currents"),
                     supervisor.GetInputPort("coil_currents"))
@@ -122,15 +122,15 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
     controller = builder.AddNamedSystem("levitation_controller", LevitationController(
         config=scenario.controller, mass_kg=spec.mass_kg,
         inertia_diag=np.diag(spec.inertia_about_I()),
-        period_s=tick_s, magnetics=magnetics, p_WA=device.p_WA,
+        magnetics=magnetics, p_WA=device.p_WA,
         current_limit_a=device.amplifier.current_limit_a))
 
     builder.Connect(station.GetOutputPort("markers_measured"),
                     estimator.GetInputPort("markers_measured"))
     for name in ("X_WI_measured", "V_WI_measured", "tracking_ok"):
         builder.Connect(estimator.GetOutputPort(name), controller.GetInputPort(name))
-    builder.Connect(controller.GetOutputPort("lost_time"),
-                    supervisor.GetInputPort("tracking_lost_s"))
+    builder.Connect(supervisor.GetOutputPort("tracking_lost_s"),
+                    controller.GetInputPort("tracking_lost_s"))
     haptics = None
     if scenario.haptics is None:
         builder.Connect(setpoint, controller.GetInputPort("setpoint"))

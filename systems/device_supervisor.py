@@ -133,26 +133,34 @@ class WatchLimits:
     current_limit_a: float  # the amplifiers' limit (A)
     temperature_limit_c: float  # the windings' (C)
     max_speed_m_s: float  # the instrument's (m/s)
-    # Tracking lost longer than this is a fault (s): the controller's grace, which
-    # rides out shorter dropouts carrying the weight alone.
-    lost_grace_s: float = 0.0
     boundary_center_m: Optional[tuple] = None  # the sphere it must stay in, in W (m)
     boundary_radius_m: Optional[float] = None  # (m); None: no boundary
 
 
-def detect_faults(*, position_m, velocity_m_s, tracking_lost_s: float, coil_currents_a,
+def tracking_lost_after(lost_s: float, tracking_ok: float, lost_grace_s: float,
+                        period_s: float) -> float:
+    """How long tracking has been lost (s) a tick of ``period_s`` (s) after ``lost_s``,
+    with the estimator's ``tracking_ok`` (1/0): back to 0 when tracking is good,
+    unless it was lost for longer than ``lost_grace_s`` (s): then it latches (the
+    controller has cut the coils; ``DeviceSupervisor.reset_faults`` clears it)."""
+    if tracking_ok > 0.5 and lost_s <= lost_grace_s:
+        return 0.0
+    return lost_s + period_s
+
+
+def detect_faults(*, position_m, velocity_m_s, tracking_lost: bool, coil_currents_a,
                   coil_temperature_c, carrying: bool, limits: WatchLimits) -> int:
-    """The FAULT_* bits these measurements raise (before latching), tracking having
-    been lost for ``tracking_lost_s`` (s; 0: tracked). The instrument's faults (lost,
-    outside the boundary, too fast) count only while the coils are ``carrying`` it:
-    resting with the coils off it is in no danger."""
+    """The FAULT_* bits these measurements raise (before latching), ``tracking_lost``
+    for longer than the controller's grace. The instrument's faults (lost, outside
+    the boundary, too fast) count only while the coils are ``carrying`` it: resting
+    with the coils off it is in no danger."""
     bits = 0
     if carrying:
         # Plain floats: math on numpy scalars costs several us a call.
         outside = (limits.boundary_radius_m is not None and math.dist(
             np.asarray(position_m).tolist(), limits.boundary_center_m)
             > limits.boundary_radius_m)
-        if tracking_lost_s > limits.lost_grace_s or outside:
+        if tracking_lost or outside:
             bits |= FAULT_SENSOR_OUT_OF_RANGE
         if math.hypot(*np.asarray(velocity_m_s).tolist()) > limits.max_speed_m_s:
             bits |= FAULT_OVER_SPEED
@@ -176,23 +184,28 @@ class DeviceSupervisor(LeafSystem):
         input_ports:
         - X_WI_measured
         - V_WI_measured
-        - tracking_lost_s
+        - tracking_ok
         - coil_currents
         - coil_temperature_c
         output_ports:
         - setpoint
         - enable
         - fault_bits
+        - tracking_lost_s
 
     - ``setpoint`` (12): [x y z roll pitch yaw] of I in W and their rates (m, rad;
       m/s, rad/s), the active motion's at the context's tick.
     - ``enable`` (1): the controller's force gain 0..1.
     - ``fault_bits`` (1): the latched FAULT_* bits.
+    - ``tracking_lost_s`` (1): how long tracking has been lost (s), counted every
+      tick and latched past ``lost_grace_s`` (``tracking_lost_after``): the
+      controller carries the weight alone through the grace, then cuts the coils.
 
     State: the commanded motion (abstract: ``initial_motion`` until set); the
     outputs as discrete state, each tick's update writing the next tick's command
     (so the loop reads them from C++: one Python call a tick, which past a motion's
-    end only reads); the time a fault's landing started (NaN: none). The watchdogs
+    end only reads); the time a fault's landing started (NaN: none); how long
+    tracking has been lost (s, the ``tracking_lost_s`` output). The watchdogs
     check every ``watchdog_period_s`` (s, to the nearest whole tick): reading the
     measurements and checking them costs ~20-70 us, a large part of the loop's
     headroom were it every tick, and no fault needs a faster answer (the amplifiers
@@ -203,18 +216,17 @@ class DeviceSupervisor(LeafSystem):
     ``enable`` to zero.
     """
 
-    def __init__(self, *, initial_motion: Motion, limits: WatchLimits,
+    def __init__(self, *, initial_motion: Motion, limits: WatchLimits, lost_grace_s: float,
                  plan_landing: Callable, n_coils: int, watchdog_period_s: float):
         super().__init__()
         self._plan_landing = plan_landing
+        self._lost_grace_s = float(lost_grace_s)
         self._period_s = initial_motion.period_s
         # Every whole number of ticks nearest watchdog_period_s, at least every tick.
         self._watchdog_ticks = max(1, round(watchdog_period_s / self._period_s))
         self._pose = self.DeclareVectorInputPort("X_WI_measured", 7)
         self._velocity = self.DeclareVectorInputPort("V_WI_measured", 6)
-        # How long the controller has flown without tracking (s): its grace is the
-        # watchdog's, so the fault rises as the controller gives up and lands blind.
-        self._tracking_lost = self.DeclareVectorInputPort("tracking_lost_s", 1)
+        self._tracking_ok = self.DeclareVectorInputPort("tracking_ok", 1)
         self._currents = self.DeclareVectorInputPort("coil_currents", n_coils)
         self._temperatures = self.DeclareVectorInputPort("coil_temperature_c", n_coils)
         self._motion = self.DeclareAbstractState(AbstractValue.Make(initial_motion))
@@ -223,10 +235,12 @@ class DeviceSupervisor(LeafSystem):
         self._enable = self.DeclareDiscreteState(BasicVector(command[12:13]))
         self._fault_bits = self.DeclareDiscreteState(BasicVector([0.0]))
         self._landing_start = self.DeclareDiscreteState(BasicVector([math.nan]))
+        self._lost_s = self.DeclareDiscreteState(BasicVector([0.0]))
         self._limits = self.DeclareAbstractParameter(AbstractValue.Make(limits))
         self.DeclareStateOutputPort("setpoint", self._setpoint)
         self.DeclareStateOutputPort("enable", self._enable)
         self.DeclareStateOutputPort("fault_bits", self._fault_bits)
+        self.DeclareStateOutputPort("tracking_lost_s", self._lost_s)
         # A context may start at any time: its command is that tick's from the start.
         self.DeclareInitializationDiscreteUpdateEvent(self._initialize)
         self.DeclarePeriodicDiscreteUpdateEvent(self._period_s, 0.0, self._update)
@@ -249,9 +263,12 @@ class DeviceSupervisor(LeafSystem):
         return landing
 
     def reset_faults(self, context) -> None:
-        """Clear the latched bits; a fault's landing stays the commanded motion."""
+        """Clear the latched bits, and a latched tracking loss if tracking is good
+        again (the controller then flies); a fault's landing stays the commanded motion."""
         self.set_motion(context, self.active_motion(context))
         context.SetDiscreteState(self._fault_bits, [0.0])
+        if self._tracking_ok.Eval(context)[0] > 0.5:
+            context.SetDiscreteState(self._lost_s, [0.0])
 
     def set_limits(self, context, limits: WatchLimits) -> None:
         context.get_mutable_abstract_parameter(self._limits).set_value(limits)
@@ -288,6 +305,12 @@ class DeviceSupervisor(LeafSystem):
         self._write_command(discrete_state, self.active_motion(context), self._tick(context))
 
     def _update(self, context, discrete_state):
+        lost_s = context.get_discrete_state(self._lost_s).GetAtIndex(0)
+        lost_after_s = tracking_lost_after(
+            lost_s, self._tracking_ok.EvalBasicVector(context).GetAtIndex(0),
+            self._lost_grace_s, self._period_s)
+        if lost_after_s != lost_s:
+            discrete_state.get_mutable_vector(self._lost_s).SetAtIndex(0, lost_after_s)
         tick = self._tick(context)
         motion = self.active_motion(context)
         started_landing = tick % self._watchdog_ticks == 0 and self._watch(
@@ -305,7 +328,8 @@ class DeviceSupervisor(LeafSystem):
         raised = detect_faults(
             position_m=self._pose.EvalBasicVector(context).get_value()[4:7],
             velocity_m_s=self._velocity.EvalBasicVector(context).get_value()[3:6],
-            tracking_lost_s=self._tracking_lost.EvalBasicVector(context).GetAtIndex(0),
+            tracking_lost=context.get_discrete_state(self._lost_s).GetAtIndex(0)
+            > self._lost_grace_s,
             coil_currents_a=self._currents.EvalBasicVector(context).get_value(),
             coil_temperature_c=self._temperatures.EvalBasicVector(context).get_value(),
             carrying=context.get_discrete_state(self._enable).GetAtIndex(0) > 0.0,

@@ -158,12 +158,12 @@ class LevitationController(LeafSystem):
         - pd_gain
         - brake_gain
         - wrench_feedforward_W
+        - tracking_lost_s
         output_ports:
         - wrench_commanded_W
         - wrench_rendered_W
         - coil_currents_commanded
         - allocation_shortfall_W
-        - lost_time
 
     ``coil_currents_commanded`` (n_coils, A) are the allocator's currents for the
     commanded wrench at the estimated pose, every coil within ``current_limit_a``;
@@ -173,18 +173,18 @@ class LevitationController(LeafSystem):
     pays for. Direct feedthrough: the amplifiers sample the currents at the
     control rate, so they always use the newest estimate.
 
-    The discrete state (1 kHz) is the time since tracking was lost (s;
-    0 while tracking), which the outputs read together with the inputs. The PD
+    ``tracking_lost_s`` is how long tracking has been lost (s; 0 while tracking),
+    latched once past ``lost_grace_s``: the device supervisor counts it
+    (``systems/device_supervisor.py``), which also raises the fault. No state: the PD
     gains ``kp`` and ``kd`` (6 each, ``pd_gains``) are numeric parameters 0 and 1
     (``set_gains``).
     """
 
     def __init__(self, *, config: ControllerConfig, mass_kg: float, inertia_diag,
-                 period_s: float, magnetics, p_WA, current_limit_a: float):
+                 magnetics, p_WA, current_limit_a: float):
         LeafSystem.__init__(self)
         self._config = config
         self._mass_kg = float(mass_kg)
-        self._period_s = float(period_s)
         kp, kd = pd_gains(config, mass_kg, np.asarray(inertia_diag, dtype=float))
         # Parameters, not constants: the device API sets them between ticks.
         self._kp = self.DeclareNumericParameter(BasicVector(kp))
@@ -200,8 +200,7 @@ class LevitationController(LeafSystem):
         self._pd_gain = self.DeclareVectorInputPort("pd_gain", 1)
         self._brake_gain = self.DeclareVectorInputPort("brake_gain", 1)
         self._feedforward = self.DeclareVectorInputPort("wrench_feedforward_W", 6)
-        self._lost_time = self.DeclareDiscreteState(1)
-        self.DeclarePeriodicDiscreteUpdateEvent(period_s, 0.0, self._update_lost_time)
+        self._tracking_lost = self.DeclareVectorInputPort("tracking_lost_s", 1)
         n = magnetics.n_coils
         # The matrix depends on the estimate alone, which changes at the tracker
         # rate; the command on everything, which changes every tick.
@@ -215,7 +214,7 @@ class LevitationController(LeafSystem):
             "command",
             ValueProducer(allocate=lambda: AbstractValue.Make(np.zeros(18 + n)),
                           calc=self._calc_command),
-            {self.all_input_ports_ticket(), self.xd_ticket(), self.all_parameters_ticket()})
+            {self.all_input_ports_ticket(), self.all_parameters_ticket()})
         for name, rows in (("wrench_commanded_W", slice(0, 6)),
                            ("wrench_rendered_W", slice(6, 12)),
                            ("coil_currents_commanded", slice(12, 12 + n)),
@@ -225,7 +224,6 @@ class LevitationController(LeafSystem):
                 lambda context, output, rows=rows: output.SetFromVector(
                     self._command.Eval(context)[rows]),
                 {self._command.ticket()})
-        self.DeclareStateOutputPort("lost_time", self._lost_time)
 
     def set_gains(self, context, kp=None, kd=None) -> None:
         """Per-axis gains in ``context`` (N/m, N*m/rad; N*s/m, N*m*s/rad; the axes of
@@ -247,15 +245,6 @@ class LevitationController(LeafSystem):
         # A scalar input without Eval's copy into a new array (~4 us a read).
         return port.EvalBasicVector(context).GetAtIndex(0)
 
-    def _update_lost_time(self, context, discrete_state):
-        lost_time = context.get_discrete_state(self._lost_time).GetAtIndex(0)
-        latched = lost_time > self._config.lost_grace_s
-        if self._scalar(self._tracking_ok, context) > 0.5 and not latched:
-            lost_time = 0.0
-        else:
-            lost_time += self._period_s
-        discrete_state.get_mutable_vector(self._lost_time).SetAtIndex(0, lost_time)
-
     def _calc_matrix(self, context, matrix):
         matrix.set_value(wrench_matrix_at(self._magnetics, self._p_WA, self._pose.Eval(context)))
 
@@ -265,7 +254,7 @@ class LevitationController(LeafSystem):
             self._velocity.Eval(context), self._scalar(self._tracking_ok, context),
             self._scalar(self._enable, context), self._scalar(self._pd_gain, context),
             self._scalar(self._brake_gain, context), self._feedforward.Eval(context),
-            context.get_discrete_state(self._lost_time).GetAtIndex(0),
+            self._scalar(self._tracking_lost, context),
             context.get_numeric_parameter(self._kp).CopyToVector(),
             context.get_numeric_parameter(self._kd).CopyToVector(), self._mass_kg, self._config)
         currents, shortfall, _ = allocate_currents(

@@ -13,21 +13,22 @@ from maglev_haptics.diagrams.scenario import ScenarioError, load_scenario
 from maglev_haptics.systems.blends import LANDING_PRESS_M
 from maglev_haptics.systems.device_supervisor import (
     FAULT_COIL_OVER_CURRENT, FAULT_COIL_OVER_TEMPERATURE, FAULT_OVER_SPEED,
-    FAULT_SENSOR_OUT_OF_RANGE, DeviceSupervisor, WatchLimits, detect_faults, make_motion)
+    FAULT_SENSOR_OUT_OF_RANGE, DeviceSupervisor, WatchLimits, detect_faults, make_motion,
+    tracking_lost_after)
 
 N_COILS = 27
 TICK_S = 1e-3
 WATCHDOG_PERIOD_S = 0.005
 LIMITS = WatchLimits(current_limit_a=4.0, temperature_limit_c=100.0, max_speed_m_s=0.5,
-                     lost_grace_s=0.02,
                      boundary_center_m=(0.0, 0.0, 0.02), boundary_radius_m=0.01)
-HEALTHY = dict(position_m=[0.0, 0.0, 0.02], velocity_m_s=[0.0, 0.0, 0.1], tracking_lost_s=0.0,
+LOST_GRACE_S = 0.02
+HEALTHY = dict(position_m=[0.0, 0.0, 0.02], velocity_m_s=[0.0, 0.0, 0.1], tracking_lost=False,
                coil_currents_a=np.full(N_COILS, 1.0), coil_temperature_c=np.full(N_COILS, 40.0),
                carrying=True, limits=LIMITS)
 
 
 @pytest.mark.parametrize("change, bit", [
-    ({"tracking_lost_s": 0.021}, FAULT_SENSOR_OUT_OF_RANGE),  # past the controller's grace
+    ({"tracking_lost": True}, FAULT_SENSOR_OUT_OF_RANGE),  # past the controller's grace
     ({"position_m": [0.0, 0.011, 0.02]}, FAULT_SENSOR_OUT_OF_RANGE),  # out of the sphere
     ({"velocity_m_s": [0.4, 0.0, -0.4]}, FAULT_OVER_SPEED),
     ({"coil_currents_a": np.r_[np.zeros(26), -4.01]}, FAULT_COIL_OVER_CURRENT),
@@ -35,12 +36,11 @@ HEALTHY = dict(position_m=[0.0, 0.0, 0.02], velocity_m_s=[0.0, 0.0, 0.1], tracki
 ])
 def test_each_watchdog_raises_its_bit(change, bit):
     assert detect_faults(**HEALTHY) == 0
-    assert detect_faults(**(HEALTHY | {"tracking_lost_s": 0.02})) == 0  # ridden out
     assert detect_faults(**(HEALTHY | change)) == bit
 
 
 def test_the_instruments_faults_count_only_while_the_coils_carry_it():
-    resting = HEALTHY | {"carrying": False, "tracking_lost_s": 1.0,
+    resting = HEALTHY | {"carrying": False, "tracking_lost": True,
                          "velocity_m_s": [0.0, 0.0, -1.0]}
     assert detect_faults(**resting) == 0
     # The coils' own faults count whatever they carry.
@@ -53,12 +53,13 @@ def build(scenario):
     plan = flight_plan(scenario.motion, spec.rest_height_m)
     supervisor = DeviceSupervisor(
         initial_motion=make_motion(plan.setpoint, plan.enable, 0.0, TICK_S), limits=LIMITS,
+        lost_grace_s=LOST_GRACE_S,
         plan_landing=landing_planner(scenario.motion, spec.rest_height_m), n_coils=N_COILS,
         watchdog_period_s=WATCHDOG_PERIOD_S)
     context = supervisor.CreateDefaultContext()
     pose = np.array([1.0, 0, 0, 0, 0.0, 0.0, 0.02])
     for port, value in (("X_WI_measured", pose), ("V_WI_measured", np.zeros(6)),
-                        ("tracking_lost_s", [0.0]), ("coil_currents", np.zeros(N_COILS)),
+                        ("tracking_ok", [1.0]), ("coil_currents", np.zeros(N_COILS)),
                         ("coil_temperature_c", np.full(N_COILS, 25.0))):
         supervisor.GetInputPort(port).FixValue(context, value)
     return supervisor, context, plan, spec
@@ -96,25 +97,20 @@ def test_a_new_fault_latches_and_lands_from_the_setpoint():
     supervisor, context, plan, spec = build(load_scenario("levitate"))
     simulator = Simulator(supervisor, context)  # each tick's update at its time
     hold_start_s, _ = plan.holds[0]
-    # Tracking lost: ridden out for the controller's 20 ms grace, then a fault at the
-    # watchdog's first check (every 5 ms) after the controller gives up.
-    lost_input = supervisor.GetInputPort("tracking_lost_s")
-    # Hovering, two ticks after a check.
+    # Tracking lost while hovering, two ticks after a watchdog check (every 5 ms):
+    # the lost time passes the controller's 20 ms grace at the 21st tick, the next
+    # check raises the fault.
     t_lost = math.ceil((hold_start_s + 0.5) / WATCHDOG_PERIOD_S) * WATCHDOG_PERIOD_S + 2 * TICK_S
     simulator.AdvanceTo(t_lost)  # the update at t_lost still to come
-    lost_input.FixValue(context, [LIMITS.lost_grace_s])
-    simulator.AdvanceTo(t_lost + 2 * WATCHDOG_PERIOD_S)
-    assert supervisor.faults(context) == 0
-    t_gave_up = t_lost + 2 * WATCHDOG_PERIOD_S
-    lost_input.FixValue(context, [LIMITS.lost_grace_s + TICK_S])
-    t_fault = t_gave_up
+    supervisor.GetInputPort("tracking_ok").FixValue(context, [0.0])
+    t_fault = t_lost
     while True:
         hover = supervisor.GetOutputPort("setpoint").Eval(context).copy()  # at t_fault
         simulator.AdvanceTo(t_fault + TICK_S)  # the update at t_fault done
         if supervisor.faults(context):
             break
         t_fault += TICK_S
-    assert t_fault - t_gave_up == pytest.approx(3 * TICK_S)  # the next multiple of 5 ms
+    assert t_fault - t_lost == pytest.approx(0.023)
     assert supervisor.faults(context) == FAULT_SENSOR_OUT_OF_RANGE
     assert supervisor.GetOutputPort("fault_bits").Eval(context)[0] == FAULT_SENSOR_OUT_OF_RANGE
     landing = supervisor.active_motion(context)
@@ -139,6 +135,33 @@ def test_a_new_fault_latches_and_lands_from_the_setpoint():
     assert supervisor.faults(context) == 0
     assert supervisor.active_motion(context) is landing
     assert supervisor.GetOutputPort("enable").Eval(context)[0] == 0.0
+
+
+def test_the_lost_time_counts_each_tick_and_latches_past_the_grace():
+    # Tracking back within the grace: the count starts again.
+    assert tracking_lost_after(0.0, 1.0, LOST_GRACE_S, TICK_S) == 0.0
+    assert tracking_lost_after(0.0, 0.0, LOST_GRACE_S, TICK_S) == TICK_S
+    assert tracking_lost_after(LOST_GRACE_S, 1.0, LOST_GRACE_S, TICK_S) == 0.0
+    # Past it the controller has cut the coils: tracking coming back does not undo it.
+    assert tracking_lost_after(LOST_GRACE_S + TICK_S, 1.0, LOST_GRACE_S, TICK_S) == \
+        pytest.approx(LOST_GRACE_S + 2 * TICK_S)
+    supervisor, context, _, _ = build(load_scenario("levitate"))
+    simulator = Simulator(supervisor, context)
+    simulator.AdvanceTo(1.0)
+    lost = supervisor.GetOutputPort("tracking_lost_s")
+    supervisor.GetInputPort("tracking_ok").FixValue(context, [0.0])
+    simulator.AdvanceTo(1.010)  # ten updates without tracking
+    assert lost.Eval(context)[0] == pytest.approx(0.010)
+    supervisor.GetInputPort("tracking_ok").FixValue(context, [1.0])
+    simulator.AdvanceTo(1.011)
+    assert lost.Eval(context)[0] == 0.0
+    supervisor.GetInputPort("tracking_ok").FixValue(context, [0.0])
+    simulator.AdvanceTo(1.041)
+    supervisor.GetInputPort("tracking_ok").FixValue(context, [1.0])
+    simulator.AdvanceTo(1.050)
+    assert lost.Eval(context)[0] == pytest.approx(0.039)  # latched
+    supervisor.reset_faults(context)
+    assert lost.Eval(context)[0] == 0.0 and supervisor.faults(context) == 0
 
 
 def test_a_bad_watchdog_names_its_field():
