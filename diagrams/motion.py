@@ -8,6 +8,7 @@ force ramp at haptics start and after touchdown).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import List, Tuple
 
@@ -18,7 +19,7 @@ from pydrake.trajectories import PiecewisePolynomial
 from maglev_haptics.diagrams.scenario import ScenarioError
 from maglev_haptics.hardware.constants import GRAVITY_M_S2
 from maglev_haptics.systems.blends import (
-    LANDING_PRESS_M, minimum_jerk_plan, minimum_jerk_samples)
+    LANDING_PRESS_M, minimum_jerk_moves, minimum_jerk_samples)
 from maglev_haptics.systems.current_allocator import allocate_currents
 
 IDLE_AFTER_S = 0.2  # the script ends this long after the currents are ramped to zero
@@ -52,16 +53,19 @@ def landing_poses(pose, rest_height_m: float) -> List[np.ndarray]:
 
 
 def landing_planner(motion, rest_height_m: float):
-    """``plan(pose, enable) -> (setpoint, enable)`` trajectories (from 0) of a landing
-    from ``pose`` [x, y, z, roll, pitch, yaw] (m, rad) with force gain ``enable``:
-    ``landing_poses`` at ``motion``'s landing time each, its settling on the glass,
-    then its force ramp down (a MotionScript's times)."""
-    def plan(pose, enable: float):
-        moves = [(goal, motion.landing_s, 0.0) for goal in landing_poses(pose, rest_height_m)]
-        down_s = len(moves) * motion.landing_s + motion.settle_s
-        return (minimum_jerk_plan(pose, 0.0, moves, 0.0),
-                PiecewisePolynomial.FirstOrderHold(
-                    [0.0, down_s, down_s + motion.force_ramp_s], [[enable, enable, 0.0]]))
+    """``plan(pose, enable, period_s) -> commands`` of a landing from ``pose`` [x, y,
+    z, roll, pitch, yaw] (m, rad) with force gain ``enable``, a row [pose (6); rates
+    (6); force gain] a tick of ``period_s`` (s) from its start: ``landing_poses`` at
+    ``motion``'s landing time each, its settling on the glass, then its force ramp
+    down (a MotionScript's times)."""
+    def plan(pose, enable: float, period_s: float):
+        goals = landing_poses(pose, rest_height_m)
+        down_s = len(goals) * motion.landing_s + motion.settle_s
+        end_s = down_s + motion.force_ramp_s
+        times_s = np.arange(math.ceil(round(end_s / period_s, 9)) + 1) * period_s
+        values, rates = minimum_jerk_moves(pose, goals, motion.landing_s, times_s)
+        return np.column_stack((values, rates, np.interp(
+            times_s, [0.0, down_s, end_s], [enable, enable, 0.0])))
     return plan
 
 

@@ -57,6 +57,24 @@ def minimum_jerk_plan(start, start_s: float, moves, tail_s: float):
                                             np.array(rates).T)
 
 
+def minimum_jerk_moves(start, goals, move_s: float, times_s):
+    """Exact minimum-jerk moves from ``start`` through each of ``goals`` in turn, each
+    taking ``move_s`` (s) from time 0, at ``times_s`` (s, (n,)): (values (n, d), rates
+    (per s) (n, d)); the last goal holds after. Vectorized: a fault's landing is
+    planned inside a tick (~0.2 ms for 2000 ticks)."""
+    times_s = np.asarray(times_s, dtype=float)
+    start = np.asarray(start, dtype=float)
+    values = np.tile(start, (len(times_s), 1))
+    rates = np.zeros_like(values)
+    for k, goal in enumerate(goals):
+        blend, blend_rate = minimum_jerk(np.clip(times_s / move_s - k, 0.0, 1.0))
+        step = np.asarray(goal, dtype=float) - start
+        values += blend[:, None] * step
+        rates += (blend_rate / move_s)[:, None] * step
+        start = goal
+    return values, rates
+
+
 def clipped_minimum_jerk(elapsed_s: float, duration_s: float):
     """(blend, d blend / dt in 1/s) ``elapsed_s`` into a move of ``duration_s`` (s);
     1 and 0 once it is over, 0 and 0 before it starts."""

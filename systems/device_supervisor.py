@@ -211,9 +211,9 @@ class DeviceSupervisor(LeafSystem):
     headroom were it every tick, and no fault needs a faster answer (the amplifiers
     clamp the current themselves, the coils heat over a minute, the controller lands
     a lost instrument on its own).
-    ``plan_landing(pose, enable) -> (setpoint, enable)`` trajectories (from 0) bring
-    the instrument from ``pose`` onto the glass and ramp its force gain from
-    ``enable`` to zero.
+    ``plan_landing(pose, enable, period_s) -> commands`` (a Motion's, from the
+    landing's start) bring the instrument from ``pose`` onto the glass and ramp its
+    force gain from ``enable`` to zero.
     """
 
     def __init__(self, *, initial_motion: Motion, limits: WatchLimits, lost_grace_s: float,
@@ -292,9 +292,9 @@ class DeviceSupervisor(LeafSystem):
 
     def _landing_from(self, motion: Motion, start_s: float) -> Motion:
         setpoint, enable = motion.at(start_s)
-        pose_trajectory, enable_trajectory = self._plan_landing(setpoint[0:6], enable)
-        return make_motion(pose_trajectory, enable_trajectory, start_s, self._period_s,
-                           landing=True)
+        return Motion(commands=self._plan_landing(setpoint[0:6], enable, self._period_s),
+                      first_tick=round(start_s / self._period_s), period_s=self._period_s,
+                      start_s=start_s, landing=True)
 
     def _write_command(self, discrete_state, motion: Motion, tick: int) -> None:
         command = motion.at_tick(tick)

@@ -10,7 +10,8 @@ from pydrake.systems.primitives import TrajectorySource
 
 from maglev_haptics.diagrams.motion import flight_plan, landing_planner
 from maglev_haptics.diagrams.scenario import ScenarioError, load_scenario
-from maglev_haptics.systems.blends import LANDING_PRESS_M
+from maglev_haptics.systems.blends import (
+    LANDING_PRESS_M, minimum_jerk_moves, minimum_jerk_plan)
 from maglev_haptics.systems.device_supervisor import (
     FAULT_COIL_OVER_CURRENT, FAULT_COIL_OVER_TEMPERATURE, FAULT_OVER_SPEED,
     FAULT_SENSOR_OUT_OF_RANGE, DeviceSupervisor, WatchLimits, detect_faults, make_motion,
@@ -162,6 +163,23 @@ def test_the_lost_time_counts_each_tick_and_latches_past_the_grace():
     assert lost.Eval(context)[0] == pytest.approx(0.039)  # latched
     supervisor.reset_faults(context)
     assert lost.Eval(context)[0] == 0.0 and supervisor.faults(context) == 0
+
+
+def test_a_landing_is_the_scripts_minimum_jerk_moves_sampled_at_the_ticks():
+    """The landing's exact minimum-jerk samples against the cubic Hermite fit the
+    motion script flies (which errs by < 1e-7 of a move's amplitude)."""
+    start = np.array([0.01, -0.005, 0.03, 0.2, -0.1, 0.5])
+    goals = [np.array([0.01, -0.005, 0.03, 0.0, 0.0, 0.5]),
+             np.array([0.01, -0.005, 0.006, 0.0, 0.0, 0.5])]
+    times_s = np.arange(0, 2200) * TICK_S
+    values, rates = minimum_jerk_moves(start, goals, 1.0, times_s)
+    fit = minimum_jerk_plan(start, 0.0, [(goal, 1.0, 0.0) for goal in goals], 0.2)
+    np.testing.assert_allclose(values, fit.vector_values(times_s).T, rtol=0, atol=1e-7)
+    np.testing.assert_allclose(rates, fit.MakeDerivative(1).vector_values(times_s).T,
+                               rtol=0, atol=2e-6)
+    np.testing.assert_array_equal(values[0], start)
+    np.testing.assert_allclose(values[-1], goals[-1], rtol=0, atol=1e-15)
+    assert not rates[0].any() and not rates[-1].any()
 
 
 def test_a_bad_watchdog_names_its_field():
