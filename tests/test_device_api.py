@@ -6,6 +6,7 @@ import pytest
 
 from maglev_haptics.diagrams.device_api import (
     FAULT_SENSOR_OUT_OF_RANGE, DeviceFaultError, DeviceTimeoutError, MaglevDevice)
+from maglev_haptics.diagrams.scenario import load_scenario
 
 REST_Z_M = 0.0067  # the two-magnet instrument's origin resting on the glass (about, m)
 
@@ -98,3 +99,25 @@ def test_a_takeoff_that_cannot_finish_times_out_and_lands():
         device.set_desired_pose([0.0, 0.0, 0.2, 0.0, 0.0, 0.0])
     with pytest.raises(ValueError, match="kp = .*must be 6 finite gains >= 0"):
         device.set_gains(kp=[-1.0] * 6)
+
+
+def test_after_tracking_is_lost_and_back_a_reset_lets_it_fly_again():
+    """Tracking lost past the grace: the controller cuts the coils and the instrument
+    falls onto the glass, the fault latches; once tracking is back, reset_faults
+    clears the latched loss and a takeoff flies."""
+    scenario = load_scenario(
+        "levitate", scenario_text="{occlusions: [{marker: null, start_s: 4.0, end_s: 4.3}]}")
+    device = MaglevDevice(scenario)
+    device.connect()
+    device.takeoff()
+    assert device.state.t_s < 4.0
+    device.run_for(4.5 - device.state.t_s)
+    assert device.faults == FAULT_SENSOR_OUT_OF_RANGE
+    assert device.state.X_WI[6] == pytest.approx(REST_Z_M, abs=1.5e-3)  # fell onto the glass
+    assert not commanded_wrench(device).any()  # every coil off
+    device.reset_faults()
+    device.takeoff()
+    hover = np.asarray(device.scenario.motion.waypoints[0].pose)
+    assert np.linalg.norm(device.state.X_WI[4:7] - hover[0:3]) < 0.5e-3
+    device.land()
+    device.disconnect()
