@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import List, Optional, Union
 
 import yaml
-from pydrake.common.yaml import yaml_load_data, yaml_load_typed
+from pydrake.common.yaml import yaml_dump, yaml_load_data, yaml_load_typed
 from pydrake.multibody.plant import MultibodyPlantConfig
 
 from maglev_haptics.diagrams.deformable_scene import DeformableSurface
@@ -243,9 +243,16 @@ def _schema_at(raw, keys):
 def _check_union_tags(raw, schema, keys=()) -> None:
     """Refuse an untagged mapping where a field holds one of several kinds: Drake's
     loader would silently read it as the Union's first kind (a hanging ball's
-    ``scene: {contact: ...}`` as a fresh PegInHole). The one check Drake lacks."""
+    ``scene: {contact: ...}`` as a fresh PegInHole), and keep a scalar there as the
+    field's value. The checks Drake lacks."""
     if typing.get_origin(schema) is Union:
         options = [a for a in typing.get_args(schema) if a is not type(None)]
+        kinds = [option for option in options if dataclasses.is_dataclass(option)]
+        if len(kinds) > 1 and raw is not None and not isinstance(raw, dict):
+            # Drake's loader would keep the scalar as the field's value.
+            raise ScenarioError(f"{_field_path(keys)} = {_flow_yaml(raw)}: must be one of "
+                                + ", ".join(f"!{kind.__name__} {{...}}" for kind in kinds)
+                                + (", or null" if type(None) in typing.get_args(schema) else ""))
         if len(options) > 1 and isinstance(raw, dict):
             named = {option.__name__: option for option in options}
             tags = ", ".join(f"!{name}" for name in named)
@@ -266,16 +273,52 @@ def _check_union_tags(raw, schema, keys=()) -> None:
                 _check_union_tags(value, hints[key], keys + (key,))
 
 
-def _load_typed(source: str, raw: dict, load):
+# What Drake's YAML loader raises on data that does not fit the schema (its Python
+# half asserts, converts with float() and iterates).
+LOAD_ERRORS = (RuntimeError, ValueError, TypeError, AssertionError)
+
+
+def _with_only(raw: dict, keys) -> dict:
+    """``raw`` cut down to the field at ``keys`` (its whole value) and the tags of
+    the mappings on the way."""
+    if not keys:
+        return raw
+    cut = {"_tag": raw["_tag"]} if "_tag" in raw else {}
+    cut[keys[0]] = _with_only(raw[keys[0]], keys[1:]) if len(keys) > 1 else raw[keys[0]]
+    return cut
+
+
+def _failing_field(raw: dict, load_raw) -> tuple:
+    """The deepest key path in ``raw`` whose field alone ``load_raw`` still refuses
+    (down through mappings; a list is one field); () if none does alone."""
+    keys, node = (), raw
+    while isinstance(node, dict):
+        for key, value in node.items():
+            if key == "_tag":
+                continue
+            try:
+                load_raw(_with_only(raw, keys + (key,)))
+            except LOAD_ERRORS:
+                keys, node = keys + (key,), value
+                break
+        else:
+            break
+    return keys
+
+
+def _load_typed(source: str, raw: dict, load, load_raw):
     """``load()`` (Drake's yaml_load_typed, which checks keys, types and tags); its
-    error as a ScenarioError that names the field's path, found in ``raw``."""
+    error as a ScenarioError that names the field's path: found in ``raw`` from the
+    names the error quotes, else by loading ``raw``'s fields alone (``load_raw(raw)``)."""
     try:
         _check_union_tags(raw, Scenario)
         return load()
     except ScenarioError as error:
         raise ScenarioError(f"{source}: {error}") from None
-    except (RuntimeError, ValueError, TypeError) as error:
-        message = str(error).splitlines()[0]
+    except LOAD_ERRORS as error:
+        # Its one assert on data: a value where a mapping of fields belongs.
+        message = ("expected a mapping of its fields" if isinstance(error, AssertionError)
+                   else (str(error).splitlines() or [type(error).__name__])[0])
         # Drake names a Union's options as classes: say them as the tags to write.
         message = re.sub(r"\(\((.*)\)\)", lambda options: "(" + ", ".join(
             f"!{name}" for name in re.findall(r"<class '[\w.]*?(\w+)'>", options[1])
@@ -287,8 +330,27 @@ def _load_typed(source: str, raw: dict, load):
             if dataclasses.is_dataclass(parent):
                 message = (f"unknown field; {parent.__name__} has "
                            + ", ".join(f.name for f in dataclasses.fields(parent)))
-        where = f" {', '.join(_field_path(path) for path in paths)}:" if paths else ""
-        raise ScenarioError(f"{source}:{where} {message}") from None
+        if not paths:  # the error names no field: find it, and say what it takes
+            keys = _failing_field(raw, load_raw)
+            if keys:
+                value = raw
+                for key in keys:
+                    value = value[key]
+                raise ScenarioError(
+                    f"{source}: {_field_path(keys)} = {_flow_yaml(value)}: must be "
+                    f"{_type_name(_schema_at(raw, keys))} ({message})") from None
+        where = ", ".join(_field_path(path) for path in paths)
+        raise ScenarioError(f"{source}: {where + ': ' if where else ''}{message}") from None
+
+
+def _flow_yaml(value) -> str:
+    return yaml.safe_dump(value, default_flow_style=True, width=1000).strip().removesuffix(
+        "...").strip()
+
+
+def _type_name(hint) -> str:
+    """``float``, ``List[float]``, ``Optional[float]``: a schema type as a user reads it."""
+    return hint.__name__ if isinstance(hint, type) else str(hint).replace("typing.", "")
 
 
 def scenario_names(path: Path) -> List[str]:
@@ -309,10 +371,12 @@ def load_scenario(name_or_path: str, name: Optional[str] = None,
         raise ScenarioError(f"{path}: no scenario named {name!r}; it has {', '.join(names)}")
     label = f"{path.stem}:{name}"
     scenario = _load_typed(label, raw[name] or {}, lambda: yaml_load_typed(
-        schema=Scenario, data=text, child_name=name, defaults=Scenario()))
+        schema=Scenario, data=text, child_name=name, defaults=Scenario()),
+        lambda cut: yaml_load_typed(schema=Scenario, data=yaml_dump(cut), defaults=Scenario()))
     layered = _parse_mapping(scenario_text, "--scenario-text")
     scenario = _load_typed(f"{label} (--scenario-text)", layered, lambda: yaml_load_typed(
-        schema=Scenario, data=scenario_text, defaults=scenario))
+        schema=Scenario, data=scenario_text, defaults=scenario),
+        lambda cut: yaml_load_typed(schema=Scenario, data=yaml_dump(cut), defaults=scenario))
     validate_scenario(scenario, label)
     return scenario
 
