@@ -6,8 +6,10 @@ import numpy as np
 import pytest
 
 from maglev_haptics.analysis.run_results import run_scenario
+from maglev_haptics.diagrams.application import WATCHDOG_PERIOD_S
 from maglev_haptics.diagrams.cli import main
 from maglev_haptics.diagrams.scenario import load_scenario, scenario_names, shipped_scenario_files
+from maglev_haptics.systems.device_supervisor import FAULT_SENSOR_OUT_OF_RANGE
 
 LIMIT_A = 4.0
 
@@ -100,6 +102,12 @@ def test_lost_instrument_drops_level_onto_the_glass(name, hover_z):
     cut = log["t"] > lost_at + scenario.controller.lost_grace_s + 0.01
     assert log["tracking_ok"][-1] == 0.0
     assert np.max(np.abs(log["coil_currents"][cut])) < 1e-3  # the coils go dead
+    # The fault is in the log by the watchdog's first check after the grace (the
+    # loss itself is seen up to a tracker period plus its latency late).
+    raised_s = log["t"][np.flatnonzero(log["fault_bits"] == FAULT_SENSOR_OUT_OF_RANGE)[0]]
+    assert lost_at + scenario.controller.lost_grace_s < raised_s <= \
+        lost_at + scenario.controller.lost_grace_s + WATCHDOG_PERIOD_S + 0.004
+    assert np.all(log["fault_bits"][log["t"] >= raised_s] == FAULT_SENSOR_OUT_OF_RANGE)
     assert np.max(np.abs(log["coil_currents"])) <= LIMIT_A
     # It drops level, lands where it was, and rests on its pads, not in the glass.
     touchdown = summary["touchdown"]
