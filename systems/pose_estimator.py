@@ -69,6 +69,15 @@ class PoseEstimatorConfig:
     # Each update reads the sensor's latched sample this long after it was
     # published; 0 would read the one before it (a hand-off of one tracker period).
     processing_delay_s: float = 20e-6
+    # A fit this far from the filter's prediction is implausible (a reflection taken
+    # for a marker, markers swapped) and is read as unseen: 5 mm and 0.2 rad in one
+    # sample are 4.3 m/s and 170 rad/s at 860 Hz, beyond any hand [m, rad].
+    max_jump_m: float = 0.005
+    max_jump_rad: float = 0.2
+    # After a jump only a fit that is no jump from the last good pose is taken, for
+    # this long [s]; then any (re-acquisition). A jump that persists is a lost
+    # instrument: the controller cuts the coils after its grace (20 ms), well before.
+    jump_hold_s: float = 0.1
 
 
 # --- rigid fit ---------------------------------------------------------------
@@ -262,12 +271,39 @@ def filter_update(x_hat: np.ndarray, V: np.ndarray, x_meas: np.ndarray,
     return x_new, V_new
 
 
-@kernel((VECTOR, MATRIX, SCALAR, SCALAR, SCALAR, SCALAR, VECTOR, VECTOR, VECTOR, VECTOR))
+@numba.njit(cache=True)
+def _is_jump(x_hat, V, x_WI, period_s, max_jump_m, max_jump_rad):
+    """Whether the fit ``x_WI`` is farther than ``max_jump_m`` (m) from the filter's
+    predicted position, or turned more than ``max_jump_rad`` (rad) from its
+    orientation (the turn predicted in one sample is far below the limit)."""
+    dx = x_WI[4] - (x_hat[4] + V[3] * period_s)
+    dy = x_WI[5] - (x_hat[5] + V[4] * period_s)
+    dz = x_WI[6] - (x_hat[6] + V[5] * period_s)
+    cos_half = abs(x_WI[0] * x_hat[0] + x_WI[1] * x_hat[1] + x_WI[2] * x_hat[2]
+                   + x_WI[3] * x_hat[3])
+    return (math.sqrt(dx * dx + dy * dy + dz * dz) > max_jump_m
+            or cos_half < math.cos(max_jump_rad / 2))
+
+
+@kernel((VECTOR, MATRIX, SCALAR, SCALAR, SCALAR, SCALAR, SCALAR, SCALAR, SCALAR,
+         VECTOR, VECTOR, VECTOR, VECTOR, VECTOR))
 def _estimator_update(markers_W, p_IK, residual_limit_m, alpha, beta, period_s,
-                      X, V, ok, x_hat):
+                      max_jump_m, max_jump_rad, jump_hold_s, X, V, ok, x_hat, jump_s):
     """PoseEstimator's update on one tracker sample, in place on its state
-    groups X (7), V (6), ok (1) and x_hat (7), which hold the previous values."""
+    groups X (7), V (6), ok (1), x_hat (7) and jump_s (1: time since a jump was
+    refused, s; -1: none), which hold the previous values."""
     good, x_WI = _measured_pose(markers_W, p_IK, residual_limit_m)
+    if jump_s[0] >= 0.0:
+        jump_s[0] += period_s
+        if jump_s[0] > jump_hold_s:
+            jump_s[0] = -1.0  # held long enough: the next good fit re-acquires
+    if good and (ok[0] > 0.5 or jump_s[0] >= 0.0):
+        if _is_jump(x_hat, V, x_WI, period_s, max_jump_m, max_jump_rad):
+            good = False
+            if jump_s[0] < 0.0:
+                jump_s[0] = 0.0
+        else:
+            jump_s[0] = -1.0
     if not good:
         # Lost: X already holds the last pose; stop moving.
         V[:] = 0.0
@@ -338,9 +374,13 @@ class PoseEstimator(LeafSystem):
     each of the sensor's samples, whose latched value it reads (so the result
     does not hang on the order of same-time events). The outputs are discrete state
     (groups 0-2), so they hold between updates; group 3 is the filter's own
-    pose [q_hat; p_hat]. After a loss, the first good sample resets the filter
-    to it with zero velocity. Before the first good sample the outputs are the
-    identity pose, zero velocity, tracking_ok 0.
+    pose [q_hat; p_hat], group 4 the time since a jump was refused (s; -1:
+    none). After a loss, the first good sample resets the filter to it with zero
+    velocity. A fit that jumps from the filter's prediction by more than
+    ``max_jump_m`` or ``max_jump_rad`` reads as unseen (tracking_ok 0), and for
+    ``jump_hold_s`` after it only a fit near the last good pose is taken. Before
+    the first good sample the outputs are the identity pose, zero velocity,
+    tracking_ok 0.
     """
 
     def __init__(self, instrument: InstrumentSpec, tracker: TrackerSpec,
@@ -357,6 +397,11 @@ class PoseEstimator(LeafSystem):
         if not (math.isfinite(config.max_residual_sigma) and config.max_residual_sigma > 0):
             raise ValueError(
                 f"pose_estimator.max_residual_sigma = {config.max_residual_sigma}: must be > 0")
+        for name, unit in (("max_jump_m", "m"), ("max_jump_rad", "rad"), ("jump_hold_s", "s")):
+            value = getattr(config, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"pose_estimator.{name} = {value}: must be > 0 ({unit})")
+        self._jump_limits = (config.max_jump_m, config.max_jump_rad, config.jump_hold_s)
         delay_s = config.processing_delay_s
         if not (math.isfinite(delay_s) and 0 <= delay_s < self._period_s):
             raise ValueError(
@@ -374,6 +419,7 @@ class PoseEstimator(LeafSystem):
         self._V_index = self.DeclareDiscreteState(6)
         self._ok_index = self.DeclareDiscreteState(1)
         self._filter_index = self.DeclareDiscreteState(BasicVector(_IDENTITY_POSE))
+        self._jump_index = self.DeclareDiscreteState(BasicVector([-1.0]))
         self.DeclarePeriodicDiscreteUpdateEvent(self._period_s, delay_s, self._update)
         self._X_WI_measured = self.DeclareStateOutputPort("X_WI_measured", self._X_index)
         self._V_WI_measured = self.DeclareStateOutputPort("V_WI_measured", self._V_index)
@@ -393,8 +439,9 @@ class PoseEstimator(LeafSystem):
         # discrete_state starts as a copy of the current state: update it in place.
         _estimator_update(
             self._markers.Eval(context), self._model.p_IK, self._residual_limit_m,
-            self._alpha, self._beta, self._period_s,
+            self._alpha, self._beta, self._period_s, *self._jump_limits,
             discrete_state.get_mutable_value(self._X_index),
             discrete_state.get_mutable_value(self._V_index),
             discrete_state.get_mutable_value(self._ok_index),
-            discrete_state.get_mutable_value(self._filter_index))
+            discrete_state.get_mutable_value(self._filter_index),
+            discrete_state.get_mutable_value(self._jump_index))

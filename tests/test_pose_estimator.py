@@ -418,3 +418,42 @@ def test_bad_config_is_named(tracker, config, match):
 def test_bad_marker_model_is_named(p_IK, match):
     with pytest.raises(ValueError, match=match):
         PoseEstimator(dataclasses.replace(INSTRUMENT, p_IK_m=p_IK), TrackerSpec())
+
+
+def test_a_jump_reads_as_unseen_and_only_a_fit_near_the_last_pose_is_taken_for_a_while():
+    estimator, context = make_estimator()
+    config = PoseEstimatorConfig()
+
+    def sample(rotation, p_WI):
+        return update(estimator, context,
+                      marker_positions_W(pose_vector(rotation, p_WI), P_IK).ravel())
+
+    here = np.array([0.0, 0.0, 0.02])
+    for _ in range(5):
+        X, _, ok = sample(LEVEL, here)
+    assert ok == 1.0
+    # Fast but plausible: 1 mm a sample (0.86 m/s) is tracked.
+    for k in range(1, 4):
+        X, _, ok = sample(LEVEL, here + [1e-3 * k, 0.0, 0.0])
+        assert ok == 1.0
+    here = X[4:7].copy()
+    # A 1 cm jump in one sample: unseen, the pose held, the velocity zeroed.
+    X, V, ok = sample(LEVEL, here + [0.01, 0.0, 0.0])
+    assert ok == 0.0 and np.array_equal(X[4:7], here) and not V.any()
+    # Back where it was: taken (a one-sample glitch is ridden through).
+    X, _, ok = sample(LEVEL, here)
+    assert ok == 1.0
+    # Three markers swapped round (a 120 deg turn about the axis, same place).
+    swapped = Rotation.from_euler("z", 120, degrees=True)
+    _, _, ok = sample(swapped, here)
+    assert ok == 0.0
+    # A jump that persists is refused for jump_hold_s, then re-acquired.
+    refused = 1
+    while True:
+        X, V, ok = sample(swapped, here)
+        if ok:
+            break
+        refused += 1
+    assert config.jump_hold_s <= refused * T <= config.jump_hold_s + 1.5 * T
+    assert not V.any()
+    assert_same_pose(X, pose_vector(swapped, here), atol=1e-9)
