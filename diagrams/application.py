@@ -123,7 +123,10 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
         config=scenario.controller, mass_kg=spec.mass_kg,
         inertia_diag=np.diag(spec.inertia_about_I()),
         magnetics=magnetics, p_WA=device.p_WA,
-        current_limit_a=device.amplifier.current_limit_a))
+        current_limit_a=device.amplifier.current_limit_a, thermal=coil_thermal(device)))
+    builder.Connect(temperatures.get_output_port(), controller.GetInputPort("coil_temperature_c"))
+    builder.Connect(controller.GetOutputPort("thermally_limited"),
+                    supervisor.GetInputPort("thermally_limited"))
 
     builder.Connect(station.GetOutputPort("markers_measured"),
                     estimator.GetInputPort("markers_measured"))

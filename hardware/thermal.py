@@ -27,6 +27,7 @@ import numba
 import numpy as np
 
 from maglev_haptics.hardware.device import CoilSpec, DeviceConfig, ThermalSpec
+from maglev_haptics.hardware.kernels import SCALAR, VECTOR, kernel
 
 COPPER_DENSITY_KG_M3 = 8960.0
 COPPER_SPECIFIC_HEAT_J_PER_KG_K = 385.0
@@ -180,3 +181,65 @@ def time_to_temperature_s(model: CoilThermal, temperature_c, current_a, target_c
     # and at the start (1 + x > 0, as the rate is linear in theta).
     time = np.where((growth > 0) & (1 + x > 0), time, np.inf)
     return np.where(gap <= 0, 0.0, time)[()]
+
+
+@dataclass(frozen=True)
+class ThermalBudget:
+    """Each coil's current bound [A] as its winding warms: the largest current that,
+    held, would not take the winding past ``target_c`` [deg C] within ``horizon_s``
+    [s], and never above ``current_limit_a`` [A]. At and above ``target_c`` it is
+    the current that holds the winding at ``target_c``. Tabulated over temperature
+    (``bound_a[k]`` at ``lowest_c + k * step_c``), read by ``current_bounds_a``."""
+
+    horizon_s: float
+    target_c: float
+    current_limit_a: float
+    lowest_c: float
+    step_c: float
+    bound_a: np.ndarray
+
+
+def thermal_budget(model: CoilThermal, *, horizon_s: float, margin_c: float,
+                   current_limit_a: float, points: int = 512) -> ThermalBudget:
+    """The budget that keeps each winding ``margin_c`` [K] under its limit, tabulated
+    from 50 K below ambient to the target (bisection on ``time_to_temperature_s``)."""
+    target_c = model.max_c - margin_c
+    if not target_c > model.ambient_c:
+        raise ValueError(f"controller.thermal_margin_c = {margin_c!r}: must leave the target "
+                         f"above ambient ({model.max_c} - margin > {model.ambient_c} C)")
+    lowest_c = model.ambient_c - 50.0
+    temperature_c = np.linspace(lowest_c, target_c, points)
+    steady = math.sqrt((target_c - model.ambient_c) / model.thermal_resistance_k_per_w
+                       / float(winding_resistance_ohm(model, target_c)))  # holds target_c
+    low = np.full(points, min(steady, current_limit_a))  # never reaches the target
+    high = np.full(points, float(current_limit_a))
+    for _ in range(60):
+        middle = 0.5 * (low + high)
+        allowed = time_to_temperature_s(model, temperature_c, middle, target_c) >= horizon_s
+        low = np.where(allowed, middle, low)
+        high = np.where(allowed, high, middle)
+    allowed = time_to_temperature_s(model, temperature_c, current_limit_a, target_c) >= horizon_s
+    bound = np.where(allowed, current_limit_a, low)
+    bound[-1] = min(steady, current_limit_a)
+    return ThermalBudget(horizon_s=float(horizon_s), target_c=target_c,
+                         current_limit_a=float(current_limit_a), lowest_c=lowest_c,
+                         step_c=float(temperature_c[1] - temperature_c[0]), bound_a=bound)
+
+
+@kernel((VECTOR, SCALAR, SCALAR, VECTOR))
+def _interpolated(x, lowest, step, table):
+    """``table`` (at lowest + k step) linearly interpolated at each of ``x``, held
+    at its ends."""
+    result = np.empty(x.size)
+    last = table.size - 1
+    for j in range(x.size):
+        position = min(max((x[j] - lowest) / step, 0.0), float(last))
+        k = min(int(position), last - 1)
+        fraction = position - k
+        result[j] = (1.0 - fraction) * table[k] + fraction * table[k + 1]
+    return result
+
+
+def current_bounds_a(budget: ThermalBudget, temperature_c: np.ndarray) -> np.ndarray:
+    """Each coil's bound [A] at its winding temperature [deg C]."""
+    return _interpolated(temperature_c, budget.lowest_c, budget.step_c, budget.bound_a)

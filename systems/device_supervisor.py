@@ -4,8 +4,9 @@ faults that end it (the MLHI device's state machine, in the diagram).
 It holds the commanded motion (a setpoint and a force-ramp trajectory from a start
 time; a held pose is a motion that does not move) and the latched fault bits of
 ``device_status_t``: sensor out of range (tracking lost, or the instrument outside
-the boundary sphere), coil over-temperature (the thermal model's estimate), coil
-over-current, over-speed. Its watchdogs check the measurements every few ticks; a
+the boundary sphere), coil over-temperature (the thermal model's estimate past the
+windings' limit, or the coils too warm to carry what is asked within their thermal
+budget), coil over-current, over-speed. Its watchdogs check the measurements every few ticks; a
 new fault latches and, unless a landing is under way, lands the instrument from where
 its setpoint is (a lost instrument the controller lands blind, whatever the setpoint).
 
@@ -149,13 +150,17 @@ def tracking_lost_after(lost_s: float, tracking_ok: float, lost_grace_s: float,
 
 
 def detect_faults(*, position_m, velocity_m_s, tracking_lost: bool, coil_currents_a,
-                  coil_temperature_c, carrying: bool, limits: WatchLimits) -> int:
+                  coil_temperature_c, thermally_limited: bool, carrying: bool,
+                  limits: WatchLimits) -> int:
     """The FAULT_* bits these measurements raise (before latching), ``tracking_lost``
-    for longer than the controller's grace. The instrument's faults (lost, outside
-    the boundary, too fast) count only while the coils are ``carrying`` it: resting
-    with the coils off it is in no danger."""
+    for longer than the controller's grace, ``thermally_limited`` the controller's
+    flag that warm coils' budgets cut the wrench short. The instrument's faults (lost,
+    outside the boundary, too fast, the coils too warm to carry it) count only while
+    the coils are ``carrying`` it: resting with the coils off it is in no danger."""
     bits = 0
     if carrying:
+        if thermally_limited:
+            bits |= FAULT_COIL_OVER_TEMPERATURE
         # Plain floats: math on numpy scalars costs several us a call.
         outside = (limits.boundary_radius_m is not None and math.dist(
             np.asarray(position_m).tolist(), limits.boundary_center_m)
@@ -187,6 +192,7 @@ class DeviceSupervisor(LeafSystem):
         - tracking_ok
         - coil_currents
         - coil_temperature_c
+        - thermally_limited
         output_ports:
         - setpoint
         - enable
@@ -229,6 +235,7 @@ class DeviceSupervisor(LeafSystem):
         self._tracking_ok = self.DeclareVectorInputPort("tracking_ok", 1)
         self._currents = self.DeclareVectorInputPort("coil_currents", n_coils)
         self._temperatures = self.DeclareVectorInputPort("coil_temperature_c", n_coils)
+        self._thermally_limited = self.DeclareVectorInputPort("thermally_limited", 1)
         self._motion = self.DeclareAbstractState(AbstractValue.Make(initial_motion))
         command = initial_motion.at_tick(0)
         self._setpoint = self.DeclareDiscreteState(BasicVector(command[0:12]))
@@ -332,6 +339,8 @@ class DeviceSupervisor(LeafSystem):
             > self._lost_grace_s,
             coil_currents_a=self._currents.EvalBasicVector(context).get_value(),
             coil_temperature_c=self._temperatures.EvalBasicVector(context).get_value(),
+            thermally_limited=self._thermally_limited.EvalBasicVector(context).GetAtIndex(0)
+            > 0.5,
             carrying=context.get_discrete_state(self._enable).GetAtIndex(0) > 0.0,
             limits=self.limits(context))
         new = raised & ~latched

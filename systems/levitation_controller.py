@@ -17,10 +17,13 @@ import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import BasicVector, LeafSystem, ValueProducer
 
-from maglev_haptics.hardware.config_checks import each, nonnegative, positive
+from maglev_haptics.hardware.config_checks import each, nonnegative, positive, require
 from maglev_haptics.hardware.constants import GRAVITY_M_S2
 from maglev_haptics.hardware.kernels import SCALAR, VECTOR, kernel
-from maglev_haptics.systems.current_allocator import allocate_currents
+from maglev_haptics.hardware.thermal import (
+    CoilThermal, current_bounds_a, thermal_budget, winding_resistance_ohm)
+from maglev_haptics.systems.current_allocator import (
+    ALLOCATIONS, allocate_currents, bounded_minimum_power_currents)
 from maglev_haptics.systems.magnetic_actuation import wrench_matrix_at
 from maglev_haptics.systems.rotations import (
     angular_velocity_from_rpy_rates, rotation_error_W, rotation_from_quaternion, rotation_from_rpy)
@@ -41,6 +44,13 @@ class ControllerConfig:
     kp: Optional[List[float]] = None
     kd: Optional[List[float]] = None
     lost_grace_s: float = 0.020  # hold gravity compensation through short dropouts, then cut the lift
+    # "thermal": minimum power within each coil's current and thermal budget;
+    # "pseudoinverse": minimum norm within the current limit alone, for comparison.
+    allocation: str = "thermal"
+    # The thermal budget: a coil may hold no current that would take its winding past
+    # the limit less thermal_margin_c (K) within thermal_horizon_s (s).
+    thermal_horizon_s: float = 10.0
+    thermal_margin_c: float = 5.0
 
     def validate(self, path: str = "controller") -> None:
         """Range checks; a ValueError names ``path.field``, its value and what is allowed."""
@@ -50,6 +60,10 @@ class ControllerConfig:
             if getattr(self, name) is not None:
                 each(f"{path}.{name}", getattr(self, name), 6, nonnegative)
         nonnegative(f"{path}.lost_grace_s", self.lost_grace_s)
+        require(self.allocation in ALLOCATIONS, f"{path}.allocation", self.allocation,
+                f"must be one of {', '.join(ALLOCATIONS)}")
+        positive(f"{path}.thermal_horizon_s", self.thermal_horizon_s)
+        nonnegative(f"{path}.thermal_margin_c", self.thermal_margin_c)
 
 
 def pd_gains(config: ControllerConfig, mass_kg: float, inertia_diag: np.ndarray):
@@ -129,6 +143,21 @@ def commanded_wrenches(setpoint, pose, velocity, tracking_ok: float, enable: flo
     return commanded, commanded - weight
 
 
+# A shortfall past this fraction of the weight (in N, or N*m) is more than a transient.
+THERMAL_SHORTFALL_OF_WEIGHT = 0.05
+
+
+def is_thermally_limited(currents, bound_a, shortfall, current_limit_a: float,
+                         mass_kg: float) -> bool:
+    """Whether the wrench falls short by more than THERMAL_SHORTFALL_OF_WEIGHT of the
+    weight while some coil sits at a thermal bound below the amplifiers' limit (A): the
+    coils are too warm to carry what is asked."""
+    if np.linalg.norm(shortfall) <= THERMAL_SHORTFALL_OF_WEIGHT * mass_kg * GRAVITY_M_S2:
+        return False
+    at_bound = np.abs(currents) >= bound_a * (1 - 1e-9)
+    return bool(np.any(at_bound & (bound_a < current_limit_a)))
+
+
 class LevitationController(LeafSystem):
     """Levitation controller (MLHI style): PD about a setpoint, gravity
     compensation, feed-forward wrench, safe force ramp, blind landing, and the
@@ -159,15 +188,22 @@ class LevitationController(LeafSystem):
         - brake_gain
         - wrench_feedforward_W
         - tracking_lost_s
+        - coil_temperature_c
         output_ports:
         - wrench_commanded_W
         - wrench_rendered_W
         - coil_currents_commanded
         - allocation_shortfall_W
+        - thermally_limited
 
     ``coil_currents_commanded`` (n_coils, A) are the allocator's currents for the
-    commanded wrench at the estimated pose, every coil within ``current_limit_a``;
-    ``allocation_shortfall_W`` is the part of the wrench they cannot produce.
+    commanded wrench at the estimated pose (``systems/current_allocator.py``, the
+    config's ``allocation``), every coil within ``current_limit_a`` and, with the
+    thermal allocation, within its thermal budget at its winding temperature
+    (``coil_temperature_c``, deg C); ``allocation_shortfall_W`` is the part of the
+    wrench they cannot produce, and ``thermally_limited`` (1/0) says that the
+    budget of a warm coil is why (``is_thermally_limited``): the device
+    supervisor lands then (coil over-temperature).
     The wrench law and the allocation are one computation a tick, whose outputs
     all read it: the Python calls, not the arithmetic, are what a 1 kHz tick
     pays for. Direct feedthrough: the amplifiers sample the currents at the
@@ -181,7 +217,7 @@ class LevitationController(LeafSystem):
     """
 
     def __init__(self, *, config: ControllerConfig, mass_kg: float, inertia_diag,
-                 magnetics, p_WA, current_limit_a: float):
+                 magnetics, p_WA, current_limit_a: float, thermal: CoilThermal):
         LeafSystem.__init__(self)
         self._config = config
         self._mass_kg = float(mass_kg)
@@ -192,6 +228,10 @@ class LevitationController(LeafSystem):
         self._magnetics = magnetics
         self._p_WA = np.asarray(p_WA, dtype=float)
         self._current_limit_a = float(current_limit_a)
+        self._thermal = thermal
+        self._budget = thermal_budget(thermal, horizon_s=config.thermal_horizon_s,
+                                      margin_c=config.thermal_margin_c,
+                                      current_limit_a=current_limit_a)
         self._setpoint = self.DeclareVectorInputPort("setpoint", 12)
         self._pose = self.DeclareVectorInputPort("X_WI_measured", 7)
         self._velocity = self.DeclareVectorInputPort("V_WI_measured", 6)
@@ -202,6 +242,13 @@ class LevitationController(LeafSystem):
         self._feedforward = self.DeclareVectorInputPort("wrench_feedforward_W", 6)
         self._tracking_lost = self.DeclareVectorInputPort("tracking_lost_s", 1)
         n = magnetics.n_coils
+        self._temperature = self.DeclareVectorInputPort("coil_temperature_c", n)
+        # [resistances (ohm); bounds (A)]: they change at the thermal model's rate.
+        self._coil_limits = self.DeclareCacheEntry(
+            "coil_limits",
+            ValueProducer(allocate=lambda: AbstractValue.Make(np.zeros(2 * n)),
+                          calc=self._calc_coil_limits),
+            {self._temperature.ticket()})
         # The matrix depends on the estimate alone, which changes at the tracker
         # rate; the command on everything, which changes every tick.
         self._matrix = self.DeclareCacheEntry(
@@ -209,16 +256,17 @@ class LevitationController(LeafSystem):
             ValueProducer(allocate=lambda: AbstractValue.Make(np.zeros((6, n))),
                           calc=self._calc_matrix),
             {self._pose.ticket()})
-        # [commanded (6), rendered (6), currents (n), shortfall (6)]
+        # [commanded (6), rendered (6), currents (n), shortfall (6), thermally limited (1)]
         self._command = self.DeclareCacheEntry(
             "command",
-            ValueProducer(allocate=lambda: AbstractValue.Make(np.zeros(18 + n)),
+            ValueProducer(allocate=lambda: AbstractValue.Make(np.zeros(19 + n)),
                           calc=self._calc_command),
             {self.all_input_ports_ticket(), self.all_parameters_ticket()})
         for name, rows in (("wrench_commanded_W", slice(0, 6)),
                            ("wrench_rendered_W", slice(6, 12)),
                            ("coil_currents_commanded", slice(12, 12 + n)),
-                           ("allocation_shortfall_W", slice(12 + n, 18 + n))):
+                           ("allocation_shortfall_W", slice(12 + n, 18 + n)),
+                           ("thermally_limited", slice(18 + n, 19 + n))):
             self.DeclareVectorOutputPort(
                 name, rows.stop - rows.start,
                 lambda context, output, rows=rows: output.SetFromVector(
@@ -248,6 +296,11 @@ class LevitationController(LeafSystem):
     def _calc_matrix(self, context, matrix):
         matrix.set_value(wrench_matrix_at(self._magnetics, self._p_WA, self._pose.Eval(context)))
 
+    def _calc_coil_limits(self, context, limits):
+        temperature_c = self._temperature.Eval(context)
+        limits.set_value(np.concatenate((winding_resistance_ohm(self._thermal, temperature_c),
+                                         current_bounds_a(self._budget, temperature_c))))
+
     def _calc_command(self, context, command):
         commanded, rendered = commanded_wrenches(
             self._setpoint.Eval(context), self._pose.Eval(context),
@@ -257,6 +310,16 @@ class LevitationController(LeafSystem):
             self._scalar(self._tracking_lost, context),
             context.get_numeric_parameter(self._kp).CopyToVector(),
             context.get_numeric_parameter(self._kd).CopyToVector(), self._mass_kg, self._config)
-        currents, shortfall, _ = allocate_currents(
-            self._matrix.Eval(context), commanded, self._current_limit_a)
-        command.set_value(np.concatenate((commanded, rendered, currents, shortfall)))
+        A = self._matrix.Eval(context)
+        if self._config.allocation == "thermal":
+            limits = self._coil_limits.Eval(context)
+            n = limits.size // 2
+            currents, shortfall = bounded_minimum_power_currents(
+                A, commanded, limits[:n], limits[n:])
+            limited = is_thermally_limited(currents, limits[n:], shortfall,
+                                           self._current_limit_a, self._mass_kg)
+        else:
+            currents, shortfall, _ = allocate_currents(A, commanded, self._current_limit_a)
+            limited = False
+        command.set_value(np.concatenate((commanded, rendered, currents, shortfall,
+                                          [float(limited)])))

@@ -25,7 +25,7 @@ LIMITS = WatchLimits(current_limit_a=4.0, temperature_limit_c=100.0, max_speed_m
 LOST_GRACE_S = 0.02
 HEALTHY = dict(position_m=[0.0, 0.0, 0.02], velocity_m_s=[0.0, 0.0, 0.1], tracking_lost=False,
                coil_currents_a=np.full(N_COILS, 1.0), coil_temperature_c=np.full(N_COILS, 40.0),
-               carrying=True, limits=LIMITS)
+               thermally_limited=False, carrying=True, limits=LIMITS)
 
 
 @pytest.mark.parametrize("change, bit", [
@@ -34,6 +34,7 @@ HEALTHY = dict(position_m=[0.0, 0.0, 0.02], velocity_m_s=[0.0, 0.0, 0.1], tracki
     ({"velocity_m_s": [0.4, 0.0, -0.4]}, FAULT_OVER_SPEED),
     ({"coil_currents_a": np.r_[np.zeros(26), -4.01]}, FAULT_COIL_OVER_CURRENT),
     ({"coil_temperature_c": np.r_[np.zeros(26), 100.5]}, FAULT_COIL_OVER_TEMPERATURE),
+    ({"thermally_limited": True}, FAULT_COIL_OVER_TEMPERATURE),  # too warm to carry it
 ])
 def test_each_watchdog_raises_its_bit(change, bit):
     assert detect_faults(**HEALTHY) == 0
@@ -41,7 +42,7 @@ def test_each_watchdog_raises_its_bit(change, bit):
 
 
 def test_the_instruments_faults_count_only_while_the_coils_carry_it():
-    resting = HEALTHY | {"carrying": False, "tracking_lost": True,
+    resting = HEALTHY | {"carrying": False, "tracking_lost": True, "thermally_limited": True,
                          "velocity_m_s": [0.0, 0.0, -1.0]}
     assert detect_faults(**resting) == 0
     # The coils' own faults count whatever they carry.
@@ -61,7 +62,8 @@ def build(scenario):
     pose = np.array([1.0, 0, 0, 0, 0.0, 0.0, 0.02])
     for port, value in (("X_WI_measured", pose), ("V_WI_measured", np.zeros(6)),
                         ("tracking_ok", [1.0]), ("coil_currents", np.zeros(N_COILS)),
-                        ("coil_temperature_c", np.full(N_COILS, 25.0))):
+                        ("coil_temperature_c", np.full(N_COILS, 25.0)),
+                        ("thermally_limited", [0.0])):
         supervisor.GetInputPort(port).FixValue(context, value)
     return supervisor, context, plan, spec
 

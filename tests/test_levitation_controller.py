@@ -9,6 +9,7 @@ from pydrake.math import RollPitchYaw, RotationMatrix
 from maglev_haptics.hardware import DeviceConfig
 from maglev_haptics.hardware.constants import GRAVITY_M_S2
 from maglev_haptics.hardware.magnetics import load_magnetics
+from maglev_haptics.hardware.thermal import coil_thermal
 from maglev_haptics.systems.levitation_controller import (
     ControllerConfig, LevitationController, pd_gains, pd_wrench)
 from maglev_haptics.systems.rotations import (
@@ -28,8 +29,10 @@ def magnetics():
 def make(magnetics, config=ControllerConfig()):
     controller = LevitationController(config=config, mass_kg=MASS_KG, inertia_diag=INERTIA,
                                       magnetics=magnetics, p_WA=DEVICE.p_WA,
-                                      current_limit_a=LIMIT_A)
+                                      current_limit_a=LIMIT_A, thermal=coil_thermal(DEVICE))
     context = controller.CreateDefaultContext()
+    controller.GetInputPort("coil_temperature_c").FixValue(
+        context, np.full(magnetics.n_coils, DEVICE.thermal.ambient_temperature_c))
     return controller, context
 
 
