@@ -184,8 +184,9 @@ def summarize(log: Dict[str, np.ndarray], plan: FlightPlan, *, rest_height_m: fl
                                       if source == "true" else None),
             "max_coil_current_a": float(np.max(np.abs(log["coil_currents"][window]))),
             "mean_power_w": float(np.mean(log["coil_power_w"][window])),
-            # Where the busiest coil would settle if the hold lasted (the time constant is
-            # ~1 min); None where it never settles (thermal runaway: I^2 dR/dT beats cooling).
+            # Where the busiest coil would settle if the hold lasted at these currents (the
+            # time constant is ~1 min; the thermal allocation would spread the load as it
+            # warmed); None where it never settles (thermal runaway: I^2 dR/dT beats cooling).
             "busiest_coil_steady_temperature_c": _finite_or_none(np.max(steady_state_temperature_c(
                 thermal, np.sqrt(np.mean(log["coil_currents"][window] ** 2, axis=0))))),
         })

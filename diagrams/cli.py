@@ -135,6 +135,7 @@ def _cmd_run(args) -> int:
     from maglev_haptics.diagrams.haptics import interactive_variant
     from maglev_haptics.analysis.run_results import run_scenario
     from maglev_haptics.diagrams.scenario import with_stereo
+    from maglev_haptics.diagrams.thermal_forecast import thermal_outlook
 
     scenario, label = _load(args)
     duration = args.duration
@@ -151,6 +152,8 @@ def _cmd_run(args) -> int:
         duration = scenario.duration_s
     validate_scenario(scenario, label)
     out = _writable_folder(Path(args.out) if args.out else Path("out") / label.replace(":", "-"))
+    for line in thermal_outlook(scenario, label):
+        print(line)
     if args.interactive:
         print("interactive: move the hand with the sliders in Meshcat's Controls panel; "
               "'Grip / release' (or the G key) grips the instrument; Ctrl-C ends the run")

@@ -83,38 +83,38 @@ def allocate_currents(A: np.ndarray, wrench: np.ndarray, current_limit_a: float)
     return redistributed, shortfall_redistributed, n_saturated
 
 
-# Newton steps on the exact dual before the wrench is taken to be out of reach, and
-# on the penalized one.
+# Newton steps on the exact dual, and halvings of one step, before the wrench is taken
+# to be out of reach (then the active-set method takes over, so failing early is cheap).
 _EXACT_STEPS = 8
-_PENALIZED_STEPS = 40
+_EXACT_HALVINGS = 8
+# Newton steps from the penalized optimum to the exact one.
+_POLISH_STEPS = 3
 # The penalty's weight 1/rho [(N or N*m)^2 / W]: out of reach, a watt of power weighs
 # as much as a shortfall of sqrt(2e-9) ~ 5e-5 N.
-_INVERSE_PENALTY = 1e-9
+_INVERSE_PENALTY = 1e-12
 
 
 @numba.njit(cache=True)
-def _dual_value(A, wrench, resistance_ohm, bound_a, nu, inverse_penalty):
-    """(q(nu), currents): the dual function of the (penalized) allocation QP at ``nu``
+def _dual_value(A, wrench, resistance_ohm, bound_a, nu):
+    """(q(nu), currents): the dual function of the allocation QP at ``nu``
     and the currents that minimize its Lagrangian, each clipped to its bound."""
     s = A.T @ nu
     currents = np.minimum(np.maximum(s / resistance_ohm, -bound_a), bound_a)
-    value = (np.sum(0.5 * resistance_ohm * currents**2 - s * currents) + wrench @ nu
-             - 0.5 * inverse_penalty * (nu @ nu))
+    value = np.sum(0.5 * resistance_ohm * currents**2 - s * currents) + wrench @ nu
     return value, currents
 
 
 @numba.njit(cache=True)
-def _dual_newton(A, wrench, resistance_ohm, bound_a, inverse_penalty, nu, max_steps,
-                 tolerance):
+def _dual_newton(A, wrench, resistance_ohm, bound_a, nu, max_steps, tolerance):
     """Maximize the concave, piecewise-quadratic dual from ``nu`` by Newton steps on
     its pieces with a backtracking line search; (nu, currents, converged)."""
     m = A.shape[0]
     # A whisker of regularization, on the scale of every coil's share of the Hessian,
     # keeps the step defined with fewer than 6 free coils.
-    regularization = inverse_penalty + 1e-14 * np.sum(A**2 / resistance_ohm)
-    value, currents = _dual_value(A, wrench, resistance_ohm, bound_a, nu, inverse_penalty)
+    regularization = 1e-14 * np.sum(A**2 / resistance_ohm)
+    value, currents = _dual_value(A, wrench, resistance_ohm, bound_a, nu)
     for _ in range(max_steps):
-        gradient = wrench - A @ currents - inverse_penalty * nu
+        gradient = wrench - A @ currents
         if np.max(np.abs(gradient)) <= tolerance:
             return nu, currents, True
         free = np.abs(A.T @ nu) < bound_a * resistance_ohm
@@ -127,11 +127,11 @@ def _dual_newton(A, wrench, resistance_ohm, bound_a, inverse_penalty, nu, max_st
         t = 1.0
         while True:
             trial_value, trial_currents = _dual_value(
-                A, wrench, resistance_ohm, bound_a, nu + t * step, inverse_penalty)
+                A, wrench, resistance_ohm, bound_a, nu + t * step)
             if trial_value >= value + 1e-4 * t * slope:
                 break
             t *= 0.5
-            if t < 1e-12:
+            if t < 0.5**_EXACT_HALVINGS:
                 return nu, currents, False
         nu = nu + t * step
         value, currents = trial_value, trial_currents
@@ -210,13 +210,15 @@ def bounded_minimum_power_currents(A, wrench, resistance_ohm, bound_a):
     ``shortfall`` is ``wrench - A @ currents``: zero to ~1e-10 when reachable.
     """
     tolerance = 1e-11 * max(1.0, np.max(np.abs(wrench)))
-    nu, currents, converged = _dual_newton(A, wrench, resistance_ohm, bound_a, 0.0,
-                                           np.zeros(A.shape[0]), _EXACT_STEPS, tolerance)
+    _, currents, converged = _dual_newton(A, wrench, resistance_ohm, bound_a,
+                                          np.zeros(A.shape[0]), _EXACT_STEPS, tolerance)
     if not converged:
         nu, penalized = _penalized_active_set(A, wrench, resistance_ohm, bound_a, currents)
-        # Reachable after all (many coils at their bounds): the exact optimum is near.
-        _, currents, converged = _dual_newton(A, wrench, resistance_ohm, bound_a, 0.0, nu,
-                                              _EXACT_STEPS, tolerance)
-        if not converged:
-            currents = penalized
+        currents = penalized
+        # Reachable after all (many coils at their bounds)? Then the exact optimum is a
+        # step or two from the penalized one.
+        _, exact, converged = _dual_newton(A, wrench, resistance_ohm, bound_a, nu,
+                                           _POLISH_STEPS, tolerance)
+        if converged:
+            currents = exact
     return currents, wrench - A @ currents

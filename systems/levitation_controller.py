@@ -143,8 +143,9 @@ def commanded_wrenches(setpoint, pose, velocity, tracking_ok: float, enable: flo
     return commanded, commanded - weight
 
 
-# A shortfall past this fraction of the weight (in N, or N*m) is more than a transient.
-THERMAL_SHORTFALL_OF_WEIGHT = 0.05
+# A shortfall past this fraction of the weight (in N, or N*m) is more than the sensor
+# noise in the PD's wrench (~0.5 %).
+THERMAL_SHORTFALL_OF_WEIGHT = 0.02
 
 
 def is_thermally_limited(currents, bound_a, shortfall, current_limit_a: float,

@@ -1,13 +1,16 @@
-"""Current allocation: exact when within limits, never over a limit, shortfall reported."""
+"""Current allocation: exact when within limits, never over a limit, shortfall reported;
+the thermal allocation against a general QP solver (Clarabel, through Drake)."""
 
 import numpy as np
 import pytest
 from pydrake.math import RigidTransform, RollPitchYaw
+from pydrake.solvers import ClarabelSolver, MathematicalProgram
 from scipy.optimize import lsq_linear
 
 from maglev_haptics.hardware import DeviceConfig
 from maglev_haptics.hardware.magnetics import load_magnetics
-from maglev_haptics.systems.current_allocator import allocate_currents
+from maglev_haptics.systems.current_allocator import (
+    allocate_currents, bounded_minimum_power_currents)
 
 LIMIT_A = 4.0
 
@@ -99,3 +102,67 @@ def test_matches_bounded_least_squares_within_limits_and_never_beats_it(magnetic
             saturated += 1
             assert np.linalg.norm(shortfall) >= np.linalg.norm(wrench - A @ optimum.x) - 1e-9
     assert within > 10 and saturated > 10
+
+
+def reference_minimum_power(A, wrench, resistance_ohm, bound_a):
+    """Clarabel's interior-point answer to the thermal allocation's QP; None if it
+    finds the wrench out of reach."""
+    program = MathematicalProgram()
+    currents = program.NewContinuousVariables(A.shape[1])
+    program.AddQuadraticCost(np.diag(resistance_ohm), np.zeros(A.shape[1]), currents)
+    program.AddLinearEqualityConstraint(A, wrench, currents)
+    program.AddBoundingBoxConstraint(-bound_a, bound_a, currents)
+    result = ClarabelSolver().Solve(program)
+    if not result.is_success():
+        return None
+    solution = result.GetSolution(currents)
+    return solution if np.linalg.norm(A @ solution - wrench) < 1e-7 else None
+
+
+def random_thermal_problems(magnetics, rng, count):
+    """(A, wrench, resistances [ohm], bounds [A]): random_allocation_problems with each
+    winding between 20 and 100 C and each coil's bound between 0.5 A and the limit."""
+    for A, wrench, _ in random_allocation_problems(magnetics, rng, count):
+        resistance = 6.5 * (1 + 0.00393 * rng.uniform(0.0, 80.0, A.shape[1]))
+        bound = np.minimum(LIMIT_A, rng.uniform(0.5, 2 * LIMIT_A, A.shape[1]))
+        yield A, wrench, resistance, bound
+
+
+def test_thermal_allocation_is_the_minimum_power_optimum_or_the_nearest_wrench(magnetics):
+    """Reachable: the wrench exactly, at Clarabel's minimum power (to its tolerance) and
+    never below it. Out of reach: within 1e-3 N of the least-squares optimum (BVLS)
+    over the same bounds. Never a coil past its bound."""
+    rng = np.random.default_rng(11)
+    reachable = out_of_reach = 0
+    for A, wrench, resistance, bound in random_thermal_problems(magnetics, rng, 300):
+        currents, shortfall = bounded_minimum_power_currents(A, wrench, resistance, bound)
+        assert np.all(np.abs(currents) <= bound)
+        np.testing.assert_allclose(shortfall, wrench - A @ currents, rtol=0, atol=1e-12)
+        reference = reference_minimum_power(A, wrench, resistance, bound)
+        if reference is not None:
+            reachable += 1
+            assert np.linalg.norm(shortfall) <= 1e-9 * max(1.0, np.linalg.norm(wrench))
+            power, optimum = resistance @ currents**2, resistance @ reference**2
+            assert optimum * (1 - 1e-6) <= power <= optimum * (1 + 1e-6)
+        else:
+            out_of_reach += 1
+            nearest = lsq_linear(A, wrench, bounds=(-bound, bound), method="bvls", tol=1e-14)
+            assert np.linalg.norm(shortfall) <= np.linalg.norm(wrench - A @ nearest.x) + 1e-3
+    assert reachable > 30 and out_of_reach > 30
+
+
+def test_thermal_allocation_spreads_the_load_off_a_bounded_coil(magnetics):
+    """Bounding the busiest coil of the unbounded answer moves its share onto the others:
+    the same wrench, that coil at its bound, more power in all."""
+    A = hover_matrix(magnetics)
+    wrench = np.array([0.0, 0.0, 0.125 * 9.81, 0.0, 0.0, 0.0])
+    resistance = np.full(A.shape[1], 6.5)
+    free, _ = bounded_minimum_power_currents(A, wrench, resistance, np.full(A.shape[1], LIMIT_A))
+    np.testing.assert_allclose(free, np.linalg.pinv(A) @ wrench, atol=1e-9)  # equal R: min norm
+    busiest = np.argmax(np.abs(free))
+    bound = np.full(A.shape[1], LIMIT_A)
+    bound[busiest] = 0.5 * abs(free[busiest])
+    spread, shortfall = bounded_minimum_power_currents(A, wrench, resistance, bound)
+    assert np.linalg.norm(shortfall) < 1e-9
+    assert abs(spread[busiest]) == pytest.approx(bound[busiest], rel=1e-12)
+    assert resistance @ spread**2 > resistance @ free**2

@@ -11,7 +11,7 @@ from maglev_haptics.hardware import DeviceConfig
 from maglev_haptics.hardware.device import ThermalSpec
 from maglev_haptics.hardware.thermal import (
     COPPER_DENSITY_KG_M3, COPPER_SPECIFIC_HEAT_J_PER_KG_K, coil_thermal,
-    continuous_current_limit_a, steady_state_temperature_c, temperature_after_c,
+    continuous_current_limit_a, current_bounds_a, thermal_budget, steady_state_temperature_c, temperature_after_c,
     time_to_temperature_s, winding_resistance_ohm, winding_volume_m3)
 
 MODEL = coil_thermal(DeviceConfig())
@@ -111,3 +111,31 @@ def test_bad_thermal_spec_names_the_field():
     config = DeviceConfig(thermal=ThermalSpec(max_winding_temperature_c=20.0))
     with pytest.raises(ValueError, match="max_winding_temperature_c"):
         coil_thermal(config)
+
+
+@pytest.mark.parametrize("horizon_s", [1.0, 10.0, 60.0])
+def test_the_thermal_budget_allows_the_target_no_sooner_than_its_horizon(horizon_s):
+    """At each temperature the bound, held, reaches the target in the horizon (or never,
+    at the amplifier's limit); it tightens as the winding warms, to the current that
+    holds the target; a winding past the target may hold only that."""
+    budget = thermal_budget(MODEL, horizon_s=horizon_s, margin_c=5.0, current_limit_a=4.0)
+    assert budget.target_c == MODEL.max_c - 5.0
+    temperature_c = np.linspace(0.0, budget.target_c - 0.5, 200)
+    bound = current_bounds_a(budget, temperature_c)
+    assert np.all(np.diff(bound) <= 1e-12) and np.all(bound <= 4.0)
+    reach = time_to_temperature_s(MODEL, temperature_c, bound, budget.target_c)
+    below_limit = bound < 4.0 - 1e-9
+    assert below_limit.any()
+    # Linear interpolation between table points errs by well under a percent of the
+    # horizon, but where the bound leaves the amplifier's limit (on the safe side).
+    np.testing.assert_allclose(np.median(reach[below_limit]), horizon_s, rtol=0.001)
+    assert np.all(reach >= horizon_s * 0.999) and np.all(reach[below_limit] <= horizon_s * 1.02)
+    holding = current_bounds_a(budget, np.array([budget.target_c, MODEL.max_c + 20.0]))
+    np.testing.assert_allclose(steady_state_temperature_c(MODEL, holding[0]), budget.target_c,
+                               atol=1e-6)
+    assert holding[1] == pytest.approx(holding[0], rel=1e-12)
+
+
+def test_a_margin_that_leaves_no_room_above_ambient_is_refused():
+    with pytest.raises(ValueError, match="controller.thermal_margin_c = 80.0"):
+        thermal_budget(MODEL, horizon_s=10.0, margin_c=80.0, current_limit_a=4.0)
