@@ -45,7 +45,11 @@ from maglev_haptics.diagrams.station import (
 from maglev_haptics.hardware.constants import GRAVITY_M_S2
 from maglev_haptics.hardware.device import DeviceConfig
 from maglev_haptics.hardware.magnetics import bench_wrench_matrix, load_magnetics
-from maglev_haptics.systems.current_allocator import allocate_currents
+from maglev_haptics.hardware.thermal import (
+    coil_thermal, current_bounds_a, thermal_budget, winding_resistance_ohm)
+from maglev_haptics.systems.current_allocator import (
+    allocate_currents, bounded_minimum_power_currents)
+from maglev_haptics.systems.levitation_controller import ControllerConfig
 
 LEVITATE_FILE = SCENARIO_DIR / "levitate.yaml"
 HAPTIC_FILES = [SCENARIO_DIR / f"{name}.yaml" for name in ("hanging_ball", "paddle_ball",
@@ -116,22 +120,44 @@ def physics_floor_us(scenario, lattice_tick_us: Optional[float]) -> Dict[str, fl
         floor["scene_plant_us"] = scene_step_cost_us(scenario)
     config = scenario.device
     floor["wrench_matrices_us"] = 2 * bench_wrench_matrix(config)["mean_us"]
-    floor["allocation_us"] = allocation_cost_us(config)["within_limits_us"]
+    floor["allocation_us"] = allocation_cost_us(config)[
+        scenario.controller.allocation]["within_limits_us"]
     floor["total_us"] = sum(floor.values())
     if lattice_tick_us is not None:
         floor["lattice_tick_other_core_us"] = lattice_tick_us
     return floor
 
 
-def allocation_cost_us(config: DeviceConfig, n: int = 2000) -> Dict[str, float]:
+def allocation_cost_us(config: DeviceConfig, n: int = 2000) -> Dict[str, Dict[str, float]]:
+    """Each allocator's cost a call (us) carrying the weight at a hover pose: within its
+    bounds; for the thermal one also with every coil at its budget's target (the load
+    spread over bounded coils) and far out of reach; for the pseudoinverse saturating."""
     magnetics = load_magnetics(config)
     spec = config.instrument_spec()
     A = magnetics.wrench_matrix_from(np.array([0.0, 0.0, 0.028]), np.eye(3))
     hover = np.array([0, 0, spec.mass_kg * GRAVITY_M_S2, 0, 0, 0])
     limit = config.amplifier.current_limit_a
+    thermal = coil_thermal(config)
+    budget = thermal_budget(thermal, horizon_s=ControllerConfig().thermal_horizon_s,
+                            margin_c=ControllerConfig().thermal_margin_c, current_limit_a=limit)
+
+    def thermal_call(temperature_c, wrench):
+        temperatures = np.full(A.shape[1], temperature_c)
+        resistance = winding_resistance_ohm(thermal, temperatures)
+        bounds = current_bounds_a(budget, temperatures)
+        return lambda: bounded_minimum_power_currents(A, wrench, resistance, bounds)
+
     return {
-        "within_limits_us": time_per_call_us(lambda: allocate_currents(A, hover, limit), n),
-        "saturating_us": time_per_call_us(lambda: allocate_currents(A, 40 * hover, limit), n // 4),
+        "thermal": {
+            "within_limits_us": time_per_call_us(thermal_call(thermal.ambient_c, hover), n),
+            "at_thermal_bounds_us": time_per_call_us(thermal_call(budget.target_c, 1.5 * hover), n),
+            "saturating_us": time_per_call_us(thermal_call(thermal.ambient_c, 40 * hover), n // 4),
+        },
+        "pseudoinverse": {
+            "within_limits_us": time_per_call_us(lambda: allocate_currents(A, hover, limit), n),
+            "saturating_us": time_per_call_us(lambda: allocate_currents(A, 40 * hover, limit),
+                                              n // 4),
+        },
     }
 
 
@@ -217,9 +243,11 @@ def format_report(results: Dict) -> str:
     for kind, r in results["wrench_matrix_us"].items():
         lines.append(f"  {kind:<14} mean {r['mean_us']:.1f}  p99 {r['p99_us']:.1f}")
     lines.append("Allocation (us per call):")
-    for kind, r in results["allocation"].items():
-        lines.append(f"  {kind:<14} within limits {r['within_limits_us']:.1f}  "
-                     f"saturating {r['saturating_us']:.1f}")
+    for kind, allocators in results["allocation"].items():
+        for allocator, r in allocators.items():
+            lines.append(f"  {kind:<14}{allocator:<15}" + "  ".join(
+                f"{case.removesuffix('_us').replace('_', ' ')} {us:.1f}"
+                for case, us in r.items()))
     lines.append(format_stereo_report(results["stereo"]))
     lines.append("Offline analysis (wall s): " + ", ".join(
         f"{name} {seconds:.1f}" for name, seconds in results["analysis"].items()))

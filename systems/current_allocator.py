@@ -90,7 +90,7 @@ _EXACT_HALVINGS = 8
 # Newton steps from the penalized optimum to the exact one.
 _POLISH_STEPS = 3
 # The penalty's weight 1/rho [(N or N*m)^2 / W]: out of reach, a watt of power weighs
-# as much as a shortfall of sqrt(2e-9) ~ 5e-5 N.
+# as much as a shortfall of sqrt(2e-12) ~ 1.4e-6 N (or N*m).
 _INVERSE_PENALTY = 1e-12
 
 
@@ -206,9 +206,13 @@ def bounded_minimum_power_currents(A, wrench, resistance_ohm, bound_a):
     QP's dual has 6 variables: the currents are ``clip(A^T nu / R, -bound, bound)``
     and a Newton step on the dual solves a 6 x 6 system. When the wrench is out of
     reach the exact dual is unbounded; then the penalized problem (least squares on
-    the wrench, power weighted by 1e-13) gives the nearest wrench within the bounds.
+    the wrench, power weighted by 1e-12), solved by a primal active-set method on the
+    currents (each step a 6 x 6 system, by Woodbury), gives the nearest wrench within
+    the bounds.
     ``shortfall`` is ``wrench - A @ currents``: zero to ~1e-10 when reachable.
     """
+    if not np.any(A):  # out of every coil's reach (beyond the field tables)
+        return np.zeros(A.shape[1]), wrench.copy()
     tolerance = 1e-11 * max(1.0, np.max(np.abs(wrench)))
     _, currents, converged = _dual_newton(A, wrench, resistance_ohm, bound_a,
                                           np.zeros(A.shape[0]), _EXACT_STEPS, tolerance)

@@ -70,6 +70,10 @@ def test_out_of_the_coils_reach_gives_zero_currents_not_an_error(magnetics):
     currents, shortfall, _ = allocate_currents(A, wrench, LIMIT_A)
     assert np.all(np.isfinite(currents)) and np.max(np.abs(currents)) <= LIMIT_A
     np.testing.assert_allclose(shortfall, wrench - A @ currents)
+    currents, shortfall = bounded_minimum_power_currents(
+        A, wrench, np.full(A.shape[1], 6.5), np.full(A.shape[1], LIMIT_A))
+    assert np.all(np.isfinite(currents)) and np.max(np.abs(currents)) <= LIMIT_A
+    np.testing.assert_allclose(shortfall, wrench - A @ currents)
 
 
 def random_allocation_problems(magnetics, rng, count):
