@@ -253,6 +253,9 @@ def haptic_summary(log, scenario, *, rest_height_m: float) -> Dict:
         "releases": releases(log, rest_height_m, haptics.supervisor.release_debounce_s),
         "coupling_clamped_s": float(np.sum(log["coupling_clamped"] > 0.5)
                                     * np.median(np.diff(log["t"]))),
+        # What the passivity controller dissipated (J); null when it is off.
+        "passivity_dissipated_j": (float(log["passivity_dissipated_j"][-1])
+                                   if haptics.coupling.passivity_controller else None),
     }
     if engaged.any():
         summary["max_user_force_n"] = float(np.max(np.linalg.norm(log["f_user"][engaged], axis=1)))

@@ -30,6 +30,7 @@ from maglev_haptics.analysis.run_plots import save_figure  # noqa: E402
 from maglev_haptics.analysis.haptic_loop import (  # noqa: E402
     LoopParameters, critical_stiffness, environment_impedance, is_stable)
 from maglev_haptics.analysis.passivity import passivity_bound, passivity_margin  # noqa: E402
+from maglev_haptics.diagrams.haptics import loop_delay_s  # noqa: E402
 
 
 class StudyNotApplicable(ValueError):
@@ -45,10 +46,8 @@ def loop_parameters(scenario, axis: int = 0) -> LoopParameters:
     device = scenario.device
     coupling = scenario.haptics.coupling
     hand = scenario.hand.impedance
-    tracker = device.tracker
     period_s = 1.0 / scenario.control_rate_hz
-    delay_s = (tracker.latency_s + 0.5 / tracker.rate_hz + period_s
-               + 1.0 / (2 * math.pi * device.amplifier.bandwidth_hz))
+    delay_s = loop_delay_s(scenario)
     return LoopParameters(
         mass_kg=device.instrument_spec().mass_kg, device_damping=0.0,
         hand_damping=hand.arm_translational_damping[axis],

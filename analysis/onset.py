@@ -87,8 +87,10 @@ def grows(scenario, engaged_s: float, reference_rms_m_s: Optional[float] = None)
     """Run the scenario; the high-passed instrument velocity's RMS in the first and
     the last second after settling. Unstable when it grew by GROWTH_RATIO, or (a loop
     that blew up already while haptics faded in, and sits at the force clamp) when the
-    last second is above SATURATED_RATIO times ``reference_rms_m_s``, a stable run's."""
-    log = run_scenario(scenario, label="onset", progress=False).log
+    last second is above SATURATED_RATIO times ``reference_rms_m_s``, a stable run's.
+    With the passivity controller, also the work it withheld (J)."""
+    result = run_scenario(scenario, label="onset", progress=False)
+    log = result.log
     t = log["t"]
     velocity = log["V_WI_true"][:, 3:6]
     b, a = scipy.signal.butter(2, HIGH_PASS_HZ, "highpass", fs=1.0 / np.median(np.diff(t)))
@@ -98,7 +100,8 @@ def grows(scenario, engaged_s: float, reference_rms_m_s: Optional[float] = None)
     rms = [float(np.sqrt(np.mean(np.sum(fast[mask] ** 2, axis=1)))) for mask in (first, last)]
     blown_up = reference_rms_m_s is not None and rms[1] > SATURATED_RATIO * reference_rms_m_s
     return {"first_rms_m_s": rms[0], "last_rms_m_s": rms[1],
-            "unstable": bool(rms[1] > GROWTH_RATIO * rms[0] or blown_up)}
+            "unstable": bool(rms[1] > GROWTH_RATIO * rms[0] or blown_up),
+            "passivity_dissipated_j": result.summary.get("passivity_dissipated_j")}
 
 
 def _bisect(unstable: Callable[[float], bool], low: float, high: float) -> float:

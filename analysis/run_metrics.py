@@ -107,6 +107,7 @@ def _optional_arrays(data) -> Dict[str, np.ndarray]:
         arrays["tool_in_contact"] = data["tool_in_contact"][:, 0]
         arrays["haptic_mode"] = data["haptic_mode"][:, 0]
         arrays["coupling_clamped"] = data["coupling_clamped"][:, 0]
+        arrays["passivity_dissipated_j"] = data["passivity_dissipated_j"][:, 0]
     if "head_pose" in data:
         arrays["head_pose"] = data["head_pose"]
     if "glasses_measured" in data:

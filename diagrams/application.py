@@ -214,6 +214,8 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
         logged_ports["tool_in_contact"] = haptics.scene.in_contact_output
         logged_ports["haptic_mode"] = haptics.supervisor.GetOutputPort("mode")
         logged_ports["coupling_clamped"] = haptics.coupling.GetOutputPort("coupling_clamped")
+        logged_ports["passivity_dissipated_j"] = haptics.coupling.GetOutputPort(
+            "passivity_dissipated_j")
     # One logger of the stacked signals: a publish event a tick instead of nine.
     sizes = [port.size() for port in logged_ports.values()]
     stack = builder.AddNamedSystem("log_stack", Multiplexer(sizes))

@@ -16,6 +16,7 @@ or from Meshcat's controls.
 """
 
 import dataclasses
+import math
 from dataclasses import dataclass
 from typing import Optional
 
@@ -35,6 +36,7 @@ from maglev_haptics.hardware.limits import device_limits
 from maglev_haptics.systems.haptic_coupling import (
     CouplingConfig, HapticCoupling, resolved_rotational_gains)
 from maglev_haptics.systems.haptic_supervisor import HapticSupervisor
+from maglev_haptics.systems.pose_estimator import velocity_lag_s
 from maglev_haptics.systems.meshcat_hand import MeshcatHandInput
 
 
@@ -52,6 +54,17 @@ class HapticParts:
     coupling: object
     supervisor: object
     coupling_config: CouplingConfig  # with the device-derived limits filled in
+
+
+def loop_delay_s(scenario: Scenario) -> float:
+    """From an instrument's motion to the wrench it causes acting on it (s): the
+    tracker's latency, half a tracker period (the mean wait of a sample for the
+    control tick), one control period (the currents computed at a tick flow from the
+    next) and the amplifiers' lag 1 / (2 pi bandwidth)."""
+    device = scenario.device
+    tracker = device.tracker
+    return (tracker.latency_s + 0.5 / tracker.rate_hz + 1.0 / scenario.control_rate_hz
+            + 1.0 / (2 * math.pi * device.amplifier.bandwidth_hz))
 
 
 def resolved_coupling_config(scenario: Scenario, magnetics) -> CouplingConfig:
@@ -110,7 +123,9 @@ def AddHaptics(builder, *, scenario: Scenario, magnetics, station, estimator, co
                          X_WI_start=X_WI_start)
     config = resolved_coupling_config(scenario, magnetics)
     coupling = builder.AddNamedSystem("haptic_coupling", HapticCoupling(
-        config=config, period_s=period_s, X_IT=scene.X_IT))
+        config=config, period_s=period_s, X_IT=scene.X_IT,
+        port_delay_ticks=max(1, round(
+            (loop_delay_s(scenario) + velocity_lag_s(scenario.estimator)) / period_s))))
     supervisor = builder.AddNamedSystem("haptic_supervisor", HapticSupervisor(
         config=haptics.supervisor, period_s=SUPERVISOR_PERIOD_S,
         rest_height_m=scenario.device.instrument_spec().rest_height_m))

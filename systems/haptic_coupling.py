@@ -93,6 +93,9 @@ class CouplingConfig:
     max_force_n: Optional[float] = None  # |f| limit (N); null: from device_limit
     max_torque_nm: Optional[float] = None  # |tau| limit (N*m); null: likewise
     device_limit: str = "peak"  # "peak" or "thermal": the coil current the null limits assume
+    # A time-domain passivity observer and controller at the device's port
+    # (``passivity_step``): off by default, as the paper's device ran without it.
+    passivity_controller: bool = False
 
     def validate(self, path: str = "coupling") -> None:
         """Range checks; a ValueError names ``path.field``, its value and what is allowed."""
@@ -197,6 +200,43 @@ def limited_wrenches(X_WI, V_WI, X_WT, V_WT, R_IT, p_IT, k, b, fraction, max_for
     return scale * on_tool, fraction * scale * on_instrument, scale
 
 
+@kernel((VECTOR, VECTOR, VECTOR, MATRIX, SCALAR, VECTOR))
+def passivity_step(wrench, V_WI, energy_j, sent, period_s, reference_energy_j):
+    """One sample of a time-domain passivity observer and controller (after Hannaford
+    and Ryu 2002) at the device's port, per axis, with the loop's delay accounted for.
+
+    ``wrench`` [f; tau] in W (N, N*m) is what the coupling asks the device to apply
+    to the instrument, ``V_WI`` [w; v] the instrument's measured velocity (rad/s,
+    m/s). A wrench sent now acts a sample later and the velocity is measured late by
+    the tracker's latency and the estimator's filter, so the observer pairs this
+    sample's velocity with the wrench sent ``d`` samples ago: ``sent`` (d, 6) holds
+    the last d sent, oldest first. ``energy_j`` (6) is what the user has put into the
+    coupling and the virtual world on each axis (J): the observer adds
+    ``-sent_j v_j T``. Where it is negative the virtual side has given out energy it
+    never received. H&R's controller would then add damping on the velocity; through
+    this loop's ~7 ms from motion to measured velocity to force, damping at the ~40 Hz
+    an overstiff coupling rings at arrives a quarter period late and feeds the
+    oscillation instead. So this controller takes the energy source away: it scales
+    the axis' wrench by 1 / (1 + debt / ``reference_energy_j``), less the deeper the
+    debt, until the user's own work has paid it back. Returns (wrench to send,
+    energy, sent (shifted), the work withheld this sample (J), |change| |v| T).
+    """
+    out = wrench.copy()
+    energy = energy_j.copy()
+    d = sent.shape[0]
+    withheld = 0.0
+    for j in range(6):
+        v = V_WI[j + 3] if j < 3 else V_WI[j - 3]  # the velocity wrench j does work on
+        energy[j] -= sent[0, j] * v * period_s
+        if energy[j] < 0.0:
+            out[j] = wrench[j] / (1.0 + (-energy[j]) / reference_energy_j[j])
+            withheld += abs(wrench[j] - out[j]) * abs(v) * period_s
+    new_sent = np.empty_like(sent)
+    new_sent[0:d - 1] = sent[1:d]
+    new_sent[d - 1] = out
+    return out, energy, new_sent, withheld
+
+
 def velocity_filter_gain(corner_hz: float, period_s: float) -> float:
     """alpha in v_f <- v_f + alpha (v - v_f): exact sampling of a first-order
     low-pass with corner ``corner_hz`` (Hz) at ``period_s`` (s)."""
@@ -230,6 +270,7 @@ class HapticCoupling(LeafSystem):
         - wrench_on_tool_W
         - wrench_feedforward_W
         - coupling_clamped
+        - passivity_dissipated_j
 
     ``wrench_on_tool_W`` drives the tool (about its origin): the tool
     always follows the instrument, so the virtual tool is where the hand
@@ -242,12 +283,22 @@ class HapticCoupling(LeafSystem):
     is below 1. The discrete state (updated every period_s) is the ramp
     fraction 0..1, which grows by period / ramp_s each period while
     ``haptics_enable`` > 0.5 and resets to 0 otherwise (so the user feels
-    nothing while disabled), and the low-passed V_WI_measured the damper
-    uses; the outputs do not feed ``V_WI_measured`` through.
+    nothing while disabled), the low-passed V_WI_measured the damper
+    uses, and the passivity observer's: its energy per axis (J), the last
+    ``port_delay_ticks`` wrenches sent (6 per tick, oldest first), and the
+    work its controller has withheld in all (J, the
+    ``passivity_dissipated_j`` output). ``port_delay_ticks``: the samples
+    from a wrench sent to its effect in the measured velocity (the tracker's
+    latency and period, the estimator's filter, the amplifiers' tick and
+    lag; ``diagrams/haptics.py`` derives it). With
+    ``passivity_controller`` the feed-forward is scaled on the axes in
+    energy debt (``passivity_step``, which observes this sample's measured
+    velocity), so it feeds ``V_WI_measured`` through (the estimator's state:
+    no loop); otherwise the outputs do not.
     """
 
     def __init__(self, *, config: CouplingConfig, period_s: float,
-                 X_IT: RigidTransform = RigidTransform()):
+                 X_IT: RigidTransform = RigidTransform(), port_delay_ticks: int = 1):
         LeafSystem.__init__(self)
         for name in ("max_force_n", "max_torque_nm", "rotational_stiffness",
                      "rotational_damping"):
@@ -267,6 +318,16 @@ class HapticCoupling(LeafSystem):
         self._enable = self.DeclareVectorInputPort("haptics_enable", 1)
         self._ramp = self.DeclareDiscreteState(1)
         self._V_WI_filtered = self.DeclareDiscreteState(6)
+        if port_delay_ticks < 1:
+            raise ValueError(f"port_delay_ticks = {port_delay_ticks}: must be >= 1")
+        self._port_delay_ticks = int(port_delay_ticks)
+        self._energy = self.DeclareDiscreteState(6)
+        self._sent = self.DeclareDiscreteState(6 * port_delay_ticks)
+        self._dissipated = self.DeclareDiscreteState(1)
+        # The energy a debt is measured against: the coupling's spring at the wrench limit.
+        self._reference_energy_j = np.concatenate((
+            np.full(3, config.max_force_n) ** 2, np.full(3, config.max_torque_nm) ** 2)) \
+            / (2 * self._k)
         self._alpha = velocity_filter_gain(config.velocity_filter_hz, period_s)
         self.DeclarePeriodicDiscreteUpdateEvent(period_s, 0.0, self._update)
         # The scene reads one output and the controller the other: compute once.
@@ -276,10 +337,12 @@ class HapticCoupling(LeafSystem):
                                          calc=self._calc_cache),
             prerequisites_of_calc={self._X_WI.ticket(), self._X_WT.ticket(),
                                    self._V_WT.ticket(), self._enable.ticket(),
-                                   self.xd_ticket()})
+                                   self.xd_ticket()} | (
+                {self._V_WI.ticket()} if config.passivity_controller else set()))
         self.DeclareVectorOutputPort("wrench_on_tool_W", 6, self._calc_on_tool)
         self.DeclareVectorOutputPort("wrench_feedforward_W", 6, self._calc_feedforward)
         self.DeclareVectorOutputPort("coupling_clamped", 1, self._calc_clamped)
+        self.DeclareStateOutputPort("passivity_dissipated_j", self._dissipated)
 
     def _update(self, context, discrete_state):
         fraction = ramp_step(context.get_discrete_state(self._ramp).GetAtIndex(0),
@@ -288,18 +351,35 @@ class HapticCoupling(LeafSystem):
         filtered = context.get_discrete_state(self._V_WI_filtered).CopyToVector()
         filtered = filtered + self._alpha * (self._V_WI.Eval(context) - filtered)
         discrete_state.get_mutable_vector(self._V_WI_filtered).SetFromVector(filtered)
+        if self._config.passivity_controller:
+            _, _, _, (energy, sent, dissipated) = self._cache.Eval(context)
+            discrete_state.get_mutable_vector(self._energy).SetFromVector(energy)
+            discrete_state.get_mutable_vector(self._sent).SetFromVector(sent.ravel())
+            discrete_state.get_mutable_vector(self._dissipated).SetAtIndex(
+                0, context.get_discrete_state(self._dissipated).GetAtIndex(0) + dissipated)
 
     def _calc_cache(self, context, value):
-        """(wrench on tool, wrench on instrument, clamp factor) after ramp and clamp."""
+        """(wrench on tool, wrench on instrument, clamp factor, the passivity observer's
+        state after this sample and what its controller dissipated in it, or None) after
+        ramp and clamp, with the passivity controller's damping on the instrument's."""
         fraction = context.get_discrete_state(self._ramp).GetAtIndex(0)
         if self._enable.Eval(context)[0] < 0.5:
             fraction = 0.0
-        value.set_value(limited_wrenches(
+        on_tool, on_instrument, scale = limited_wrenches(
             self._X_WI.Eval(context),
             context.get_discrete_state(self._V_WI_filtered).CopyToVector(),
             self._X_WT.Eval(context),
             self._V_WT.Eval(context), self._R_IT, self._p_IT, self._k, self._b, fraction,
-            self._config.max_force_n, self._config.max_torque_nm))
+            self._config.max_force_n, self._config.max_torque_nm)
+        observer = None
+        if self._config.passivity_controller:
+            state = context.get_discrete_state()
+            on_instrument, *observer = passivity_step(
+                on_instrument, self._V_WI.Eval(context),
+                state.get_vector(self._energy).CopyToVector(),
+                state.get_vector(self._sent).CopyToVector().reshape(self._port_delay_ticks, 6),
+                self._period_s, self._reference_energy_j)
+        value.set_value((on_tool, on_instrument, scale, observer))
 
     def _calc_on_tool(self, context, output):
         output.SetFromVector(self._cache.Eval(context)[0])

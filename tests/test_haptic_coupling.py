@@ -8,7 +8,7 @@ from scipy.spatial.transform import Rotation
 
 from maglev_haptics.systems.haptic_coupling import (
     CouplingConfig, HapticCoupling, clamp_scale, coupling_gains, coupling_wrenches,
-    resolved_rotational_gains, spring_potential, velocity_filter_gain)
+    passivity_step, resolved_rotational_gains, spring_potential, velocity_filter_gain)
 
 PERIOD_S = 1e-3
 # What the diagram builder fills in for a device: limits and rotational gains.
@@ -291,3 +291,27 @@ def test_rotational_gains_follow_the_instrument_inertia():
     with pytest.raises(ValueError, match="rotational_stiffness is None"):
         HapticCoupling(config=CouplingConfig(max_force_n=1.0, max_torque_nm=0.1),
                        period_s=PERIOD_S)
+
+
+def test_the_passivity_observer_leaves_a_passive_port_alone_and_scales_an_axis_in_debt():
+    """Energy is counted from the wrench sent d samples ago against this sample's
+    velocity; an axis in debt has its wrench scaled by 1 / (1 + debt / reference)."""
+    period_s, reference = 1e-3, np.full(6, 1e-3)
+    sent = np.zeros((3, 6))
+    sent[0] = [2.0, 0.0, 0.0, 0.0, 0.0, 0.0]  # pushed +x three samples ago
+    wrench = np.array([1.0, -1.0, 0.5, 0.01, 0.0, 0.0])
+    # The instrument moves -x into the push: the user did work on the device (+2 mJ).
+    moving_into = np.array([0.0, 0.0, 0.0, -1.0, 0.0, 0.0])
+    out, energy, new_sent, withheld = passivity_step(
+        wrench, moving_into, np.zeros(6), sent, period_s, reference)
+    np.testing.assert_array_equal(out, wrench)
+    assert energy[0] == pytest.approx(2e-3) and withheld == 0.0
+    np.testing.assert_array_equal(new_sent[-1], wrench)
+    np.testing.assert_array_equal(new_sent[0:2], sent[1:3])
+    # Moving +x with the push: the device did 2 mJ of work it never received.
+    out, energy, _, withheld = passivity_step(
+        wrench, -moving_into, np.zeros(6), sent, period_s, reference)
+    assert energy[0] == pytest.approx(-2e-3)
+    assert out[0] == pytest.approx(wrench[0] / 3.0)  # 1 / (1 + 2 mJ / 1 mJ)
+    np.testing.assert_array_equal(out[1:], wrench[1:])
+    assert withheld == pytest.approx((wrench[0] - out[0]) * 1.0 * period_s)
