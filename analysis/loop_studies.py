@@ -59,6 +59,29 @@ def loop_parameters(scenario, axis: int = 0) -> LoopParameters:
         velocity_filter_hz=coupling.velocity_filter_hz)
 
 
+def stability_warnings(scenario, label: str) -> List[str]:
+    """A line for each axis along which the loop analysis (``haptic_loop.is_stable``
+    on ``loop_parameters``, ~10 ms an axis) predicts the scenario's coupling gains
+    unstable at its control rate and delays; none for a scenario without a coupling
+    or a hand to hold it."""
+    if scenario.haptics is None or scenario.hand is None:
+        return []
+    lines = []
+    for axis, name in enumerate("xyz"):
+        p = loop_parameters(scenario, axis)
+        if is_stable(p):
+            continue
+        lines.append(
+            f"warning: {label}: the loop analysis predicts the haptic coupling unstable "
+            f"along {name}: haptics.coupling.translational_stiffness[{axis}] = "
+            f"{p.stiffness:g} N/m is past the {critical_stiffness(p):.0f} N/m this loop "
+            f"holds ({scenario.control_rate_hz:g} Hz, {1e3 * p.delay_s:.2f} ms delay, damping "
+            f"{p.damping:g} N s/m); " + (
+                "the passivity controller is on" if scenario.haptics.coupling.passivity_controller
+                else "lower it, or set haptics.coupling.passivity_controller: true"))
+    return lines
+
+
 def _parameters_dict(p: LoopParameters) -> Dict:
     return {name: getattr(p, name) for name in p.__dataclass_fields__}
 

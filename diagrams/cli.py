@@ -136,6 +136,7 @@ def _cmd_run(args) -> int:
     from maglev_haptics.analysis.run_results import run_scenario
     from maglev_haptics.diagrams.scenario import with_stereo
     from maglev_haptics.diagrams.thermal_forecast import thermal_outlook
+    from maglev_haptics.analysis.loop_studies import stability_warnings
 
     scenario, label = _load(args)
     duration = args.duration
@@ -152,7 +153,7 @@ def _cmd_run(args) -> int:
         duration = scenario.duration_s
     validate_scenario(scenario, label)
     out = _writable_folder(Path(args.out) if args.out else Path("out") / label.replace(":", "-"))
-    for line in thermal_outlook(scenario, label):
+    for line in thermal_outlook(scenario, label) + stability_warnings(scenario, label):
         print(line)
     if args.interactive:
         print("interactive: move the hand with the sliders in Meshcat's Controls panel; "

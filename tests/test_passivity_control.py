@@ -1,11 +1,14 @@
 """The passivity controller on the haptic coupling: a coupling stiffened past the
 loop's onset of instability rings up to the force clamp without it and stays at the
-level the tracker's noise sets with it, and what it withheld is in the log."""
+level the tracker's noise sets with it, and what it withheld is in the log; and the
+warning before a run whose coupling the loop analysis predicts unstable."""
 
 import dataclasses
 
+from maglev_haptics.analysis.loop_studies import stability_warnings
 from maglev_haptics.analysis.onset import OnsetPoint, grows, held_still
-from maglev_haptics.diagrams.scenario import load_scenario
+from maglev_haptics.diagrams.cli import main
+from maglev_haptics.diagrams.scenario import load_scenario, scenario_names, shipped_scenario_files
 
 # The peg scene's onset, the hand holding still, is ~4,500 N/m (docs/analysis.md).
 OVERSTIFF_N_PER_M = 5500.0
@@ -36,3 +39,21 @@ def test_an_overstiff_coupling_rings_without_the_passivity_controller_and_not_wi
     assert without["last_rms_m_s"] > 8 * with_it["last_rms_m_s"]
     assert with_it["passivity_dissipated_j"] > 0.0
     assert without["passivity_dissipated_j"] is None
+
+
+def test_maglev_run_warns_of_coupling_gains_the_loop_analysis_predicts_unstable(
+        capsys, tmp_path):
+    for path in shipped_scenario_files():
+        for name in scenario_names(path):
+            assert stability_warnings(load_scenario(path, name), name) == []
+    code = main(["run", "peg_in_hole", "--no-meshcat", "--duration", "0.01", "--out",
+                 str(tmp_path), "--scenario-text",
+                 "{haptics: {coupling: {translational_stiffness: [400, 6000, 400]}}}"])
+    assert code == 0
+    lines = capsys.readouterr().out.splitlines()
+    warnings = [line for line in lines if line.startswith("warning:")]
+    assert len(warnings) == 1
+    assert warnings[0].startswith(
+        "warning: peg_in_hole:peg_in_hole: the loop analysis predicts the haptic coupling "
+        "unstable along y: haptics.coupling.translational_stiffness[1] = 6000 N/m is past the ")
+    assert warnings[0].endswith("or set haptics.coupling.passivity_controller: true")
