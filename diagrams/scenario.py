@@ -33,6 +33,8 @@ from maglev_haptics.systems.haptic_coupling import CouplingConfig
 from maglev_haptics.systems.haptic_supervisor import SupervisorConfig
 from maglev_haptics.systems.levitation_controller import ControllerConfig
 from maglev_haptics.systems.marker_sensor import Occlusion
+from maglev_haptics.systems.fault_injection import (
+    CorruptSample, LatencySpike, Shove, StuckAmplifier)
 from maglev_haptics.systems.pose_estimator import PoseEstimatorConfig
 
 SCENARIO_DIR = Path(__file__).resolve().parent.parent / "scenarios"
@@ -125,6 +127,9 @@ class Scenario:
     station: Union[SimStation, LcmStation] = field(default_factory=SimStation)
     # The device supervisor's watchdogs (systems/device_supervisor.py).
     watchdog: WatchdogConfig = field(default_factory=WatchdogConfig)
+    # Faults injected into the simulated station (systems/fault_injection.py).
+    faults: List[Union[LatencySpike, CorruptSample, StuckAmplifier, Shove]] = field(
+        default_factory=list)
 
     def validate(self, label: str) -> None:
         """Range checks of every config, each error naming ``label: path.field``, its
@@ -140,6 +145,14 @@ class Scenario:
                     f"must be null (all markers) or a marker index 0..{n_markers - 1}")
             require(0 <= o.start_s <= o.end_s, f"{label}: occlusions[{i}]",
                     (o.start_s, o.end_s), "needs 0 <= start_s <= end_s")
+        for i, fault in enumerate(self.faults):
+            path = f"{label}: faults[{i}]"
+            if isinstance(fault, CorruptSample):
+                fault.validate(path, n_markers)
+            elif isinstance(fault, StuckAmplifier):
+                fault.validate(path, self.device.n_coils)
+            else:
+                fault.validate(path)
         require(0.0 <= self.marker_dropout_probability <= 1.0,
                 f"{label}: marker_dropout_probability", self.marker_dropout_probability,
                 "must be in [0, 1]")

@@ -38,6 +38,8 @@ from maglev_haptics.diagrams.head_script import head_plan
 from maglev_haptics.diagrams.lcm_station import LcmStation, MakeLcmStation
 from maglev_haptics.diagrams.scenario import Scenario, ScenarioError
 from maglev_haptics.plant_models import PACKAGE_XML
+from maglev_haptics.systems.fault_injection import (
+    CorruptSample, LatencySpike, Shove, Shoves, StuckAmplifier, StuckAmplifiers)
 from maglev_haptics.systems.hand import HAND_MODEL_URL, SimulatedHand
 from maglev_haptics.systems.head_sensor import HeadSensor
 from maglev_haptics.systems.magnetic_actuation import MagneticActuation
@@ -147,9 +149,12 @@ def MakeStation(scenario: Scenario, *, magnetics, station=None) -> Diagram:
                                period_s=control_period_s)
     actuation = builder.AddNamedSystem(
         "magnetic_actuation", MagneticActuation(magnetics=magnetics, p_WA=device.p_WA))
+    faults = {kind: [f for f in scenario.faults if isinstance(f, kind)]
+              for kind in (LatencySpike, CorruptSample, StuckAmplifier, Shove)}
     sensor = builder.AddNamedSystem("marker_sensor", MarkerSensor(
         instrument=spec, tracker=device.tracker, occlusions=scenario.occlusions,
-        seed=scenario.random_seed, dropout_probability=scenario.marker_dropout_probability))
+        seed=scenario.random_seed, dropout_probability=scenario.marker_dropout_probability,
+        latency_spikes=faults[LatencySpike], corruptions=faults[CorruptSample]))
     state_port = plant.get_state_output_port(instrument)
     builder.Connect(amplifiers.get_output_port(), actuation.GetInputPort("coil_currents"))
     builder.Connect(state_port, actuation.GetInputPort("instrument_state"))
@@ -161,7 +166,16 @@ def MakeStation(scenario: Scenario, *, magnetics, station=None) -> Diagram:
                         plant.get_applied_generalized_force_input_port())
     builder.Connect(state_port, sensor.GetInputPort("instrument_state"))
 
-    builder.ExportInput(amplifiers.get_input_port(), "coil_currents_commanded")
+    if faults[StuckAmplifier]:
+        stuck = builder.AddNamedSystem("stuck_amplifiers", StuckAmplifiers(
+            faults[StuckAmplifier], device.n_coils, device.amplifier.current_limit_a))
+        builder.Connect(stuck.get_output_port(), amplifiers.get_input_port())
+        builder.ExportInput(stuck.get_input_port(), "coil_currents_commanded")
+    else:
+        builder.ExportInput(amplifiers.get_input_port(), "coil_currents_commanded")
+    if faults[Shove]:
+        shoves = builder.AddNamedSystem("shoves", Shoves(faults[Shove], body.index()))
+        builder.Connect(shoves.get_output_port(), plant.get_applied_spatial_force_input_port())
     builder.ExportOutput(sensor.GetOutputPort("markers_measured"), "markers_measured")
     builder.ExportOutput(amplifiers.get_output_port(), "coil_currents")
     builder.ExportOutput(state_port, "instrument_state")

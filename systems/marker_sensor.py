@@ -31,6 +31,8 @@ from pydrake.systems.framework import BasicVector, LeafSystem
 
 from maglev_haptics.hardware.device import InstrumentSpec, TrackerSpec
 from maglev_haptics.hardware.kernels import MASK_MATRIX, MATRIX, SCALAR, VECTOR, kernel
+from maglev_haptics.systems.fault_injection import (
+    CorruptSample, LatencySpike, corrupt, stalled)
 from maglev_haptics.systems.rotations import (
     quaternion_exp, quaternion_multiply, rotation_from_quaternion)
 
@@ -186,11 +188,14 @@ class MarkerSensor(LeafSystem):
         dropout_probability: chance that a marker is missing from a sample,
             independently per marker and sample, in [0, 1].
         quantization_m: coordinate resolution [m]; 0 for none.
+        latency_spikes, corruptions: injected faults (``systems/fault_injection.py``).
     """
 
     def __init__(self, instrument: InstrumentSpec, tracker: TrackerSpec,
                  occlusions: Sequence = (), seed: int = 0, *,
-                 dropout_probability: float = 0.0, quantization_m: float = 0.0):
+                 dropout_probability: float = 0.0, quantization_m: float = 0.0,
+                 latency_spikes: Sequence[LatencySpike] = (),
+                 corruptions: Sequence[CorruptSample] = ()):
         super().__init__()
         p_IK = instrument.p_IK
         if p_IK.ndim != 2 or p_IK.shape[1] != 3 or len(p_IK) < 1 \
@@ -215,6 +220,8 @@ class MarkerSensor(LeafSystem):
         self._occlusion_start, self._occlusion_end, self._occlusion_hides = \
             _occlusion_table(list(occlusions), len(p_IK))
         self._noise = SampleNoise(int(seed), len(p_IK))
+        self._latency_spikes = list(latency_spikes)
+        self._corruptions = list(corruptions)
 
         self._state = self.DeclareVectorInputPort("instrument_state", 13)
         self._markers_index = self.DeclareDiscreteState(
@@ -232,11 +239,16 @@ class MarkerSensor(LeafSystem):
 
     def _measure_into(self, t, instrument_state, p_WK_out):
         # Writes in place so the update fills the discrete state without a copy.
-        normal, uniform = self._noise.draw(round(t * self._rate_hz))
+        sample = round(t * self._rate_hz)
+        normal, uniform = self._noise.draw(sample)
         _measure(t, instrument_state, self._p_IK, self._latency_s, self._noise_m,
                  self._quantization_m, self._dropout, normal, uniform,
                  self._occlusion_start, self._occlusion_end, self._occlusion_hides, p_WK_out)
+        if self._corruptions:
+            corrupt(sample, p_WK_out, self._corruptions, self._rate_hz)
 
     def _update(self, context, discrete_state):
+        if self._latency_spikes and stalled(context.get_time(), self._latency_spikes):
+            return  # the last sample holds
         self._measure_into(context.get_time(), self._state.Eval(context),
                            discrete_state.get_mutable_value(self._markers_index))

@@ -1,0 +1,83 @@
+"""Faults injected into the simulated station: each does what it says, a bad one is
+refused naming its field, and the loop copes (rides through or lands safely)."""
+
+import numpy as np
+import pytest
+
+from maglev_haptics.analysis.run_results import run_scenario
+from maglev_haptics.diagrams.scenario import ScenarioError, load_scenario
+from maglev_haptics.hardware import DeviceConfig
+from maglev_haptics.systems.device_supervisor import FAULT_OVER_SPEED
+from maglev_haptics.systems.fault_injection import (
+    CorruptSample, LatencySpike, StuckAmplifier, corrupt, stalled, stuck_currents)
+from maglev_haptics.systems.marker_sensor import MarkerSensor
+
+LIMIT_A = 4.0
+
+
+def test_a_stuck_amplifier_delivers_its_stuck_current_from_its_time_on():
+    faults = [StuckAmplifier(coil=2, at_s=1.0, stuck_at="zero"),
+              StuckAmplifier(coil=5, at_s=2.0, stuck_at="negative_limit")]
+    commanded = np.linspace(-1.0, 1.0, 27)
+    np.testing.assert_array_equal(stuck_currents(0.5, commanded, faults, LIMIT_A), commanded)
+    after = stuck_currents(2.0, commanded, faults, LIMIT_A)
+    assert after[2] == 0.0 and after[5] == -LIMIT_A
+    np.testing.assert_array_equal(np.delete(after, [2, 5]), np.delete(commanded, [2, 5]))
+
+
+def test_a_stalled_tracker_holds_its_sample_and_a_corrupt_one_has_one_nan():
+    spec = DeviceConfig().instrument_spec()
+    tracker = DeviceConfig().tracker
+    sensor = MarkerSensor(spec, tracker, latency_spikes=[LatencySpike(0.01, 0.02)],
+                          corruptions=[CorruptSample(at_s=0.03, marker=1, coordinate=2)])
+    context = sensor.CreateDefaultContext()
+    state = np.r_[1.0, 0, 0, 0, 0, 0, 0.02, np.zeros(6)]
+    sensor.get_input_port().FixValue(context, state)
+    samples = {}
+    for k in range(int(0.04 * tracker.rate_hz)):
+        t = k / tracker.rate_hz
+        context.SetTime(t)
+        context.SetDiscreteState(sensor.EvalUniquePeriodicDiscreteUpdate(context))
+        samples[k] = sensor.get_output_port().Eval(context).copy()
+    stall = [k for k in samples if stalled(k / tracker.rate_hz, [LatencySpike(0.01, 0.02)])]
+    assert len(stall) >= 8
+    for k in stall:  # the sample before the stall, again and again
+        np.testing.assert_array_equal(samples[k], samples[stall[0] - 1])
+    bad = samples[round(0.03 * tracker.rate_hz)]
+    assert np.isnan(bad[5]) and np.isfinite(np.delete(bad, 5)).all()
+    expected = samples[round(0.03 * tracker.rate_hz)].copy()
+    corrupt(round(0.03 * tracker.rate_hz), expected, [], tracker.rate_hz)  # nothing to do
+    np.testing.assert_array_equal(np.isnan(expected), np.isnan(bad))
+
+
+@pytest.mark.parametrize("fault, message", [
+    ("!StuckAmplifier {coil: 27}", "faults[0].coil = 27: must be a coil index 0..26"),
+    ("!StuckAmplifier {stuck_at: sideways}", "faults[0].stuck_at = 'sideways': must be one of"),
+    ("!CorruptSample {marker: 3}", "faults[0].marker = 3: must be a marker index 0..2"),
+    ("!LatencySpike {start_s: 2.0, end_s: 1.0}", "faults[0].end_s = 1.0: must be finite"),
+    ("!Shove {force_n: [1, 2]}", "faults[0].force_n = [1.0, 2.0]: must be a list of 3"),
+])
+def test_a_bad_fault_is_refused_naming_its_field(fault, message):
+    with pytest.raises(ScenarioError, match=message.replace("[", r"\[")):
+        load_scenario("levitate", None, f"{{faults: [{fault}]}}")
+
+
+def run(text):
+    scenario = load_scenario("levitate", None, text)
+    return run_scenario(scenario, label="levitate", progress=False)
+
+
+def test_a_coil_stuck_at_its_limit_while_hovering_is_flown_and_landed():
+    result = run("{faults: [!StuckAmplifier {coil: 13, at_s: 2.5, stuck_at: positive_limit}]}")
+    summary = result.summary
+    assert summary["max_coil_current_a"] <= LIMIT_A
+    assert summary["touchdown"] is not None and summary["touchdown"]["speed_m_s"] < 0.1
+    assert np.max(np.abs(result.log["p_WI_true"][:, 0:2])) < 0.01  # held within 1 cm
+
+
+def test_a_ten_newton_shove_raises_over_speed_and_lands():
+    result = run("{faults: [!Shove {at_s: 2.5, duration_s: 0.01, force_n: [10, 0, 0]}]}")
+    log = result.log
+    over_speed = (log["fault_bits"] & FAULT_OVER_SPEED) != 0
+    assert over_speed.any() and 2.5 < log["t"][np.argmax(over_speed)] < 2.53
+    assert result.summary["touchdown"]["speed_m_s"] < 0.1
