@@ -48,7 +48,7 @@ from maglev_haptics.hardware.magnetics import bench_wrench_matrix, load_magnetic
 from maglev_haptics.hardware.thermal import (
     coil_thermal, current_bounds_a, thermal_budget, winding_resistance_ohm)
 from maglev_haptics.systems.current_allocator import (
-    allocate_currents, bounded_minimum_power_currents)
+    TORQUE_WEIGHT_PER_M, allocate_currents, bounded_minimum_power_currents)
 from maglev_haptics.systems.levitation_controller import ControllerConfig
 
 LEVITATE_FILE = SCENARIO_DIR / "levitate.yaml"
@@ -145,7 +145,8 @@ def allocation_cost_us(config: DeviceConfig, n: int = 2000) -> Dict[str, Dict[st
         temperatures = np.full(A.shape[1], temperature_c)
         resistance = winding_resistance_ohm(thermal, temperatures)
         bounds = current_bounds_a(budget, temperatures)
-        return lambda: bounded_minimum_power_currents(A, wrench, resistance, bounds)
+        return lambda: bounded_minimum_power_currents(A, wrench, resistance, bounds,
+                                                      TORQUE_WEIGHT_PER_M)
 
     return {
         "thermal": {

@@ -174,7 +174,8 @@ def MakeStation(scenario: Scenario, *, magnetics, station=None) -> Diagram:
     else:
         builder.ExportInput(amplifiers.get_input_port(), "coil_currents_commanded")
     if faults[Shove]:
-        shoves = builder.AddNamedSystem("shoves", Shoves(faults[Shove], body.index()))
+        shoves = builder.AddNamedSystem("shoves", Shoves(faults[Shove], body.index(),
+                                                         body.default_com()))
         builder.Connect(shoves.get_output_port(), plant.get_applied_spatial_force_input_port())
     builder.ExportOutput(sensor.GetOutputPort("markers_measured"), "markers_measured")
     builder.ExportOutput(amplifiers.get_output_port(), "coil_currents")

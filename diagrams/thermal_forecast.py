@@ -24,7 +24,8 @@ from maglev_haptics.hardware.constants import GRAVITY_M_S2
 from maglev_haptics.hardware.magnetics import load_magnetics
 from maglev_haptics.hardware.thermal import (
     coil_thermal, current_bounds_a, temperature_after_c, thermal_budget, winding_resistance_ohm)
-from maglev_haptics.systems.current_allocator import bounded_minimum_power_currents
+from maglev_haptics.systems.current_allocator import (
+    TORQUE_WEIGHT_PER_M, bounded_minimum_power_currents)
 from maglev_haptics.systems.levitation_controller import is_thermally_limited
 
 FORECAST_STEP_S = 0.01  # along the plan: the thermal model's period (s)
@@ -77,17 +78,18 @@ class _Coils:
         """(temperatures after ``duration_s`` (deg C), thermally limited)."""
         bounds = current_bounds_a(self.budget, temperature_c)
         currents, shortfall = bounded_minimum_power_currents(
-            A, wrench, winding_resistance_ohm(self.thermal, temperature_c), bounds)
+            A, wrench, winding_resistance_ohm(self.thermal, temperature_c), bounds,
+            TORQUE_WEIGHT_PER_M)
         limited = is_thermally_limited(currents, bounds, shortfall, self.limit_a, self.mass_kg)
         return temperature_after_c(self.thermal, temperature_c, currents, duration_s), limited
 
     def sustainable(self, A, wrench) -> bool:
         """Whether every coil at its steady bound (each at the budget's target) carries it,
         but for a shortfall too small to be thermally limited."""
-        n = A.shape[1]
-        hot = np.full(n, self.budget.target_c)
+        hot = np.full(A.shape[1], self.budget.target_c)
         currents, shortfall = bounded_minimum_power_currents(
-            A, wrench, winding_resistance_ohm(self.thermal, hot), current_bounds_a(self.budget, hot))
+            A, wrench, winding_resistance_ohm(self.thermal, hot),
+            current_bounds_a(self.budget, hot), TORQUE_WEIGHT_PER_M)
         return not is_thermally_limited(currents, current_bounds_a(self.budget, hot), shortfall,
                                         math.inf, self.mass_kg)
 
@@ -113,15 +115,15 @@ def forecast_holds(scenario, plan, magnetics) -> List[HoldForecast]:
             t += FORECAST_STEP_S
         pose = plan.setpoint.value(start_s).ravel()
         A = coils.matrix(pose)
-        weight = _lift(coils.mass_kg, plan.enable.value(start_s)[0, 0], np.zeros(3))
-        sustainable = coils.sustainable(A, weight)
+        lift = _lift(coils.mass_kg, plan.enable.value(start_s)[0, 0], np.zeros(3))
+        sustainable = coils.sustainable(A, lift)
         arrival_c = temperature_c.copy()
         while t < end_s:
-            temperature_c, _ = coils.step(A, weight, temperature_c, FORECAST_STEP_S)
+            temperature_c, _ = coils.step(A, lift, temperature_c, FORECAST_STEP_S)
             t += FORECAST_STEP_S
         allowed_s = None
         if not sustainable:
-            allowed_s = _time_allowed(coils, A, weight, arrival_c)
+            allowed_s = _time_allowed(coils, A, lift, arrival_c)
         forecasts.append(HoldForecast(
             waypoint=index, start_s=float(start_s), hold_s=float(end_s - start_s),
             sustainable=sustainable, allowed_s=allowed_s, hottest_c=float(temperature_c.max())))

@@ -28,7 +28,7 @@ import numba
 import numpy as np
 from scipy.linalg.lapack import dposv
 
-from maglev_haptics.hardware.kernels import MATRIX, VECTOR, kernel
+from maglev_haptics.hardware.kernels import MATRIX, SCALAR, VECTOR, kernel
 
 ALLOCATIONS = ("thermal", "pseudoinverse")
 
@@ -140,17 +140,29 @@ def _dual_newton(A, wrench, resistance_ohm, bound_a, nu, max_steps, tolerance):
 
 @numba.njit(cache=True)
 def _penalized_free_optimum(A, wrench, resistance_ohm, currents, free):
-    """(nu, optimum of the free currents) of the penalized problem with the other
-    currents held: by Woodbury, I_F = R_F^-1 A_F^T nu with
-    (1/rho + A_F R_F^-1 A_F^T) nu = wrench - A_H I_H, a 6 x 6 system."""
+    """(nu = rho (w - A I), optimum of the free currents) of the penalized problem with
+    the other currents held. With more free coils than rows, by Woodbury:
+    I_F = R_F^-1 A_F^T nu with (1/rho + A_F R_F^-1 A_F^T) nu = w - A_H I_H, a 6 x 6
+    system; with fewer, that system is nearly singular and its huge nu cancels in
+    I_F, so the normal equations (A_F^T A_F + R_F / rho) I_F = A_F^T (w - A_H I_H)
+    instead, at most 6 x 6."""
     held = ~free
     remaining = wrench - A[:, held] @ currents[held]
     A_free = A[:, free]
-    system = (A_free / resistance_ohm[free]) @ A_free.T
-    for i in range(A.shape[0]):
-        system[i, i] += _INVERSE_PENALTY
-    nu = np.linalg.solve(system, remaining)
-    return nu, (A_free.T @ nu) / resistance_ohm[free]
+    resistance = resistance_ohm[free]
+    if A_free.shape[1] > A.shape[0]:
+        system = (A_free / resistance) @ A_free.T
+        for i in range(A.shape[0]):
+            system[i, i] += _INVERSE_PENALTY
+        nu = np.linalg.solve(system, remaining)
+        return nu, (A_free.T @ nu) / resistance
+    optimum = np.zeros(A_free.shape[1])
+    if A_free.shape[1] > 0:
+        normal = A_free.T @ A_free
+        for i in range(A_free.shape[1]):
+            normal[i, i] += _INVERSE_PENALTY * resistance[i]
+        optimum = np.linalg.solve(normal, A_free.T @ remaining)
+    return (remaining - A_free @ optimum) / _INVERSE_PENALTY, optimum
 
 
 @numba.njit(cache=True)
@@ -196,8 +208,16 @@ def _penalized_active_set(A, wrench, resistance_ohm, bound_a, currents):
     return nu, currents
 
 
-@kernel((MATRIX, VECTOR, VECTOR, VECTOR))
-def bounded_minimum_power_currents(A, wrench, resistance_ohm, bound_a):
+# Out of reach, a torque error of 1e-4 N*m counts as much as 1 N of force [1/m]: the
+# attitude first. A lost attitude loses the instrument (it turns over, and the magnets'
+# forces with it; the 2-magnet instrument turns about its magnet row with 8e-6 kg*m^2),
+# while a position error is recovered. Without it the least squares gives up N*m for
+# N, and a hard shove spins the instrument.
+TORQUE_WEIGHT_PER_M = 1e4
+
+
+@kernel((MATRIX, VECTOR, VECTOR, VECTOR, SCALAR))
+def bounded_minimum_power_currents(A, wrench, resistance_ohm, bound_a, torque_weight):
     """(currents [A], shortfall [N, N*m]): minimize sum_j R_j I_j^2 subject to
     ``A @ I = wrench`` and ``|I_j| <= bound_a[j]``.
 
@@ -206,9 +226,10 @@ def bounded_minimum_power_currents(A, wrench, resistance_ohm, bound_a):
     QP's dual has 6 variables: the currents are ``clip(A^T nu / R, -bound, bound)``
     and a Newton step on the dual solves a 6 x 6 system. When the wrench is out of
     reach the exact dual is unbounded; then the penalized problem (least squares on
-    the wrench, power weighted by 1e-12), solved by a primal active-set method on the
-    currents (each step a 6 x 6 system, by Woodbury), gives the nearest wrench within
-    the bounds.
+    the shortfall with its torque rows times ``torque_weight`` (1/m:
+    TORQUE_WEIGHT_PER_M in the loop), power weighted by 1e-12), solved by a primal
+    active-set method on the currents (each step a 6 x 6 system, by Woodbury), gives
+    the nearest wrench within the bounds.
     ``shortfall`` is ``wrench - A @ currents``: zero to ~1e-10 when reachable.
     """
     if not np.any(A):  # out of every coil's reach (beyond the field tables)
@@ -217,12 +238,15 @@ def bounded_minimum_power_currents(A, wrench, resistance_ohm, bound_a):
     _, currents, converged = _dual_newton(A, wrench, resistance_ohm, bound_a,
                                           np.zeros(A.shape[0]), _EXACT_STEPS, tolerance)
     if not converged:
-        nu, penalized = _penalized_active_set(A, wrench, resistance_ohm, bound_a, currents)
+        rows = np.ones(A.shape[0])
+        rows[3:] = torque_weight
+        nu, penalized = _penalized_active_set(A * rows.reshape(-1, 1), wrench * rows,
+                                              resistance_ohm, bound_a, currents)
         currents = penalized
         # Reachable after all (many coils at their bounds)? Then the exact optimum is a
         # step or two from the penalized one.
-        _, exact, converged = _dual_newton(A, wrench, resistance_ohm, bound_a, nu,
-                                           _POLISH_STEPS, tolerance)
+        _, exact, converged = _dual_newton(A, wrench, resistance_ohm, bound_a,
+                                           rows * nu, _POLISH_STEPS, tolerance)
         if converged:
             currents = exact
     return currents, wrench - A @ currents

@@ -35,6 +35,10 @@ FAULT_OVER_SPEED = device_status_t.FAULT_OVER_SPEED
 # The amplifiers clamp at the limit: only a measured current past it (by more than
 # rounding) is a fault.
 CURRENT_TOLERANCE = 1e-6
+# The controller's thermally-limited flag raises the fault only once it has held this
+# long (s): near the budget's edge the PD's noise-driven corrections fall short now and
+# then, which the instrument rides through; a sustained shortfall is the load itself.
+THERMAL_LIMIT_PERSIST_S = 0.1
 
 
 @dataclass(frozen=True, eq=False)
@@ -211,7 +215,9 @@ class DeviceSupervisor(LeafSystem):
     outputs as discrete state, each tick's update writing the next tick's command
     (so the loop reads them from C++: one Python call a tick, which past a motion's
     end only reads); the time a fault's landing started (NaN: none); how long
-    tracking has been lost (s, the ``tracking_lost_s`` output). The watchdogs
+    tracking has been lost (s, the ``tracking_lost_s`` output); how long, at the
+    watchdog checks, the controller has been thermally limited (s: the fault once it
+    reaches THERMAL_LIMIT_PERSIST_S). The watchdogs
     check every ``watchdog_period_s`` (s, to the nearest whole tick): reading the
     measurements and checking them costs ~20-70 us, a large part of the loop's
     headroom were it every tick, and no fault needs a faster answer (the amplifiers
@@ -243,6 +249,7 @@ class DeviceSupervisor(LeafSystem):
         self._fault_bits = self.DeclareDiscreteState(BasicVector([0.0]))
         self._landing_start = self.DeclareDiscreteState(BasicVector([math.nan]))
         self._lost_s = self.DeclareDiscreteState(BasicVector([0.0]))
+        self._thermally_limited_s = self.DeclareDiscreteState(BasicVector([0.0]))
         self._limits = self.DeclareAbstractParameter(AbstractValue.Make(limits))
         self.DeclareStateOutputPort("setpoint", self._setpoint)
         self.DeclareStateOutputPort("enable", self._enable)
@@ -332,6 +339,11 @@ class DeviceSupervisor(LeafSystem):
     def _watch(self, context, discrete_state, motion: Motion) -> bool:
         """Check the watchdogs; latch new faults; True if that started a landing."""
         latched = self.faults(context)
+        limited_s = 0.0
+        if self._thermally_limited.EvalBasicVector(context).GetAtIndex(0) > 0.5:
+            limited_s = (context.get_discrete_state(self._thermally_limited_s).GetAtIndex(0)
+                         + self._watchdog_ticks * self._period_s)
+        discrete_state.get_mutable_vector(self._thermally_limited_s).SetAtIndex(0, limited_s)
         raised = detect_faults(
             position_m=self._pose.EvalBasicVector(context).get_value()[4:7],
             velocity_m_s=self._velocity.EvalBasicVector(context).get_value()[3:6],
@@ -339,8 +351,7 @@ class DeviceSupervisor(LeafSystem):
             > self._lost_grace_s,
             coil_currents_a=self._currents.EvalBasicVector(context).get_value(),
             coil_temperature_c=self._temperatures.EvalBasicVector(context).get_value(),
-            thermally_limited=self._thermally_limited.EvalBasicVector(context).GetAtIndex(0)
-            > 0.5,
+            thermally_limited=limited_s >= THERMAL_LIMIT_PERSIST_S,
             carrying=context.get_discrete_state(self._enable).GetAtIndex(0) > 0.0,
             limits=self.limits(context))
         new = raised & ~latched

@@ -10,8 +10,9 @@ kinds (``maglev faults``):
   (the rest of the sample is good);
 - ``!StuckAmplifier``: from ``at_s`` on, coil ``coil``'s amplifier delivers zero, or
   its limit in one direction, whatever it is commanded;
-- ``!Shove``: a force ``force_n`` (N, in W) on the instrument's origin for
-  ``duration_s`` from ``at_s``.
+- ``!Shove``: a force ``force_n`` (N, in W) on the instrument's centre of mass for
+  ``duration_s`` from ``at_s`` (a push on the whole instrument; the same force at the
+  magnets' centroid would also spin it about the magnet row, whose inertia is tiny).
 
 Each is a plain dataclass the scenario loader fills; the station (diagrams/station.py)
 builds the systems below, or passes the tracker's to the marker sensor, only for
@@ -133,8 +134,8 @@ class StuckAmplifiers(LeafSystem):
 
 
 class Shoves(LeafSystem):
-    """The shoves on the instrument's origin, for the plant's applied spatial force
-    input.
+    """The shoves on the instrument's centre of mass (``p_BoBcm_B``, m, in the body's
+    frame), for the plant's applied spatial force input.
 
     .. pydrake_system::
 
@@ -143,10 +144,11 @@ class Shoves(LeafSystem):
         - spatial_forces
     """
 
-    def __init__(self, shoves: Sequence[Shove], body_index):
+    def __init__(self, shoves: Sequence[Shove], body_index, p_BoBcm_B):
         super().__init__()
         self._shoves = list(shoves)
         self._body_index = body_index
+        self._p_BoBcm_B = np.asarray(p_BoBcm_B, dtype=float)
         self.DeclareAbstractOutputPort(
             "spatial_forces", lambda: AbstractValue.Make([ExternallyAppliedSpatialForce()]),
             self._calc)
@@ -158,7 +160,7 @@ class Shoves(LeafSystem):
             if shove.at_s <= t_s < shove.at_s + shove.duration_s:
                 force = ExternallyAppliedSpatialForce()
                 force.body_index = self._body_index
-                force.p_BoBq_B = np.zeros(3)
+                force.p_BoBq_B = self._p_BoBcm_B
                 force.F_Bq_W = SpatialForce(np.zeros(3), np.asarray(shove.force_n, dtype=float))
                 forces.append(force)
         output.set_value(forces)

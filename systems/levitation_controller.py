@@ -23,7 +23,7 @@ from maglev_haptics.hardware.kernels import SCALAR, VECTOR, kernel
 from maglev_haptics.hardware.thermal import (
     CoilThermal, current_bounds_a, thermal_budget, winding_resistance_ohm)
 from maglev_haptics.systems.current_allocator import (
-    ALLOCATIONS, allocate_currents, bounded_minimum_power_currents)
+    ALLOCATIONS, TORQUE_WEIGHT_PER_M, allocate_currents, bounded_minimum_power_currents)
 from maglev_haptics.systems.magnetic_actuation import wrench_matrix_at
 from maglev_haptics.systems.rotations import (
     angular_velocity_from_rpy_rates, rotation_error_W, rotation_from_quaternion, rotation_from_rpy)
@@ -316,7 +316,7 @@ class LevitationController(LeafSystem):
             limits = self._coil_limits.Eval(context)
             n = limits.size // 2
             currents, shortfall = bounded_minimum_power_currents(
-                A, commanded, limits[:n], limits[n:])
+                A, commanded, limits[:n], limits[n:], TORQUE_WEIGHT_PER_M)
             limited = is_thermally_limited(currents, limits[n:], shortfall,
                                            self._current_limit_a, self._mass_kg)
         else:
