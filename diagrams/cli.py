@@ -306,6 +306,32 @@ def _cmd_bench(args) -> int:
     return 0
 
 
+def _positive_count(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{text!r}: must be a whole number >= 1")
+    return value
+
+
+def _cmd_faults(args) -> int:
+    from maglev_haptics.analysis.fault_campaign import run_campaign
+
+    out_dir = _writable_folder(Path(args.out))
+    results = run_campaign(args.runs, args.seed, out_dir, workers=args.workers)
+    print(results["report"])
+    failed = [r for r in results["runs"] if not r["passed"]]
+    for row in failed:
+        broken = [name for name, ok in row["checks"].items() if not ok]
+        print(f"run {row['run']} ({row['fault']}, {row['scenario']}): "
+              + (f"crashed: {row['error']}" if row["crashed"] else "failed " + ", ".join(broken)))
+    print(f"{len(results['runs']) - len(failed)} of {len(results['runs'])} runs passed every "
+          f"check; wrote {out_dir / 'faults.json'}, {out_dir / 'faults.png'}")
+    return 0 if not failed else 1
+
+
 def _cmd_analyze(args) -> int:
     from maglev_haptics.analysis.studies import format_modes, run_study
 
@@ -470,6 +496,27 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument("--out", default="out/bench",
                        help="folder for bench.json and lattice_scaling.png (default: out/bench)")
     bench.set_defaults(func=_cmd_bench)
+
+    faults = commands.add_parser(
+        "faults", formatter_class=formatter,
+        help="randomized fault-injection campaign; writes faults.json and a plot",
+        description="Randomized fault-injection campaign over the shipped scenarios (tracker "
+        "dropouts, stalls and corrupt samples, stuck amplifiers, the hand letting go, shoves, "
+        "gains near the stability edge, a hold that outlasts the coils' thermal budget), each "
+        "run checked against the safety policy. Writes faults.json and faults.png; exits 1 "
+        "if a run failed a check.",
+        epilog=_epilog("""
+            maglev faults --runs 20 --out out/faults
+            maglev faults --runs 200 --seed 7 --workers 2
+            """, with_scenarios=False))
+    faults.add_argument("--runs", type=_positive_count, default=20,
+                        help="how many runs (default 20; the kinds take turns)")
+    faults.add_argument("--seed", type=int, default=0, help="the campaign's random seed")
+    faults.add_argument("--workers", type=_positive_count, default=1,
+                        help="runs at a time, each in its own process (default 1)")
+    faults.add_argument("--out", default="out/faults",
+                        help="folder for faults.json and faults.png (default: out/faults)")
+    faults.set_defaults(func=_cmd_faults)
 
     from maglev_haptics.analysis.studies import study_names
     analyze = commands.add_parser(
