@@ -217,8 +217,8 @@ class DeviceSupervisor(LeafSystem):
     end only reads); the time a fault's landing started (NaN: none); how long
     tracking has been lost (s, the ``tracking_lost_s`` output); how long, at the
     watchdog checks, the controller has been thermally limited (s: the fault once it
-    reaches THERMAL_LIMIT_PERSIST_S). The watchdogs
-    check every ``watchdog_period_s`` (s, to the nearest whole tick): reading the
+    reaches THERMAL_LIMIT_PERSIST_S). The watchdogs check every
+    ``watchdog_period_s`` (s, to the nearest whole tick): reading the
     measurements and checking them costs ~20-70 us, a large part of the loop's
     headroom were it every tick, and no fault needs a faster answer (the amplifiers
     clamp the current themselves, the coils heat over a minute, the controller lands
