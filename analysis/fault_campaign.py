@@ -9,7 +9,8 @@ Each fault kind, where it is injected and what is expected of the device:
 | tracker_lost | levitate hover | every marker hidden 0.1-0.3 s | coils off past the 20 ms grace: falls level, no faster than free fall; sensor fault within 29.7 ms |
 | latency_spike | levitate hover | the tracker stalls 10-40 ms | ridden through, or a controlled landing |
 | nan_sample | levitate hover | one coordinate of one sample NaN | ridden through |
-| amplifier_stuck_zero / _limit | levitate hover | one coil stuck at 0 or +-4 A | flown, or a controlled landing |
+| amplifier_stuck_zero | levitate hover | one coil stuck at 0 A | ridden through: a coil commanded under 1 A is not missed (one commanded more is, as below) |
+| amplifier_stuck_limit | levitate hover | one coil stuck at +-4 A | over-current fault within 17 ms; the coil allocated nothing, its current taken as given; controlled landing |
 | hand_lets_go | peg_release_outside | the hand lets go at a random time | the device lands it |
 | shove | levitate hover | 10 N for 10 ms, horizontal, random direction | over-speed fault within 23 ms, controlled landing |
 | gains_near_edge | peg held still | coupling at 90% of the analysed critical stiffness | no fault, no ringing at the clamp |
@@ -48,7 +49,8 @@ from maglev_haptics.diagrams.scenario import load_scenario  # noqa: E402
 from maglev_haptics.hardware.constants import GRAVITY_M_S2  # noqa: E402
 from maglev_haptics.hardware.thermal import coil_thermal  # noqa: E402
 from maglev_haptics.systems.device_supervisor import (  # noqa: E402
-    FAULT_COIL_OVER_TEMPERATURE, FAULT_OVER_SPEED, FAULT_SENSOR_OUT_OF_RANGE)
+    FAULT_COIL_OVER_CURRENT, FAULT_COIL_OVER_TEMPERATURE, FAULT_OVER_SPEED,
+    FAULT_SENSOR_OUT_OF_RANGE, STUCK_PERSIST_S)
 from maglev_haptics.systems.fault_injection import (  # noqa: E402
     CorruptSample, LatencySpike, Shove, StuckAmplifier)
 from maglev_haptics.systems.marker_sensor import Occlusion  # noqa: E402
@@ -61,7 +63,8 @@ LANDING_SPEED_LIMIT_M_S = 0.1  # a controlled landing touches down slower (m/s)
 BOUNDARY_MARGIN_M = 0.03  # the instrument stays this close to its setpoint (m)
 LEVEL_TILT_DEG = 5.0  # a lost instrument touches down tilted less (deg)
 EXPECTED_BIT = {"tracker_lost": FAULT_SENSOR_OUT_OF_RANGE, "shove": FAULT_OVER_SPEED,
-                "sustained_push": FAULT_COIL_OVER_TEMPERATURE}
+                "sustained_push": FAULT_COIL_OVER_TEMPERATURE,
+                "amplifier_stuck_limit": FAULT_COIL_OVER_CURRENT}
 HOVER = ("levitate", "takeoff_hover_land")  # hovers 1.4-4.4 s
 # Heats in seconds (2 J/K: a 5 s time constant), and a hold 46 mm up that the coils
 # cannot keep for ever: the thermal budget ends it after ~4.5 s.
@@ -165,6 +168,8 @@ def detection_limit_s(plan: FaultRun, scenario) -> Optional[float]:
     check_s = WATCHDOG_PERIOD_S + 1.0 / scenario.control_rate_hz  # the next check, a tick late
     if plan.fault == "tracker_lost":  # the count passes the grace a tick after reaching it
         return seen_s + scenario.controller.lost_grace_s + 1.0 / scenario.control_rate_hz + check_s
+    if plan.fault == "amplifier_stuck_limit":  # the mismatch lasts two checks
+        return STUCK_PERSIST_S + check_s + 1.0 / scenario.control_rate_hz
     if plan.fault == "shove":  # the estimate's speed crosses the limit
         return (plan.parameters["duration_s"] + seen_s + velocity_lag_s(scenario.estimator)
                 + check_s)
@@ -194,8 +199,10 @@ def outcome_row(plan: FaultRun, scenario, summary: Dict, log: Dict[str, np.ndarr
         rest_m = device.instrument_spec().rest_height_m
         k = max(int(np.argmax(unseen)) - 1, 0)  # the last good sample
         lost_at_height = float(log["p_WI_true"][k, 2] - rest_m)
+    # Off the setpoint while it flies (on the glass it is at rest, wherever it is).
+    flying = after & (t < touchdown["time_s"]) if touchdown else after
     excursion = float(np.max(np.linalg.norm(
-        log["p_WI_true"][after] - log["p_WI_desired"][after], axis=1))) if after.any() else 0.0
+        log["p_WI_true"][flying] - log["p_WI_desired"][flying], axis=1))) if flying.any() else 0.0
     checks = {
         "within_current_limit": summary["max_coil_current_a"] <= current_limit_a * (1 + 1e-6),
         "within_temperature_limit": summary["max_coil_temperature_c"] <= temperature_limit_c,

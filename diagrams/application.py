@@ -127,6 +127,10 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
     builder.Connect(temperatures.get_output_port(), controller.GetInputPort("coil_temperature_c"))
     builder.Connect(controller.GetOutputPort("thermally_limited"),
                     supervisor.GetInputPort("thermally_limited"))
+    builder.Connect(controller.GetOutputPort("coil_currents_commanded"),
+                    supervisor.GetInputPort("coil_currents_commanded"))
+    builder.Connect(supervisor.GetOutputPort("coils_stuck"), controller.GetInputPort("coils_stuck"))
+    builder.Connect(station.GetOutputPort("coil_currents"), controller.GetInputPort("coil_currents"))
 
     builder.Connect(station.GetOutputPort("markers_measured"),
                     estimator.GetInputPort("markers_measured"))

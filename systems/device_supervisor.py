@@ -39,6 +39,19 @@ CURRENT_TOLERANCE = 1e-6
 # long (s): near the budget's edge the PD's noise-driven corrections fall short now and
 # then, which the instrument rides through; a sustained shortfall is the load itself.
 THERMAL_LIMIT_PERSIST_S = 0.1
+# A coil whose measured current differs from its command (clamped to the limit) by
+# more than this (A) on every check for STUCK_PERSIST_S (s) has a stuck amplifier:
+# the amplifiers follow a command within a tick (1 kHz bandwidth), so only a fast
+# transient differs by as much, and not for two checks running.
+STUCK_MISMATCH_A = 1.0
+STUCK_PERSIST_S = 0.01
+
+
+def mismatched_coils(measured_a, commanded_a, current_limit_a: float) -> np.ndarray:
+    """Mask of the coils whose measured current (A) is more than STUCK_MISMATCH_A from
+    their command (A) clamped to the amplifiers' limit (A)."""
+    commanded = np.clip(commanded_a, -current_limit_a, current_limit_a)
+    return np.abs(np.asarray(measured_a) - commanded) > STUCK_MISMATCH_A
 
 
 @dataclass(frozen=True, eq=False)
@@ -155,10 +168,12 @@ def tracking_lost_after(lost_s: float, tracking_ok: float, lost_grace_s: float,
 
 def detect_faults(*, position_m, velocity_m_s, tracking_lost: bool, coil_currents_a,
                   coil_temperature_c, thermally_limited: bool, carrying: bool,
-                  limits: WatchLimits) -> int:
+                  limits: WatchLimits, coils_stuck: bool = False) -> int:
     """The FAULT_* bits these measurements raise (before latching), ``tracking_lost``
     for longer than the controller's grace, ``thermally_limited`` the controller's
-    flag that warm coils' budgets cut the wrench short. The instrument's faults (lost,
+    flag that warm coils' budgets cut the wrench short, ``coils_stuck`` that a coil's
+    amplifier no longer follows its command (over-current: a current not asked for;
+    ``mismatched_coils``). The instrument's faults (lost,
     outside the boundary, too fast, the coils too warm to carry it) count only while
     the coils are ``carrying`` it: resting with the coils off it is in no danger."""
     bits = 0
@@ -178,7 +193,7 @@ def detect_faults(*, position_m, velocity_m_s, tracking_lost: bool, coil_current
     coil_currents_a = np.asarray(coil_currents_a)
     if coil_temperature_c.max() > limits.temperature_limit_c:
         bits |= FAULT_COIL_OVER_TEMPERATURE
-    if max(coil_currents_a.max(), -coil_currents_a.min()) > \
+    if coils_stuck or max(coil_currents_a.max(), -coil_currents_a.min()) > \
             limits.current_limit_a * (1 + CURRENT_TOLERANCE):
         bits |= FAULT_COIL_OVER_CURRENT
     return bits
@@ -197,16 +212,22 @@ class DeviceSupervisor(LeafSystem):
         - coil_currents
         - coil_temperature_c
         - thermally_limited
+        - coil_currents_commanded
         output_ports:
         - setpoint
         - enable
         - fault_bits
         - tracking_lost_s
+        - coils_stuck
 
     - ``setpoint`` (12): [x y z roll pitch yaw] of I in W and their rates (m, rad;
       m/s, rad/s), the active motion's at the context's tick.
     - ``enable`` (1): the controller's force gain 0..1.
     - ``fault_bits`` (1): the latched FAULT_* bits.
+    - ``coils_stuck`` (n_coils): 1 for a coil whose amplifier no longer follows its
+      command (its measured current off by more than STUCK_MISMATCH_A at every check
+      for STUCK_PERSIST_S), latched until ``reset_faults``: the controller allocates
+      without it and takes its measured current as a given.
     - ``tracking_lost_s`` (1): how long tracking has been lost (s), counted every
       tick and latched past ``lost_grace_s`` (``tracking_lost_after``): the
       controller carries the weight alone through the grace, then cuts the coils.
@@ -242,6 +263,7 @@ class DeviceSupervisor(LeafSystem):
         self._currents = self.DeclareVectorInputPort("coil_currents", n_coils)
         self._temperatures = self.DeclareVectorInputPort("coil_temperature_c", n_coils)
         self._thermally_limited = self.DeclareVectorInputPort("thermally_limited", 1)
+        self._commanded = self.DeclareVectorInputPort("coil_currents_commanded", n_coils)
         self._motion = self.DeclareAbstractState(AbstractValue.Make(initial_motion))
         command = initial_motion.at_tick(0)
         self._setpoint = self.DeclareDiscreteState(BasicVector(command[0:12]))
@@ -250,11 +272,14 @@ class DeviceSupervisor(LeafSystem):
         self._landing_start = self.DeclareDiscreteState(BasicVector([math.nan]))
         self._lost_s = self.DeclareDiscreteState(BasicVector([0.0]))
         self._thermally_limited_s = self.DeclareDiscreteState(BasicVector([0.0]))
+        self._mismatch_s = self.DeclareDiscreteState(n_coils)
+        self._stuck = self.DeclareDiscreteState(n_coils)
         self._limits = self.DeclareAbstractParameter(AbstractValue.Make(limits))
         self.DeclareStateOutputPort("setpoint", self._setpoint)
         self.DeclareStateOutputPort("enable", self._enable)
         self.DeclareStateOutputPort("fault_bits", self._fault_bits)
         self.DeclareStateOutputPort("tracking_lost_s", self._lost_s)
+        self.DeclareStateOutputPort("coils_stuck", self._stuck)
         # A context may start at any time: its command is that tick's from the start.
         self.DeclareInitializationDiscreteUpdateEvent(self._initialize)
         self.DeclarePeriodicDiscreteUpdateEvent(self._period_s, 0.0, self._update)
@@ -281,6 +306,8 @@ class DeviceSupervisor(LeafSystem):
         again (the controller then flies); a fault's landing stays the commanded motion."""
         self.set_motion(context, self.active_motion(context))
         context.SetDiscreteState(self._fault_bits, [0.0])
+        context.SetDiscreteState(self._stuck, np.zeros(context.get_discrete_state(
+            self._stuck).size()))
         if self._tracking_ok.Eval(context)[0] > 0.5:
             context.SetDiscreteState(self._lost_s, [0.0])
 
@@ -344,16 +371,27 @@ class DeviceSupervisor(LeafSystem):
             limited_s = (context.get_discrete_state(self._thermally_limited_s).GetAtIndex(0)
                          + self._watchdog_ticks * self._period_s)
         discrete_state.get_mutable_vector(self._thermally_limited_s).SetAtIndex(0, limited_s)
+        currents = self._currents.EvalBasicVector(context).get_value()
+        limits = self.limits(context)
+        mismatch_s = np.where(
+            mismatched_coils(currents, self._commanded.EvalBasicVector(context).get_value(),
+                             limits.current_limit_a),
+            context.get_discrete_state(self._mismatch_s).get_value()
+            + self._watchdog_ticks * self._period_s, 0.0)
+        discrete_state.get_mutable_vector(self._mismatch_s).SetFromVector(mismatch_s)
+        stuck = np.maximum(context.get_discrete_state(self._stuck).get_value(),
+                           mismatch_s >= STUCK_PERSIST_S - 1e-9)
+        discrete_state.get_mutable_vector(self._stuck).SetFromVector(stuck)
         raised = detect_faults(
             position_m=self._pose.EvalBasicVector(context).get_value()[4:7],
             velocity_m_s=self._velocity.EvalBasicVector(context).get_value()[3:6],
             tracking_lost=context.get_discrete_state(self._lost_s).GetAtIndex(0)
             > self._lost_grace_s,
-            coil_currents_a=self._currents.EvalBasicVector(context).get_value(),
+            coil_currents_a=currents, coils_stuck=bool(stuck.any()),
             coil_temperature_c=self._temperatures.EvalBasicVector(context).get_value(),
             thermally_limited=limited_s >= THERMAL_LIMIT_PERSIST_S,
             carrying=context.get_discrete_state(self._enable).GetAtIndex(0) > 0.0,
-            limits=self.limits(context))
+            limits=limits)
         new = raised & ~latched
         if not new:
             return False

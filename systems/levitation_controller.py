@@ -190,6 +190,8 @@ class LevitationController(LeafSystem):
         - wrench_feedforward_W
         - tracking_lost_s
         - coil_temperature_c
+        - coil_currents
+        - coils_stuck
         output_ports:
         - wrench_commanded_W
         - wrench_rendered_W
@@ -204,7 +206,10 @@ class LevitationController(LeafSystem):
     (``coil_temperature_c``, deg C); ``allocation_shortfall_W`` is the part of the
     wrench they cannot produce, and ``thermally_limited`` (1/0) says that the
     budget of a warm coil is why (``is_thermally_limited``): the device
-    supervisor lands then (coil over-temperature).
+    supervisor lands then (coil over-temperature). A coil the supervisor marks in
+    ``coils_stuck`` (n_coils, 1/0) is allocated nothing (bound 0) and its measured
+    current (``coil_currents``, A) is taken as a given: the others produce the
+    wrench less what it makes (thermal allocation only).
     The wrench law and the allocation are one computation a tick, whose outputs
     all read it: the Python calls, not the arithmetic, are what a 1 kHz tick
     pays for. Direct feedthrough: the amplifiers sample the currents at the
@@ -244,6 +249,8 @@ class LevitationController(LeafSystem):
         self._tracking_lost = self.DeclareVectorInputPort("tracking_lost_s", 1)
         n = magnetics.n_coils
         self._temperature = self.DeclareVectorInputPort("coil_temperature_c", n)
+        self._measured = self.DeclareVectorInputPort("coil_currents", n)
+        self._stuck = self.DeclareVectorInputPort("coils_stuck", n)
         # [resistances (ohm); bounds (A)]: they change at the thermal model's rate.
         self._coil_limits = self.DeclareCacheEntry(
             "coil_limits",
@@ -315,9 +322,16 @@ class LevitationController(LeafSystem):
         if self._config.allocation == "thermal":
             limits = self._coil_limits.Eval(context)
             n = limits.size // 2
+            resistance, bounds = limits[:n], limits[n:]
+            wanted, allowed = commanded, bounds
+            stuck = self._stuck.EvalBasicVector(context).get_value() > 0.5
+            if stuck.any():  # the stuck coils' wrench is a given; they get nothing
+                measured = self._measured.Eval(context)
+                wanted = commanded - A[:, stuck] @ measured[stuck]
+                allowed = np.where(stuck, 0.0, bounds)
             currents, shortfall = bounded_minimum_power_currents(
-                A, commanded, limits[:n], limits[n:], TORQUE_WEIGHT_PER_M)
-            limited = is_thermally_limited(currents, limits[n:], shortfall,
+                A, wanted, resistance, allowed, TORQUE_WEIGHT_PER_M)
+            limited = is_thermally_limited(currents, bounds, shortfall,
                                            self._current_limit_a, self._mass_kg)
         else:
             currents, shortfall, _ = allocate_currents(A, commanded, self._current_limit_a)

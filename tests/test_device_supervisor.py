@@ -63,7 +63,8 @@ def build(scenario):
     for port, value in (("X_WI_measured", pose), ("V_WI_measured", np.zeros(6)),
                         ("tracking_ok", [1.0]), ("coil_currents", np.zeros(N_COILS)),
                         ("coil_temperature_c", np.full(N_COILS, 25.0)),
-                        ("thermally_limited", [0.0])):
+                        ("thermally_limited", [0.0]),
+                        ("coil_currents_commanded", np.zeros(N_COILS))):
         supervisor.GetInputPort(port).FixValue(context, value)
     return supervisor, context, plan, spec
 

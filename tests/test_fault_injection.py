@@ -7,7 +7,8 @@ import pytest
 from maglev_haptics.analysis.run_results import run_scenario
 from maglev_haptics.diagrams.scenario import ScenarioError, load_scenario
 from maglev_haptics.hardware import DeviceConfig
-from maglev_haptics.systems.device_supervisor import FAULT_OVER_SPEED
+from maglev_haptics.systems.device_supervisor import (
+    FAULT_COIL_OVER_CURRENT, FAULT_OVER_SPEED, mismatched_coils)
 from maglev_haptics.systems.fault_injection import (
     CorruptSample, LatencySpike, StuckAmplifier, corrupt, stalled, stuck_currents)
 from maglev_haptics.systems.marker_sensor import MarkerSensor
@@ -67,12 +68,33 @@ def run(text):
     return run_scenario(scenario, label="levitate", progress=False)
 
 
-def test_a_coil_stuck_at_its_limit_while_hovering_is_flown_and_landed():
-    result = run("{faults: [!StuckAmplifier {coil: 13, at_s: 2.5, stuck_at: positive_limit}]}")
-    summary = result.summary
+def test_a_stuck_amplifier_is_seen_by_its_mismatch_and_flown_around():
+    measured = np.zeros(27)
+    measured[14] = -4.0
+    commanded = np.full(27, 0.5)
+    commanded[3] = 5.0  # clamped to the limit: no mismatch
+    measured[3] = 4.0
+    assert np.flatnonzero(mismatched_coils(measured, commanded, LIMIT_A)).tolist() == [14]
+
+
+def test_a_coil_stuck_at_its_limit_under_the_hover_is_caught_and_landed_from_near_the_setpoint():
+    """The centre coil stuck at -4 A: without the mismatch watchdog it threw the
+    instrument off the coils' reach (the fault campaign's run 195)."""
+    at_s = 2.37
+    result = run("{faults: [!StuckAmplifier {coil: 14, at_s: %g, stuck_at: negative_limit}]}"
+                 % at_s)
+    log, summary = result.log, result.summary
+    over_current = (log["fault_bits"] & FAULT_COIL_OVER_CURRENT) != 0
+    assert over_current.any()
+    assert at_s < log["t"][np.argmax(over_current)] <= at_s + 0.017
+    touchdown = summary["touchdown"]
+    assert touchdown is not None and touchdown["speed_m_s"] < 0.1
+    # In flight it stays within 1 cm; on the glass, the coils ramped down, the stuck
+    # one (nothing here cuts its power) still pushes the resting instrument aside.
+    flying = (log["t"] > at_s) & (log["t"] < touchdown["time_s"])
+    assert np.max(np.linalg.norm(log["p_WI_true"][flying] - log["p_WI_desired"][flying],
+                                 axis=1)) < 0.01
     assert summary["max_coil_current_a"] <= LIMIT_A
-    assert summary["touchdown"] is not None and summary["touchdown"]["speed_m_s"] < 0.1
-    assert np.max(np.abs(result.log["p_WI_true"][:, 0:2])) < 0.01  # held within 1 cm
 
 
 def test_a_ten_newton_shove_raises_over_speed_and_lands():

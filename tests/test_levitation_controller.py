@@ -33,6 +33,8 @@ def make(magnetics, config=ControllerConfig()):
     context = controller.CreateDefaultContext()
     controller.GetInputPort("coil_temperature_c").FixValue(
         context, np.full(magnetics.n_coils, DEVICE.thermal.ambient_temperature_c))
+    controller.GetInputPort("coil_currents").FixValue(context, np.zeros(magnetics.n_coils))
+    controller.GetInputPort("coils_stuck").FixValue(context, np.zeros(magnetics.n_coils))
     return controller, context
 
 
