@@ -39,10 +39,11 @@ CURRENT_TOLERANCE = 1e-6
 # long (s): near the budget's edge the PD's noise-driven corrections fall short now and
 # then, which the instrument rides through; a sustained shortfall is the load itself.
 THERMAL_LIMIT_PERSIST_S = 0.1
-# A coil whose measured current differs from its command (clamped to the limit) by
-# more than this (A) on every check for STUCK_PERSIST_S (s) has a stuck amplifier:
-# the amplifiers follow a command within a tick (1 kHz bandwidth), so only a fast
-# transient differs by as much, and not for two checks running.
+# A coil whose measured current differs from its command of the tick before (clamped
+# to the limit) by more than this (A) on every check for STUCK_PERSIST_S (s) has a
+# stuck amplifier: the amplifiers follow a command within a tick (1 kHz bandwidth).
+# Against the same tick's command a fast allocation change (the active set switching)
+# would look like one.
 STUCK_MISMATCH_A = 1.0
 STUCK_PERSIST_S = 0.01
 
@@ -273,6 +274,9 @@ class DeviceSupervisor(LeafSystem):
         self._lost_s = self.DeclareDiscreteState(BasicVector([0.0]))
         self._thermally_limited_s = self.DeclareDiscreteState(BasicVector([0.0]))
         self._mismatch_s = self.DeclareDiscreteState(n_coils)
+        # The command the amplifiers were given the tick before a check (A): what the
+        # measured currents of the check follow, a tick late.
+        self._sent = self.DeclareDiscreteState(n_coils)
         self._stuck = self.DeclareDiscreteState(n_coils)
         self._limits = self.DeclareAbstractParameter(AbstractValue.Make(limits))
         self.DeclareStateOutputPort("setpoint", self._setpoint)
@@ -353,6 +357,9 @@ class DeviceSupervisor(LeafSystem):
         if lost_after_s != lost_s:
             discrete_state.get_mutable_vector(self._lost_s).SetAtIndex(0, lost_after_s)
         tick = self._tick(context)
+        if (tick + 1) % self._watchdog_ticks == 0:
+            discrete_state.get_mutable_vector(self._sent).SetFromVector(
+                self._commanded.EvalBasicVector(context).get_value())
         motion = self.active_motion(context)
         started_landing = tick % self._watchdog_ticks == 0 and self._watch(
             context, discrete_state, motion)
@@ -374,7 +381,7 @@ class DeviceSupervisor(LeafSystem):
         currents = self._currents.EvalBasicVector(context).get_value()
         limits = self.limits(context)
         mismatch_s = np.where(
-            mismatched_coils(currents, self._commanded.EvalBasicVector(context).get_value(),
+            mismatched_coils(currents, context.get_discrete_state(self._sent).get_value(),
                              limits.current_limit_a),
             context.get_discrete_state(self._mismatch_s).get_value()
             + self._watchdog_ticks * self._period_s, 0.0)
