@@ -87,11 +87,10 @@ class _Coils:
         """Whether every coil at its steady bound (each at the budget's target) carries it,
         but for a shortfall too small to be thermally limited."""
         hot = np.full(A.shape[1], self.budget.target_c)
+        bounds = current_bounds_a(self.budget, hot)
         currents, shortfall = bounded_minimum_power_currents(
-            A, wrench, winding_resistance_ohm(self.thermal, hot),
-            current_bounds_a(self.budget, hot), TORQUE_WEIGHT_PER_M)
-        return not is_thermally_limited(currents, current_bounds_a(self.budget, hot), shortfall,
-                                        math.inf, self.mass_kg)
+            A, wrench, winding_resistance_ohm(self.thermal, hot), bounds, TORQUE_WEIGHT_PER_M)
+        return not is_thermally_limited(currents, bounds, shortfall, math.inf, self.mass_kg)
 
 
 def forecast_holds(scenario, plan, magnetics) -> List[HoldForecast]:

@@ -121,13 +121,15 @@ def steady_state_temperature_c(model: CoilThermal, current_a):
     return model.ambient_c + rise
 
 
-def continuous_current_limit_a(model: CoilThermal) -> float:
-    """I_cont [A]: the largest constant current whose steady state is T_max.
+def continuous_current_limit_a(model: CoilThermal, steady_c=None) -> float:
+    """I_cont [A]: the largest constant current whose steady state is T_max (or
+    ``steady_c`` [deg C]).
 
-    At steady state I^2 R(T_max) = (T_max - T_amb) / R_th, exactly.
+    At steady state I^2 R(T) = (T - T_amb) / R_th, exactly.
     """
-    heat_w = (model.max_c - model.ambient_c) / model.thermal_resistance_k_per_w
-    return math.sqrt(heat_w / float(winding_resistance_ohm(model, model.max_c)))
+    steady_c = model.max_c if steady_c is None else steady_c
+    heat_w = (steady_c - model.ambient_c) / model.thermal_resistance_k_per_w
+    return math.sqrt(heat_w / float(winding_resistance_ohm(model, steady_c)))
 
 
 def temperature_after_c(model: CoilThermal, temperature_c, current_a, duration_s):
@@ -209,8 +211,7 @@ def thermal_budget(model: CoilThermal, *, horizon_s: float, margin_c: float,
                          f"above ambient ({model.max_c} - margin > {model.ambient_c} C)")
     lowest_c = model.ambient_c - 50.0
     temperature_c = np.linspace(lowest_c, target_c, points)
-    steady = math.sqrt((target_c - model.ambient_c) / model.thermal_resistance_k_per_w
-                       / float(winding_resistance_ohm(model, target_c)))  # holds target_c
+    steady = continuous_current_limit_a(model, target_c)  # holds target_c
     low = np.full(points, min(steady, current_limit_a))  # never reaches the target
     high = np.full(points, float(current_limit_a))
     for _ in range(60):
