@@ -10,7 +10,7 @@ Each fault kind, where it is injected and what is expected of the device:
 | latency_spike | levitate hover | the tracker stalls 10-40 ms | ridden through, or a controlled landing |
 | nan_sample | levitate hover | one coordinate of one sample NaN | ridden through |
 | amplifier_stuck_zero | levitate hover | one coil stuck at 0 A | ridden through: a coil commanded under 1 A is not missed (one commanded more is, as below) |
-| amplifier_stuck_limit | levitate hover | one coil stuck at +-4 A | over-current fault within 17 ms; the coil allocated nothing, its current taken as given; controlled landing |
+| amplifier_stuck_limit | levitate hover | one coil stuck at +-4 A | over-current fault within 17 ms; the coil allocated nothing, its current taken as given; controlled landing, the power cut on the glass; where the other coils cannot carry it against the stuck one, the power cut at once: falls level, no faster than free fall |
 | hand_lets_go | peg_release_outside | the hand lets go at a random time | the device lands it |
 | shove | levitate hover | 10 N for 10 ms, horizontal, random direction | over-speed fault within 23 ms, controlled landing |
 | gains_near_edge | peg held still | coupling at 90% of the analysed critical stiffness | no fault, no ringing at the clamp |
@@ -19,7 +19,8 @@ Each fault kind, where it is injected and what is expected of the device:
 Every run is checked: no crash; no coil past its current or temperature limit; a
 fault that must be detected is, within its stated time; a controlled landing touches
 down under LANDING_SPEED_LIMIT_M_S; a lost instrument touches down level and no
-faster than free fall from the height it was lost at; the instrument stays within
+faster than free fall from the height and speed it was lost at (tracking lost, or the
+power cut in flight: ``lost_at_height_m``); the instrument stays within
 BOUNDARY_MARGIN_M of where it was asked to be.
 """
 
@@ -191,14 +192,19 @@ def outcome_row(plan: FaultRun, scenario, summary: Dict, log: Dict[str, np.ndarr
         detected_s = float(t[np.argmax((bits & expected_bit) != 0)] - plan.fault_at_s)
     touchdown = summary.get("touchdown")
     touchdown_speed = touchdown["speed_m_s"] if touchdown else None
-    # Lost: the sensor fault raised after tracking was lost (past the grace the coils
-    # are cut; tracking may be back by the check that raises it).
-    lost_at_height = None
+    # Lost to the coils: the sensor fault raised after tracking was lost (past the
+    # grace the coils are cut; tracking may be back by the check that raises it), or
+    # the supervisor cut the coils' power while they carried it. It falls from there.
+    rest_m = device.instrument_spec().rest_height_m
+    lost_at = None  # the log's index
     unseen = after & (log["tracking_ok"] < 0.5)
+    cut = after & (log["coil_power"] < 0.5)
     if raised & FAULT_SENSOR_OUT_OF_RANGE and unseen.any():
-        rest_m = device.instrument_spec().rest_height_m
-        k = max(int(np.argmax(unseen)) - 1, 0)  # the last good sample
-        lost_at_height = float(log["p_WI_true"][k, 2] - rest_m)
+        lost_at = max(int(np.argmax(unseen)) - 1, 0)  # the last good sample
+    elif cut.any() and (touchdown is None or t[np.argmax(cut)] < touchdown["time_s"]):
+        lost_at = int(np.argmax(cut))
+    lost_at_height = None if lost_at is None else float(log["p_WI_true"][lost_at, 2] - rest_m)
+    power_cut_s = float(t[np.argmax(cut)]) if cut.any() else None
     # Off the setpoint while it flies (on the glass it is at rest, wherever it is).
     flying = after & (t < touchdown["time_s"]) if touchdown else after
     excursion = float(np.max(np.linalg.norm(
@@ -211,8 +217,9 @@ def outcome_row(plan: FaultRun, scenario, summary: Dict, log: Dict[str, np.ndarr
     if expected_bit is not None:
         limit = detection_limit_s(plan, scenario)
         checks["detected"] = detected_s is not None and (limit is None or detected_s <= limit)
-    if lost_at_height is not None:
-        free_fall = math.sqrt(2 * GRAVITY_M_S2 * max(lost_at_height, 0.0))
+    if lost_at_height is not None:  # from its speed down then, under gravity alone
+        sinking_m_s = max(-float(log["V_WI_true"][lost_at, 5]), 0.0)
+        free_fall = math.sqrt(sinking_m_s**2 + 2 * GRAVITY_M_S2 * max(lost_at_height, 0.0))
         checks["fell_level_no_faster_than_free_fall"] = (
             touchdown is not None and touchdown["tilt_deg"] < LEVEL_TILT_DEG
             and touchdown_speed <= 1.05 * free_fall + 0.01)
@@ -226,6 +233,7 @@ def outcome_row(plan: FaultRun, scenario, summary: Dict, log: Dict[str, np.ndarr
         "max_coil_temperature_c": summary["max_coil_temperature_c"],
         "temperature_limit_c": temperature_limit_c,
         "touchdown_speed_m_s": touchdown_speed, "lost_at_height_m": lost_at_height,
+        "power_cut_at_s": power_cut_s,
         "fault_bits_raised": raised, "detected_after_s": detected_s,
         "max_excursion_m": excursion, "checks": checks, "passed": all(checks.values()),
     }
@@ -245,7 +253,8 @@ def run_fault(plan: FaultRun) -> Dict:
                 "error": "".join(traceback.format_exception_only(error)).strip(),
                 "max_coil_current_a": None, "current_limit_a": None,
                 "max_coil_temperature_c": None, "temperature_limit_c": None,
-                "touchdown_speed_m_s": None, "lost_at_height_m": None, "checks": {},
+                "touchdown_speed_m_s": None, "lost_at_height_m": None,
+                "power_cut_at_s": None, "checks": {},
                 "passed": False}
 
 

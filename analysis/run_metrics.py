@@ -65,6 +65,7 @@ def log_arrays_from(times: np.ndarray, samples: np.ndarray, log_layout,
         "V_WI_measured": data["V_WI_measured"],
         "tracking_ok": data["tracking_ok"][:, 0],
         "fault_bits": data["fault_bits"][:, 0].astype(np.int64),
+        "coil_power": data["coil_power"][:, 0],  # the coils' supply: 1 on, 0 cut
         "wrench_commanded_W": data["wrench_commanded_W"],
         "wrench_rendered_W": rendered,
         "allocation_shortfall_W": data["allocation_shortfall_W"],

@@ -28,6 +28,7 @@ from maglev_haptics.diagrams.motion import (
 from maglev_haptics.diagrams.scenario import Scenario
 from maglev_haptics.diagrams.station import MakeStation
 from maglev_haptics.diagrams.stereo_display import AddStereoDisplay
+from maglev_haptics.hardware.constants import GRAVITY_M_S2
 from maglev_haptics.hardware.magnetics import load_magnetics
 from maglev_haptics.hardware.thermal import coil_thermal
 from maglev_haptics.systems.coil_thermal import CoilTemperatures
@@ -111,7 +112,8 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
         initial_motion=initial_motion, limits=watch_limits(scenario),
         lost_grace_s=scenario.controller.lost_grace_s,
         plan_landing=landing_planner(scenario.motion, spec.rest_height_m),
-        n_coils=device.n_coils, watchdog_period_s=WATCHDOG_PERIOD_S))
+        n_coils=device.n_coils, watchdog_period_s=WATCHDOG_PERIOD_S,
+        weight_n=spec.mass_kg * GRAVITY_M_S2))
     for name in ("X_WI_measured", "V_WI_measured", "tracking_ok"):
         builder.Connect(estimator.GetOutputPort(name), supervisor.GetInputPort(name))
     builder.Connect(station.GetOutputPort("coil_currents"),
@@ -129,7 +131,10 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
                     supervisor.GetInputPort("thermally_limited"))
     builder.Connect(controller.GetOutputPort("coil_currents_commanded"),
                     supervisor.GetInputPort("coil_currents_commanded"))
+    builder.Connect(controller.GetOutputPort("allocation_shortfall_W"),
+                    supervisor.GetInputPort("allocation_shortfall_W"))
     builder.Connect(supervisor.GetOutputPort("coils_stuck"), controller.GetInputPort("coils_stuck"))
+    builder.Connect(supervisor.GetOutputPort("coil_power"), station.GetInputPort("coil_power"))
     builder.Connect(station.GetOutputPort("coil_currents"), controller.GetInputPort("coil_currents"))
 
     builder.Connect(station.GetOutputPort("markers_measured"),
@@ -179,6 +184,7 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
         "allocation_shortfall_W": controller.GetOutputPort("allocation_shortfall_W"),
         "coil_temperature_c": temperatures.get_output_port(),
         "fault_bits": supervisor.GetOutputPort("fault_bits"),
+        "coil_power": supervisor.GetOutputPort("coil_power"),
     }
     if scenario.hand is not None:
         logged_ports["handle_gripped"] = station.GetOutputPort("handle_gripped")

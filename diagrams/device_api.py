@@ -141,6 +141,13 @@ class MaglevDevice:
         self._require_connection()
         return self._supervisor.faults(self._contexts[self._supervisor])
 
+    @property
+    def coils_powered(self) -> bool:
+        """Whether the coils' supply is on: the supervisor cuts it on a stuck
+        amplifier (``reset_faults`` restores it)."""
+        self._require_connection()
+        return self._supervisor.coils_powered(self._contexts[self._supervisor])
+
     def set_gains(self, kp=None, kd=None) -> None:
         """Per-axis PD gains [x, y, z translation in W; rotations about I's axes]
         (N/m, N*m/rad; N*s/m, N*m*s/rad)."""
@@ -189,7 +196,8 @@ class MaglevDevice:
             boundary_radius_m=radius_m))
 
     def reset_faults(self) -> None:
-        """Clear the latched faults (a fault's landing stays what is flown)."""
+        """Clear the latched faults and power the coils again (a fault's landing stays
+        what is flown)."""
         self._require_connection()
         self._supervisor.reset_faults(self._contexts[self._supervisor])
 

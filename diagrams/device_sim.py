@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from pydrake.systems.framework import Diagram, DiagramBuilder
-from pydrake.systems.primitives import ConstantVectorSource, Multiplexer
+from pydrake.systems.primitives import ConstantVectorSource, Demultiplexer, Multiplexer
 
 from maglev_haptics.diagrams.haptics import AddHandCommands
 from maglev_haptics.diagrams.lcm_station import (
@@ -25,13 +25,13 @@ from maglev_haptics.hardware.magnetics import load_magnetics
 from maglev_haptics.hardware.thermal import coil_thermal
 from maglev_haptics.systems.coil_thermal import CoilTemperatures
 from maglev_haptics.systems.station_messages import (
-    MessageReceiver, MessageSender, ReceivedChannel, currents_message,
-    glasses_measurement_message, markers_message, status_message)
+    MessageReceiver, MessageSender, ReceivedChannel, currents_and_power_from_message,
+    currents_message, glasses_measurement_message, markers_message, status_message)
 
 # The grip sensor, the coils' temperatures (time constant ~1 min) and the 10 Hz head
 # tracker need no more than 100 Hz.
 STATUS_PERIOD_S = 0.01
-COMMANDS_PORT = "coil_currents_commanded"  # the station's input the commands feed
+COMMANDS_PORT = "commands"  # the receiver's: [currents (A); power], the station's two inputs
 
 
 @dataclass
@@ -58,7 +58,7 @@ class DeviceSim:
 def BuildDeviceSim(scenario) -> DeviceSim:
     """The simulated station of ``scenario`` alone, its ports on LCM (the module
     docstring's channels), with the simulated hand's script when it has one.
-    Commands older than ``command_timeout_s`` turn every coil off."""
+    Commands older than ``command_timeout_s`` turn every coil off and cut the power."""
     station_config = lcm_config(scenario)
     device = scenario.device
     n_coils = device.n_coils
@@ -70,12 +70,14 @@ def BuildDeviceSim(scenario) -> DeviceSim:
     commands = builder.AddNamedSystem("commands_receiver", MessageReceiver(
         lcm=open_lcm(station_config.command_url), channels=[ReceivedChannel(
             port=COMMANDS_PORT, channel=channel(station_config, COIL_CURRENTS_COMMANDED),
-            message_type=coil_currents_t, size=n_coils,
-            decode=lambda message, _: np.array(message.current_a, dtype=float),
-            stale_value=np.zeros(n_coils), stale_after_s=station_config.command_timeout_s)],
+            message_type=coil_currents_t, size=n_coils + 1,
+            decode=lambda message, _: currents_and_power_from_message(message),
+            stale_value=np.zeros(n_coils + 1), stale_after_s=station_config.command_timeout_s)],
         period_s=period_s))
-    builder.Connect(commands.GetOutputPort(COMMANDS_PORT),
-                    station.GetInputPort(COMMANDS_PORT))
+    command = builder.AddNamedSystem("command", Demultiplexer([n_coils, 1]))
+    builder.Connect(commands.GetOutputPort(COMMANDS_PORT), command.get_input_port())
+    builder.Connect(command.get_output_port(0), station.GetInputPort("coil_currents_commanded"))
+    builder.Connect(command.get_output_port(1), station.GetInputPort("coil_power"))
 
     publisher = open_lcm(station_config.url)
 
@@ -92,8 +94,10 @@ def BuildDeviceSim(scenario) -> DeviceSim:
     send(MARKERS, station.GetOutputPort("markers_measured"),
          lambda sequence, t, value: markers_message(sequence, t - sample_age_s, t, value),
          tracker_period_s)
-    send(COIL_CURRENTS, station.GetOutputPort("coil_currents"),
-         currents_message, period_s)
+    measured = builder.AddNamedSystem("measured", Multiplexer([n_coils, 1]))
+    builder.Connect(station.GetOutputPort("coil_currents"), measured.get_input_port(0))
+    builder.Connect(command.get_output_port(1), measured.get_input_port(1))
+    send(COIL_CURRENTS, measured.get_output_port(), currents_message, period_s)
     thermal = coil_thermal(device)
     temperatures = builder.AddNamedSystem("coil_temperatures", CoilTemperatures(
         model=thermal, n_coils=n_coils, period_s=STATUS_PERIOD_S))

@@ -8,7 +8,8 @@ other end: the simulated station alone, speaking the same messages. Channels
 (``channel_prefix`` + name):
 
 - ``MARKERS`` (markers_t, device -> application, the tracker's rate);
-- ``COIL_CURRENTS_COMMANDED`` (coil_currents_t, application -> device, the control rate);
+- ``COIL_CURRENTS_COMMANDED`` (coil_currents_t, application -> device, the control
+  rate, with the coils' power: the supervisor's enable line);
 - ``COIL_CURRENTS`` (coil_currents_t, device -> application: what flows);
 - ``DEVICE_STATUS`` (device_status_t, device -> application: grip, faults, coil
   temperatures);
@@ -34,6 +35,7 @@ from dataclasses import dataclass
 import lcm
 import numpy as np
 from pydrake.systems.framework import Diagram, DiagramBuilder
+from pydrake.systems.primitives import Multiplexer
 
 from maglev_haptics.hardware.config_checks import positive, require
 from maglev_haptics.hardware.lcm_messages import (
@@ -119,7 +121,7 @@ def marker_stale_after_s(scenario, station: LcmStation) -> float:
 
 def MakeLcmStation(scenario) -> Diagram:
     """The application's station for ``scenario.station`` (an LcmStation), named
-    ``station``: input ``coil_currents_commanded``; outputs ``markers_measured``,
+    ``station``: inputs ``coil_currents_commanded`` and ``coil_power``; outputs ``markers_measured``,
     ``coil_currents``, with a hand in the scenario ``handle_gripped``, with the
     stereo display ``glasses_measured``. Its ``receiver`` counts the messages it
     read and lost on each channel; building it waits up to ``wait_for_station_s``
@@ -158,8 +160,11 @@ def MakeLcmStation(scenario) -> Diagram:
         builder.ExportOutput(receiver.GetOutputPort(port), port)
     sender = builder.AddNamedSystem("coil_currents_commanded_sender", MessageSender(
         lcm=open_lcm(station.command_url), channel=channel(station, COIL_CURRENTS_COMMANDED),
-        size=n_coils, encode=currents_message, period_s=period_s))
-    builder.ExportInput(sender.GetInputPort("value"), "coil_currents_commanded")
+        size=n_coils + 1, encode=currents_message, period_s=period_s))
+    command = builder.AddNamedSystem("command", Multiplexer([n_coils, 1]))
+    builder.Connect(command.get_output_port(), sender.GetInputPort("value"))
+    builder.ExportInput(command.get_input_port(0), "coil_currents_commanded")
+    builder.ExportInput(command.get_input_port(1), "coil_power")
     diagram = builder.Build()
     diagram.set_name("station")
     return diagram

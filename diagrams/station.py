@@ -4,7 +4,8 @@
 ``station: !LcmStation``, the LCM interface to a real or simulated device
 (``diagrams/lcm_station.py``), with the same ports either way:
 
-- input ``coil_currents_commanded`` (n_coils, A);
+- inputs ``coil_currents_commanded`` (n_coils, A) and ``coil_power`` (1: the
+  amplifiers' supply, the device's enable line; 0 cuts every coil's current);
 - outputs ``markers_measured`` (3 * n_markers, m, NaN when hidden),
   ``coil_currents`` (n_coils, A, what flows), ``instrument_state`` (13, the
   true free-body state, simulation only), ``query_object`` (for visualizers).
@@ -32,7 +33,7 @@ from pydrake.multibody.parsing import Parser
 from pydrake.multibody.plant import AddMultibodyPlant
 from pydrake.systems.framework import Diagram, DiagramBuilder
 from pydrake.systems.primitives import (
-    Adder, LinearSystem, MatrixGain, Saturation, TrajectorySource)
+    Adder, AffineSystem, LinearSystem, MatrixGain, Multiplexer, Saturation, TrajectorySource)
 
 from maglev_haptics.diagrams.head_script import head_plan
 from maglev_haptics.diagrams.lcm_station import LcmStation, MakeLcmStation
@@ -56,21 +57,41 @@ def amplifier_lag_coefficient(bandwidth_hz: float, period_s: float) -> float:
     return float(np.exp(-2 * np.pi * bandwidth_hz * period_s))
 
 
-def AddAmplifiers(builder: DiagramBuilder, *, spec, n_coils: int, period_s: float):
-    """Current-mode amplifiers: a hard clamp at the current limit, then a sampled lag.
+# Far above any current (A): the supply gate's offset (``AddAmplifiers``).
+SUPPLY_GATE_OFFSET_A = 1e6
 
-    Returns the Diagram (input ``coil_currents_commanded``, output
-    ``coil_currents``); both parts are Drake C++ systems.
+
+def AddAmplifiers(builder: DiagramBuilder, *, spec, n_coils: int, period_s: float):
+    """Current-mode amplifiers on a supply that can be cut, then a sampled lag.
+
+    With the supply on (``coil_power`` 1) each coil gets its command clamped at the
+    current limit; cut (0) it gets nothing and its current decays with the
+    amplifiers' lag, as a coil's does through its freewheel. The gate is C++ alone
+    (pydrake binds no product of signals): the mean of the command clamped after
+    adding and after subtracting SUPPLY_GATE_OFFSET_A * (1 - power), which is the
+    clamped command at power 1 and (+limit - limit) / 2 = 0 at power 0.
+
+    Returns the Diagram (inputs ``coil_currents_commanded`` and ``coil_power``,
+    output ``coil_currents``).
     """
     sub = DiagramBuilder()
-    limit = np.full(n_coils, spec.current_limit_a)
+    eye, ones = np.eye(n_coils), np.ones((n_coils, 1))
+    command = sub.AddNamedSystem("command", Multiplexer([n_coils, 1]))
+    offset = SUPPLY_GATE_OFFSET_A
+    shifted = sub.AddNamedSystem("supply_gate", AffineSystem(
+        D=np.block([[eye, -offset * ones], [eye, offset * ones]]),
+        y0=np.r_[np.full(n_coils, offset), np.full(n_coils, -offset)]))
+    limit = np.full(2 * n_coils, spec.current_limit_a)
     clamp = sub.AddNamedSystem("current_limit", Saturation(-limit, limit))
     a = amplifier_lag_coefficient(spec.bandwidth_hz, period_s)
     lag = sub.AddNamedSystem("current_lag", LinearSystem(
-        A=a * np.eye(n_coils), B=(1 - a) * np.eye(n_coils), C=np.eye(n_coils),
-        D=np.zeros((n_coils, n_coils)), time_period=period_s))
+        A=a * eye, B=(1 - a) / 2 * np.hstack((eye, eye)), C=eye,
+        D=np.zeros((n_coils, 2 * n_coils)), time_period=period_s))
+    sub.Connect(command.get_output_port(), shifted.get_input_port())
+    sub.Connect(shifted.get_output_port(), clamp.get_input_port())
     sub.Connect(clamp.get_output_port(), lag.get_input_port())
-    sub.ExportInput(clamp.get_input_port(), "coil_currents_commanded")
+    sub.ExportInput(command.get_input_port(0), "coil_currents_commanded")
+    sub.ExportInput(command.get_input_port(1), "coil_power")
     sub.ExportOutput(lag.get_output_port(), "coil_currents")
     amplifiers = sub.Build()
     amplifiers.set_name("amplifiers")
@@ -169,10 +190,13 @@ def MakeStation(scenario: Scenario, *, magnetics, station=None) -> Diagram:
     if faults[StuckAmplifier]:
         stuck = builder.AddNamedSystem("stuck_amplifiers", StuckAmplifiers(
             faults[StuckAmplifier], device.n_coils, device.amplifier.current_limit_a))
-        builder.Connect(stuck.get_output_port(), amplifiers.get_input_port())
+        builder.Connect(stuck.get_output_port(),
+                        amplifiers.GetInputPort("coil_currents_commanded"))
         builder.ExportInput(stuck.get_input_port(), "coil_currents_commanded")
     else:
-        builder.ExportInput(amplifiers.get_input_port(), "coil_currents_commanded")
+        builder.ExportInput(amplifiers.GetInputPort("coil_currents_commanded"),
+                            "coil_currents_commanded")
+    builder.ExportInput(amplifiers.GetInputPort("coil_power"), "coil_power")
     if faults[Shove]:
         shoves = builder.AddNamedSystem("shoves", Shoves(faults[Shove], body.index(),
                                                          body.default_com()))

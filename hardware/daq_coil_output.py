@@ -5,7 +5,9 @@ through ``nidaqmx``: each ``coil_currents_t`` command on the application's
 channel becomes one voltage per coil, ``current / amps_per_volt``, written to
 the card's channels in coil order. A command that breaks the contract (another
 coil count, a non-finite or over-limit current) is never written: the outputs
-go to 0 V (coils off) and the reason is returned. NI-DAQmx itself (the vendor's
+go to 0 V (coils off) and the reason is returned; so does a command with the
+power cut (``power_enabled`` false: wire the amplifiers' enable pins to the supply
+the application cuts, since a stuck amplifier ignores 0 V). NI-DAQmx itself (the vendor's
 runtime) must be installed on the machine with the card.
 """
 
@@ -41,6 +43,8 @@ def coil_voltages(message: coil_currents_t,
     """(volts (n_coils,), None) for a command within the contract; else
     (zeros, why): every coil off."""
     off = np.zeros(contract.n_coils)
+    if not message.power_enabled:
+        return off, "the application cut the coils' power"
     if message.num_coils != contract.n_coils:
         return off, (f"command for {message.num_coils} coils: the card drives "
                      f"{contract.n_coils}")

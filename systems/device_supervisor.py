@@ -9,6 +9,11 @@ windings' limit, or the coils too warm to carry what is asked within their therm
 budget), coil over-current, over-speed. Its watchdogs check the measurements every few ticks; a
 new fault latches and, unless a landing is under way, lands the instrument from where
 its setpoint is (a lost instrument the controller lands blind, whatever the setpoint).
+It also holds the coils' power (the device's enable line, cut by a contactor on the
+amplifiers' supply): an amplifier that no longer follows its command cannot be
+turned off through it, so on a stuck amplifier the supervisor cuts the power once
+the instrument rests, or at once when the other coils cannot carry it against the
+stuck one (``cut_coil_power``).
 
 `maglev run`'s scripted flight is its first motion; the device API
 (``diagrams/device_api.py``) sets motions between ticks. So both fly, and fault,
@@ -46,6 +51,10 @@ THERMAL_LIMIT_PERSIST_S = 0.1
 # would look like one.
 STUCK_MISMATCH_A = 1.0
 STUCK_PERSIST_S = 0.01
+# With a coil stuck, a force the others cannot produce past this fraction of the
+# instrument's weight means they cannot carry it against the stuck one: the power is
+# cut and it falls level rather than be pulled or pushed off its landing.
+STUCK_SHORTFALL_OF_WEIGHT = 0.1
 
 
 def mismatched_coils(measured_a, commanded_a, current_limit_a: float) -> np.ndarray:
@@ -53,6 +62,17 @@ def mismatched_coils(measured_a, commanded_a, current_limit_a: float) -> np.ndar
     their command (A) clamped to the amplifiers' limit (A)."""
     commanded = np.clip(commanded_a, -current_limit_a, current_limit_a)
     return np.abs(np.asarray(measured_a) - commanded) > STUCK_MISMATCH_A
+
+
+def cut_coil_power(*, coils_stuck: bool, carrying: bool, force_shortfall_n: float,
+                   weight_n: float) -> bool:
+    """Whether to cut the coils' power: a coil is stuck and either the instrument is
+    not carried (resting on the glass, where the stuck coil would push it along) or
+    the allocation falls short of the wanted force (N) by more than
+    STUCK_SHORTFALL_OF_WEIGHT of its weight (N). A lost instrument's coils are off
+    already (their amplifiers follow the controller's zero)."""
+    return coils_stuck and (not carrying
+                            or force_shortfall_n > STUCK_SHORTFALL_OF_WEIGHT * weight_n)
 
 
 @dataclass(frozen=True, eq=False)
@@ -214,12 +234,14 @@ class DeviceSupervisor(LeafSystem):
         - coil_temperature_c
         - thermally_limited
         - coil_currents_commanded
+        - allocation_shortfall_W
         output_ports:
         - setpoint
         - enable
         - fault_bits
         - tracking_lost_s
         - coils_stuck
+        - coil_power
 
     - ``setpoint`` (12): [x y z roll pitch yaw] of I in W and their rates (m, rad;
       m/s, rad/s), the active motion's at the context's tick.
@@ -232,6 +254,10 @@ class DeviceSupervisor(LeafSystem):
     - ``tracking_lost_s`` (1): how long tracking has been lost (s), counted every
       tick and latched past ``lost_grace_s`` (``tracking_lost_after``): the
       controller carries the weight alone through the grace, then cuts the coils.
+    - ``coil_power`` (1): 1 while the coils' supply is on, 0 once ``cut_coil_power``
+      cut it (the controller's ``allocation_shortfall_W``, [f; tau] in W, N and
+      N*m, against ``weight_n``, N), latched until ``reset_faults``; while it is
+      off the stuck-amplifier watchdog rests (no coil follows its command then).
 
     State: the commanded motion (abstract: ``initial_motion`` until set); the
     outputs as discrete state, each tick's update writing the next tick's command
@@ -251,8 +277,10 @@ class DeviceSupervisor(LeafSystem):
     """
 
     def __init__(self, *, initial_motion: Motion, limits: WatchLimits, lost_grace_s: float,
-                 plan_landing: Callable, n_coils: int, watchdog_period_s: float):
+                 plan_landing: Callable, n_coils: int, watchdog_period_s: float,
+                 weight_n: float):
         super().__init__()
+        self._weight_n = float(weight_n)
         self._plan_landing = plan_landing
         self._lost_grace_s = float(lost_grace_s)
         self._period_s = initial_motion.period_s
@@ -265,6 +293,7 @@ class DeviceSupervisor(LeafSystem):
         self._temperatures = self.DeclareVectorInputPort("coil_temperature_c", n_coils)
         self._thermally_limited = self.DeclareVectorInputPort("thermally_limited", 1)
         self._commanded = self.DeclareVectorInputPort("coil_currents_commanded", n_coils)
+        self._shortfall = self.DeclareVectorInputPort("allocation_shortfall_W", 6)
         self._motion = self.DeclareAbstractState(AbstractValue.Make(initial_motion))
         command = initial_motion.at_tick(0)
         self._setpoint = self.DeclareDiscreteState(BasicVector(command[0:12]))
@@ -278,12 +307,14 @@ class DeviceSupervisor(LeafSystem):
         # measured currents of the check follow, a tick late.
         self._sent = self.DeclareDiscreteState(n_coils)
         self._stuck = self.DeclareDiscreteState(n_coils)
+        self._power = self.DeclareDiscreteState(BasicVector([1.0]))
         self._limits = self.DeclareAbstractParameter(AbstractValue.Make(limits))
         self.DeclareStateOutputPort("setpoint", self._setpoint)
         self.DeclareStateOutputPort("enable", self._enable)
         self.DeclareStateOutputPort("fault_bits", self._fault_bits)
         self.DeclareStateOutputPort("tracking_lost_s", self._lost_s)
         self.DeclareStateOutputPort("coils_stuck", self._stuck)
+        self.DeclareStateOutputPort("coil_power", self._power)
         # A context may start at any time: its command is that tick's from the start.
         self.DeclareInitializationDiscreteUpdateEvent(self._initialize)
         self.DeclarePeriodicDiscreteUpdateEvent(self._period_s, 0.0, self._update)
@@ -306,12 +337,14 @@ class DeviceSupervisor(LeafSystem):
         return landing
 
     def reset_faults(self, context) -> None:
-        """Clear the latched bits, and a latched tracking loss if tracking is good
-        again (the controller then flies); a fault's landing stays the commanded motion."""
+        """Clear the latched bits and stuck coils, power the coils again, and clear a
+        latched tracking loss if tracking is good again (the controller then flies); a
+        fault's landing stays the commanded motion."""
         self.set_motion(context, self.active_motion(context))
         context.SetDiscreteState(self._fault_bits, [0.0])
         context.SetDiscreteState(self._stuck, np.zeros(context.get_discrete_state(
             self._stuck).size()))
+        context.SetDiscreteState(self._power, [1.0])
         if self._tracking_ok.Eval(context)[0] > 0.5:
             context.SetDiscreteState(self._lost_s, [0.0])
 
@@ -326,6 +359,9 @@ class DeviceSupervisor(LeafSystem):
         motion = context.get_abstract_state(self._motion).get_value()
         landing_start_s = context.get_discrete_state(self._landing_start).GetAtIndex(0)
         return motion if math.isnan(landing_start_s) else self._landing(motion, landing_start_s)
+
+    def coils_powered(self, context) -> bool:
+        return context.get_discrete_state(self._power).GetAtIndex(0) > 0.5
 
     def faults(self, context) -> int:
         return int(context.get_discrete_state(self._fault_bits).GetAtIndex(0))
@@ -380,15 +416,23 @@ class DeviceSupervisor(LeafSystem):
         discrete_state.get_mutable_vector(self._thermally_limited_s).SetAtIndex(0, limited_s)
         currents = self._currents.EvalBasicVector(context).get_value()
         limits = self.limits(context)
-        mismatch_s = np.where(
-            mismatched_coils(currents, context.get_discrete_state(self._sent).get_value(),
-                             limits.current_limit_a),
-            context.get_discrete_state(self._mismatch_s).get_value()
-            + self._watchdog_ticks * self._period_s, 0.0)
-        discrete_state.get_mutable_vector(self._mismatch_s).SetFromVector(mismatch_s)
-        stuck = np.maximum(context.get_discrete_state(self._stuck).get_value(),
-                           mismatch_s >= STUCK_PERSIST_S - 1e-9)
-        discrete_state.get_mutable_vector(self._stuck).SetFromVector(stuck)
+        stuck = context.get_discrete_state(self._stuck).get_value()
+        carrying = context.get_discrete_state(self._enable).GetAtIndex(0) > 0.0
+        if self.coils_powered(context):
+            mismatch_s = np.where(
+                mismatched_coils(currents, context.get_discrete_state(self._sent).get_value(),
+                                 limits.current_limit_a),
+                context.get_discrete_state(self._mismatch_s).get_value()
+                + self._watchdog_ticks * self._period_s, 0.0)
+            discrete_state.get_mutable_vector(self._mismatch_s).SetFromVector(mismatch_s)
+            stuck = np.maximum(stuck, mismatch_s >= STUCK_PERSIST_S - 1e-9)
+            discrete_state.get_mutable_vector(self._stuck).SetFromVector(stuck)
+            if cut_coil_power(
+                    coils_stuck=bool(stuck.any()), carrying=carrying,
+                    force_shortfall_n=float(np.linalg.norm(
+                        self._shortfall.EvalBasicVector(context).get_value()[0:3])),
+                    weight_n=self._weight_n):
+                discrete_state.get_mutable_vector(self._power).SetAtIndex(0, 0.0)
         raised = detect_faults(
             position_m=self._pose.EvalBasicVector(context).get_value()[4:7],
             velocity_m_s=self._velocity.EvalBasicVector(context).get_value()[3:6],
@@ -397,8 +441,7 @@ class DeviceSupervisor(LeafSystem):
             coil_currents_a=currents, coils_stuck=bool(stuck.any()),
             coil_temperature_c=self._temperatures.EvalBasicVector(context).get_value(),
             thermally_limited=limited_s >= THERMAL_LIMIT_PERSIST_S,
-            carrying=context.get_discrete_state(self._enable).GetAtIndex(0) > 0.0,
-            limits=limits)
+            carrying=carrying, limits=limits)
         new = raised & ~latched
         if not new:
             return False

@@ -100,13 +100,21 @@ def glasses_measurement_from_message(message: glasses_t, arrival_s: float) -> np
     return np.array([arrival_s - age_s, *message.quaternion_wxyz, *message.position_m, 1.0])
 
 
-def currents_message(sequence: int, t_s: float, currents_a: np.ndarray) -> coil_currents_t:
+def currents_message(sequence: int, t_s: float,
+                     currents_and_power: np.ndarray) -> coil_currents_t:
+    """``currents_and_power``: the coils' currents (A) then the supply (1 on, 0 off)."""
     message = coil_currents_t()
     message.sequence = int(sequence)
     message.utime = to_utime(t_s)
-    message.num_coils = len(currents_a)
-    message.current_a = currents_a.tolist()
+    message.num_coils = len(currents_and_power) - 1
+    message.current_a = currents_and_power[:-1].tolist()
+    message.power_enabled = bool(currents_and_power[-1] > 0.5)
     return message
+
+
+def currents_and_power_from_message(message: coil_currents_t) -> np.ndarray:
+    """[currents (A); supply (1 on, 0 off)]: ``currents_message``'s value."""
+    return np.array([*message.current_a, float(message.power_enabled)])
 
 
 def status_message(sequence: int, t_s: float, handle_gripped: bool, fault_bits: int,

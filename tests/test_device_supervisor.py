@@ -57,14 +57,15 @@ def build(scenario):
         initial_motion=make_motion(plan.setpoint, plan.enable, 0.0, TICK_S), limits=LIMITS,
         lost_grace_s=LOST_GRACE_S,
         plan_landing=landing_planner(scenario.motion, spec.rest_height_m), n_coils=N_COILS,
-        watchdog_period_s=WATCHDOG_PERIOD_S)
+        watchdog_period_s=WATCHDOG_PERIOD_S, weight_n=spec.mass_kg * 9.81)
     context = supervisor.CreateDefaultContext()
     pose = np.array([1.0, 0, 0, 0, 0.0, 0.0, 0.02])
     for port, value in (("X_WI_measured", pose), ("V_WI_measured", np.zeros(6)),
                         ("tracking_ok", [1.0]), ("coil_currents", np.zeros(N_COILS)),
                         ("coil_temperature_c", np.full(N_COILS, 25.0)),
                         ("thermally_limited", [0.0]),
-                        ("coil_currents_commanded", np.zeros(N_COILS))):
+                        ("coil_currents_commanded", np.zeros(N_COILS)),
+                        ("allocation_shortfall_W", np.zeros(6))):
         supervisor.GetInputPort(port).FixValue(context, value)
     return supervisor, context, plan, spec
 

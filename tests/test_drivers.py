@@ -62,6 +62,7 @@ def command(currents):
     message = coil_currents_t()
     message.num_coils = len(currents)
     message.current_a = list(currents)
+    message.power_enabled = True
     return message
 
 
@@ -70,6 +71,14 @@ def test_commands_within_the_contract_become_volts():
     volts, why = coil_voltages(command(currents), CONTRACT)
     assert why is None
     np.testing.assert_allclose(volts, currents / 0.4)
+
+
+def test_a_command_with_the_power_cut_turns_the_coils_off():
+    message = command(np.full(27, 1.0))
+    message.power_enabled = False
+    volts, why = coil_voltages(message, CONTRACT)
+    np.testing.assert_array_equal(volts, np.zeros(27))
+    assert why == "the application cut the coils' power"
 
 
 @pytest.mark.parametrize("currents, reason", [

@@ -89,12 +89,42 @@ def test_a_coil_stuck_at_its_limit_under_the_hover_is_caught_and_landed_from_nea
     assert at_s < log["t"][np.argmax(over_current)] <= at_s + 0.017
     touchdown = summary["touchdown"]
     assert touchdown is not None and touchdown["speed_m_s"] < 0.1
-    # In flight it stays within 1 cm; on the glass, the coils ramped down, the stuck
-    # one (nothing here cuts its power) still pushes the resting instrument aside.
     flying = (log["t"] > at_s) & (log["t"] < touchdown["time_s"])
     assert np.max(np.linalg.norm(log["p_WI_true"][flying] - log["p_WI_desired"][flying],
                                  axis=1)) < 0.01
     assert summary["max_coil_current_a"] <= LIMIT_A
+    # On the glass, the coils ramped down, the supervisor cuts the power: the stuck
+    # coil no longer pushes the resting instrument aside (it did by 12 mm before).
+    assert log["coil_power"][flying].min() == 1.0
+    cut = np.argmax(log["coil_power"] < 0.5)
+    assert log["t"][cut] > touchdown["time_s"]
+    resting = log["t"] > log["t"][cut] + 0.05
+    assert np.abs(log["coil_currents"][resting]).max() < 1e-3
+    drift = log["p_WI_true"][resting] - log["p_WI_true"][cut]
+    assert np.max(np.linalg.norm(drift[:, 0:2], axis=1)) < 1e-4
+
+
+def test_a_stuck_coil_the_others_cannot_carry_against_cuts_the_power_and_it_falls_level():
+    """The centre coil stuck at +4 A pulls the hovering instrument down harder than
+    the other coils can hold it up (the fault campaign's run 105: a "controlled"
+    landing touched down at 0.41 m/s): the supervisor cuts the power at the first
+    check that sees the others fall short with the stuck coil's wrench taken as given
+    (the one after it found it stuck: the allocation then still used the coil), and
+    it falls level, no faster than free fall from its height and speed at the cut."""
+    at_s = 2.9239
+    result = run("{faults: [!StuckAmplifier {coil: 14, at_s: %g, stuck_at: positive_limit}]}"
+                 % at_s)
+    log, summary = result.log, result.summary
+    cut = np.argmax(log["coil_power"] < 0.5)
+    over_current = np.argmax((log["fault_bits"] & FAULT_COIL_OVER_CURRENT) != 0)
+    assert log["t"][over_current] <= at_s + 0.017
+    assert log["t"][over_current] < log["t"][cut] <= log["t"][over_current] + 0.005 + 1e-9
+    height_m = log["p_WI_true"][cut, 2] - DeviceConfig().instrument_spec().rest_height_m
+    sinking_m_s = -log["V_WI_true"][cut, 5]
+    touchdown = summary["touchdown"]
+    assert touchdown["tilt_deg"] < 5.0
+    assert touchdown["speed_m_s"] <= np.sqrt(sinking_m_s**2 + 2 * 9.81 * height_m)
+    assert np.abs(log["coil_currents"][log["t"] > log["t"][cut] + 0.01]).max() < 1e-3
 
 
 def test_a_ten_newton_shove_raises_over_speed_and_lands():

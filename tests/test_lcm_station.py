@@ -17,9 +17,10 @@ from maglev_haptics.diagrams.device_sim import BuildDeviceSim
 from maglev_haptics.diagrams.lcm_station import LcmStation, marker_stale_after_s, station_counts
 from maglev_haptics.diagrams.scenario import ScenarioError, load_scenario
 from maglev_haptics.hardware.lcm_link import publish
-from maglev_haptics.hardware.lcm_messages import glasses_t, markers_t
+from maglev_haptics.hardware.lcm_messages import coil_currents_t, glasses_t, markers_t
 from maglev_haptics.systems.station_messages import (
-    MessageReceiver, ReceivedChannel, glasses_measurement_from_message,
+    MessageReceiver, ReceivedChannel, currents_and_power_from_message, currents_message,
+    glasses_measurement_from_message,
     glasses_measurement_message, markers_from_message, markers_message, message_sequence,
     receiver_counts, receiver_step)
 
@@ -33,6 +34,14 @@ def test_markers_round_trip_with_hidden_markers():
     assert np.all(np.isnan(markers_from_message(message, 2)))
     message.sent_wall_utime = 123
     assert message_sequence(message.encode()) == (7, 123)
+
+
+@pytest.mark.parametrize("power", [1.0, 0.0])
+def test_coil_currents_and_the_power_round_trip(power):
+    value = np.r_[np.linspace(-4.0, 4.0, 27), power]
+    message = coil_currents_t.decode(currents_message(3, 2.0, value).encode())
+    assert message.num_coils == 27 and message.power_enabled is bool(power)
+    np.testing.assert_array_equal(currents_and_power_from_message(message), value)
 
 
 def test_receiver_counts_gaps_as_lost_and_ignores_repeats():

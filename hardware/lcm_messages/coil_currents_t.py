@@ -10,14 +10,14 @@ import struct
 class coil_currents_t(object):
     """
     27 coil currents: commanded by the application at the control rate, or measured
-    by the station's amplifiers.
+    by the station's amplifiers; and the amplifiers' supply (the enable line).
     """
 
-    __slots__ = ["sequence", "sent_wall_utime", "utime", "num_coils", "current_a"]
+    __slots__ = ["sequence", "sent_wall_utime", "utime", "num_coils", "current_a", "power_enabled"]
 
-    __typenames__ = ["int64_t", "int64_t", "int64_t", "int16_t", "double"]
+    __typenames__ = ["int64_t", "int64_t", "int64_t", "int16_t", "double", "boolean"]
 
-    __dimensions__ = [None, None, None, None, ["num_coils"]]
+    __dimensions__ = [None, None, None, None, ["num_coils"], None]
 
     def __init__(self):
         self.sequence = 0
@@ -43,6 +43,12 @@ class coil_currents_t(object):
 
         self.current_a = []
         """ LCM Type: double[num_coils] """
+        self.power_enabled = False
+        """
+        (A), positive counter-clockwise seen from above
+        LCM Type: boolean
+        """
+
 
     def encode(self):
         buf = BytesIO()
@@ -53,6 +59,7 @@ class coil_currents_t(object):
     def _encode_one(self, buf):
         buf.write(struct.pack(">qqqh", self.sequence, self.sent_wall_utime, self.utime, self.num_coils))
         buf.write(struct.pack('>%dd' % self.num_coils, *self.current_a[:self.num_coils]))
+        buf.write(struct.pack(">b", self.power_enabled))
 
     @staticmethod
     def decode(data: bytes):
@@ -69,12 +76,13 @@ class coil_currents_t(object):
         self = coil_currents_t()
         self.sequence, self.sent_wall_utime, self.utime, self.num_coils = struct.unpack(">qqqh", buf.read(26))
         self.current_a = struct.unpack('>%dd' % self.num_coils, buf.read(self.num_coils * 8))
+        self.power_enabled = bool(struct.unpack('b', buf.read(1))[0])
         return self
 
     @staticmethod
     def _get_hash_recursive(parents):
         if coil_currents_t in parents: return 0
-        tmphash = (0x22f80e60fb6f5314) & 0xffffffffffffffff
+        tmphash = (0x7db2d3e3ae40f708) & 0xffffffffffffffff
         tmphash  = (((tmphash<<1)&0xffffffffffffffff) + (tmphash>>63)) & 0xffffffffffffffff
         return tmphash
     _packed_fingerprint = None
