@@ -13,8 +13,10 @@ Each fault kind, where it is injected and what is expected of the device:
 | amplifier_stuck_limit | levitate hover | one coil stuck at +-4 A | over-current fault within 17 ms; the coil allocated nothing, its current taken as given; controlled landing, the power cut on the glass; where the other coils cannot carry it against the stuck one, the power cut at once: falls level, no faster than free fall |
 | hand_lets_go | peg_release_outside | the hand lets go at a random time | the device lands it |
 | shove | levitate hover | 10 N for 10 ms, horizontal, random direction | over-speed fault within 23 ms, controlled landing |
-| gains_near_edge | peg held still | coupling at 90% of the analysed critical stiffness | no fault, no ringing at the clamp |
-| sustained_push | a high hold with coils that heat in seconds | the hold outlasts the thermal budget | over-temperature fault, controlled landing |
+| haptic_shove | peg_release_outside, the hand holding the peg with haptics on | as shove | ridden through (the hand holds it), or over-speed: haptics ends and the device lands it |
+| gains_near_edge | peg held still | coupling at 80-95% of the analysed critical stiffness, the hand holding still (the onset study's test) | no fault; its high-passed velocity's RMS in the last second at most GROWTH_RATIO times the first's |
+| sustained_push | peg_in_hole, the hand pushing the peg against a wall | coils cooled poorly that heat in seconds | the coils reach the thermal budget's target and no further: the push is carried, spread over the others |
+| overload_hold | a high hold with coils that heat in seconds | the hold outlasts the thermal budget | over-temperature fault, controlled landing |
 
 Every run is checked: no crash; no coil past its current or temperature limit; a
 fault that must be detected is, within its stated time; a controlled landing touches
@@ -43,6 +45,8 @@ from tqdm import tqdm  # noqa: E402
 
 from maglev_haptics.analysis.haptic_loop import critical_stiffness  # noqa: E402
 from maglev_haptics.analysis.loop_studies import loop_parameters  # noqa: E402
+from maglev_haptics.analysis.onset import (  # noqa: E402
+    GROWTH_RATIO, OnsetPoint, held_still, velocity_growth)
 from maglev_haptics.analysis.run_plots import save_figure  # noqa: E402
 from maglev_haptics.diagrams.application import WATCHDOG_PERIOD_S  # noqa: E402
 from maglev_haptics.diagrams.hand_script import GripEvent  # noqa: E402
@@ -59,14 +63,27 @@ from maglev_haptics.systems.pose_estimator import velocity_lag_s  # noqa: E402
 
 FAULT_KINDS = ("marker_dropout", "tracker_lost", "latency_spike", "nan_sample",
                "amplifier_stuck_zero", "amplifier_stuck_limit", "hand_lets_go", "shove",
-               "gains_near_edge", "sustained_push")
+               "haptic_shove", "gains_near_edge", "sustained_push", "overload_hold")
 LANDING_SPEED_LIMIT_M_S = 0.1  # a controlled landing touches down slower (m/s)
 BOUNDARY_MARGIN_M = 0.03  # the instrument stays this close to its setpoint (m)
 LEVEL_TILT_DEG = 5.0  # a lost instrument touches down tilted less (deg)
 EXPECTED_BIT = {"tracker_lost": FAULT_SENSOR_OUT_OF_RANGE, "shove": FAULT_OVER_SPEED,
-                "sustained_push": FAULT_COIL_OVER_TEMPERATURE,
+                "overload_hold": FAULT_COIL_OVER_TEMPERATURE,
                 "amplifier_stuck_limit": FAULT_COIL_OVER_CURRENT}
+EDGE_POINT = OnsetPoint("the fault campaign's gains near the edge")
 HOVER = ("levitate", "takeoff_hover_land")  # hovers 1.4-4.4 s
+# The hand pushes the peg against the hole's +x wall and holds it there, on coils
+# cooled poorly (6 K/W against 2.5: a failed fan) that heat in seconds (2 J/K: a 12 s
+# time constant) with a 1 s budget: the busiest coils reach the budget's target and
+# the allocation spreads the push over the others (measured: sustained, 95 C).
+SUSTAINED_PUSH = ("peg_in_hole", "peg_in_hole")
+PRESS = ("{duration_s: 16.0, device: {thermal: {heat_capacity_j_per_k: 2.0, "
+         "thermal_resistance_k_per_w: 6.0}}, "
+         "controller: {thermal_horizon_s: 1.0}, hand: !ScriptedHand {start_s: 3.0, "
+         "events: [{at_s: 1.8, grip: true}], waypoints: ["
+         "{pose: [0.0, 0.0, 0.0175, 0.0, 0.0, 0.0], move_s: 1.5, hold_s: 0.5}, "
+         "{pose: [0.021, 0.0, 0.017, 0.0, 0.0, 0.0], move_s: 1.5, hold_s: 20.0}]}}")
+PRESS_AT_S = 6.0  # pressed in from here (s)
 # Heats in seconds (2 J/K: a 5 s time constant), and a hold 46 mm up that the coils
 # cannot keep for ever: the thermal budget ends it after ~4.5 s.
 HIGH_HOLD = ("{motion: {waypoints: [{pose: [0.0, 0.0, 0.036, 0.0, 0.0, 0.0], move_s: 1.0, "
@@ -113,15 +130,20 @@ def plan_campaign(runs: int, seed: int) -> List[FaultRun]:
             file, name = "peg_in_hole", "peg_release_outside"
             at_s = float(rng.uniform(3.0, 4.5))  # haptics on, the peg held above the block
             parameters = {}
-        elif fault == "shove":
+        elif fault in ("shove", "haptic_shove"):
             angle = float(rng.uniform(0.0, 2 * math.pi))
             parameters = {"force_n": [10 * math.cos(angle), 10 * math.sin(angle), 0.0],
                           "duration_s": 0.01}
+            if fault == "haptic_shove":  # the hand holds the peg above the block
+                file, name = "peg_in_hole", "peg_release_outside"
+                at_s = float(rng.uniform(3.0, 4.3))
         elif fault == "gains_near_edge":
             file, name = "peg_in_hole", "peg_release_outside"
             at_s = 2.0  # haptics engages
             parameters = {"fraction_of_critical": float(rng.uniform(0.8, 0.95))}
-        else:  # sustained_push
+        elif fault == "sustained_push":
+            (file, name), at_s, parameters, text = SUSTAINED_PUSH, PRESS_AT_S, {}, PRESS
+        else:  # overload_hold
             at_s, parameters, text = 1.4, {}, HIGH_HOLD
         plans.append(FaultRun(run=run, fault=fault, scenario_file=file, scenario_name=name,
                               fault_at_s=at_s, parameters=parameters, scenario_text=text))
@@ -150,15 +172,12 @@ def faulted_scenario(plan: FaultRun):
         hand = scenario.hand
         events = [e for e in hand.events if e.grip] + [GripEvent(at_s=at_s, grip=False)]
         return dataclasses.replace(scenario, hand=dataclasses.replace(hand, events=events))
-    if plan.fault == "shove":
+    if plan.fault in ("shove", "haptic_shove"):
         return dataclasses.replace(scenario, faults=[Shove(at_s, p["duration_s"], p["force_n"])])
-    if plan.fault == "gains_near_edge":
+    if plan.fault == "gains_near_edge":  # the hand holds it still: the onset study's test
         stiffness = p["fraction_of_critical"] * critical_stiffness(loop_parameters(scenario))
-        coupling = dataclasses.replace(scenario.haptics.coupling,
-                                       translational_stiffness=[stiffness] * 3)
-        return dataclasses.replace(scenario, haptics=dataclasses.replace(
-            scenario.haptics, coupling=coupling))
-    return scenario  # sustained_push: the scenario text is the fault
+        return held_still(scenario, EDGE_POINT, stiffness)[0]
+    return scenario  # sustained_push, overload_hold: the scenario text is the fault
 
 
 def detection_limit_s(plan: FaultRun, scenario) -> Optional[float]:
@@ -225,6 +244,15 @@ def outcome_row(plan: FaultRun, scenario, summary: Dict, log: Dict[str, np.ndarr
             and touchdown_speed <= 1.05 * free_fall + 0.01)
     elif touchdown is not None:
         checks["landing_under_speed_limit"] = touchdown_speed < LANDING_SPEED_LIMIT_M_S
+    if plan.fault == "sustained_push":  # it heated them to the budget, not past
+        target_c = temperature_limit_c - scenario.controller.thermal_margin_c
+        checks["heated_to_the_budget"] = summary["max_coil_temperature_c"] >= target_c - 1.0
+    ringing = None
+    if plan.fault == "gains_near_edge":  # held still: its shaking must not grow
+        haptics = scenario.haptics
+        first_rms, last_rms = velocity_growth(log, haptics.enable_at_s + haptics.coupling.ramp_s)
+        ringing = last_rms / first_rms
+        checks["not_ringing"] = ringing <= GROWTH_RATIO
     return {
         "run": plan.run, "scenario": f"{plan.scenario_file}:{plan.scenario_name}",
         "fault": plan.fault, "fault_at_s": plan.fault_at_s, "parameters": plan.parameters,
@@ -233,7 +261,7 @@ def outcome_row(plan: FaultRun, scenario, summary: Dict, log: Dict[str, np.ndarr
         "max_coil_temperature_c": summary["max_coil_temperature_c"],
         "temperature_limit_c": temperature_limit_c,
         "touchdown_speed_m_s": touchdown_speed, "lost_at_height_m": lost_at_height,
-        "power_cut_at_s": power_cut_s,
+        "power_cut_at_s": power_cut_s, "ringing_growth": ringing,
         "fault_bits_raised": raised, "detected_after_s": detected_s,
         "max_excursion_m": excursion, "checks": checks, "passed": all(checks.values()),
     }
@@ -254,7 +282,7 @@ def run_fault(plan: FaultRun) -> Dict:
                 "max_coil_current_a": None, "current_limit_a": None,
                 "max_coil_temperature_c": None, "temperature_limit_c": None,
                 "touchdown_speed_m_s": None, "lost_at_height_m": None,
-                "power_cut_at_s": None, "checks": {},
+                "power_cut_at_s": None, "ringing_growth": None, "checks": {},
                 "passed": False}
 
 

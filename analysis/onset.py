@@ -83,6 +83,18 @@ def held_still(scenario, point: OnsetPoint, stiffness: float):
     return changed, engaged_s
 
 
+def velocity_growth(log, engaged_s: float) -> List[float]:
+    """The RMS (m/s) of the instrument's high-passed velocity in the first second
+    after settling (haptics fully on at ``engaged_s``, s) and in the log's last second."""
+    t = log["t"]
+    velocity = log["V_WI_true"][:, 3:6]
+    b, a = scipy.signal.butter(2, HIGH_PASS_HZ, "highpass", fs=1.0 / np.median(np.diff(t)))
+    fast = scipy.signal.filtfilt(b, a, velocity, axis=0)
+    first = (t >= engaged_s + SETTLE_S) & (t < engaged_s + SETTLE_S + 1.0)
+    last = t >= t[-1] - 1.0
+    return [float(np.sqrt(np.mean(np.sum(fast[mask] ** 2, axis=1)))) for mask in (first, last)]
+
+
 def grows(scenario, engaged_s: float, reference_rms_m_s: Optional[float] = None) -> Dict:
     """Run the scenario; the high-passed instrument velocity's RMS in the first and
     the last second after settling. Unstable when it grew by GROWTH_RATIO, or (a loop
@@ -90,14 +102,7 @@ def grows(scenario, engaged_s: float, reference_rms_m_s: Optional[float] = None)
     last second is above SATURATED_RATIO times ``reference_rms_m_s``, a stable run's.
     With the passivity controller, also the work it withheld (J)."""
     result = run_scenario(scenario, label="onset", progress=False)
-    log = result.log
-    t = log["t"]
-    velocity = log["V_WI_true"][:, 3:6]
-    b, a = scipy.signal.butter(2, HIGH_PASS_HZ, "highpass", fs=1.0 / np.median(np.diff(t)))
-    fast = scipy.signal.filtfilt(b, a, velocity, axis=0)
-    first = (t >= engaged_s + SETTLE_S) & (t < engaged_s + SETTLE_S + 1.0)
-    last = t >= t[-1] - 1.0
-    rms = [float(np.sqrt(np.mean(np.sum(fast[mask] ** 2, axis=1)))) for mask in (first, last)]
+    rms = velocity_growth(result.log, engaged_s)
     blown_up = reference_rms_m_s is not None and rms[1] > SATURATED_RATIO * reference_rms_m_s
     return {"first_rms_m_s": rms[0], "last_rms_m_s": rms[1],
             "unstable": bool(rms[1] > GROWTH_RATIO * rms[0] or blown_up),

@@ -158,7 +158,8 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
     else:
         haptics = AddHaptics(builder, scenario=scenario, magnetics=magnetics, station=station,
                              estimator=estimator, controller=controller,
-                             scripted_setpoint=setpoint, scripted_enable=enable)
+                             scripted_setpoint=setpoint, scripted_enable=enable,
+                             fault_bits=supervisor.GetOutputPort("fault_bits"))
     # The setpoint the controller tracks: the device supervisor's, or with haptics the haptic one's.
     controller_setpoint = (setpoint if haptics is None
                            else haptics.supervisor.GetOutputPort("setpoint"))

@@ -104,8 +104,10 @@ def haptics_request(scenario: Scenario) -> PiecewisePolynomial:
 
 
 def AddHaptics(builder, *, scenario: Scenario, magnetics, station, estimator, controller,
-               scripted_setpoint, scripted_enable) -> HapticParts:
-    """Scene, coupling, contact sensor and supervisor, wired to the controller."""
+               scripted_setpoint, scripted_enable, fault_bits) -> HapticParts:
+    """Scene, coupling, contact sensor and supervisor, wired to the controller; the
+    device supervisor's ``scripted_setpoint``, ``scripted_enable`` and ``fault_bits``
+    (a latched fault ends haptics)."""
     haptics = scenario.haptics
     period_s = 1.0 / scenario.control_rate_hz
     X_WI_start = hand_start_transform(scenario)
@@ -140,6 +142,7 @@ def AddHaptics(builder, *, scenario: Scenario, magnetics, station, estimator, co
 
     builder.Connect(scripted_setpoint, supervisor.GetInputPort("scripted_setpoint"))
     builder.Connect(scripted_enable, supervisor.GetInputPort("scripted_enable"))
+    builder.Connect(fault_bits, supervisor.GetInputPort("fault_bits"))
     for name in ("X_WI_measured", "tracking_ok"):
         builder.Connect(estimator.GetOutputPort(name), supervisor.GetInputPort(name))
     builder.Connect(request.get_output_port(), supervisor.GetInputPort("haptics_request"))

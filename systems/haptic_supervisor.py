@@ -7,9 +7,11 @@
   the coupling's force ramps in, so the hand takes over from position control;
   then the device renders only the weight compensation plus the coupling.
 - leaving haptic mode:
-  - the request drops: back to levitate. The setpoint starts at the pose where
-    haptics ended and blends into the script over ``handover_s``, so disabling
-    never yanks the instrument;
+  - the request drops, or the device supervisor latches a fault (``fault_bits``
+    non-zero: until its reset, as if the request had dropped): back to levitate.
+    The setpoint starts at the pose where haptics ended and blends into the
+    script over ``handover_s``, so disabling never yanks the instrument; after a
+    fault the script is the device supervisor's landing;
   - the handle is let go (for longer than ``release_debounce_s``) while the
     tool touches the scene (within ``contact_memory_s``): the scene holds it
     (a peg let go in its hole stays up between the virtual walls). Nobody
@@ -168,6 +170,7 @@ class HapticSupervisor(LeafSystem):
         - haptics_request
         - handle_gripped
         - tool_in_contact
+        - fault_bits
         output_ports:
         - setpoint
         - enable
@@ -195,6 +198,7 @@ class HapticSupervisor(LeafSystem):
         self._request = self.DeclareVectorInputPort("haptics_request", 1)
         self._gripped = self.DeclareVectorInputPort("handle_gripped", 1)
         self._in_contact = self.DeclareVectorInputPort("tool_in_contact", 1)
+        self._fault_bits = self.DeclareVectorInputPort("fault_bits", 1)
         self._state = self.DeclareDiscreteState(initial_supervisor_state())
         self.DeclarePeriodicDiscreteUpdateEvent(period_s, 0.0, self._update)
         # Outputs read the state and at most the script: none feeds through the
@@ -220,7 +224,8 @@ class HapticSupervisor(LeafSystem):
         new = supervisor_step(
             self._values(context), context.get_time(), self._period_s,
             self._scripted.Eval(context)[0:6], self._X_WI.Eval(context),
-            self._tracking_ok.Eval(context)[0] > 0.5, self._request.Eval(context)[0] > 0.5,
+            self._tracking_ok.Eval(context)[0] > 0.5,
+            self._request.Eval(context)[0] > 0.5 and self._fault_bits.Eval(context)[0] == 0,
             self._gripped.Eval(context)[0] > 0.5, self._in_contact.Eval(context)[0] > 0.5,
             self._config)
         discrete_state.get_mutable_vector(self._state).SetFromVector(new)

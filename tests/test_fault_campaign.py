@@ -25,7 +25,8 @@ def test_the_plan_is_reproducible_and_takes_every_kind_in_turn():
 
 
 def test_a_short_campaign_passes_every_check_and_writes_its_rows_and_plot(tmp_path, capsys):
-    assert main(["faults", "--runs", "10", "--workers", "2", "--out", str(tmp_path)]) == 0
+    assert main(["faults", "--runs", str(len(FAULT_KINDS)), "--workers", "2",
+                 "--out", str(tmp_path)]) == 0
     rows = json.loads((tmp_path / "faults.json").read_text())["runs"]
     assert [row["fault"] for row in rows] == list(FAULT_KINDS)
     for row in rows:
@@ -36,7 +37,12 @@ def test_a_short_campaign_passes_every_check_and_writes_its_rows_and_plot(tmp_pa
     lost = next(row for row in rows if row["fault"] == "tracker_lost")
     assert lost["lost_at_height_m"] > 0.005 and lost["checks"]["detected"]
     assert (tmp_path / "faults.png").stat().st_size > 10_000
-    assert "10 of 10 runs passed every check" in capsys.readouterr().out
+    edge = next(row for row in rows if row["fault"] == "gains_near_edge")
+    assert 0.0 < edge["ringing_growth"] <= 2.0
+    assert next(row for row in rows if row["fault"] == "sustained_push")[
+        "checks"]["heated_to_the_budget"]
+    n = len(FAULT_KINDS)
+    assert f"{n} of {n} runs passed every check" in capsys.readouterr().out
 
 
 def test_a_broken_limit_fails_its_check():
@@ -48,7 +54,8 @@ def test_a_broken_limit_fails_its_check():
     p[:, 2] = np.where(t < 0.5, 0.02, 0.0)
     tracking = np.where(t < 0.5, 1.0, 0.0)
     log = {"t": t, "fault_bits": np.where(t < 0.52, 0, FAULT_SENSOR_OUT_OF_RANGE),
-           "tracking_ok": tracking, "p_WI_true": p, "p_WI_desired": p}
+           "tracking_ok": tracking, "p_WI_true": p, "p_WI_desired": p,
+           "V_WI_true": np.zeros((t.size, 6)), "coil_power": np.ones(t.size)}
     summary = {"max_coil_current_a": 4.5, "max_coil_temperature_c": 40.0,
                "touchdown": {"time_s": 0.6, "speed_m_s": 2.0, "tilt_deg": 0.0}}
     plan = FaultRun(run=0, fault="tracker_lost", scenario_file="levitate",

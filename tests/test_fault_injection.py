@@ -11,6 +11,7 @@ from maglev_haptics.systems.device_supervisor import (
     FAULT_COIL_OVER_CURRENT, FAULT_OVER_SPEED, mismatched_coils)
 from maglev_haptics.systems.fault_injection import (
     CorruptSample, LatencySpike, StuckAmplifier, corrupt, stalled, stuck_currents)
+from maglev_haptics.systems.haptic_supervisor import HAPTIC, LEVITATE
 from maglev_haptics.systems.marker_sensor import MarkerSensor
 
 LIMIT_A = 4.0
@@ -133,3 +134,22 @@ def test_a_ten_newton_shove_raises_over_speed_and_lands():
     over_speed = (log["fault_bits"] & FAULT_OVER_SPEED) != 0
     assert over_speed.any() and 2.5 < log["t"][np.argmax(over_speed)] < 2.53
     assert result.summary["touchdown"]["speed_m_s"] < 0.1
+
+
+def test_a_fault_with_haptics_on_ends_haptics_and_the_device_lands_the_instrument():
+    """A coil stuck while the hand holds the peg with haptics on: the latched fault
+    ends haptics within a supervisor tick of its check, the device lands the
+    instrument though the hand still grips it, and cuts the power on the glass."""
+    scenario = load_scenario("peg_in_hole", "peg_release_outside", "{faults: [!StuckAmplifier "
+                             "{coil: 10, at_s: 3.5, stuck_at: positive_limit}]}")
+    log = run_scenario(scenario, label="peg_release_outside", progress=False)
+    summary, log = log.summary, log.log
+    t = log["t"]
+    fault_s = t[np.argmax(log["fault_bits"] != 0)]
+    assert 3.5 < fault_s <= 3.517
+    mode = log["haptic_mode"].ravel()
+    assert mode[(t > 2.6) & (t < fault_s)].min() == HAPTIC
+    assert np.all(mode[t > fault_s + 0.01] == LEVITATE)
+    touchdown = summary["touchdown"]
+    assert touchdown["time_s"] < 4.5 + 1.0 and touchdown["speed_m_s"] < 0.1  # let go at 4.5 s
+    assert t[np.argmax(log["coil_power"] < 0.5)] > touchdown["time_s"]

@@ -109,7 +109,8 @@ def test_system_ports():
     context = supervisor.CreateDefaultContext()
     values = {"scripted_setpoint": np.arange(12.0), "scripted_enable": [0.5],
               "X_WI_measured": pose_vector(HOVER[0:3], HOVER[3:6]), "tracking_ok": [1.0],
-              "haptics_request": [1.0], "handle_gripped": [1.0], "tool_in_contact": [0.0]}
+              "haptics_request": [1.0], "handle_gripped": [1.0], "tool_in_contact": [0.0],
+              "fault_bits": [0.0]}
     for name, value in values.items():
         supervisor.GetInputPort(name).FixValue(context, value)
     update = supervisor.EvalUniquePeriodicDiscreteUpdate(context)
@@ -121,3 +122,28 @@ def test_system_ports():
     # Haptic: the script passes through to the controller untouched.
     np.testing.assert_array_equal(supervisor.GetOutputPort("setpoint").Eval(context),
                                   np.arange(12.0))
+
+
+def test_a_latched_device_fault_ends_haptics_as_a_dropped_request_would():
+    supervisor = HapticSupervisor(config=CONFIG, period_s=PERIOD_S, rest_height_m=REST_M)
+    context = supervisor.CreateDefaultContext()
+    values = {"scripted_setpoint": np.arange(12.0), "scripted_enable": [1.0],
+              "X_WI_measured": pose_vector(HOVER[0:3], HOVER[3:6]), "tracking_ok": [1.0],
+              "haptics_request": [1.0], "handle_gripped": [1.0], "tool_in_contact": [0.0],
+              "fault_bits": [0.0]}
+    for name, value in values.items():
+        supervisor.GetInputPort(name).FixValue(context, value)
+
+    def step():
+        update = supervisor.EvalUniquePeriodicDiscreteUpdate(context)
+        for group in range(update.num_groups()):
+            context.SetDiscreteState(group, update.get_vector(group).CopyToVector())
+        context.SetTime(context.get_time() + PERIOD_S)
+
+    step()
+    assert supervisor.GetOutputPort("mode").Eval(context)[0] == HAPTIC
+    supervisor.GetInputPort("fault_bits").FixValue(context, [4.0])  # over-current
+    for _ in range(3):  # latched: still gripped and requested, it stays out
+        step()
+        assert supervisor.GetOutputPort("mode").Eval(context)[0] == LEVITATE
+        assert supervisor.GetOutputPort("haptics_enable").Eval(context)[0] == 0.0
