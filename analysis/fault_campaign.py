@@ -30,7 +30,6 @@ import dataclasses
 import json
 import math
 import traceback
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Dict, List, Optional
@@ -45,6 +44,7 @@ from tqdm import tqdm  # noqa: E402
 
 from maglev_haptics.analysis.haptic_loop import critical_stiffness  # noqa: E402
 from maglev_haptics.analysis.loop_studies import loop_parameters  # noqa: E402
+from maglev_haptics.analysis.parallel import map_jobs  # noqa: E402
 from maglev_haptics.analysis.onset import (  # noqa: E402
     GROWTH_RATIO, OnsetPoint, held_still, velocity_growth)
 from maglev_haptics.analysis.run_plots import save_figure  # noqa: E402
@@ -287,29 +287,23 @@ def run_fault(plan: FaultRun) -> Dict:
 
 
 def run_campaign(runs: int, seed: int, out_dir: Path, workers: int = 1,
-                 progress: bool = True) -> Dict:
-    """Run the campaign, ``workers`` processes at a time; write ``faults.json`` and
-    ``faults.png`` to ``out_dir``; returns {"runs": rows, "table": ..., "report": str}."""
+                 scheduler: Optional[str] = None, progress: bool = True) -> Dict:
+    """Run the campaign here, on ``workers`` local processes or on the Dask
+    ``scheduler``'s workers (``analysis/parallel.py``); write ``faults.json`` and
+    ``faults.png`` to ``out_dir``; returns {"runs": rows, "table": ..., "report": str,
+    "jobs": what ran them}."""
     plans = plan_campaign(runs, seed)
-    with tqdm(total=len(plans), desc="fault campaign", unit="run", disable=not progress) as bar:
-        if workers <= 1:
-            rows = []
-            for plan in plans:
-                rows.append(run_fault(plan))
-                bar.update(1)
-        else:
-            with ProcessPoolExecutor(max_workers=workers) as pool:
-                rows = []
-                for row in pool.map(run_fault, plans):
-                    rows.append(row)
-                    bar.update(1)
+    jobs = map_jobs(run_fault, plans, workers=workers, scheduler=scheduler,
+                    description="fault campaign", progress=progress)
+    rows = jobs.results
     table = summary_table(rows)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    ran = {"where": jobs.where, "workers": jobs.workers, "reran": jobs.reran}
     (out_dir / "faults.json").write_text(json.dumps(
-        {"seed": seed, "runs": rows, "table": table}, indent=1))
+        {"seed": seed, "runs": rows, "table": table, "jobs": ran}, indent=1))
     plot_outcomes(rows, out_dir / "faults.png")
-    return {"runs": rows, "table": table, "report": format_table(table)}
+    return {"runs": rows, "table": table, "report": format_table(table), "jobs": ran}
 
 
 def outcome(row: Dict) -> str:

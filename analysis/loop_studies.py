@@ -25,6 +25,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from maglev_haptics.analysis.parallel import map_jobs  # noqa: E402
 from maglev_haptics.analysis.run_plots import save_figure  # noqa: E402
 
 from maglev_haptics.analysis.haptic_loop import (  # noqa: E402
@@ -218,36 +219,38 @@ class StabilityMapSettings:
 
 
 def stability_map_study(scenario, settings: StabilityMapSettings,
-                        progress: Optional[Callable[[int, int], None]] = None) -> Dict:
+                        progress: Optional[Callable[[int, int], None]] = None, *,
+                        workers: int = 1, scheduler: Optional[str] = None) -> Dict:
     """The largest stable coupling stiffness against damping, for each control rate
     and delay, from the linear model of the instrument against a wall with the
     scenario's hand; with the closed form 2 (b + B) / (T + 2 tau) it must reproduce in
     its limit (a heavy, damped mass with no hand stiffness and no filter, b the hand's
     damping) beside each curve. ``maglev analyze stability-map`` adds the whole loop's
-    onset in free space, linearized and simulated (``onset.py``)."""
+    onset in free space, linearized and simulated (``onset.py``). Each (rate, delay)
+    curve is a job (``analysis/parallel.py``: ``workers``, ``scheduler``)."""
     p = loop_parameters(scenario)
-    curves = []
-    total = len(settings.rates_hz) * len(settings.delays_s)
-    for rate in settings.rates_hz:
-        for delay in settings.delays_s:
-            q = replace(p, period_s=1.0 / rate, delay_s=delay)
-            model = [critical_stiffness(replace(q, damping=float(b)))
-                     for b in settings.damping_n_s_m]
-            limit = replace(q, mass_kg=50.0, hand_stiffness=0.0, grip_stiffness=None,
-                            velocity_filter_hz=math.inf)
-            limit_model = [critical_stiffness(replace(limit, damping=float(b)))
-                           for b in settings.damping_n_s_m]
-            closed_form = [2 * (q.hand_damping + b) / (q.period_s + 2 * delay)
-                           for b in settings.damping_n_s_m]
-            curves.append({"rate_hz": rate, "delay_s": delay,
-                           "critical_stiffness_n_m": model,
-                           "limit_model_critical_stiffness_n_m": limit_model,
-                           "closed_form_limit_n_m": closed_form})
-            if progress is not None:
-                progress(len(curves), total)
+    jobs = [(replace(p, period_s=1.0 / rate, delay_s=delay), rate, list(settings.damping_n_s_m))
+            for rate in settings.rates_hz for delay in settings.delays_s]
+    curves = map_jobs(stability_curve, jobs, workers=workers, scheduler=scheduler,
+                      description="stability curves", progress=False, on_result=progress)
     return {"parameters": _parameters_dict(p), "damping_n_s_m": settings.damping_n_s_m,
-            "curves": curves,
+            "curves": curves.results,
             "scenario_critical_stiffness_n_m": critical_stiffness(p)}
+
+
+def stability_curve(job) -> Dict:
+    """One curve of the stability map: ``job`` is (the loop's parameters at a rate
+    and delay, that rate in Hz, the dampings N s/m)."""
+    q, rate_hz, dampings = job
+    limit = replace(q, mass_kg=50.0, hand_stiffness=0.0, grip_stiffness=None,
+                    velocity_filter_hz=math.inf)
+    return {"rate_hz": rate_hz, "delay_s": q.delay_s,
+            "critical_stiffness_n_m": [critical_stiffness(replace(q, damping=float(b)))
+                                       for b in dampings],
+            "limit_model_critical_stiffness_n_m": [
+                critical_stiffness(replace(limit, damping=float(b))) for b in dampings],
+            "closed_form_limit_n_m": [2 * (q.hand_damping + b) / (q.period_s + 2 * q.delay_s)
+                                      for b in dampings]}
 
 
 def plot_stability_map(results: Dict, out_dir: Path, title: str) -> Path:

@@ -24,9 +24,11 @@ from typing import Callable, Dict, List, Optional
 
 import numpy as np
 import scipy.signal
+from tqdm import tqdm
 
 from maglev_haptics.analysis.loop_linearization import loop_map, stability
 from maglev_haptics.analysis.loop_studies import StudyNotApplicable
+from maglev_haptics.analysis.parallel import map_jobs
 from maglev_haptics.analysis.run_results import run_scenario
 from maglev_haptics.diagrams.hand_script import ScriptedHand
 
@@ -179,14 +181,19 @@ def onset_point(scenario, point: OnsetPoint,
             "relative_difference": abs(nonlinear - linear) / nonlinear}
 
 
-def onset_study(scenario, points: List[OnsetPoint] = DEFAULT_POINTS,
-                progress: Optional[Callable[[str], None]] = None) -> List[Dict]:
-    """``onset_point`` at each point; a point where there is no onset to find (unstable
-    from the start) is reported with the reason."""
-    results = []
-    for point in points:
-        try:
-            results.append(onset_point(scenario, point, progress))
-        except StudyNotApplicable as reason:
-            results.append({"label": point.label, "not_found": str(reason)})
-    return results
+def onset_study(scenario, points: List[OnsetPoint] = DEFAULT_POINTS, *, workers: int = 1,
+                scheduler: Optional[str] = None) -> List[Dict]:
+    """``onset_point`` at each point, a job each (``analysis/parallel.py``: ``workers``,
+    ``scheduler``), each step of its searches reported as it ends; a point where
+    there is no onset to find (unstable from the start) is reported with the reason."""
+    return map_jobs(onset_job, [(scenario, point) for point in points], workers=workers,
+                    scheduler=scheduler, description="onset points").results
+
+
+def onset_job(job) -> Dict:
+    """``onset_point`` for ``job`` = (scenario, point), or why there is none."""
+    scenario, point = job
+    try:
+        return onset_point(scenario, point, progress=tqdm.write)
+    except StudyNotApplicable as reason:
+        return {"label": point.label, "not_found": str(reason)}

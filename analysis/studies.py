@@ -7,7 +7,7 @@ shows progress and writes the files.
 import json
 import math
 from pathlib import Path
-from typing import Callable, Dict, List
+from typing import Callable, Dict, List, Optional
 
 from tqdm import tqdm
 
@@ -15,42 +15,43 @@ from maglev_haptics.analysis import loop_linearization, loop_studies, onset, wor
 from maglev_haptics.analysis.loop_studies import StudyNotApplicable
 
 
-def _passivity(scenario, label, out_dir, quick, progress):
+def _passivity(scenario, label, out_dir, quick, progress, where):
     results = loop_studies.passivity_study(scenario)
     return results, [loop_studies.plot_passivity(results, out_dir, label)]
 
 
-def _zwidth(scenario, label, out_dir, quick, progress):
+def _zwidth(scenario, label, out_dir, quick, progress, where):
     settings = (loop_studies.ZWidthSettings.quick() if quick
                 else loop_studies.ZWidthSettings.full())
     results = loop_studies.zwidth_study(scenario, settings, progress)
     return results, [loop_studies.plot_zwidth(results, out_dir, label)]
 
 
-def _stability_map(scenario, label, out_dir, quick, progress):
+def _stability_map(scenario, label, out_dir, quick, progress, where):
     settings = (loop_studies.StabilityMapSettings.quick() if quick
                 else loop_studies.StabilityMapSettings.full())
-    results = loop_studies.stability_map_study(scenario, settings, progress)
+    results = loop_studies.stability_map_study(scenario, settings, progress, **where)
     if not quick:
         # The whole loop's onset, linearized and simulated (minutes: each step of the
         # searches is a full linearization or a run; each is reported as it ends).
-        results["onset"] = onset.onset_study(scenario, progress=tqdm.write)
+        results["onset"] = onset.onset_study(scenario, **where)
     return results, [loop_studies.plot_stability_map(results, out_dir, label)]
 
 
-def _linearize(scenario, label, out_dir, quick, progress):
+def _linearize(scenario, label, out_dir, quick, progress, where):
     results = loop_linearization.linearize_study(scenario, progress)
     return results, [loop_linearization.plot_multipliers(results, out_dir, label, "linearize")]
 
 
-def _multirate(scenario, label, out_dir, quick, progress):
+def _multirate(scenario, label, out_dir, quick, progress, where):
     results = loop_linearization.multirate_study(scenario, progress)
     return results, [loop_linearization.plot_multipliers(results, out_dir, label, "multirate")]
 
 
-def _workspace(scenario, label, out_dir, quick, progress):
+def _workspace(scenario, label, out_dir, quick, progress, where):
     settings = workspace.WorkspaceSettings.quick() if quick else workspace.WorkspaceSettings()
-    results = workspace.workspace_study(settings, device=scenario.device, progress=progress)
+    results = workspace.workspace_study(settings, device=scenario.device, progress=progress,
+                                        **where)
     return results, workspace.plot_workspace(results, out_dir)
 
 
@@ -76,9 +77,12 @@ def _json_ready(value):
 
 
 def run_study(study: str, scenario, *, label: str, out_dir: Path, quick: bool = False,
-              show_progress: bool = True) -> Dict:
+              show_progress: bool = True, workers: int = 1,
+              scheduler: Optional[str] = None) -> Dict:
     """Run ``study`` on ``scenario``; write ``<study>.json`` and its plots into
-    ``out_dir``. Raises StudyNotApplicable (a ValueError) saying why it does not apply."""
+    ``out_dir``. The long ones (stability-map, workspace) run their jobs on ``workers``
+    local processes or a Dask ``scheduler``'s workers (``analysis/parallel.py``).
+    Raises StudyNotApplicable (a ValueError) saying why it does not apply."""
     if study not in STUDIES:
         raise ValueError(f"study {study!r}: unknown; the studies are {', '.join(STUDIES)}")
     out_dir = Path(out_dir)
@@ -90,7 +94,8 @@ def run_study(study: str, scenario, *, label: str, out_dir: Path, quick: bool = 
             bar.n = done
             bar.refresh()
         try:
-            results, plots = STUDIES[study](scenario, label, out_dir, quick, progress)
+            results, plots = STUDIES[study](scenario, label, out_dir, quick, progress,
+                                            {"workers": workers, "scheduler": scheduler})
         except StudyNotApplicable as reason:
             raise StudyNotApplicable(f"{study} does not apply to {label}: {reason}") from None
     results = {"study": study, "scenario": label, "quick": quick, **results,

@@ -61,6 +61,7 @@ from matplotlib.patches import Circle, Rectangle  # noqa: E402
 from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter  # noqa: E402
 from pydrake.math import RollPitchYaw, RotationMatrix  # noqa: E402
 
+from maglev_haptics.analysis.parallel import map_jobs  # noqa: E402
 from maglev_haptics.analysis.run_plots import save_figure  # noqa: E402
 from maglev_haptics.diagrams.motion import MAX_TILT_DEG, base_clearance_m  # noqa: E402
 from maglev_haptics.hardware.device import INSTRUMENT_KINDS, DeviceConfig  # noqa: E402
@@ -310,8 +311,16 @@ def _json_ready(value):
     return value
 
 
+def slice_metrics(job) -> list:
+    """``pose_metrics`` at each pose of ``job`` = (device config, [(p_WI, R_WI)])."""
+    config, poses = job
+    magnetics = load_magnetics(config)
+    return [pose_metrics(magnetics, config, p_WI, R_WI) for p_WI, R_WI in poses]
+
+
 def workspace_study(settings: WorkspaceSettings, *, device: DeviceConfig | None = None,
-                    progress: Callable[[int, int], None] | None = None) -> dict:
+                    progress: Callable[[int, int], None] | None = None, workers: int = 1,
+                    scheduler: str | None = None) -> dict:
     """The study (module docstring) over ``settings``' grids, as JSON-ready data.
 
     Returns {"study", "settings", "units", "instruments": {kind: {"mass_kg",
@@ -319,36 +328,35 @@ def workspace_study(settings: WorkspaceSettings, *, device: DeviceConfig | None 
     {name: {"coordinates": {axis: values}, "maps": {metric: nested lists}}}}}}.
     Each map's nesting follows its slice's coordinates in order (e.g. xy:
     [height][y][x]); metrics are those of ``pose_metrics``. NaN is None.
-    ``progress(n_done, n_total)``, if given, is called after every pose.
+    ``progress(n_done, n_total)``, if given, is called after every slice. Each
+    instrument's slice is a job (``analysis/parallel.py``: ``workers``, ``scheduler``).
     ``device``: the coils, amplifiers and thermal model to use (a scenario's); its
     own instrument keeps its magnet and mass overrides, the other kind its defaults.
     """
     settings.check()
     slice_grids = _slices(settings)
-    n_total = len(settings.instruments) * sum(len(poses) for _, poses in slice_grids.values())
-    n_done = 0
+    base = device if device is not None else DeviceConfig()
+    configs = {kind: (dataclasses.replace(base, instrument=kind) if kind == base.instrument else
+                      dataclasses.replace(base, instrument=kind, magnet=None,
+                                          instrument_mass_kg=None))
+               for kind in settings.instruments}
+    jobs = [(configs[kind], poses) for kind in settings.instruments
+            for _, poses in slice_grids.values()]
+    per_slice = iter(map_jobs(slice_metrics, jobs, workers=workers, scheduler=scheduler,
+                              description="workspace slices", progress=False,
+                              on_result=progress).results)
     instruments = {}
-    for kind in settings.instruments:
-        base = device if device is not None else DeviceConfig()
-        config = (dataclasses.replace(base, instrument=kind) if kind == base.instrument else
-                  dataclasses.replace(base, instrument=kind, magnet=None, instrument_mass_kg=None))
-        magnetics = load_magnetics(config)
+    for kind, config in configs.items():
         slices = {}
-        for name, (coordinates, poses) in slice_grids.items():
-            per_pose = []
-            for p_WI, R_WI in poses:
-                per_pose.append(pose_metrics(magnetics, config, p_WI, R_WI))
-                n_done += 1
-                if progress is not None:
-                    progress(n_done, n_total)
+        for name, (coordinates, _) in slice_grids.items():
             shape = tuple(len(values) for values in coordinates.values())
-            slices[name] = {"coordinates": coordinates, "maps": _stack(per_pose, shape)}
+            slices[name] = {"coordinates": coordinates, "maps": _stack(next(per_slice), shape)}
         instruments[kind] = {
             "mass_kg": config.instrument_spec().mass_kg,
             "lever_length_m": lever_length_m(config),
             "current_limit_a": {limit: coil_current_limit_a(config, limit)
                                 for limit in LIMIT_KINDS},
-            "summary": _summary(config, magnetics, slices),
+            "summary": _summary(config, load_magnetics(config), slices),
             "slices": slices,
         }
     return _json_ready({

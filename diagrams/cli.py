@@ -316,12 +316,28 @@ def _positive_count(text: str) -> int:
     return value
 
 
+def _add_job_arguments(parser) -> None:
+    """--workers and --scheduler: where a long study's jobs run (analysis/parallel.py)."""
+    from maglev_haptics.analysis.parallel import default_workers
+    where = parser.add_mutually_exclusive_group()
+    where.add_argument("--workers", type=_positive_count, default=default_workers(),
+                       help="local worker processes (default: this machine's cores, "
+                       f"{default_workers()}; 1: in this process)")
+    where.add_argument("--scheduler", metavar="ADDRESS",
+                       help="a Dask distributed scheduler's address (tcp://HOST:PORT): its "
+                       "workers run the jobs")
+
+
 def _cmd_faults(args) -> int:
     from maglev_haptics.analysis.fault_campaign import run_campaign
 
     out_dir = _writable_folder(Path(args.out))
-    results = run_campaign(args.runs, args.seed, out_dir, workers=args.workers)
+    results = run_campaign(args.runs, args.seed, out_dir, workers=args.workers,
+                           scheduler=args.scheduler)
     print(results["report"])
+    jobs = results["jobs"]
+    print(f"ran on {jobs['where']}" + (f"; {jobs['reran']} runs rerun after their worker died"
+                                        if jobs["reran"] else ""))
     failed = [r for r in results["runs"] if not r["passed"]]
     for row in failed:
         broken = [name for name, ok in row["checks"].items() if not ok]
@@ -332,6 +348,27 @@ def _cmd_faults(args) -> int:
     return 0 if not failed else 1
 
 
+def _cmd_sweep(args) -> int:
+    from maglev_haptics.analysis.sweep import parse_spec, run_sweep
+
+    path = Path(args.spec)
+    try:
+        text = path.read_text()
+    except OSError as error:
+        raise OSError(f"sweep spec {args.spec}: {error.strerror}") from None
+    spec = parse_spec(text, str(path))
+    out_dir = _writable_folder(Path(args.out))
+    results = run_sweep(spec, out_dir, workers=args.workers, scheduler=args.scheduler)
+    failed = [row for row in results["rows"] if row["error"]]
+    for row in failed:
+        print(f"point {', '.join(f'{f}={row[f]}' for f in spec.vary)}: {row['error']}")
+    jobs = results["jobs"]
+    print(f"{len(results['rows'])} points on {jobs['where']}"
+          + (f" ({jobs['reran']} rerun after their worker died)" if jobs["reran"] else "")
+          + "; wrote " + ", ".join(str(path) for path in results["files"]))
+    return 0 if not failed else 1
+
+
 def _cmd_analyze(args) -> int:
     from maglev_haptics.analysis.studies import format_modes, run_study
 
@@ -339,7 +376,8 @@ def _cmd_analyze(args) -> int:
     out = _writable_folder(Path(args.out) if args.out
                            else Path("out") / "analyze" / label.replace(":", "-"))
     results = run_study(args.study, scenario, label=label, out_dir=out, quick=args.quick,
-                        show_progress=not args.json)
+                        show_progress=not args.json, workers=args.workers,
+                        scheduler=args.scheduler)
     if args.json:
         print(json.dumps(results, indent=2))
     else:
@@ -508,15 +546,32 @@ def build_parser() -> argparse.ArgumentParser:
         epilog=_epilog("""
             maglev faults --runs 20 --out out/faults
             maglev faults --runs 200 --seed 7 --workers 2
+            maglev faults --runs 200 --scheduler tcp://10.0.0.5:8786
             """, with_scenarios=False))
     faults.add_argument("--runs", type=_positive_count, default=20,
                         help="how many runs (default 20; the kinds take turns)")
     faults.add_argument("--seed", type=int, default=0, help="the campaign's random seed")
-    faults.add_argument("--workers", type=_positive_count, default=1,
-                        help="runs at a time, each in its own process (default 1)")
+    _add_job_arguments(faults)
     faults.add_argument("--out", default="out/faults",
                         help="folder for faults.json and faults.png (default: out/faults)")
     faults.set_defaults(func=_cmd_faults)
+
+    sweep = commands.add_parser(
+        "sweep", formatter_class=formatter,
+        help="a scenario over a grid of its fields; writes sweep.csv, sweep.json, sweep.png",
+        description="Run a scenario at every combination of the values a spec file gives "
+        "its fields (YAML paths, dotted: lists, or {start, stop, num}); keep the metrics "
+        "the spec names from each run's summary.json. Writes sweep.csv, sweep.json and "
+        "sweep.png (each metric against each field); exits 1 if a point's run failed.",
+        epilog=_epilog("""
+            maglev sweep docs/sweep_example.yaml --out out/sweep
+            maglev sweep my_sweep.yaml --scheduler tcp://10.0.0.5:8786
+            """, with_scenarios=False))
+    sweep.add_argument("spec", help="the sweep's YAML spec (analysis/sweep.py shows one)")
+    sweep.add_argument("--out", default="out/sweep",
+                       help="folder for sweep.csv, sweep.json and sweep.png (default: out/sweep)")
+    _add_job_arguments(sweep)
+    sweep.set_defaults(func=_cmd_sweep)
 
     from maglev_haptics.analysis.studies import study_names
     analyze = commands.add_parser(
@@ -534,6 +589,7 @@ def build_parser() -> argparse.ArgumentParser:
     analyze.add_argument("--out", help="output folder (default: out/analyze/<file>-<name>)")
     analyze.add_argument("--json", action="store_true", help="print the whole result as JSON")
     analyze.add_argument("--quick", action="store_true", help="coarse settings (seconds)")
+    _add_job_arguments(analyze)
     analyze.set_defaults(func=_cmd_analyze)
     return parser
 

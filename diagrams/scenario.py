@@ -138,6 +138,7 @@ class Scenario:
         self.controller.validate(f"{label}: controller")
         self.motion.validate(f"{label}: motion")
         self.watchdog.validate(f"{label}: watchdog")
+        self.estimator.validate(f"{label}: estimator", self.device.tracker.rate_hz)
         n_markers = len(self.device.instrument_spec().p_IK_m)
         for i, o in enumerate(self.occlusions):
             require(o.marker is None or 0 <= o.marker < n_markers,
@@ -371,8 +372,9 @@ def scenario_names(path: Path) -> List[str]:
 
 
 def load_scenario(name_or_path: str, name: Optional[str] = None,
-                  scenario_text: str = "{}") -> Scenario:
-    """Load one named scenario (default: the file's first) and layer ``scenario_text`` on it."""
+                  scenario_text: str = "{}", *more_text: str) -> Scenario:
+    """Load one named scenario (default: the file's first) and layer ``scenario_text``
+    on it, then each of ``more_text`` in turn."""
     path = resolve_scenario_file(name_or_path)
     text = path.read_text()
     raw = _parse_mapping(text, str(path))
@@ -386,12 +388,18 @@ def load_scenario(name_or_path: str, name: Optional[str] = None,
     scenario = _load_typed(label, raw[name] or {}, lambda: yaml_load_typed(
         schema=Scenario, data=text, child_name=name, defaults=Scenario()),
         lambda cut: yaml_load_typed(schema=Scenario, data=yaml_dump(cut), defaults=Scenario()))
-    layered = _parse_mapping(scenario_text, "--scenario-text")
-    scenario = _load_typed(f"{label} (--scenario-text)", layered, lambda: yaml_load_typed(
-        schema=Scenario, data=scenario_text, defaults=scenario),
-        lambda cut: yaml_load_typed(schema=Scenario, data=yaml_dump(cut), defaults=scenario))
+    for layer in (scenario_text, *more_text):
+        scenario = _layer(scenario, layer, label)
     validate_scenario(scenario, label)
     return scenario
+
+
+def _layer(scenario: Scenario, text: str, label: str) -> Scenario:
+    """``scenario`` with the YAML mapping ``text`` layered on it."""
+    layered = _parse_mapping(text, "--scenario-text")
+    return _load_typed(f"{label} (--scenario-text)", layered, lambda: yaml_load_typed(
+        schema=Scenario, data=text, defaults=scenario),
+        lambda cut: yaml_load_typed(schema=Scenario, data=yaml_dump(cut), defaults=scenario))
 
 
 def with_stereo(scenario: Scenario, label: str) -> Scenario:

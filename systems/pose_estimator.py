@@ -39,6 +39,7 @@ import numpy as np
 import scipy.linalg
 from pydrake.systems.framework import BasicVector, LeafSystem
 
+from maglev_haptics.hardware.config_checks import finite, positive, require
 from maglev_haptics.hardware.device import InstrumentSpec, TrackerSpec
 from maglev_haptics.hardware.kernels import MATRIX, SCALAR, VECTOR, kernel
 from maglev_haptics.systems.rotations import (
@@ -78,6 +79,21 @@ class PoseEstimatorConfig:
     # this long [s]; then any (re-acquisition). A jump that persists is a lost
     # instrument: the controller cuts the coils after its grace (20 ms), well before.
     jump_hold_s: float = 0.1
+
+    def validate(self, path: str, tracker_rate_hz: float) -> None:
+        """Range checks against the tracker's rate (Hz); a ValueError names
+        ``path.field``, its value and what is allowed."""
+        require(0 < self.bandwidth_hz < tracker_rate_hz / 2, f"{path}.bandwidth_hz",
+                self.bandwidth_hz, f"must be in (0, {tracker_rate_hz / 2}) Hz, below the "
+                "tracker's Nyquist frequency")
+        positive(f"{path}.max_residual_sigma", self.max_residual_sigma)
+        for name, unit in (("max_jump_m", "m"), ("max_jump_rad", "rad"), ("jump_hold_s", "s")):
+            require(finite(getattr(self, name)) and getattr(self, name) > 0, f"{path}.{name}",
+                    getattr(self, name), f"must be > 0 ({unit})")
+        period_s = 1.0 / tracker_rate_hz
+        require(finite(self.processing_delay_s) and 0 <= self.processing_delay_s < period_s,
+                f"{path}.processing_delay_s", self.processing_delay_s,
+                f"must be in [0, {period_s}) s (one tracker period)")
 
 
 # --- rigid fit ---------------------------------------------------------------
@@ -396,24 +412,8 @@ class PoseEstimator(LeafSystem):
         config = PoseEstimatorConfig() if config is None else config
         self._model = MarkerModel(_check_model(instrument.p_IK))
         self._period_s = _check_rate(tracker)
-        rate = tracker.rate_hz
-        if not (0 < config.bandwidth_hz < rate / 2):
-            raise ValueError(
-                f"pose_estimator.bandwidth_hz = {config.bandwidth_hz}: must be in "
-                f"(0, {rate / 2}) Hz, below the tracker's Nyquist frequency")
-        if not (math.isfinite(config.max_residual_sigma) and config.max_residual_sigma > 0):
-            raise ValueError(
-                f"pose_estimator.max_residual_sigma = {config.max_residual_sigma}: must be > 0")
-        for name, unit in (("max_jump_m", "m"), ("max_jump_rad", "rad"), ("jump_hold_s", "s")):
-            value = getattr(config, name)
-            if not (math.isfinite(value) and value > 0):
-                raise ValueError(f"pose_estimator.{name} = {value}: must be > 0 ({unit})")
+        config.validate("estimator", tracker.rate_hz)
         self._jump_limits = (config.max_jump_m, config.max_jump_rad, config.jump_hold_s)
-        delay_s = config.processing_delay_s
-        if not (math.isfinite(delay_s) and 0 <= delay_s < self._period_s):
-            raise ValueError(
-                f"pose_estimator.processing_delay_s = {delay_s}: must be in "
-                f"[0, {self._period_s}) s (one tracker period)")
         if not (math.isfinite(tracker.noise_m) and tracker.noise_m >= 0):
             raise ValueError(
                 f"tracker.noise_m = {tracker.noise_m}: must be a finite value >= 0 [m]")

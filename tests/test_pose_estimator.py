@@ -396,14 +396,14 @@ def test_residual_limit_follows_the_noise():
     (TrackerSpec(rate_hz=0.0), None, r"tracker.rate_hz = 0.0: must be .* > 0"),
     (TrackerSpec(noise_m=-1.0), None, r"tracker.noise_m = -1.0: must be .* >= 0"),
     (TrackerSpec(), PoseEstimatorConfig(bandwidth_hz=0.0),
-     r"pose_estimator.bandwidth_hz = 0.0: must be in \(0, 430.0\) Hz"),
+     r"estimator.bandwidth_hz = 0.0: must be in \(0, 430.0\) Hz"),
     (TrackerSpec(), PoseEstimatorConfig(bandwidth_hz=500.0), r"bandwidth_hz = 500.0"),
     (TrackerSpec(), PoseEstimatorConfig(max_residual_sigma=-1.0),
-     r"pose_estimator.max_residual_sigma = -1.0: must be > 0"),
+     r"estimator.max_residual_sigma = -1.0: must be a finite number > 0"),
     (TrackerSpec(), PoseEstimatorConfig(processing_delay_s=-1e-5),
-     r"pose_estimator.processing_delay_s = -1e-05"),
+     r"estimator.processing_delay_s = -1e-05"),
     (TrackerSpec(), PoseEstimatorConfig(processing_delay_s=0.01),
-     r"pose_estimator.processing_delay_s = 0.01"),
+     r"estimator.processing_delay_s = 0.01"),
 ])
 def test_bad_config_is_named(tracker, config, match):
     with pytest.raises(ValueError, match=match):

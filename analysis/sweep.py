@@ -1,0 +1,221 @@
+"""``maglev sweep SPEC.yaml``: a scenario run over a grid of its own fields.
+
+The spec names a scenario, the fields to vary (their YAML paths in the scenario,
+dotted) with a list of values or a range, and the metrics to keep from each run's
+``summary.json`` (dotted paths too)::
+
+    scenario: levitate                 # a shipped scenario or a YAML file
+    name: takeoff_hover_land           # optional: the file's first
+    scenario_text: "{duration_s: 4.0}" # optional: layered on it first
+    vary:
+      estimator.bandwidth_hz: [20, 50, 100]
+      device.tracker.latency_s: {start: 0.001, stop: 0.004, num: 4}   # evenly spaced
+    metrics: [hover_position_error_rms_mm, max_coil_temperature_c, touchdown.speed_m_s]
+
+Every combination of the varied values is a job: the scenario's text, the point's
+values as one more YAML layer, and the scenario's own random seed, so a point gives
+the same numbers wherever it runs (``analysis/parallel.py``). Written: ``sweep.csv``
+(a row a point: the varied fields, then the metrics), ``sweep.json`` (the spec, the
+rows, what ran them) and ``sweep.png`` (each metric against each varied field).
+"""
+
+import csv
+import itertools
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Dict, List, Optional
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import yaml  # noqa: E402
+
+from maglev_haptics.analysis.parallel import map_jobs  # noqa: E402
+from maglev_haptics.analysis.run_plots import save_figure  # noqa: E402
+from maglev_haptics.diagrams.scenario import ScenarioError, load_scenario  # noqa: E402
+
+MAX_POINTS = 10_000  # a grid larger than this is surely a mistake in the spec
+
+
+@dataclass
+class SweepSpec:
+    scenario: str
+    vary: Dict[str, List[Any]]  # dotted field path -> its values
+    metrics: List[str]
+    name: Optional[str] = None
+    scenario_text: str = "{}"
+    source: str = "sweep spec"  # where it came from, for error messages
+
+    def points(self) -> List[Dict[str, Any]]:
+        """Every combination of the varied values, the first field slowest."""
+        fields = list(self.vary)
+        return [dict(zip(fields, values))
+                for values in itertools.product(*(self.vary[f] for f in fields))]
+
+
+def _values(source: str, path: str, spec) -> List[Any]:
+    """A list as it is, or {start, stop, num} as num evenly spaced floats."""
+    if isinstance(spec, list) and spec:
+        return spec
+    if isinstance(spec, dict) and set(spec) == {"start", "stop", "num"}:
+        start, stop, num = spec["start"], spec["stop"], spec["num"]
+        if (all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+                for v in (start, stop)) and isinstance(num, int) and num >= 1):
+            return [float(v) for v in np.linspace(start, stop, num)]
+    raise ScenarioError(f"{source}: vary.{path} = {spec!r}: must be a non-empty list of "
+                        "values or {start: NUMBER, stop: NUMBER, num: WHOLE NUMBER >= 1}")
+
+
+def parse_spec(text: str, source: str = "sweep spec") -> SweepSpec:
+    """The spec in ``text``; a ScenarioError names the field, its value and what is
+    allowed. The scenario and each point's overrides are loaded once here, so a bad
+    field fails before any run."""
+    try:
+        raw = yaml.safe_load(text)
+    except yaml.YAMLError as error:
+        raise ScenarioError(f"{source}: not YAML: {str(error).splitlines()[0]}") from None
+    if not isinstance(raw, dict):
+        raise ScenarioError(f"{source}: must be a mapping with scenario, vary and metrics")
+    allowed = {"scenario", "name", "scenario_text", "vary", "metrics"}
+    unknown = sorted(set(raw) - allowed)
+    if unknown:
+        raise ScenarioError(f"{source}: {unknown[0]}: unknown field; a sweep spec has "
+                            + ", ".join(sorted(allowed)))
+    for key in ("scenario", "vary", "metrics"):
+        if key not in raw:
+            raise ScenarioError(f"{source}: {key}: missing")
+    if not isinstance(raw["scenario"], str):
+        raise ScenarioError(f"{source}: scenario = {raw['scenario']!r}: must be a scenario "
+                            "name or a YAML file")
+    vary = raw["vary"]
+    if not isinstance(vary, dict) or not vary:
+        raise ScenarioError(f"{source}: vary = {vary!r}: must map field paths to values")
+    metrics = raw["metrics"]
+    if (not isinstance(metrics, list) or not metrics
+            or not all(isinstance(m, str) and m for m in metrics)):
+        raise ScenarioError(f"{source}: metrics = {metrics!r}: must be a non-empty list of "
+                            "summary.json paths (dotted)")
+    scenario_text = raw.get("scenario_text", "{}")
+    if not isinstance(scenario_text, str):
+        raise ScenarioError(f"{source}: scenario_text = {scenario_text!r}: must be a string "
+                            "of YAML (quote it)")
+    spec = SweepSpec(scenario=raw["scenario"], name=raw.get("name"),
+                     scenario_text=scenario_text,
+                     vary={path: _values(source, path, values) for path, values in vary.items()},
+                     metrics=metrics, source=source)
+    count = math.prod(len(values) for values in spec.vary.values())
+    if count > MAX_POINTS:
+        raise ScenarioError(f"{source}: vary: {count} points: at most {MAX_POINTS}")
+    for point in spec.points():
+        try:
+            load_scenario(spec.scenario, spec.name, spec.scenario_text, point_text(point))
+        except ScenarioError as error:
+            raise ScenarioError(f"{source}: the point {point_text(point)}: {error}") from None
+    return spec
+
+
+def point_text(point: Dict[str, Any]) -> str:
+    """The point's values as a YAML layer: {a: {b: value}} for the path a.b."""
+    nested: Dict[str, Any] = {}
+    for path, value in point.items():
+        here = nested
+        *parents, leaf = path.split(".")
+        for key in parents:
+            here = here.setdefault(key, {})
+        here[leaf] = value
+    return yaml.safe_dump(nested, default_flow_style=True, width=10_000).strip()
+
+
+@dataclass
+class SweepJob:
+    """One point of a sweep, all a worker needs to run it."""
+    scenario: str
+    name: Optional[str]
+    scenario_text: str
+    point: Dict[str, Any]
+    metrics: tuple
+
+
+def metric(summary: Dict, path: str):
+    """The value at a dotted path of a run's summary; None where it has none (a run
+    that never touched down has no touchdown.speed_m_s)."""
+    value: Any = summary
+    for key in path.split("."):
+        if not isinstance(value, dict) or key not in value:
+            return None
+        value = value[key]
+    return value
+
+
+def run_point(job: SweepJob) -> Dict[str, Any]:
+    """One point: its scenario run, the metrics kept (a run that raised: its error)."""
+    from maglev_haptics.analysis.run_results import run_scenario
+    row: Dict[str, Any] = dict(job.point)
+    try:
+        scenario = load_scenario(job.scenario, job.name, job.scenario_text,
+                                 point_text(job.point))
+        summary = run_scenario(scenario, label="sweep point", progress=False).summary
+        row |= {name: metric(summary, name) for name in job.metrics}
+        row["error"] = None
+    except Exception as error:  # recorded in its row: the rest of the sweep goes on
+        row |= {name: None for name in job.metrics}
+        row["error"] = f"{type(error).__name__}: {error}"
+    return row
+
+
+def run_sweep(spec: SweepSpec, out_dir: Path, *, workers: int = 1,
+              scheduler: Optional[str] = None, progress: bool = True) -> Dict:
+    """Run every point; write sweep.csv, sweep.json and sweep.png into ``out_dir``."""
+    jobs = [SweepJob(spec.scenario, spec.name, spec.scenario_text, point, tuple(spec.metrics))
+            for point in spec.points()]
+    ran = map_jobs(run_point, jobs, workers=workers, scheduler=scheduler,
+                   description="sweep", progress=progress)
+    rows = ran.results
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    columns = [*spec.vary, *spec.metrics, "error"]
+    with open(out_dir / "sweep.csv", "w", newline="") as file:
+        writer = csv.DictWriter(file, fieldnames=columns)
+        writer.writeheader()
+        writer.writerows(rows)
+    jobs_ran = {"where": ran.where, "workers": ran.workers, "reran": ran.reran}
+    (out_dir / "sweep.json").write_text(json.dumps(
+        {"spec": {"scenario": spec.scenario, "name": spec.name,
+                  "scenario_text": spec.scenario_text, "vary": spec.vary,
+                  "metrics": spec.metrics},
+         "rows": rows, "jobs": jobs_ran}, indent=1))
+    plot = plot_sweep(spec, rows, out_dir / "sweep.png")
+    return {"rows": rows, "jobs": jobs_ran, "files": [out_dir / "sweep.csv",
+                                                      out_dir / "sweep.json", plot]}
+
+
+def plot_sweep(spec: SweepSpec, rows: List[Dict], path: Path) -> Path:
+    """A panel for each (metric, varied field): the metric at every point against the
+    field's value, the points that share the other fields' values joined."""
+    fields, metrics = list(spec.vary), spec.metrics
+    figure, panels = plt.subplots(len(metrics), len(fields), squeeze=False,
+                                  figsize=(4.0 * len(fields), 2.8 * len(metrics)))
+    for j, varied in enumerate(fields):
+        others = [f for f in fields if f != varied]
+        groups: Dict[tuple, List[Dict]] = {}
+        for row in rows:
+            groups.setdefault(tuple(repr(row[f]) for f in others), []).append(row)
+        for i, name in enumerate(metrics):
+            panel = panels[i][j]
+            for key, group in groups.items():
+                points = [(row[varied], row[name]) for row in group
+                          if isinstance(row[name], (int, float)) and row[name] is not None]
+                if points:
+                    x, y = zip(*points)
+                    label = ", ".join(f"{f}={v}" for f, v in zip(others, key)) or None
+                    panel.plot(x, y, "o-", ms=4, label=label)
+            panel.set_xlabel(varied)
+            panel.set_ylabel(name)
+            if others and len(groups) <= 8 and i == 0:
+                panel.legend(fontsize=6)
+    figure.suptitle(f"sweep of {spec.scenario}" + (f":{spec.name}" if spec.name else ""))
+    return save_figure(figure, path)

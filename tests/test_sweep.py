@@ -1,0 +1,70 @@
+"""maglev sweep: a spec's grid of points, each a run of the scenario with its values,
+the metrics kept as a table, a JSON and plots; a bad spec named before any run."""
+
+import csv
+import json
+
+import pytest
+
+from maglev_haptics.analysis.sweep import parse_spec, point_text
+from maglev_haptics.diagrams.cli import main
+from maglev_haptics.diagrams.scenario import ScenarioError, load_scenario
+
+SPEC = """
+scenario: levitate
+name: takeoff_hover_land
+scenario_text: "{duration_s: 2.5}"
+vary:
+  estimator.bandwidth_hz: [20, 100]
+  device.tracker.latency_s: {start: 0.001, stop: 0.003, num: 2}
+metrics: [max_coil_current_a, hover_position_error_rms_mm, touchdown.speed_m_s]
+"""
+
+
+def test_the_grid_is_every_combination_and_each_point_a_layer_of_the_scenario():
+    spec = parse_spec(SPEC)
+    points = spec.points()
+    assert points == [{"estimator.bandwidth_hz": b, "device.tracker.latency_s": d}
+                      for b in (20, 100) for d in (0.001, 0.003)]
+    scenario = load_scenario("levitate", None, spec.scenario_text, point_text(points[3]))
+    assert scenario.estimator.bandwidth_hz == 100 and scenario.device.tracker.latency_s == 0.003
+    assert scenario.duration_s == 2.5
+
+
+def test_a_sweep_writes_its_table_json_and_plot(tmp_path, capsys):
+    spec_file = tmp_path / "spec.yaml"
+    spec_file.write_text(SPEC)
+    out = tmp_path / "out"
+    assert main(["sweep", str(spec_file), "--workers", "1", "--out", str(out)]) == 0
+    with open(out / "sweep.csv") as file:
+        rows = list(csv.DictReader(file))
+    assert len(rows) == 4
+    assert list(rows[0]) == ["estimator.bandwidth_hz", "device.tracker.latency_s",
+                             "max_coil_current_a", "hover_position_error_rms_mm",
+                             "touchdown.speed_m_s", "error"]
+    saved = json.loads((out / "sweep.json").read_text())
+    assert [row["error"] for row in saved["rows"]] == [None] * 4
+    hover = [row["hover_position_error_rms_mm"] for row in saved["rows"]]
+    assert all(0.0 < value < 1.0 for value in hover)
+    # The estimator's bandwidth and the tracker's latency change the hover: real runs.
+    assert len(set(hover)) == 4
+    assert all(row["touchdown.speed_m_s"] is None for row in saved["rows"])  # still flying
+    assert saved["jobs"]["where"] == "this process"
+    assert (out / "sweep.png").stat().st_size > 20_000
+    assert "4 points on this process" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("text, message", [
+    ("scenario: levitate\nvary: {estimator.bandwith_hz: [1]}\nmetrics: [a]",
+     "estimator.bandwith_hz: unknown field; PoseEstimatorConfig has bandwidth_hz"),
+    ("scenario: levitate\nvary: {estimator.bandwidth_hz: {start: 1}}\nmetrics: [a]",
+     "vary.estimator.bandwidth_hz = {'start': 1}: must be a non-empty list of values or"),
+    ("scenario: levitate\nvary: {estimator.bandwidth_hz: [1000]}\nmetrics: [a]",
+     "estimator.bandwidth_hz = 1000.0: must be in (0, 430.0) Hz"),
+    ("scenario: levitate\nvary: {duration_s: [1]}\nmetrics: []", "metrics = []: must be"),
+    ("scenario: levitate\nvary: {duration_s: [1]}\nmetric: [a]", "metric: unknown field"),
+])
+def test_a_bad_spec_names_its_field_before_any_run(text, message):
+    with pytest.raises(ScenarioError, match="^spec.yaml: .*" + message.replace(
+            "(", r"\(").replace(")", r"\)").replace("[", r"\[").replace("{", r"\{")):
+        parse_spec(text, "spec.yaml")
