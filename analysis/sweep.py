@@ -206,9 +206,12 @@ def plot_sweep(spec: SweepSpec, rows: List[Dict], path: Path) -> Path:
             groups.setdefault(tuple(repr(row[f]) for f in others), []).append(row)
         for i, name in enumerate(metrics):
             panel = panels[i][j]
+            if not any(isinstance(row[name], (int, float)) for row in rows):
+                panel.text(0.5, 0.5, "no value at any point", ha="center", va="center",
+                           transform=panel.transAxes, color="0.4")
             for key, group in groups.items():
                 points = [(row[varied], row[name]) for row in group
-                          if isinstance(row[name], (int, float)) and row[name] is not None]
+                          if isinstance(row[name], (int, float))]
                 if points:
                     x, y = zip(*points)
                     label = ", ".join(f"{f}={v}" for f, v in zip(others, key)) or None
