@@ -31,6 +31,7 @@ from maglev_haptics.analysis.loop_studies import StudyNotApplicable
 from maglev_haptics.analysis.parallel import map_jobs
 from maglev_haptics.analysis.run_results import run_scenario
 from maglev_haptics.diagrams.hand_script import ScriptedHand
+from maglev_haptics.diagrams.scenario import scenario_from_yaml, scenario_yaml
 
 HOLD_S = 3.0  # how long the hand holds still with haptics on (s)
 SETTLE_S = 0.5  # after haptics is fully on, before the growth is measured (s)
@@ -186,13 +187,15 @@ def onset_study(scenario, points: List[OnsetPoint] = DEFAULT_POINTS, *, workers:
     """``onset_point`` at each point, a job each (``analysis/parallel.py``: ``workers``,
     ``scheduler``), each step of its searches reported as it ends; a point where
     there is no onset to find (unstable from the start) is reported with the reason."""
-    return map_jobs(onset_job, [(scenario, point) for point in points], workers=workers,
-                    scheduler=scheduler, description="onset points").results
+    return map_jobs(onset_job, [(scenario_yaml(scenario), point) for point in points],
+                    workers=workers, scheduler=scheduler, description="onset points").results
 
 
 def onset_job(job) -> Dict:
-    """``onset_point`` for ``job`` = (scenario, point), or why there is none."""
-    scenario, point = job
+    """``onset_point`` for ``job`` = (the scenario's YAML text, point), or why there
+    is none."""
+    text, point = job
+    scenario = scenario_from_yaml(text)
     try:
         return onset_point(scenario, point, progress=tqdm.write)
     except StudyNotApplicable as reason:

@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import List, Optional, Union
 
 import yaml
-from pydrake.common.yaml import yaml_dump, yaml_load_data, yaml_load_typed
+from pydrake.common.yaml import yaml_dump, yaml_dump_typed, yaml_load_data, yaml_load_typed
 from pydrake.multibody.plant import MultibodyPlantConfig
 
 from maglev_haptics.diagrams.deformable_scene import DeformableSurface
@@ -400,6 +400,16 @@ def _layer(scenario: Scenario, text: str, label: str) -> Scenario:
     return _load_typed(f"{label} (--scenario-text)", layered, lambda: yaml_load_typed(
         schema=Scenario, data=text, defaults=scenario),
         lambda cut: yaml_load_typed(schema=Scenario, data=yaml_dump(cut), defaults=scenario))
+
+
+def scenario_yaml(scenario: Scenario) -> str:
+    """``scenario`` as YAML text (``scenario_from_yaml`` reads it back as it was): how
+    a study's job carries it to another process (Drake's config types do not pickle)."""
+    return yaml_dump_typed(scenario)
+
+
+def scenario_from_yaml(text: str) -> Scenario:
+    return yaml_load_typed(schema=Scenario, data=text)
 
 
 def with_stereo(scenario: Scenario, label: str) -> Scenario:

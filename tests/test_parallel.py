@@ -4,6 +4,7 @@ killed mid-job has its job rerun elsewhere."""
 
 import json
 import os
+import pickle
 import signal
 import threading
 import time
@@ -14,6 +15,7 @@ from distributed import Client, LocalCluster
 from maglev_haptics.analysis.fault_campaign import plan_campaign, run_fault
 from maglev_haptics.analysis.parallel import map_jobs
 from maglev_haptics.diagrams.cli import main
+from maglev_haptics.diagrams.scenario import load_scenario, scenario_from_yaml, scenario_yaml
 
 RUNS = 4  # the levitation kinds: a few seconds each
 
@@ -76,3 +78,12 @@ def test_an_unreachable_scheduler_is_one_line(tmp_path, capsys):
     error = capsys.readouterr().err.strip()
     assert error.startswith("maglev faults: error: Dask scheduler 'tcp://127.0.0.1:1': "
                             "could not connect") and "\n" not in error
+
+
+@pytest.mark.parametrize("name", ["levitate", "peg_in_hole", "deformable_surface", "stereo_display"])
+def test_a_scenario_travels_to_a_worker_as_yaml_text(name):
+    """Drake's config types do not pickle: a study's job carries its scenario as YAML
+    text, which reads back as it was."""
+    scenario = load_scenario(name, None, "{faults: [!StuckAmplifier {coil: 3}]}")
+    text = scenario_yaml(scenario)
+    assert scenario_yaml(scenario_from_yaml(pickle.loads(pickle.dumps(text)))) == text
