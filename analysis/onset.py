@@ -24,11 +24,10 @@ from typing import Callable, Dict, List, Optional
 
 import numpy as np
 import scipy.signal
-from tqdm import tqdm
 
 from maglev_haptics.analysis.loop_linearization import loop_map, stability
 from maglev_haptics.analysis.loop_studies import StudyNotApplicable
-from maglev_haptics.analysis.parallel import map_jobs
+from maglev_haptics.analysis.parallel import map_jobs, report
 from maglev_haptics.analysis.run_results import run_scenario
 from maglev_haptics.diagrams.hand_script import ScriptedHand
 from maglev_haptics.diagrams.scenario import scenario_from_yaml, scenario_yaml
@@ -197,6 +196,6 @@ def onset_job(job) -> Dict:
     text, point = job
     scenario = scenario_from_yaml(text)
     try:
-        return onset_point(scenario, point, progress=tqdm.write)
+        return onset_point(scenario, point, progress=report)
     except StudyNotApplicable as reason:
         return {"label": point.label, "not_found": str(reason)}

@@ -33,6 +33,13 @@ class JobResults:
     workers: int = 1
 
 
+def report(message: str) -> None:
+    """A line for the user while a job runs, printed here or, from a Dask worker, also
+    on the submitting client's terminal (Dask forwards it)."""
+    from distributed import print as forwarded_print
+    forwarded_print(message, flush=True)
+
+
 def default_workers() -> int:
     """The cores this process may use."""
     return len(os.sched_getaffinity(0))
