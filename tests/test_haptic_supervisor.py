@@ -104,30 +104,12 @@ def test_let_go_while_touching_the_scene_stays_haptic():
     assert state[0] == HAPTIC
 
 
-def test_system_ports():
+def gripped_and_requested(scripted_enable: float):
+    """A supervisor whose inputs hold the instrument gripped, haptics requested and no
+    fault; and ``step()``, one update at the context's time, then the time a period on."""
     supervisor = HapticSupervisor(config=CONFIG, period_s=PERIOD_S, rest_height_m=REST_M)
     context = supervisor.CreateDefaultContext()
-    values = {"scripted_setpoint": np.arange(12.0), "scripted_enable": [0.5],
-              "X_WI_measured": pose_vector(HOVER[0:3], HOVER[3:6]), "tracking_ok": [1.0],
-              "haptics_request": [1.0], "handle_gripped": [1.0], "tool_in_contact": [0.0],
-              "fault_bits": [0.0]}
-    for name, value in values.items():
-        supervisor.GetInputPort(name).FixValue(context, value)
-    update = supervisor.EvalUniquePeriodicDiscreteUpdate(context)
-    for group in range(update.num_groups()):
-        context.SetDiscreteState(group, update.get_vector(group).CopyToVector())
-    assert supervisor.GetOutputPort("mode").Eval(context)[0] == HAPTIC
-    assert supervisor.GetOutputPort("enable").Eval(context)[0] == 0.5
-    assert supervisor.GetOutputPort("haptics_enable").Eval(context)[0] == 1.0
-    # Haptic: the script passes through to the controller untouched.
-    np.testing.assert_array_equal(supervisor.GetOutputPort("setpoint").Eval(context),
-                                  np.arange(12.0))
-
-
-def test_a_latched_device_fault_ends_haptics_as_a_dropped_request_would():
-    supervisor = HapticSupervisor(config=CONFIG, period_s=PERIOD_S, rest_height_m=REST_M)
-    context = supervisor.CreateDefaultContext()
-    values = {"scripted_setpoint": np.arange(12.0), "scripted_enable": [1.0],
+    values = {"scripted_setpoint": np.arange(12.0), "scripted_enable": [scripted_enable],
               "X_WI_measured": pose_vector(HOVER[0:3], HOVER[3:6]), "tracking_ok": [1.0],
               "haptics_request": [1.0], "handle_gripped": [1.0], "tool_in_contact": [0.0],
               "fault_bits": [0.0]}
@@ -140,6 +122,22 @@ def test_a_latched_device_fault_ends_haptics_as_a_dropped_request_would():
             context.SetDiscreteState(group, update.get_vector(group).CopyToVector())
         context.SetTime(context.get_time() + PERIOD_S)
 
+    return supervisor, context, step
+
+
+def test_system_ports():
+    supervisor, context, step = gripped_and_requested(scripted_enable=0.5)
+    step()
+    assert supervisor.GetOutputPort("mode").Eval(context)[0] == HAPTIC
+    assert supervisor.GetOutputPort("enable").Eval(context)[0] == 0.5
+    assert supervisor.GetOutputPort("haptics_enable").Eval(context)[0] == 1.0
+    # Haptic: the script passes through to the controller untouched.
+    np.testing.assert_array_equal(supervisor.GetOutputPort("setpoint").Eval(context),
+                                  np.arange(12.0))
+
+
+def test_a_latched_device_fault_ends_haptics_as_a_dropped_request_would():
+    supervisor, context, step = gripped_and_requested(scripted_enable=1.0)
     step()
     assert supervisor.GetOutputPort("mode").Eval(context)[0] == HAPTIC
     supervisor.GetInputPort("fault_bits").FixValue(context, [4.0])  # over-current
