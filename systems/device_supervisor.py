@@ -427,8 +427,9 @@ class DeviceSupervisor(LeafSystem):
             discrete_state.get_mutable_vector(self._mismatch_s).SetFromVector(mismatch_s)
             stuck = np.maximum(stuck, mismatch_s >= STUCK_PERSIST_S - 1e-9)
             discrete_state.get_mutable_vector(self._stuck).SetFromVector(stuck)
-            if cut_coil_power(
-                    coils_stuck=bool(stuck.any()), carrying=carrying,
+            # The shortfall is read only with a coil stuck: nothing else cuts the power.
+            if stuck.any() and cut_coil_power(
+                    coils_stuck=True, carrying=carrying,
                     force_shortfall_n=float(np.linalg.norm(
                         self._shortfall.EvalBasicVector(context).get_value()[0:3])),
                     weight_n=self._weight_n):
