@@ -18,6 +18,7 @@ must outlast. Both searches bisect on the coupling's translational stiffness K
 """
 
 import dataclasses
+import functools
 import math
 from dataclasses import dataclass
 from typing import Callable, Dict, List, Optional
@@ -27,7 +28,7 @@ import scipy.signal
 
 from maglev_haptics.analysis.loop_linearization import loop_map, stability
 from maglev_haptics.analysis.loop_studies import StudyNotApplicable
-from maglev_haptics.analysis.parallel import map_jobs, report
+from maglev_haptics.analysis.parallel import report, run_searches
 from maglev_haptics.analysis.run_results import run_scenario
 from maglev_haptics.diagrams.hand_script import ScriptedHand
 from maglev_haptics.diagrams.scenario import scenario_from_yaml, scenario_yaml
@@ -41,6 +42,7 @@ GROWTH_RATIO = 2.0  # last second's RMS over the first's above this: unstable
 SATURATED_RATIO = 20.0
 HIGH_PASS_HZ = 5.0  # the oscillations of interest are above the hand's ~4 Hz (Hz)
 RELATIVE_TOLERANCE = 0.02  # bisection ends when the bracket is this narrow
+MAX_STIFFNESS_N_M = 1e6  # no onset below this: the search gives up
 
 
 @dataclass
@@ -59,12 +61,16 @@ DEFAULT_POINTS = [OnsetPoint("as the scenario"), OnsetPoint("860 Hz loop", contr
                   OnsetPoint("tracker latency 4 ms", tracker_latency_s=4e-3)]
 
 
-def held_still(scenario, point: OnsetPoint, stiffness: float):
-    """The scenario at ``point`` with coupling stiffness K on every axis, its hand
-    holding still from grip to the end (HOLD_S after haptics is fully on)."""
+def _check_applies(scenario) -> None:
     if scenario.haptics is None or not isinstance(scenario.hand, ScriptedHand):
         raise StudyNotApplicable("the onset needs a scripted hand holding the instrument "
                                  "with haptics on")
+
+
+def held_still(scenario, point: OnsetPoint, stiffness: float):
+    """The scenario at ``point`` with coupling stiffness K on every axis, its hand
+    holding still from grip to the end (HOLD_S after haptics is fully on)."""
+    _check_applies(scenario)
     haptics = scenario.haptics
     coupling = dataclasses.replace(
         haptics.coupling, translational_stiffness=[stiffness] * 3,
@@ -97,80 +103,123 @@ def velocity_growth(log, engaged_s: float) -> List[float]:
     return [float(np.sqrt(np.mean(np.sum(fast[mask] ** 2, axis=1)))) for mask in (first, last)]
 
 
+def grew(rms_m_s: List[float], reference_rms_m_s: Optional[float] = None) -> bool:
+    """Unstable: the high-passed velocity's RMS (m/s, first and last second) grew by
+    GROWTH_RATIO, or (a loop that blew up already while haptics faded in, and sits at
+    the force clamp) its last second is above SATURATED_RATIO times
+    ``reference_rms_m_s``, a stable run's."""
+    first, last = rms_m_s
+    return bool(last > GROWTH_RATIO * first
+                or (reference_rms_m_s is not None and last > SATURATED_RATIO * reference_rms_m_s))
+
+
 def grows(scenario, engaged_s: float, reference_rms_m_s: Optional[float] = None) -> Dict:
     """Run the scenario; the high-passed instrument velocity's RMS in the first and
-    the last second after settling. Unstable when it grew by GROWTH_RATIO, or (a loop
-    that blew up already while haptics faded in, and sits at the force clamp) when the
-    last second is above SATURATED_RATIO times ``reference_rms_m_s``, a stable run's.
-    With the passivity controller, also the work it withheld (J)."""
+    the last second after settling, and whether it ``grew``. With the passivity
+    controller, also the work it withheld (J)."""
     result = run_scenario(scenario, label="onset", progress=False)
     rms = velocity_growth(result.log, engaged_s)
-    blown_up = reference_rms_m_s is not None and rms[1] > SATURATED_RATIO * reference_rms_m_s
     return {"first_rms_m_s": rms[0], "last_rms_m_s": rms[1],
-            "unstable": bool(rms[1] > GROWTH_RATIO * rms[0] or blown_up),
+            "unstable": grew(rms, reference_rms_m_s),
             "passivity_dissipated_j": result.summary.get("passivity_dissipated_j")}
 
 
-def _bisect(unstable: Callable[[float], bool], low: float, high: float) -> float:
-    """The stiffness where ``unstable`` turns true, between a stable ``low`` and an
-    unstable ``high`` (N/m), to RELATIVE_TOLERANCE."""
+# The searches below are generators for ``parallel.run_searches``: ``unstable`` is a
+# generator function that yields the stiffnesses' jobs as a round and returns whether
+# each is unstable. Each round speculates as wide as ``width()`` allows; the stiffness
+# found is the serial search's, however wide.
+
+def bracket_onset(unstable, start: float, width: Callable[[], int]):
+    """(stable, unstable) stiffnesses around the onset (N/m), doubling up from ``start``
+    (stable, or there is nothing to find); ``width()`` doublings a round."""
+    stiffnesses = [start]
+    low = None
+    while True:
+        while len(stiffnesses) < width() and 2 * stiffnesses[-1] <= MAX_STIFFNESS_N_M:
+            stiffnesses.append(2 * stiffnesses[-1])
+        for stiffness, is_unstable in zip(stiffnesses, (yield from unstable(stiffnesses))):
+            if is_unstable:
+                if low is None:
+                    raise StudyNotApplicable(f"the loop is unstable already at {start:g} N/m")
+                return low, stiffness
+            low = stiffness
+        if 2 * low > MAX_STIFFNESS_N_M:
+            raise StudyNotApplicable(f"no onset below {MAX_STIFFNESS_N_M:g} N/m")
+        stiffnesses = [2 * low]
+
+
+def bisect_onset(unstable, low: float, high: float, width: Callable[[], int]):
+    """The stiffness where ``unstable`` turns true between a stable ``low`` and an
+    unstable ``high`` (N/m), to RELATIVE_TOLERANCE, bisecting geometrically. A round
+    evaluates the next levels of the bisection's tree: 2^d - 1 midpoints decide d steps."""
+    known = {}
     while high - low > RELATIVE_TOLERANCE * high:
         middle = math.sqrt(low * high)
-        if unstable(middle):
+        if middle not in known:
+            nodes = _bisection_tree(low, high, depth=(width() + 1).bit_length() - 1)
+            known.update(zip(nodes, (yield from unstable(nodes))))
+        if known[middle]:
             high = middle
         else:
             low = middle
     return 0.5 * (low + high)
 
 
-def _bracket(unstable: Callable[[float], bool], start: float) -> tuple:
-    """(stable, unstable) stiffnesses around the onset, doubling up from ``start``."""
-    low = start
-    if unstable(low):
-        raise StudyNotApplicable(f"the loop is unstable already at {start:g} N/m")
-    high = 2 * low
-    while not unstable(high):
-        low, high = high, 2 * high
-        if high > 1e6:
-            raise StudyNotApplicable("no onset below 1e6 N/m")
-    return low, high
+def _bisection_tree(low: float, high: float, depth: int) -> List[float]:
+    """The midpoints bisection may visit in its next ``depth`` steps from (low, high)."""
+    if depth == 0 or high - low <= RELATIVE_TOLERANCE * high:
+        return []
+    middle = math.sqrt(low * high)
+    return ([middle] + _bisection_tree(low, middle, depth - 1)
+            + _bisection_tree(middle, high, depth - 1))
 
 
-def onset_point(scenario, point: OnsetPoint,
-                progress: Optional[Callable[[str], None]] = None) -> Dict:
-    """Linear and nonlinear critical stiffness at one operating point (N/m)."""
-    start = scenario.haptics.coupling.translational_stiffness[0]
+def onset_search(text: str, point: OnsetPoint, width: Callable[[], int]):
+    """Linear and nonlinear critical stiffness (N/m) at one operating point of the
+    scenario (its YAML ``text``), or why there is none: a search whose jobs are
+    ``onset_evaluation``'s, each step reported as it ends."""
+    scenario = scenario_from_yaml(text)
 
-    stable_point, _ = held_still(scenario, point, start)
+    def evaluated(kind, stiffnesses):
+        results = yield [(text, point, kind, stiffness) for stiffness in stiffnesses]
+        return results
 
-    def linear_unstable(stiffness):
-        changed, _ = held_still(scenario, point, stiffness)
-        # Linearized at the equilibrium the stable loop holds (the same at any K).
-        M = loop_map(changed, operating_point_from=stable_point)["M"]
-        unstable = not stability(M)["stable"]
-        if progress is not None:
-            progress(f"{point.label}: linear {stiffness:.0f} N/m {'unstable' if unstable else 'stable'}")
-        return unstable
+    def linear_unstable(stiffnesses):
+        outcomes = yield from evaluated("linear", stiffnesses)
+        for stiffness, unstable in zip(stiffnesses, outcomes):
+            report(f"{point.label}: linear {stiffness:.0f} N/m "
+                   f"{'unstable' if unstable else 'stable'}")
+        return outcomes
 
-    reference = grows(*held_still(scenario, point, start))
-    if reference["unstable"]:
-        raise StudyNotApplicable(f"{point.label}: the simulated loop is unstable already at the "
-                                 f"scenario's {start:g} N/m")
+    reference_rms_m_s = None
 
-    def nonlinear_unstable(stiffness):
-        changed, engaged_s = held_still(scenario, point, stiffness)
-        unstable = grows(changed, engaged_s, reference["last_rms_m_s"])["unstable"]
-        if progress is not None:
-            progress(f"{point.label}: simulated {stiffness:.0f} N/m "
-                     f"{'unstable' if unstable else 'stable'}")
-        return unstable
+    def nonlinear_unstable(stiffnesses):
+        outcomes = [grew(rms, reference_rms_m_s)
+                    for rms in (yield from evaluated("simulated", stiffnesses))]
+        for stiffness, unstable in zip(stiffnesses, outcomes):
+            report(f"{point.label}: simulated {stiffness:.0f} N/m "
+                   f"{'unstable' if unstable else 'stable'}")
+        return outcomes
 
-    linear = _bisect(linear_unstable, *_bracket(linear_unstable, start))
-    # The simulation's search starts from the prediction's bracket, +-30%.
-    low, high = 0.7 * linear, 1.3 * linear
-    if nonlinear_unstable(low) or not nonlinear_unstable(high):
-        low, high = _bracket(nonlinear_unstable, start)
-    nonlinear = _bisect(nonlinear_unstable, low, high)
+    try:
+        _check_applies(scenario)
+        start = scenario.haptics.coupling.translational_stiffness[0]
+        low, high = yield from bracket_onset(linear_unstable, start, width)
+        linear = yield from bisect_onset(linear_unstable, low, high, width)
+        # The simulation's search starts from the prediction's bracket, +-30%, in one
+        # round with the stable run at the scenario's own stiffness it is judged against.
+        reference, at_low, at_high = yield from evaluated(
+            "simulated", [start, 0.7 * linear, 1.3 * linear])
+        if grew(reference):
+            raise StudyNotApplicable(f"{point.label}: the simulated loop is unstable already "
+                                     f"at the scenario's {start:g} N/m")
+        reference_rms_m_s = reference[1]
+        low, high = 0.7 * linear, 1.3 * linear
+        if grew(at_low, reference_rms_m_s) or not grew(at_high, reference_rms_m_s):
+            low, high = yield from bracket_onset(nonlinear_unstable, start, width)
+        nonlinear = yield from bisect_onset(nonlinear_unstable, low, high, width)
+    except StudyNotApplicable as reason:
+        return {"label": point.label, "not_found": str(reason)}
     return {"label": point.label, "control_rate_hz": point.control_rate_hz
             or scenario.control_rate_hz,
             "damping_n_s_m": scenario.haptics.coupling.translational_damping[0]
@@ -181,21 +230,30 @@ def onset_point(scenario, point: OnsetPoint,
             "relative_difference": abs(nonlinear - linear) / nonlinear}
 
 
+def onset_evaluation(job):
+    """One step of ``onset_search`` on a worker: ``job`` = (the scenario's YAML text,
+    point, "linear" or "simulated", stiffness N/m). Linear: whether the loop's
+    monodromy, linearized at the equilibrium the stable loop holds (the same at any
+    stiffness), is unstable. Simulated: the high-passed velocity's RMS (m/s) in the
+    first and the last second of the hold."""
+    text, point, kind, stiffness = job
+    scenario = scenario_from_yaml(text)
+    changed, engaged_s = held_still(scenario, point, stiffness)
+    if kind == "linear":
+        stable_point, _ = held_still(
+            scenario, point, scenario.haptics.coupling.translational_stiffness[0])
+        return not stability(loop_map(changed, operating_point_from=stable_point)["M"])["stable"]
+    result = grows(changed, engaged_s)
+    return [result["first_rms_m_s"], result["last_rms_m_s"]]
+
+
 def onset_study(scenario, points: List[OnsetPoint] = DEFAULT_POINTS, *, workers: int = 1,
                 scheduler: Optional[str] = None) -> List[Dict]:
-    """``onset_point`` at each point, a job each (``analysis/parallel.py``: ``workers``,
-    ``scheduler``), each step of its searches reported as it ends; a point where
-    there is no onset to find (unstable from the start) is reported with the reason."""
-    return map_jobs(onset_job, [(scenario_yaml(scenario), point) for point in points],
-                    workers=workers, scheduler=scheduler, description="onset points").results
-
-
-def onset_job(job) -> Dict:
-    """``onset_point`` for ``job`` = (the scenario's YAML text, point), or why there
-    is none."""
-    text, point = job
-    scenario = scenario_from_yaml(text)
-    try:
-        return onset_point(scenario, point, progress=report)
-    except StudyNotApplicable as reason:
-        return {"label": point.label, "not_found": str(reason)}
+    """``onset_search`` at each point, its evaluations jobs on ``workers`` local
+    processes or a Dask ``scheduler``'s workers (``analysis/parallel.py``); with more
+    workers than points, each bisection evaluates several levels a round. A point
+    where there is no onset to find is reported with the reason."""
+    text = scenario_yaml(scenario)
+    return run_searches(onset_evaluation,
+                        [functools.partial(onset_search, text, point) for point in points],
+                        workers=workers, scheduler=scheduler, description="onset points").results

@@ -13,14 +13,22 @@ in the jobs' order:
   and ``dask worker ADDRESS`` on a lab's machines, or a Slurm or PBS cluster through
   ``dask-jobqueue``); this machine only submits and gathers.
 
+A study whose jobs depend on earlier ones (the onset's bisections) is a list of
+searches for ``run_searches``: each search, called with ``width`` (how many jobs it
+may have running at once, now), is a generator that yields a round of jobs, is sent
+their results, and returns its answer. More workers let a search speculate (a
+bisection evaluates the next levels of its tree at once); what it finds must not
+depend on ``width``.
+
 A worker that dies mid-job (killed, out of memory, its node gone) has its job rerun
 on another: Dask's scheduler does that by itself, up to ``distributed.scheduler.
 allowed-failures`` times; ``map_jobs`` reports how many jobs it reran.
 """
 
+import functools
 import os
 from dataclasses import dataclass
-from typing import Any, Callable, List, Optional, Sequence
+from typing import Any, Callable, Generator, List, Optional, Sequence
 
 from tqdm import tqdm
 
@@ -31,6 +39,9 @@ class JobResults:
     reran: int = 0  # jobs rerun because the worker running them died
     where: str = "this process"  # what ran them, for the report
     workers: int = 1
+
+
+Search = Callable[[Callable[[], int]], Generator[List[Any], List[Any], Any]]
 
 
 def report(message: str) -> None:
@@ -52,16 +63,27 @@ def map_jobs(function: Callable[[Any], Any], jobs: Sequence, *, workers: int = 1
     """``function(job)`` for every job (``function`` importable by name on the
     workers: a module-level function of this package), one progress bar over all
     (or ``on_result(done, total)`` after each)."""
-    jobs = list(jobs)
+    return run_searches(function, [functools.partial(_one_job, job) for job in jobs],
+                        workers=workers, scheduler=scheduler, description=description,
+                        progress=progress, on_result=on_result)
+
+
+def _one_job(job, width):
+    (result,) = yield [job]
+    return result
+
+
+def run_searches(function: Callable[[Any], Any], searches: Sequence[Search], *,
+                 workers: int = 1, scheduler: Optional[str] = None,
+                 description: str = "searches", progress: bool = True,
+                 on_result: Optional[Callable[[int, int], None]] = None) -> JobResults:
+    """Each search's answer, in their order; their rounds' jobs (``function(job)``)
+    run here one after another, or on the workers, every search's round as soon as
+    its previous one ended. A search may speculate as wide as ``width()``: the
+    workers over the searches still running (1 in this process)."""
     if scheduler is None and workers <= 1:
-        with tqdm(total=len(jobs), desc=description, unit="job", disable=not progress) as bar:
-            results = []
-            for job in jobs:
-                results.append(function(job))
-                bar.update(1)
-                if on_result is not None:
-                    on_result(len(results), len(jobs))
-        return JobResults(results=results)
+        return JobResults(results=_run_here(function, searches, description, progress,
+                                            on_result))
     from distributed import Client, LocalCluster
     if scheduler is not None:
         try:
@@ -69,31 +91,69 @@ def map_jobs(function: Callable[[Any], Any], jobs: Sequence, *, workers: int = 1
         except OSError as error:
             raise OSError(f"Dask scheduler {scheduler!r}: could not connect ({error})") from None
         with client:
-            return _run_on(client, function, jobs, description, progress, on_result,
+            return _run_on(client, function, searches, description, progress, on_result,
                            where=f"Dask scheduler {scheduler}")
     with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
                       host="127.0.0.1", dashboard_address=None) as cluster, \
             Client(cluster) as client:
-        return _run_on(client, function, jobs, description, progress, on_result,
+        return _run_on(client, function, searches, description, progress, on_result,
                        where=f"{workers} local worker processes")
 
 
-def _run_on(client, function, jobs, description, progress, on_result,
-            where: str) -> JobResults:
-    from distributed import as_completed
-    # pure=False: two equal jobs (a campaign may repeat one) are both run and counted.
-    futures = client.map(function, jobs, pure=False)
-    order = {future.key: index for index, future in enumerate(futures)}
-    results: List[Any] = [None] * len(jobs)
-    with tqdm(total=len(jobs), desc=description, unit="job", disable=not progress) as bar:
-        for done, future in enumerate(as_completed(futures), start=1):
-            results[order[future.key]] = future.result()
+def _run_here(function, searches, description, progress, on_result) -> List[Any]:
+    answers = []
+    with tqdm(total=len(searches), desc=description, unit="job", disable=not progress) as bar:
+        for search in searches:
+            rounds = search(lambda: 1)
+            try:
+                jobs = next(rounds)
+                while True:
+                    jobs = rounds.send([function(job) for job in jobs])
+            except StopIteration as answer:
+                answers.append(answer.value)
             bar.update(1)
             if on_result is not None:
-                on_result(done, len(jobs))
-    reran = client.run_on_scheduler(_times_rerun, keys=list(order))
-    return JobResults(results=results, reran=sum(1 for n in reran.values() if n > 0),
-                      where=where, workers=len(client.scheduler_info()["workers"]))
+                on_result(len(answers), len(searches))
+    return answers
+
+
+def _run_on(client, function, searches, description, progress, on_result,
+            where: str) -> JobResults:
+    from distributed import as_completed
+    workers = len(client.scheduler_info()["workers"])
+    answers: List[Any] = [None] * len(searches)
+    running = set(range(len(searches)))
+    rounds = [search(lambda: max(1, workers // len(running))) for search in searches]
+    pending = {}  # search -> its round's futures
+    owner = {}  # a job's key -> its search
+    completions = as_completed()
+
+    def submit(index, jobs):
+        # pure=False: two equal jobs (a campaign may repeat one) are both run and counted.
+        futures = client.map(function, jobs, pure=False)
+        owner.update((future.key, index) for future in futures)
+        pending[index] = futures
+        completions.update(futures)
+
+    with tqdm(total=len(searches), desc=description, unit="job", disable=not progress) as bar:
+        for index in range(len(searches)):
+            submit(index, next(rounds[index]))
+        for future in completions:
+            index = owner[future.key]
+            if not all(f.done() for f in pending[index]):
+                continue
+            futures = pending.pop(index)
+            try:
+                submit(index, rounds[index].send([f.result() for f in futures]))
+            except StopIteration as answer:
+                answers[index] = answer.value
+                running.discard(index)
+                bar.update(1)
+                if on_result is not None:
+                    on_result(len(searches) - len(running), len(searches))
+    reran = client.run_on_scheduler(_times_rerun, keys=list(owner))
+    return JobResults(results=answers, reran=sum(1 for n in reran.values() if n > 0),
+                      where=where, workers=workers)
 
 
 def _times_rerun(dask_scheduler, keys) -> dict:

@@ -2,7 +2,9 @@
 process, on local worker processes and on a Dask scheduler's workers, and a worker
 killed mid-job has its job rerun elsewhere."""
 
+import functools
 import json
+import operator
 import os
 import pickle
 import signal
@@ -13,7 +15,8 @@ import pytest
 from distributed import Client, LocalCluster
 
 from maglev_haptics.analysis.fault_campaign import plan_campaign, run_fault
-from maglev_haptics.analysis.parallel import map_jobs
+from maglev_haptics.analysis.onset import bisect_onset, bracket_onset, onset_study
+from maglev_haptics.analysis.parallel import map_jobs, run_searches
 from maglev_haptics.diagrams.cli import main
 from maglev_haptics.diagrams.scenario import load_scenario, scenario_from_yaml, scenario_yaml
 
@@ -87,3 +90,57 @@ def test_a_scenario_travels_to_a_worker_as_yaml_text(name):
     scenario = load_scenario(name, None, "{faults: [!StuckAmplifier {coil: 3}]}")
     text = scenario_yaml(scenario)
     assert scenario_yaml(scenario_from_yaml(pickle.loads(pickle.dumps(text)))) == text
+
+
+def onset_of(rounds, width):
+    """A search for where ``threshold < stiffness`` turns true (the jobs are the
+    stiffnesses; ``operator.lt`` with the threshold bound decides them), as the onset
+    study searches, each round's size appended to ``rounds``."""
+    def unstable(stiffnesses):
+        rounds.append(len(stiffnesses))
+        return (yield list(stiffnesses))
+    low, high = yield from bracket_onset(unstable, 100.0, width)
+    return (yield from bisect_onset(unstable, low, high, width))
+
+
+THRESHOLD_N_M = 4321.0
+
+
+def driven(width):
+    """``onset_of`` run here with ``width`` jobs a round allowed: (answer, rounds)."""
+    rounds = []
+    search = onset_of(rounds, lambda: width)
+    try:
+        jobs = next(search)
+        while True:
+            jobs = search.send([THRESHOLD_N_M < stiffness for stiffness in jobs])
+    except StopIteration as answer:
+        return answer.value, rounds
+
+
+def test_a_wider_search_speculates_and_finds_the_same_stiffness():
+    """More workers: each round evaluates more of the bisection's tree, in fewer
+    rounds, and the stiffness found is the serial search's exactly."""
+    serial, serial_rounds = driven(1)
+    assert serial == pytest.approx(THRESHOLD_N_M, rel=0.02)
+    assert set(serial_rounds) == {1}
+    for width, most_rounds in ((3, 7), (7, 4)):
+        found, rounds = driven(width)
+        assert found == serial
+        assert max(rounds) <= width and len(rounds) <= most_rounds < len(serial_rounds)
+
+
+def test_searches_find_the_same_on_workers_as_here(cluster):
+    is_above = functools.partial(operator.lt, THRESHOLD_N_M)
+    searches = [functools.partial(onset_of, []) for _ in range(3)]
+    here = run_searches(is_above, searches, progress=False)
+    there = run_searches(is_above, searches, scheduler=cluster.scheduler_address,
+                         progress=False)
+    assert here.results == there.results == [driven(1)[0]] * 3
+    assert there.workers == 2
+
+
+def test_the_onset_study_says_why_it_does_not_apply():
+    """Levitation alone has no hand holding the instrument with haptics on."""
+    for point in onset_study(load_scenario("levitate")):
+        assert "scripted hand holding the instrument" in point["not_found"], point
