@@ -17,6 +17,7 @@ must outlast. Both searches bisect on the coupling's translational stiffness K
   then caps it).
 """
 
+import collections
 import dataclasses
 import functools
 import math
@@ -151,12 +152,13 @@ def bracket_onset(unstable, start: float, width: Callable[[], int]):
 def bisect_onset(unstable, low: float, high: float, width: Callable[[], int]):
     """The stiffness where ``unstable`` turns true between a stable ``low`` and an
     unstable ``high`` (N/m), to RELATIVE_TOLERANCE, bisecting geometrically. A round
-    evaluates the next levels of the bisection's tree: 2^d - 1 midpoints decide d steps."""
+    evaluates the first ``width()`` midpoints of the bisection's tree from here: 2^d - 1
+    of them decide d steps; one more than a level's decides the next step on one side."""
     known = {}
     while high - low > RELATIVE_TOLERANCE * high:
         middle = math.sqrt(low * high)
         if middle not in known:
-            nodes = _bisection_tree(low, high, depth=(width() + 1).bit_length() - 1)
+            nodes = _bisection_tree(low, high, width())
             known.update(zip(nodes, (yield from unstable(nodes))))
         if known[middle]:
             high = middle
@@ -165,13 +167,18 @@ def bisect_onset(unstable, low: float, high: float, width: Callable[[], int]):
     return 0.5 * (low + high)
 
 
-def _bisection_tree(low: float, high: float, depth: int) -> List[float]:
-    """The midpoints bisection may visit in its next ``depth`` steps from (low, high)."""
-    if depth == 0 or high - low <= RELATIVE_TOLERANCE * high:
-        return []
-    middle = math.sqrt(low * high)
-    return ([middle] + _bisection_tree(low, middle, depth - 1)
-            + _bisection_tree(middle, high, depth - 1))
+def _bisection_tree(low: float, high: float, count: int) -> List[float]:
+    """The first ``count`` midpoints, level by level, that bisection may visit from
+    (low, high) (N/m): the next step's, then both of the step after's, ..."""
+    nodes: List[float] = []
+    intervals = collections.deque([(low, high)])
+    while intervals and len(nodes) < count:
+        low, high = intervals.popleft()
+        if high - low > RELATIVE_TOLERANCE * high:
+            middle = math.sqrt(low * high)
+            nodes.append(middle)
+            intervals.extend([(low, middle), (middle, high)])
+    return nodes
 
 
 def onset_search(text: str, point: OnsetPoint, width: Callable[[], int]):
