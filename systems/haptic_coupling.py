@@ -324,10 +324,12 @@ class HapticCoupling(LeafSystem):
         self._energy = self.DeclareDiscreteState(6)
         self._sent = self.DeclareDiscreteState(6 * port_delay_ticks)
         self._dissipated = self.DeclareDiscreteState(1)
-        # The energy a debt is measured against: the coupling's spring at the wrench limit.
-        self._reference_energy_j = np.concatenate((
-            np.full(3, config.max_force_n) ** 2, np.full(3, config.max_torque_nm) ** 2)) \
-            / (2 * self._k)
+        # The energy a debt is measured against: the coupling's spring at the wrench limit;
+        # an axis without a spring has none to measure against, and is not scaled.
+        limit_squared = np.concatenate((np.full(3, config.max_force_n) ** 2,
+                                        np.full(3, config.max_torque_nm) ** 2))
+        self._reference_energy_j = np.divide(limit_squared, 2 * self._k,
+                                             out=np.full(6, np.inf), where=self._k > 0)
         self._alpha = velocity_filter_gain(config.velocity_filter_hz, period_s)
         self.DeclarePeriodicDiscreteUpdateEvent(period_s, 0.0, self._update)
         # The scene reads one output and the controller the other: compute once.
