@@ -21,6 +21,10 @@ from maglev_haptics.systems.blends import minimum_jerk_plan
 from maglev_haptics.systems.head_sensor import glasses_pose
 from maglev_haptics.systems.stereo import MIN_EYE_DISTANCE_M, eye_distance_m, eye_positions_W
 
+# Where a seated user's head and gaze can be: within this of the display's centre on
+# each axis (m), well past the head tracker's reach and any room the display stands in.
+HEAD_REACH_M = 5.0
+
 
 @dataclass
 class HeadPose:
@@ -50,15 +54,18 @@ class HeadScript:
     waypoints: List[HeadWaypoint] = field(default_factory=list)
 
     def validate(self, path: str, *, screen, ipd_m: float) -> None:
-        """ValueError naming the field for a pose that is not finite, whose line of sight
-        is degenerate, or that puts an eye less than MIN_EYE_DISTANCE_M in front of the
-        display (behind it, the display cannot be seen)."""
+        """ValueError naming the field for a pose that is not finite or out of reach
+        (HEAD_REACH_M), whose line of sight is degenerate, or that puts an eye less than
+        MIN_EYE_DISTANCE_M in front of the display (behind it, the display cannot be seen)."""
         poses = [(f"{path}.start", self.start)] + [
             (f"{path}.waypoints[{i}]", w) for i, w in enumerate(self.waypoints)]
         nonnegative(f"{path}.start_s", self.start_s)
         for name, pose in poses:
-            vector(f"{name}.position_m", pose.position_m, 3)
-            vector(f"{name}.look_at_m", pose.look_at_m, 3)
+            for point in ("position_m", "look_at_m"):
+                value = getattr(pose, point)
+                vector(f"{name}.{point}", value, 3)
+                require(max(map(abs, value)) <= HEAD_REACH_M, f"{name}.{point}", value,
+                        f"must be within {HEAD_REACH_M:g} m of the display's centre on each axis")
             for angle in ("heading_rad", "roll_rad"):
                 require(finite(getattr(pose, angle)), f"{name}.{angle}", getattr(pose, angle),
                         "must be a finite angle (rad)")

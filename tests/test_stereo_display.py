@@ -166,6 +166,8 @@ def test_stereo_run_writes_frames(tmp_path):
      r"stereo.head.start.position_m = \[0.0, -0.3, -0.1\]: the left eye would be -1\d\d.\d mm"),
     ("{stereo: {head: {waypoints: [{position_m: [0.0, 0.0, 0.3], look_at_m: [0.0, 0.0, 0.3]}]}}}",
      r"stereo.head.waypoints\[0\]: head at .* the line of sight must have length"),
+    ("{stereo: {head: {waypoints: [{look_at_m: [0.0, 1e300, 0.0]}]}}}",
+     r"stereo.head.waypoints\[0\].look_at_m = \[0.0, 1e\+300, 0.0\]: must be within 5 m"),
     ("{stereo: {predictor: {bandwidth_hz: 6.0}}}", r"bandwidth_hz = 6.0: must be below"),
     ("{stereo: {images: {encoder: gif}}}", r"stereo.images.encoder = 'gif'"),
     ("{stereo: {view_rate: 60}}", r"stereo.view_rate: unknown field; StereoConfig has"),
