@@ -126,9 +126,9 @@ def grows(scenario, engaged_s: float, reference_rms_m_s: Optional[float] = None)
 
 
 # The searches below are generators for ``parallel.run_searches``: ``unstable`` is a
-# generator function that yields the stiffnesses' jobs as a round and returns whether
-# each is unstable. Each round speculates as wide as ``width()`` allows; the stiffness
-# found is the serial search's, however wide.
+# generator function that, given stiffnesses (N/m), yields their jobs as a round and
+# returns whether each is unstable (a list of bools). Each round speculates as wide as
+# ``width()`` allows; the stiffness found is the serial search's, however wide.
 
 def bracket_onset(unstable, start: float, width: Callable[[], int]):
     """(stable, unstable) stiffnesses around the onset (N/m), doubling up from ``start``
@@ -184,45 +184,45 @@ def _bisection_tree(low: float, high: float, count: int) -> List[float]:
 def onset_search(text: str, point: OnsetPoint, width: Callable[[], int]):
     """Linear and nonlinear critical stiffness (N/m) at one operating point of the
     scenario (its YAML ``text``), or why there is none: a search whose jobs are
-    ``onset_evaluation``'s, each step reported as it ends."""
+    ``onset_evaluation``'s, each round's steps reported as the round ends."""
     scenario = scenario_from_yaml(text)
 
-    def evaluated(kind, stiffnesses):
-        results = yield [(text, point, kind, stiffness) for stiffness in stiffnesses]
-        return results
+    def evaluated(kind: str, stiffnesses: List[float]):
+        return (yield [(text, point, kind, stiffness) for stiffness in stiffnesses])
 
-    def linear_unstable(stiffnesses):
-        outcomes = yield from evaluated("linear", stiffnesses)
+    def reported(kind: str, stiffnesses: List[float], outcomes: List[bool]) -> List[bool]:
         for stiffness, unstable in zip(stiffnesses, outcomes):
-            report(f"{point.label}: linear {stiffness:.0f} N/m "
+            report(f"{point.label}: {kind} {stiffness:.0f} N/m "
                    f"{'unstable' if unstable else 'stable'}")
         return outcomes
+
+    def linear_unstable(stiffnesses: List[float]):
+        return reported("linear", stiffnesses,
+                        (yield from evaluated("linear", stiffnesses)))
 
     reference_rms_m_s = None
 
-    def nonlinear_unstable(stiffnesses):
-        outcomes = [grew(rms, reference_rms_m_s)
-                    for rms in (yield from evaluated("simulated", stiffnesses))]
-        for stiffness, unstable in zip(stiffnesses, outcomes):
-            report(f"{point.label}: simulated {stiffness:.0f} N/m "
-                   f"{'unstable' if unstable else 'stable'}")
-        return outcomes
+    def nonlinear_unstable(stiffnesses: List[float]):
+        rms = yield from evaluated("simulated", stiffnesses)
+        return reported("simulated", stiffnesses, [grew(r, reference_rms_m_s) for r in rms])
 
     try:
         _check_applies(scenario)
         start = scenario.haptics.coupling.translational_stiffness[0]
-        low, high = yield from bracket_onset(linear_unstable, start, width)
-        linear = yield from bisect_onset(linear_unstable, low, high, width)
-        # The simulation's search starts from the prediction's bracket, +-30%, in one
-        # round with the stable run at the scenario's own stiffness it is judged against.
-        reference, at_low, at_high = yield from evaluated(
-            "simulated", [start, 0.7 * linear, 1.3 * linear])
+        # The stable run the simulated ones are judged against, at the scenario's own
+        # stiffness: first, as a loop unstable there has no onset to find.
+        (reference,) = yield from evaluated("simulated", [start])
         if grew(reference):
             raise StudyNotApplicable(f"{point.label}: the simulated loop is unstable already "
                                      f"at the scenario's {start:g} N/m")
         reference_rms_m_s = reference[1]
+        low, high = yield from bracket_onset(linear_unstable, start, width)
+        linear = yield from bisect_onset(linear_unstable, low, high, width)
+        # The simulation's search starts from the prediction's bracket, +-30% (one round:
+        # both ends are needed unless the lower is unstable).
         low, high = 0.7 * linear, 1.3 * linear
-        if grew(at_low, reference_rms_m_s) or not grew(at_high, reference_rms_m_s):
+        low_unstable, high_unstable = yield from nonlinear_unstable([low, high])
+        if low_unstable or not high_unstable:
             low, high = yield from bracket_onset(nonlinear_unstable, start, width)
         nonlinear = yield from bisect_onset(nonlinear_unstable, low, high, width)
     except StudyNotApplicable as reason:

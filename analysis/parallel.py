@@ -1,4 +1,4 @@
-"""Independent jobs of a long study, run here, on local processes, or on a Dask cluster.
+"""A long study's jobs, run here, on local processes, or on a Dask cluster.
 
 Every long study (the fault campaign, the stability map, the workspace maps, sweeps)
 is a list of jobs, each a plain picklable value (a scenario's YAML text, a seed, the
@@ -65,50 +65,65 @@ def map_jobs(function: Callable[[Any], Any], jobs: Sequence, *, workers: int = 1
     (or ``on_result(done, total)`` after each)."""
     return run_searches(function, [functools.partial(_one_job, job) for job in jobs],
                         workers=workers, scheduler=scheduler, description=description,
-                        progress=progress, on_result=on_result)
+                        unit="job", progress=progress, on_result=on_result)
 
 
-def _one_job(job, width):
+def _one_job(job: Any, width: Callable[[], int]):
+    """A search of one round of one job: its result."""
     (result,) = yield [job]
     return result
 
 
 def run_searches(function: Callable[[Any], Any], searches: Sequence[Search], *,
                  workers: int = 1, scheduler: Optional[str] = None,
-                 description: str = "searches", progress: bool = True,
+                 description: str = "searches", unit: str = "search", progress: bool = True,
                  on_result: Optional[Callable[[int, int], None]] = None) -> JobResults:
     """Each search's answer, in their order; their rounds' jobs (``function(job)``)
-    run here one after another, or on the workers, every search's round as soon as
-    its previous one ended. A search may speculate as wide as ``width()``: the
-    workers over the searches still running (1 in this process)."""
+    run here one after another, or on the workers, every search's next round as soon
+    as its last one ended. A search may speculate as wide as ``width()``: the workers
+    over the searches still running (1 in this process). A job that raised raises
+    its error in its search, at the round's ``yield``."""
     if scheduler is None and workers <= 1:
-        return JobResults(results=_run_here(function, searches, description, progress,
+        return JobResults(results=_run_here(function, searches, description, unit, progress,
                                             on_result))
     from distributed import Client, LocalCluster
+    where = (function, searches, description, unit, progress, on_result)
     if scheduler is not None:
         try:
             client = Client(scheduler, timeout="10s")
         except OSError as error:
             raise OSError(f"Dask scheduler {scheduler!r}: could not connect ({error})") from None
         with client:
-            return _run_on(client, function, searches, description, progress, on_result,
-                           where=f"Dask scheduler {scheduler}")
+            return _run_on(client, *where, where=f"Dask scheduler {scheduler}")
     with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
                       host="127.0.0.1", dashboard_address=None) as cluster, \
             Client(cluster) as client:
-        return _run_on(client, function, searches, description, progress, on_result,
-                       where=f"{workers} local worker processes")
+        return _run_on(client, *where, where=f"{workers} local worker processes")
 
 
-def _run_here(function, searches, description, progress, on_result) -> List[Any]:
+def _next_round(rounds, resume: Callable[[], List[Any]]) -> List[Any]:
+    """The search's next round of jobs after ``resume()`` (its ``next``, ``send`` or
+    ``throw``), an empty round answered at once; StopIteration with its answer when
+    it returned."""
+    jobs = resume()
+    while not jobs:
+        jobs = rounds.send([])
+    return jobs
+
+
+def _run_here(function, searches, description, unit, progress, on_result) -> List[Any]:
     answers = []
-    with tqdm(total=len(searches), desc=description, unit="job", disable=not progress) as bar:
+    with tqdm(total=len(searches), desc=description, unit=unit, disable=not progress) as bar:
         for search in searches:
             rounds = search(lambda: 1)
+            resume = rounds.__next__
             try:
-                jobs = next(rounds)
                 while True:
-                    jobs = rounds.send([function(job) for job in jobs])
+                    jobs = _next_round(rounds, resume)
+                    try:
+                        resume = functools.partial(rounds.send, [function(job) for job in jobs])
+                    except Exception as error:  # the search handles it, or it ends the study
+                        resume = functools.partial(rounds.throw, error)
             except StopIteration as answer:
                 answers.append(answer.value)
             bar.update(1)
@@ -117,43 +132,55 @@ def _run_here(function, searches, description, progress, on_result) -> List[Any]
     return answers
 
 
-def _run_on(client, function, searches, description, progress, on_result,
+def _run_on(client, function, searches, description, unit, progress, on_result,
             where: str) -> JobResults:
     from distributed import as_completed
-    workers = len(client.scheduler_info()["workers"])
     answers: List[Any] = [None] * len(searches)
     running = set(range(len(searches)))
-    rounds = [search(lambda: max(1, workers // len(running))) for search in searches]
+
+    def width() -> int:
+        # Read each time: a cluster's workers may join (or leave) while it runs.
+        return max(1, len(client.scheduler_info()["workers"]) // len(running))
+
+    rounds = [search(width) for search in searches]
     pending = {}  # search -> its round's futures
+    left = {}  # search -> how many of its round's jobs have not ended
     owner = {}  # a job's key -> its search
+    every_future = []  # held until the reruns are counted: a released task is forgotten
     completions = as_completed()
 
-    def submit(index, jobs):
-        # pure=False: two equal jobs (a campaign may repeat one) are both run and counted.
-        futures = client.map(function, jobs, pure=False)
-        owner.update((future.key, index) for future in futures)
-        pending[index] = futures
-        completions.update(futures)
-
-    with tqdm(total=len(searches), desc=description, unit="job", disable=not progress) as bar:
-        for index in range(len(searches)):
-            submit(index, next(rounds[index]))
-        for future in completions:
-            index = owner[future.key]
-            if not all(f.done() for f in pending[index]):
-                continue
-            futures = pending.pop(index)
+    with tqdm(total=len(searches), desc=description, unit=unit, disable=not progress) as bar:
+        def start(index, resume):
             try:
-                submit(index, rounds[index].send([f.result() for f in futures]))
+                jobs = _next_round(rounds[index], resume)
             except StopIteration as answer:
                 answers[index] = answer.value
                 running.discard(index)
                 bar.update(1)
                 if on_result is not None:
                     on_result(len(searches) - len(running), len(searches))
+                return
+            # pure=False: two equal jobs (a campaign may repeat one) are both run and counted.
+            futures = client.map(function, jobs, pure=False)
+            every_future.extend(futures)
+            owner.update((future.key, index) for future in futures)
+            pending[index], left[index] = futures, len(futures)
+            completions.update(futures)
+
+        for index in range(len(searches)):
+            start(index, rounds[index].__next__)
+        for future in completions:
+            index = owner[future.key]
+            left[index] -= 1
+            if left[index]:
+                continue
+            futures = pending.pop(index)
+            errors = [f.exception() for f in futures if f.status == "error"]
+            start(index, functools.partial(rounds[index].throw, errors[0]) if errors
+                  else functools.partial(rounds[index].send, [f.result() for f in futures]))
     reran = client.run_on_scheduler(_times_rerun, keys=list(owner))
     return JobResults(results=answers, reran=sum(1 for n in reran.values() if n > 0),
-                      where=where, workers=workers)
+                      where=where, workers=len(client.scheduler_info()["workers"]))
 
 
 def _times_rerun(dask_scheduler, keys) -> dict:

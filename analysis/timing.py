@@ -8,6 +8,8 @@ from pydrake.systems.primitives import VectorLogSink
 
 from maglev_haptics.analysis.linearization import leaf_systems
 
+WINDOWS = 5  # a leaf system's cost is the best of this many runs: one run drifts 2x here
+
 
 def time_per_call_us(function, n: int, windows: int = 1) -> float:
     """Microseconds per call of ``function()`` over ``n`` calls after one warm-up call;
@@ -20,9 +22,6 @@ def time_per_call_us(function, n: int, windows: int = 1) -> float:
             function()
         best = min(best, time.perf_counter() - start)
     return 1e6 * best / n
-
-
-WINDOWS = 5  # a leaf system's cost is the best of this many runs: one run drifts 2x here
 
 
 def leaf_system_costs(built, context, n: int = 300, only=None) -> Dict[str, float]:

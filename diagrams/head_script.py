@@ -60,11 +60,13 @@ class HeadScript:
         poses = [(f"{path}.start", self.start)] + [
             (f"{path}.waypoints[{i}]", w) for i, w in enumerate(self.waypoints)]
         nonnegative(f"{path}.start_s", self.start_s)
+        centre_W = (np.asarray(screen.pb) + np.asarray(screen.pc)) / 2  # (m)
         for name, pose in poses:
             for point in ("position_m", "look_at_m"):
                 value = getattr(pose, point)
                 vector(f"{name}.{point}", value, 3)
-                require(max(map(abs, value)) <= HEAD_REACH_M, f"{name}.{point}", value,
+                require(np.max(np.abs(np.subtract(value, centre_W))) <= HEAD_REACH_M,
+                        f"{name}.{point}", value,
                         f"must be within {HEAD_REACH_M:g} m of the display's centre on each axis")
             for angle in ("heading_rad", "roll_rad"):
                 require(finite(getattr(pose, angle)), f"{name}.{angle}", getattr(pose, angle),

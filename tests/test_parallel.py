@@ -141,6 +141,36 @@ def test_searches_find_the_same_on_workers_as_here(cluster):
                          progress=False)
     assert here.results == there.results == [driven(1)[0]] * 3
     assert there.workers == 2
+    # One search alone speculates two wide on the two workers, its rounds' jobs
+    # ending in any order.
+    rounds = []
+    alone = run_searches(is_above, [functools.partial(onset_of, rounds)],
+                         scheduler=cluster.scheduler_address, progress=False)
+    assert alone.results == [driven(1)[0]]
+    assert rounds == driven(2)[1]
+
+
+def refusing(width):
+    """A search whose round has a job that raises (1 / 0): it answers with the error's
+    name; and before it, an empty round, answered at once."""
+    assert (yield []) == []
+    try:
+        yield [1.0, 0.0]
+    except ZeroDivisionError as error:
+        return type(error).__name__
+
+
+def answering_at_once(width):
+    return "no jobs"
+    yield
+
+
+@pytest.mark.parametrize("where", ["here", "there"])
+def test_a_search_hears_of_its_jobs_errors_and_may_need_no_jobs(where, cluster):
+    place = {"scheduler": cluster.scheduler_address} if where == "there" else {}
+    found = run_searches(functools.partial(operator.truediv, 1.0),
+                         [refusing, answering_at_once], progress=False, **place)
+    assert found.results == ["ZeroDivisionError", "no jobs"]
 
 
 def test_the_onset_study_says_why_it_does_not_apply():
