@@ -87,18 +87,18 @@ def run_searches(function: Callable[[Any], Any], searches: Sequence[Search], *,
         return JobResults(results=_run_here(function, searches, description, unit, progress,
                                             on_result))
     from distributed import Client, LocalCluster
-    where = (function, searches, description, unit, progress, on_result)
+    arguments = (function, searches, description, unit, progress, on_result)
     if scheduler is not None:
         try:
             client = Client(scheduler, timeout="10s")
         except OSError as error:
             raise OSError(f"Dask scheduler {scheduler!r}: could not connect ({error})") from None
         with client:
-            return _run_on(client, *where, where=f"Dask scheduler {scheduler}")
+            return _run_on(client, *arguments, where=f"Dask scheduler {scheduler}")
     with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
                       host="127.0.0.1", dashboard_address=None) as cluster, \
             Client(cluster) as client:
-        return _run_on(client, *where, where=f"{workers} local worker processes")
+        return _run_on(client, *arguments, where=f"{workers} local worker processes")
 
 
 def _next_round(rounds, resume: Callable[[], List[Any]]) -> List[Any]:

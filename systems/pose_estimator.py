@@ -427,7 +427,8 @@ class PoseEstimator(LeafSystem):
         self._ok_index = self.DeclareDiscreteState(1)
         self._filter_index = self.DeclareDiscreteState(BasicVector(_IDENTITY_POSE))
         self._jump_index = self.DeclareDiscreteState(BasicVector([-1.0]))
-        self.DeclarePeriodicDiscreteUpdateEvent(self._period_s, config.processing_delay_s, self._update)
+        self.DeclarePeriodicDiscreteUpdateEvent(self._period_s, config.processing_delay_s,
+                                                self._update)
         self._X_WI_measured = self.DeclareStateOutputPort("X_WI_measured", self._X_index)
         self._V_WI_measured = self.DeclareStateOutputPort("V_WI_measured", self._V_index)
         self._tracking_ok = self.DeclareStateOutputPort("tracking_ok", self._ok_index)
