@@ -8,8 +8,6 @@ from pathlib import Path
 from typing import Dict, Optional
 
 import numpy as np
-from pydrake.geometry import StartMeshcat
-
 from maglev_haptics.analysis.haptic_metrics import haptic_summary
 from maglev_haptics.analysis.run_log import RunLogWriter
 from maglev_haptics.analysis.run_metrics import log_arrays, summarize
@@ -18,6 +16,7 @@ from maglev_haptics.analysis.stereo_metrics import plot_colocation, stereo_summa
 from maglev_haptics.analysis.stereo_video import StereoVideoWriter
 from maglev_haptics.diagrams.application import BuildDiagram
 from maglev_haptics.diagrams.lcm_station import LcmStation, station_counts
+from maglev_haptics.diagrams.meshcat_lifetime import start_meshcat
 from maglev_haptics.diagrams.runner import (
     LandBeforeStopping, StopOnSignal, realtime_report, simulate)
 from maglev_haptics.diagrams.scenario import Scenario
@@ -30,7 +29,7 @@ from maglev_haptics.systems.meshcat_hand import wait_for_browser
 class RunResult:
     summary: Dict  # what summary.json holds
     log: Dict[str, np.ndarray]  # what log.npz holds
-    meshcat: Optional[object]  # the Meshcat instance, kept alive for the viewer
+    meshcat: Optional[object]  # the Meshcat, open for the viewer: close_meshcat it when done
 
 
 def run_scenario(scenario: Scenario, *, label: str, out_dir: Optional[Path] = None,
@@ -42,7 +41,7 @@ def run_scenario(scenario: Scenario, *, label: str, out_dir: Optional[Path] = No
     the wall clock's time, so the application must too."""
     if isinstance(scenario.station, LcmStation) and realtime_rate <= 0:
         realtime_rate = 1.0
-    viewer = StartMeshcat() if meshcat else None
+    viewer = start_meshcat() if meshcat else None
     video = None
     if scenario.stereo is not None and out_dir is not None and scenario.stereo.images.rate_hz > 0:
         video = StereoVideoWriter(Path(out_dir), frame_rate_hz=scenario.stereo.images.rate_hz,

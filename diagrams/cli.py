@@ -1,12 +1,18 @@
-"""The ``maglev`` command line: run, device-sim, driver, diagram, bench, analyze
-(docs/architecture.md)."""
+"""The ``maglev`` command line: run, device-sim, driver, diagram, bench, faults, sweep,
+analyze (docs/architecture.md).
+
+Only the standard library and the light scenario-file helpers are imported here: every
+``--help`` answers at once, and pydrake, numba and Dask are imported when a command
+runs (inside its ``_cmd_<command>``)."""
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import json
 import math
+import os
 import re
 import shutil
 import signal
@@ -16,12 +22,8 @@ import textwrap
 from importlib.metadata import version
 from pathlib import Path
 
-from maglev_haptics.diagrams.lcm_station import LcmStation, SimStation, lcm_config
-from maglev_haptics.diagrams.runner import MISS_WARNING_FRACTION
-from maglev_haptics.hardware.extras import MissingExtraError
-from maglev_haptics.diagrams.scenario import (
-    ScenarioError, load_scenario, resolve_scenario_file, scenario_names, shipped_scenario_files,
-    validate_scenario)
+from maglev_haptics.diagrams.scenario_files import (
+    ScenarioError, resolve_scenario_file, scenario_names, shipped_scenario_files)
 
 # What `maglev diagram --out` may end in: graphviz's (dot -T) file formats for looking
 # at or editing a diagram, all of them in every graphviz build.
@@ -100,6 +102,7 @@ def _writable_folder(folder: Path) -> Path:
     return folder
 
 
+@functools.cache
 def _scenario_listing() -> str:
     """The shipped scenario files and the named scenarios in each, for the help texts."""
     lines = ["Shipped scenarios (file: names; --name picks one, the first is the default):"]
@@ -125,6 +128,8 @@ def _add_scenario_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _load(args):
+    from maglev_haptics.diagrams.scenario import load_scenario
+
     scenario = load_scenario(args.scenario, args.name, args.scenario_text)
     path = resolve_scenario_file(args.scenario)
     name = args.name or scenario_names(path)[0]
@@ -134,7 +139,10 @@ def _load(args):
 def _cmd_run(args) -> int:
     from maglev_haptics.diagrams.haptics import interactive_variant
     from maglev_haptics.analysis.run_results import run_scenario
-    from maglev_haptics.diagrams.scenario import with_stereo
+    from maglev_haptics.diagrams.meshcat_lifetime import close_meshcat
+    from maglev_haptics.diagrams.lcm_station import LcmStation, SimStation
+    from maglev_haptics.diagrams.runner import MISS_WARNING_FRACTION
+    from maglev_haptics.diagrams.scenario import validate_scenario, with_stereo
     from maglev_haptics.diagrams.thermal_forecast import thermal_outlook
     from maglev_haptics.analysis.loop_studies import stability_warnings
 
@@ -189,11 +197,13 @@ def _cmd_run(args) -> int:
         print(f"Meshcat: {result.meshcat.web_url()}{replay}")
         if sys.stdin.isatty():
             input("press Enter to close Meshcat and exit ")
+        close_meshcat(result.meshcat)
     return 0
 
 
 def _cmd_device_sim(args) -> int:
     from maglev_haptics.diagrams.device_sim import BuildDeviceSim
+    from maglev_haptics.diagrams.lcm_station import lcm_config
     from maglev_haptics.diagrams.runner import StopOnSignal, realtime_report, simulate
 
     scenario, label = _load(args)
@@ -230,7 +240,7 @@ def _cmd_driver(args) -> int:
     from pydrake.math import RigidTransform, RollPitchYaw
 
     from maglev_haptics.diagrams.lcm_station import (
-        COIL_CURRENTS_COMMANDED, GLASSES, channel, open_lcm)
+        COIL_CURRENTS_COMMANDED, GLASSES, channel, lcm_config, open_lcm)
 
     scenario, label = _load(args)
     config = lcm_config(scenario)
@@ -299,7 +309,8 @@ def _cmd_bench(args) -> int:
     from maglev_haptics.analysis.bench import run_benchmarks
 
     out_dir = _writable_folder(Path(args.out))
-    results = run_benchmarks(duration_s=args.duration, progress=not args.json, out_dir=out_dir)
+    results = run_benchmarks(duration_s=args.duration, progress=not args.json, out_dir=out_dir,
+                             quick=args.quick)
     print(json.dumps(results, indent=2) if args.json else results["report"])
     if not args.json:
         print(f"wrote {out_dir / 'bench.json'}, {out_dir / 'lattice_scaling.png'}")
@@ -316,13 +327,18 @@ def _positive_count(text: str) -> int:
     return value
 
 
+def _cores() -> int:
+    """The cores this process may use (analysis.parallel.default_workers, without
+    importing the analysis package for a help text)."""
+    return len(os.sched_getaffinity(0))
+
+
 def _add_job_arguments(parser) -> None:
     """--workers and --scheduler: where a long study's jobs run (analysis/parallel.py)."""
-    from maglev_haptics.analysis.parallel import default_workers
     where = parser.add_mutually_exclusive_group()
-    where.add_argument("--workers", type=_positive_count, default=default_workers(),
+    where.add_argument("--workers", type=_positive_count, default=_cores(),
                        help="local worker processes (default: this machine's cores, "
-                       f"{default_workers()}; 1: in this process)")
+                       f"{_cores()}; 1: in this process)")
     where.add_argument("--scheduler", metavar="ADDRESS",
                        help="a Dask distributed scheduler's address (tcp://HOST:PORT): its "
                        "workers run the jobs")
@@ -391,6 +407,10 @@ def _cmd_analyze(args) -> int:
     return 0
 
 
+# The studies of `maglev analyze` (analysis/studies.py's study_names; a test holds them
+# equal): named here so that `maglev analyze --help` needs no import of the studies.
+STUDIES = ("linearize", "multirate", "passivity", "zwidth", "stability-map", "workspace")
+
 ANALYZE_STUDIES = """\
 Studies:
   linearize      the single-rate loop's state map over a period at an operating point:
@@ -406,23 +426,32 @@ Studies:
                  matrix's condition number, hover current and power, the largest
                  force and torque each way within the peak and thermal current limits"""
 
+BENCH_PARTS = """\
+What it runs, and how long each part takes on a 2-core machine:
+  scenarios      the ten shipped scenarios, each its whole script (about 4 min in all);
+                 --duration S: S simulated seconds each (about 10 s + 1.5 S a scenario)
+  systems        each leaf system's update at hover, best of five (about 15 s)
+  allocation     the wrench matrix and the current allocation (about 5 s)
+  stereo         view matrices and a rendered frame pair (about 10 s)
+  analysis       the multirate, linearize and zwidth studies of peg_in_hole (about 3 min)
+  lattice        the deformable lattice's step against its size (about 45 s)
+--quick: one simulated second a scenario, no offline analysis, the lattice's two
+smallest sizes (about 2 min in all)."""
 
-def build_parser() -> argparse.ArgumentParser:
-    formatter = argparse.RawDescriptionHelpFormatter  # keeps the epilogs' lines as written
-    parser = argparse.ArgumentParser(
-        prog="maglev", formatter_class=formatter,
-        description="Simulate, drive and analyse the co-located maglev haptic display.",
-        epilog=_epilog("""
-            maglev run levitate                  # fly the first levitation scenario in Meshcat
-            maglev run peg_in_hole --no-meshcat  # as fast as possible, plots in out/
-            maglev COMMAND --help                # each command's options and examples
-            """, with_scenarios=False))
-    parser.add_argument("--version", action="version",
-                        version=f"%(prog)s {version('maglev-haptics')}")
-    commands = parser.add_subparsers(dest="command", required=True)
 
+class _Parser(argparse.ArgumentParser):
+    """argparse, but a bad argument is one line (the usage block is what --help is for)."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+FORMATTER = argparse.RawDescriptionHelpFormatter  # keeps the epilogs' lines as written
+
+
+def _add_run_parser(commands) -> None:
     run = commands.add_parser(
-        "run", formatter_class=formatter,
+        "run", formatter_class=FORMATTER,
         help="simulate a scenario; write log.npz, summary.json, plots",
         description="Simulate a scenario; write log.npz, summary.json and plots to --out.",
         epilog=_epilog("""
@@ -454,8 +483,10 @@ def build_parser() -> argparse.ArgumentParser:
                      "scenario's station")
     run.set_defaults(func=_cmd_run)
 
+
+def _add_device_sim_parser(commands) -> None:
     device_sim = commands.add_parser(
-        "device-sim", formatter_class=formatter,
+        "device-sim", formatter_class=FORMATTER,
         help="the simulated station alone, paced to the wall clock, speaking LCM",
         description="The simulated station (instrument, coils, amplifiers, tracker, scripted "
         "hand) as its own process, paced to the wall clock, on LCM: what a real device "
@@ -473,8 +504,10 @@ def build_parser() -> argparse.ArgumentParser:
                             "at the same --realtime")
     device_sim.set_defaults(func=_cmd_device_sim)
 
+
+def _add_driver_parser(commands) -> None:
     driver = commands.add_parser(
-        "driver", formatter_class=formatter,
+        "driver", formatter_class=FORMATTER,
         help="a real device's driver on LCM (needs the hardware extra)",
         description="Run one of the real device's drivers against the scenario's LCM "
         "station: head-tracker publishes the glasses from an NDI Polaris or Vega "
@@ -503,8 +536,10 @@ def build_parser() -> argparse.ArgumentParser:
                         help="coil-daq: the amplifiers' transconductance (A/V)")
     driver.set_defaults(func=_cmd_driver)
 
+
+def _add_diagram_parser(commands) -> None:
     diagram = commands.add_parser(
-        "diagram", formatter_class=formatter,
+        "diagram", formatter_class=FORMATTER,
         help="draw the system diagram (pydot + graphviz)",
         description="Draw the scenario's system diagram with graphviz.",
         epilog=_epilog("""
@@ -519,24 +554,32 @@ def build_parser() -> argparse.ArgumentParser:
                          help="subsystem levels to expand (default: 1)")
     diagram.set_defaults(func=_cmd_diagram)
 
+
+def _add_bench_parser(commands) -> None:
     bench = commands.add_parser(
-        "bench", formatter_class=formatter,
+        "bench", formatter_class=FORMATTER,
         help="real-time factor of each scenario, per-tick costs",
         description="Real-time factor of each shipped scenario, per-tick cost of each "
-        "system, lattice scaling and allocation cost (Meshcat off).",
+        "system, lattice scaling and allocation cost (Meshcat off).\n\n" + BENCH_PARTS,
         epilog=_epilog("""
+            maglev bench --quick
             maglev bench
             maglev bench --duration 1 --json > bench.json
             """, with_scenarios=False))
     bench.add_argument("--json", action="store_true", help="print JSON instead of a table")
-    bench.add_argument("--duration", type=_positive_seconds,
-                       help="simulated seconds per scenario (default: each whole script)")
+    length = bench.add_mutually_exclusive_group()
+    length.add_argument("--duration", type=_positive_seconds,
+                        help="simulated seconds per scenario (default: each whole script)")
+    length.add_argument("--quick", action="store_true",
+                        help="a first look in about 2 minutes (see above)")
     bench.add_argument("--out", default="out/bench",
                        help="folder for bench.json and lattice_scaling.png (default: out/bench)")
     bench.set_defaults(func=_cmd_bench)
 
+
+def _add_faults_parser(commands) -> None:
     faults = commands.add_parser(
-        "faults", formatter_class=formatter,
+        "faults", formatter_class=FORMATTER,
         help="randomized fault-injection campaign; writes faults.json and a plot",
         description="Randomized fault-injection campaign over the shipped scenarios (tracker "
         "dropouts, stalls and corrupt samples, stuck amplifiers, the hand letting go, shoves, "
@@ -556,26 +599,30 @@ def build_parser() -> argparse.ArgumentParser:
                         help="folder for faults.json and faults.png (default: out/faults)")
     faults.set_defaults(func=_cmd_faults)
 
+
+def _add_sweep_parser(commands) -> None:
     sweep = commands.add_parser(
-        "sweep", formatter_class=formatter,
+        "sweep", formatter_class=FORMATTER,
         help="a scenario over a grid of its fields; writes sweep.csv, sweep.json, sweep.png",
         description="Run a scenario at every combination of the values a spec file gives "
         "its fields (YAML paths, dotted: lists, or {start, stop, num}); keep the metrics "
-        "the spec names from each run's summary.json. Writes sweep.csv, sweep.json and "
-        "sweep.png (each metric against each field); exits 1 if a point's run failed.",
+        "the spec names from each run's summary.json. Prints them as a table and writes "
+        "sweep.csv, sweep.json and sweep.png (each metric against each field); exits 1 if "
+        "a point's run failed.",
         epilog=_epilog("""
             maglev sweep docs/sweep_example.yaml --out out/sweep
             maglev sweep my_sweep.yaml --scheduler tcp://10.0.0.5:8786
             """, with_scenarios=False))
-    sweep.add_argument("spec", help="the sweep's YAML spec (analysis/sweep.py shows one)")
+    sweep.add_argument("spec", help="the sweep's YAML spec (docs/sweep_example.yaml shows one)")
     sweep.add_argument("--out", default="out/sweep",
                        help="folder for sweep.csv, sweep.json and sweep.png (default: out/sweep)")
     _add_job_arguments(sweep)
     sweep.set_defaults(func=_cmd_sweep)
 
-    from maglev_haptics.analysis.studies import study_names
+
+def _add_analyze_parser(commands) -> None:
     analyze = commands.add_parser(
-        "analyze", formatter_class=formatter,
+        "analyze", formatter_class=FORMATTER,
         help="offline analysis of a scenario's loop; writes JSON and plots",
         description="Offline analysis of a scenario's loop; writes <study>.json and plots.\n\n"
         + ANALYZE_STUDIES,
@@ -584,19 +631,43 @@ def build_parser() -> argparse.ArgumentParser:
             maglev analyze passivity peg_in_hole --out out/passivity
             maglev analyze workspace levitate --name four_magnet_tilt --json
             """))
-    analyze.add_argument("study", choices=study_names())
+    analyze.add_argument("study", choices=STUDIES)
     _add_scenario_arguments(analyze)
     analyze.add_argument("--out", help="output folder (default: out/analyze/<file>-<name>)")
     analyze.add_argument("--json", action="store_true", help="print the whole result as JSON")
     analyze.add_argument("--quick", action="store_true", help="coarse settings (seconds)")
     _add_job_arguments(analyze)
     analyze.set_defaults(func=_cmd_analyze)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(
+        prog="maglev", formatter_class=FORMATTER,
+        description="Simulate, drive and analyse the co-located maglev haptic display.",
+        epilog=_epilog("""
+            maglev run levitate                  # fly the first levitation scenario in Meshcat
+            maglev run peg_in_hole --no-meshcat  # as fast as possible, plots in out/
+            maglev COMMAND --help                # each command's options and examples
+            """, with_scenarios=False))
+    parser.add_argument("--version", action="version",
+                        version=f"%(prog)s {version('maglev-haptics')}")
+    commands = parser.add_subparsers(dest="command", required=True)
+    _add_run_parser(commands)
+    _add_device_sim_parser(commands)
+    _add_driver_parser(commands)
+    _add_diagram_parser(commands)
+    _add_bench_parser(commands)
+    _add_faults_parser(commands)
+    _add_sweep_parser(commands)
+    _add_analyze_parser(commands)
     return parser
 
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     try:
+        from maglev_haptics.hardware.extras import MissingExtraError
+
         return args.func(args)
     except (ScenarioError, ValueError, OSError, MissingExtraError) as error:
         print(f"maglev {args.command}: error: {error}", file=sys.stderr)

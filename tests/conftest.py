@@ -1,7 +1,9 @@
 """Fixtures shared by the test modules."""
 
 import pytest
-from pydrake.geometry import Meshcat
+from pydrake.geometry import Meshcat, MeshcatParams
+
+from maglev_haptics.diagrams.meshcat_lifetime import close_meshcat, start_meshcat
 
 
 def _msgpack_str(text: str) -> bytes:
@@ -15,6 +17,14 @@ def _click(meshcat: Meshcat, name: str) -> None:
     meshcat._InjectWebsocketMessage(message=bytes([0x82]) + _msgpack_str("type")
                                     + _msgpack_str("button") + _msgpack_str("name")
                                     + _msgpack_str(name))
+
+
+@pytest.fixture(scope="module")
+def meshcat():
+    """A Meshcat on 127.0.0.1 for a test module, closed on this thread when the module ends."""
+    viewer = start_meshcat(MeshcatParams(host="127.0.0.1"))
+    yield viewer
+    close_meshcat(viewer)
 
 
 @pytest.fixture

@@ -3,7 +3,6 @@ the integrator choice, and bad input."""
 
 import numpy as np
 import pytest
-from pydrake.geometry import Meshcat
 from pydrake.systems.analysis import Simulator
 
 from maglev_haptics.analysis.run_results import run_scenario
@@ -74,8 +73,7 @@ def test_linearly_implicit_lattice_runs_in_the_diagram():
     assert np.abs(positions - lattice.positions_m).max() < 1e-3
 
 
-def test_interactive_variant_runs_with_the_lattice_in_meshcat():
-    meshcat = Meshcat()
+def test_interactive_variant_runs_with_the_lattice_in_meshcat(meshcat):
     scenario = interactive_variant(load_scenario("deformable_surface"), 10.0)
     built = BuildDiagram(scenario, meshcat=meshcat)
     simulator = Simulator(built.diagram)

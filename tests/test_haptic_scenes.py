@@ -2,7 +2,6 @@
 
 import numpy as np
 import pytest
-from pydrake.geometry import Meshcat
 from pydrake.systems.analysis import Simulator
 
 from maglev_haptics.analysis.run_results import run_scenario
@@ -100,8 +99,7 @@ def test_paddle_bounces_and_off_centre_hits_twist_the_user_their_way(name, side)
         assert abs(hit["peak_user_torque_about_y_nmm"]) > 1.0
 
 
-def test_interactive_hand_follows_meshcat_controls(click_button):
-    meshcat = Meshcat()
+def test_interactive_hand_follows_meshcat_controls(meshcat, click_button):
     scenario = interactive_variant(load_scenario("peg_in_hole"), 30.0)
     built = BuildDiagram(scenario, meshcat=meshcat)
     simulator = Simulator(built.diagram)

@@ -2,7 +2,6 @@
 
 import numpy as np
 import pytest
-from pydrake.geometry import Meshcat
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import ConstantVectorSource
@@ -23,11 +22,6 @@ def lattice():
     x_m, y_m = np.array([0.0, 0.005, 0.010, 0.015]), np.array([0.0, 0.005, 0.010])
     heights = -0.015 + 0.004 * np.array([[0, 1, 0], [2, 0, 1], [1, 2, 0], [0, 0, 2]])
     return build_lattice(heights, x_m, y_m, -0.030, 0.003)
-
-
-@pytest.fixture(scope="module")
-def meshcat():
-    return Meshcat()
 
 
 def test_faces_index_the_same_vertices_as_the_mass_triangles(lattice):

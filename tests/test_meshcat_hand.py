@@ -4,7 +4,6 @@ import math
 
 import numpy as np
 import pytest
-from pydrake.geometry import Meshcat
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import VectorLogSink
@@ -49,11 +48,6 @@ def test_filtered_step_peaks_at_d_omega_over_e():
 def test_each_click_toggles_the_grip():
     assert [grip_from_clicks(c, False) for c in range(4)] == [0.0, 1.0, 0.0, 1.0]
     assert [grip_from_clicks(c, True) for c in range(4)] == [1.0, 0.0, 1.0, 0.0]
-
-
-@pytest.fixture(scope="module")
-def meshcat():
-    return Meshcat()
 
 
 def build(meshcat, grip_at_start=False):

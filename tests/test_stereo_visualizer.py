@@ -5,7 +5,7 @@ import struct
 
 import numpy as np
 import pytest
-from pydrake.geometry import Meshcat, MeshcatParams
+from pydrake.geometry import Meshcat
 from pydrake.math import RigidTransform, RollPitchYaw
 from pydrake.systems.analysis import Simulator
 
@@ -65,11 +65,6 @@ def packed_color(meshcat: Meshcat, path: str) -> tuple[int, int, int]:
     packed = meshcat._GetPackedObject(path)
     start = packed.index(b"\xa5color\xce") + 7
     return tuple(packed[start + 1:start + 4])
-
-
-@pytest.fixture(scope="module")
-def meshcat():
-    return Meshcat(MeshcatParams(host="127.0.0.1"))
 
 
 @pytest.fixture
