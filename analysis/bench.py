@@ -57,6 +57,8 @@ HAPTIC_FILES = [SCENARIO_DIR / f"{name}.yaml" for name in ("hanging_ball", "padd
                                                             "stereo_display")]
 HOVER_TIME_S = 1.5  # operating point for the per-system costs (s into takeoff_hover_land)
 FLOOR_TOOL_PUSH_N = 1.0  # the peg is pushed down this hard onto the block (N)
+QUICK_DURATION_S = 1.0  # --quick: simulated seconds a scenario
+QUICK_LATTICE_SIZES = 2  # --quick: the lattice's smallest sizes only
 
 
 def _step_cost_us(builder, n_steps: int, period_s: float) -> float:
@@ -163,9 +165,13 @@ def allocation_cost_us(config: DeviceConfig, n: int = 2000) -> Dict[str, Dict[st
 
 
 def run_benchmarks(duration_s: Optional[float] = None, progress: bool = True,
-                   out_dir: Optional[Path] = None) -> Dict:
+                   out_dir: Optional[Path] = None, quick: bool = False) -> Dict:
     """Everything ``maglev bench`` reports; each scenario runs its whole script by
-    default. With ``out_dir``, writes bench.json and lattice_scaling.png there."""
+    default. ``quick``: QUICK_DURATION_S a scenario, no offline analysis, the lattice's
+    smallest QUICK_LATTICE_SIZES. With ``out_dir``, writes bench.json and
+    lattice_scaling.png there."""
+    if quick:
+        duration_s = QUICK_DURATION_S
     results: Dict = {"scenarios": {}, "systems_us": {}, "wrench_matrix_us": {}, "allocation": {}}
     runs = [(LEVITATE_FILE, name) for name in scenario_names(LEVITATE_FILE)]
     runs += [(path, scenario_names(path)[0]) for path in HAPTIC_FILES]
@@ -200,9 +206,10 @@ def run_benchmarks(duration_s: Optional[float] = None, progress: bool = True,
         results["wrench_matrix_us"][kind] = bench_wrench_matrix(config)
         results["allocation"][kind] = allocation_cost_us(config)
     results["stereo"] = stereo_costs()
-    results["analysis"] = analysis_costs()
-    with tqdm(total=len(LATTICE_SIZES), desc="lattice sizes", disable=not progress) as bar:
-        results["lattice"] = lattice_scaling(progress=lambda _: bar.update(1))
+    results["analysis"] = {} if quick else analysis_costs()
+    sizes = LATTICE_SIZES[:QUICK_LATTICE_SIZES] if quick else LATTICE_SIZES
+    with tqdm(total=len(sizes), desc="lattice sizes", disable=not progress) as bar:
+        results["lattice"] = lattice_scaling(sizes, progress=lambda _: bar.update(1))
     results["report"] = format_report(results)
     if out_dir is not None:
         out_dir.mkdir(parents=True, exist_ok=True)
@@ -250,7 +257,8 @@ def format_report(results: Dict) -> str:
                 f"{case.removesuffix('_us').replace('_', ' ')} {us:.1f}"
                 for case, us in r.items()))
     lines.append(format_stereo_report(results["stereo"]))
-    lines.append("Offline analysis (wall s): " + ", ".join(
-        f"{name} {seconds:.1f}" for name, seconds in results["analysis"].items()))
+    lines.append("Offline analysis (wall s): " + (", ".join(
+        f"{name} {seconds:.1f}" for name, seconds in results["analysis"].items())
+        or "not run (--quick)"))
     lines.append(format_lattice_report(results["lattice"]))
     return "\n".join(lines)

@@ -13,7 +13,6 @@ import dataclasses
 import re
 import typing
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import List, Optional, Union
 
 import yaml
@@ -23,6 +22,9 @@ from pydrake.multibody.plant import MultibodyPlantConfig
 from maglev_haptics.diagrams.deformable_scene import DeformableSurface
 from maglev_haptics.diagrams.hand_script import MeshcatHand, ScriptedHand
 from maglev_haptics.diagrams.lcm_station import LcmStation, SimStation
+from maglev_haptics.diagrams.scenario_files import (  # noqa: F401  (the light half, re-exported)
+    SCENARIO_DIR, ScenarioError, resolve_scenario_file, scenario_names, shipped_scenario_files,
+    yaml_error)
 from maglev_haptics.diagrams.scene import HangingBall, PaddleBall, PegInHole
 from maglev_haptics.diagrams.stereo_display import StereoConfig
 from maglev_haptics.diagrams.waypoints import Waypoint
@@ -36,13 +38,6 @@ from maglev_haptics.systems.marker_sensor import Occlusion
 from maglev_haptics.systems.fault_injection import (
     CorruptSample, LatencySpike, Shove, StuckAmplifier)
 from maglev_haptics.systems.pose_estimator import PoseEstimatorConfig
-
-SCENARIO_DIR = Path(__file__).resolve().parent.parent / "scenarios"
-
-
-class ScenarioError(ValueError):
-    """A scenario that cannot be run, with the offending field named."""
-
 
 @dataclass
 class MotionScript:
@@ -183,32 +178,13 @@ class Scenario:
                     "hand is the device's, and device-sim has no Meshcat)")
 
 
-def shipped_scenario_files() -> List[Path]:
-    return sorted(SCENARIO_DIR.glob("*.yaml"))
-
-
-def resolve_scenario_file(name_or_path: str) -> Path:
-    """A path, or the stem of a shipped scenario file (``levitate``)."""
-    path = Path(name_or_path)
-    if path.is_file():
-        return path
-    shipped = SCENARIO_DIR / f"{name_or_path}.yaml"
-    if shipped.is_file():
-        return shipped
-    names = ", ".join(p.stem for p in shipped_scenario_files())
-    raise ScenarioError(f"scenario file {name_or_path!r} not found: give a path or one of {names}")
-
-
 def _parse_mapping(text: str, source: str) -> dict:
     """The YAML mapping in ``text``, as Drake's loader reads it; a ScenarioError
     naming ``source`` if it is not one."""
     try:
         raw = yaml_load_data(text)
     except yaml.YAMLError as error:
-        mark = getattr(error, "problem_mark", None)
-        where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark else ""
-        problem = getattr(error, "problem", None) or str(error).splitlines()[0]
-        raise ScenarioError(f"{source}: not valid YAML{where}: {problem}") from None
+        raise yaml_error(source, error) from None
     if raw is None:
         return {}
     if not isinstance(raw, dict):
@@ -365,10 +341,6 @@ def _flow_yaml(value) -> str:
 def _type_name(hint) -> str:
     """``float``, ``List[float]``, ``Optional[float]``: a schema type as a user reads it."""
     return hint.__name__ if isinstance(hint, type) else str(hint).replace("typing.", "")
-
-
-def scenario_names(path: Path) -> List[str]:
-    return [key for key in _parse_mapping(path.read_text(), str(path)) if key != "Defaults"]
 
 
 def load_scenario(name_or_path: str, name: Optional[str] = None,

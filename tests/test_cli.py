@@ -1,6 +1,8 @@
 """The ``maglev`` command line as a new user meets it: bad input ends in one clear
 line and exit code 2, never a traceback; help texts list scenarios and examples."""
 
+import subprocess
+import sys
 from importlib.metadata import version
 
 import pytest
@@ -96,3 +98,55 @@ def test_run_against_no_station_on_lcm_says_so_in_one_line(capsys):
     assert err.strip().splitlines()[-1] == ("maglev run: error: no message on LCM channel 'NOBODY_MARKERS' "
                            "within 0.2 s: is the station running (maglev device-sim SCENARIO, "
                            "or the device's drivers) on the same LCM URL?")
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["run", "levitate", "--duration", "-1"],
+     "maglev run: error: argument --duration: '-1': must be > 0 simulated seconds "
+     "(see maglev run --help)"),
+    (["run", "levitate", "--realtime", "-1"], "maglev run: error: argument --realtime: '-1'"),
+    (["faults", "--runs", "0"],
+     "maglev faults: error: argument --runs: '0': must be a whole number >= 1"),
+    (["faults", "--workers", "0"], "maglev faults: error: argument --workers: '0'"),
+    (["sweep", "spec.yaml", "--workers", "two"], "maglev sweep: error: argument --workers: 'two'"),
+    (["diagram", "levitate", "--out", "d.xyz"], "maglev diagram: error: argument --out: 'd.xyz'"),
+    (["bench", "--quick", "--duration", "1"], "maglev bench: error: argument --duration: not "
+     "allowed with argument --quick"),
+    (["no-such-command"], "maglev: error: argument command: invalid choice: 'no-such-command'"),
+])
+def test_a_bad_flag_is_one_line_not_the_usage_block(argv, message, capsys):
+    code, err = exit_code_and_stderr(argv, capsys)
+    assert code == 2
+    assert err.splitlines() == [err.strip()], err  # one line: no usage block before it
+    assert err.startswith(message)
+    assert err.rstrip().endswith("--help)")
+
+
+def test_help_imports_neither_drake_nor_numba_nor_dask():
+    """Every --help answers at once: the heavy packages load when a command runs."""
+    code = ("import sys, contextlib, io\n"
+            "from maglev_haptics.diagrams.cli import main\n"
+            "for argv in ([], ['run'], ['device-sim'], ['driver'], ['diagram'], ['bench'],\n"
+            "             ['faults'], ['sweep'], ['analyze']):\n"
+            "    with contextlib.redirect_stdout(io.StringIO()):\n"
+            "        try:\n"
+            "            main(argv + ['--help'])\n"
+            "        except SystemExit as exit_:\n"
+            "            assert exit_.code == 0, (argv, exit_.code)\n"
+            "print(sorted({m.split('.')[0] for m in sys.modules} & "
+            "{'pydrake', 'numba', 'distributed', 'dask', 'scipy', 'matplotlib'}))\n")
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                            check=True)
+    assert result.stdout.strip() == "[]", result.stdout + result.stderr
+
+
+def test_the_analyze_studies_named_in_the_cli_are_the_studies():
+    from maglev_haptics.analysis.studies import study_names
+    from maglev_haptics.diagrams.cli import STUDIES
+    assert sorted(STUDIES) == sorted(study_names())
+
+
+def test_the_default_workers_are_this_machines_cores():
+    from maglev_haptics.analysis.parallel import default_workers
+    from maglev_haptics.diagrams.cli import build_parser
+    assert build_parser().parse_args(["faults"]).workers == default_workers()

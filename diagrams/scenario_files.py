@@ -1,0 +1,55 @@
+"""The shipped scenario files and the names in a scenario file, without the schema.
+
+Light on purpose (PyYAML only, no Drake): ``maglev --help`` lists the shipped
+scenarios from here, and a help text must not wait for pydrake to import.
+"""
+
+from pathlib import Path
+from typing import List
+
+import yaml
+
+_LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)  # libyaml's where PyYAML has it
+SCENARIO_DIR = Path(__file__).resolve().parent.parent / "scenarios"
+
+
+class ScenarioError(ValueError):
+    """A scenario that cannot be run, with the offending field named."""
+
+
+def shipped_scenario_files() -> List[Path]:
+    return sorted(SCENARIO_DIR.glob("*.yaml"))
+
+
+def resolve_scenario_file(name_or_path: str) -> Path:
+    """A path, or the stem of a shipped scenario file (``levitate``)."""
+    path = Path(name_or_path)
+    if path.is_file():
+        return path
+    shipped = SCENARIO_DIR / f"{name_or_path}.yaml"
+    if shipped.is_file():
+        return shipped
+    names = ", ".join(p.stem for p in shipped_scenario_files())
+    raise ScenarioError(f"scenario file {name_or_path!r} not found: give a path or one of {names}")
+
+
+def yaml_error(source: str, error: yaml.YAMLError) -> ScenarioError:
+    """PyYAML's error as one line naming ``source``, the line and the column."""
+    mark = getattr(error, "problem_mark", None)
+    where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark else ""
+    problem = getattr(error, "problem", None) or str(error).splitlines()[0]
+    return ScenarioError(f"{source}: not valid YAML{where}: {problem}")
+
+
+def scenario_names(path: Path) -> List[str]:
+    """The named scenarios in the file at ``path``, in its order (``Defaults`` left out).
+    Reads the YAML's structure only (tags need no schema here)."""
+    try:
+        node = yaml.compose(Path(path).read_text(), Loader=_LOADER)
+    except yaml.YAMLError as error:
+        raise yaml_error(str(path), error) from None
+    if node is None:
+        return []
+    if not isinstance(node, yaml.MappingNode):
+        raise ScenarioError(f"{path}: must be a YAML mapping of named scenarios")
+    return [key.value for key, _ in node.value if key.value != "Defaults"]
