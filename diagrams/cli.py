@@ -23,7 +23,7 @@ from importlib.metadata import version
 from pathlib import Path
 
 from maglev_haptics.diagrams.scenario_files import (
-    ScenarioError, resolve_scenario_file, scenario_names, shipped_scenario_files)
+    LONGEST_S, ScenarioError, resolve_scenario_file, scenario_names, shipped_scenario_files)
 
 # What `maglev diagram --out` may end in: graphviz's (dot -T) file formats for looking
 # at or editing a diagram, all of them in every graphviz build.
@@ -46,6 +46,8 @@ def _positive_seconds(text: str) -> float:
     seconds = _finite_number(text)
     if seconds <= 0:
         raise argparse.ArgumentTypeError(f"{text!r}: must be > 0 simulated seconds")
+    if seconds > LONGEST_S:
+        raise argparse.ArgumentTypeError(f"{text!r}: a run lasts at most {LONGEST_S:g} s")
     return seconds
 
 
@@ -145,6 +147,9 @@ def _cmd_run(args) -> int:
     from maglev_haptics.diagrams.scenario import validate_scenario, with_stereo
     from maglev_haptics.diagrams.thermal_forecast import thermal_outlook
     from maglev_haptics.analysis.loop_studies import stability_warnings
+    from maglev_haptics.analysis.run_outcome import (
+        EXIT_DEVICE_IN_USE, EXIT_INSTRUMENT_LOST, instrument_outcome)
+    from maglev_haptics.hardware.lease import DeviceInUseError
 
     scenario, label = _load(args)
     duration = args.duration
@@ -168,8 +173,12 @@ def _cmd_run(args) -> int:
               "'Grip / release' (or the G key) grips the instrument; Ctrl-C ends the run")
     meshcat = not args.no_meshcat
     realtime = args.realtime if args.realtime is not None else (1.0 if meshcat else 0.0)
-    result = run_scenario(scenario, label=label, out_dir=out, meshcat=meshcat,
-                          realtime_rate=realtime, duration_s=duration)
+    try:
+        result = run_scenario(scenario, label=label, out_dir=out, meshcat=meshcat,
+                              realtime_rate=realtime, duration_s=duration)
+    except DeviceInUseError as error:  # another application holds the device's lease
+        print(f"maglev run: {label}: {error}", file=sys.stderr)
+        return EXIT_DEVICE_IN_USE
     printed = {k: v for k, v in result.summary.items() if k != "holds"}
     print(json.dumps(printed, indent=2))
     plots = "levitation.png" + (", haptics.png" if scenario.haptics is not None else "")
@@ -192,12 +201,17 @@ def _cmd_run(args) -> int:
         print(f"{label}: stopped by {stopped_by} at {result.summary['duration_s']:.3f} s"
               f"{landed}; the run so far is in {out}", file=sys.stderr)
         return 128 + signal.Signals[stopped_by].value
+    # A fault in a run that injected none: said in one line, last, with its own code.
+    outcome = instrument_outcome(scenario, result.summary, result.log, label)
     if result.meshcat is not None:
         replay = "" if args.interactive else " (the run's recording is replayable there)"
         print(f"Meshcat: {result.meshcat.web_url()}{replay}")
         if sys.stdin.isatty():
             input("press Enter to close Meshcat and exit ")
         close_meshcat(result.meshcat)
+    if outcome is not None:
+        print(outcome, file=sys.stderr)
+        return EXIT_INSTRUMENT_LOST
     return 0
 
 
@@ -219,6 +233,7 @@ def _cmd_device_sim(args) -> int:
     context = simulator.get_context()
     print(json.dumps({"scenario": label, "duration_s": context.get_time(), "wall_time_s": wall_s,
                       "commands": device_sim.command_counts(context),
+                      "lease": device_sim.lease_counts(context),
                       "realtime": realtime_report(tick_times)}, indent=2))
     return 0
 
@@ -240,7 +255,7 @@ def _cmd_driver(args) -> int:
     from pydrake.math import RigidTransform, RollPitchYaw
 
     from maglev_haptics.diagrams.lcm_station import (
-        COIL_CURRENTS_COMMANDED, GLASSES, channel, lcm_config, open_lcm)
+        COIL_CURRENTS_COMMANDED, GLASSES, LEASE, LEASE_REQUEST, channel, lcm_config, open_lcm)
 
     scenario, label = _load(args)
     config = lcm_config(scenario)
@@ -275,7 +290,9 @@ def _cmd_driver(args) -> int:
         amps_per_volt=args.amps_per_volt))
     counts = output.serve(open_lcm(config.command_url),
                           channel(config, COIL_CURRENTS_COMMANDED), args.duration,
-                          config.command_timeout_s)
+                          config.command_timeout_s, lease_channel=channel(config, LEASE_REQUEST),
+                          reply_lcm=open_lcm(config.url), reply_channel=channel(config, LEASE),
+                          lease_timeout_s=config.lease_timeout_s)
     print(json.dumps({"driver": args.kind, "scenario": label, **counts}))
     return 0
 
@@ -453,7 +470,10 @@ def _add_run_parser(commands) -> None:
     run = commands.add_parser(
         "run", formatter_class=FORMATTER,
         help="simulate a scenario; write log.npz, summary.json, plots",
-        description="Simulate a scenario; write log.npz, summary.json and plots to --out.",
+        description="Simulate a scenario; write log.npz, summary.json and plots to --out.\n"
+        "Exit codes: 0 done; 2 bad input; 4 the device (on LCM) is in use by another "
+        "application;\n5 a fault latched, or the instrument was lost, in a run whose "
+        "scenario injected no fault;\n128 + N stopped by signal N.",
         epilog=_epilog("""
             maglev run levitate                          # its first scenario, Meshcat at 1x
             maglev run levitate --name square --duration 2 --no-meshcat --out out/square

@@ -10,7 +10,6 @@ allowed.
 """
 
 import dataclasses
-import re
 import typing
 from dataclasses import dataclass, field
 from typing import List, Optional, Union
@@ -23,8 +22,8 @@ from maglev_haptics.diagrams.deformable_scene import DeformableSurface
 from maglev_haptics.diagrams.hand_script import MeshcatHand, ScriptedHand
 from maglev_haptics.diagrams.lcm_station import LcmStation, SimStation
 from maglev_haptics.diagrams.scenario_files import (  # noqa: F401  (the light half, re-exported)
-    SCENARIO_DIR, ScenarioError, resolve_scenario_file, scenario_names, shipped_scenario_files,
-    yaml_error)
+    LONGEST_S, SCENARIO_DIR, ScenarioError, resolve_scenario_file, scenario_names,
+    shipped_scenario_files, yaml_error)
 from maglev_haptics.diagrams.scene import HangingBall, PaddleBall, PegInHole
 from maglev_haptics.diagrams.stereo_display import StereoConfig
 from maglev_haptics.diagrams.waypoints import Waypoint
@@ -38,6 +37,20 @@ from maglev_haptics.systems.marker_sensor import Occlusion
 from maglev_haptics.systems.fault_injection import (
     CorruptSample, LatencySpike, Shove, StuckAmplifier)
 from maglev_haptics.systems.pose_estimator import PoseEstimatorConfig
+
+HIGHEST_RATE_HZ = 1e5  # the loop's and the log's rates at most (Hz)
+
+
+def check_script_length(steps) -> None:
+    """``steps``, a script's (field path, seconds) in the order they add up: a
+    ValueError naming the field that takes the script past LONGEST_S (a huge value
+    would overflow its tables, or vanish in a float sum)."""
+    total_s = 0.0
+    for path, seconds in steps:
+        total_s += seconds
+        require(total_s <= LONGEST_S, path, seconds,
+                f"takes its script to {total_s:.6g} s; a script lasts at most {LONGEST_S:g} s")
+
 
 @dataclass
 class MotionScript:
@@ -63,6 +76,15 @@ class MotionScript:
             vector(f"{path}.waypoints[{i}].pose", w.pose, 6)
             positive(f"{path}.waypoints[{i}].move_s", w.move_s)
             nonnegative(f"{path}.waypoints[{i}].hold_s", w.hold_s)
+        steps = [(f"{path}.takeoff_at_s", self.takeoff_at_s),
+                 (f"{path}.force_ramp_s", self.force_ramp_s)]
+        for i, w in enumerate(self.waypoints):
+            steps += [(f"{path}.waypoints[{i}].move_s", w.move_s),
+                      (f"{path}.waypoints[{i}].hold_s", w.hold_s)]
+        # The landing levels out first, as long, when tilted; then it settles and ramps down.
+        steps += [(f"{path}.landing_s", 2 * self.landing_s), (f"{path}.settle_s", self.settle_s),
+                  (f"{path}.force_ramp_s", self.force_ramp_s)]
+        check_script_length(steps)
 
 
 @dataclass
@@ -157,6 +179,11 @@ class Scenario:
         positive(f"{label}: plant_config.time_step", self.plant_config.time_step)
         if self.duration_s is not None:
             positive(f"{label}: duration_s", self.duration_s)
+            require(self.duration_s <= LONGEST_S, f"{label}: duration_s", self.duration_s,
+                    f"a run lasts at most {LONGEST_S:g} s")
+        for name in ("control_rate_hz", "log_rate_hz"):
+            require(getattr(self, name) <= HIGHEST_RATE_HZ, f"{label}: {name}",
+                    getattr(self, name), f"must be at most {HIGHEST_RATE_HZ:g} Hz")
         if self.haptics is not None:
             self.haptics.validate(f"{label}: haptics")
             if self.hand is None:
@@ -166,8 +193,14 @@ class Scenario:
                     "engages haptics")
         if self.hand is not None:
             self.hand.validate(f"{label}: hand")
+            if isinstance(self.hand, ScriptedHand):
+                _check_scripted_hand(self.hand, f"{label}: hand")
         if self.stereo is not None:
             self.stereo.validate(f"{label}: stereo", self.device, f"{label}: device")
+            head = self.stereo.head
+            check_script_length([(f"{label}: stereo.head.start_s", head.start_s)] + [
+                (f"{label}: stereo.head.waypoints[{i}].{name}", getattr(w, name))
+                for i, w in enumerate(head.waypoints) for name in ("move_s", "hold_s")])
         self.station.validate(f"{label}: station")
         if isinstance(self.station, LcmStation):
             require(self.stereo is None or self.haptics is not None, f"{label}: stereo", "set",
@@ -192,75 +225,85 @@ def _parse_mapping(text: str, source: str) -> dict:
     return raw
 
 
-def _paths_to(raw, token: str, keys=()):
-    """Key paths (tuples) in the parsed YAML ``raw`` whose key, tag or value is ``token``."""
-    items = (raw.items() if isinstance(raw, dict)
-             else enumerate(raw) if isinstance(raw, list) else ())
-    for key, value in items:
-        if key == "_tag":
-            continue
-        tag = value.get("_tag", "").lstrip("!") if isinstance(value, dict) else None
-        if key == token or tag == token or (not isinstance(value, (dict, list))
-                                            and str(value) == token):
-            yield keys + (key,)
-        yield from _paths_to(value, token, keys + (key,))
+def _check_scripted_hand(hand: "ScriptedHand", path: str) -> None:
+    check_script_length([(f"{path}.start_s", hand.start_s)] + [
+        (f"{path}.waypoints[{i}].{name}", getattr(w, name))
+        for i, w in enumerate(hand.waypoints) for name in ("move_s", "hold_s")])
+    for i, event in enumerate(hand.events):
+        check_script_length([(f"{path}.events[{i}].at_s", event.at_s)])
 
 
 def _field_path(keys) -> str:
     return "".join(f"[{key}]" if isinstance(key, int) else f".{key}" for key in keys).lstrip(".")
 
 
-def _schema_at(raw, keys):
-    """The config class that the YAML at ``keys`` fills (a Union's member by its tag),
-    or None where the path leaves the dataclasses."""
-    schema, node = Scenario, raw
+def _options(hint) -> list:
+    """A Union's members, None left out; [hint] for anything else."""
+    if typing.get_origin(hint) is Union:
+        return [a for a in typing.get_args(hint) if a is not type(None)]
+    return [hint]
+
+
+def _hint_at(raw, keys):
+    """The schema's type hint of the field at ``keys`` (a Union as written), None where
+    the path leaves the dataclasses (an unknown field, or inside a Drake config)."""
+    hint, node = Scenario, raw
     for key in keys:
-        node = node[key]
+        options = _options(hint)
+        tag = node.get("_tag", "").lstrip("!") if isinstance(node, dict) else ""
+        schema = {option.__name__: option for option in options}.get(tag, options[0])
         if isinstance(key, int):
-            schema = typing.get_args(schema)[0]
+            if typing.get_origin(schema) is not list:
+                return None
+            hint = typing.get_args(schema)[0]
         elif dataclasses.is_dataclass(schema):
-            schema = typing.get_type_hints(schema).get(key)
+            hint = typing.get_type_hints(schema).get(key)
+            if hint is None:
+                return None
         else:
             return None
-        options = [a for a in typing.get_args(schema) if a is not type(None)]
-        if typing.get_origin(schema) is Union:
-            tag = node.get("_tag", "").lstrip("!") if isinstance(node, dict) else ""
-            named = {option.__name__: option for option in options}
-            schema = options[0] if len(options) == 1 else named.get(tag, options[0])
-    return schema
+        node = node[key]
+    return hint
 
 
-def _check_union_tags(raw, schema, keys=()) -> None:
-    """Refuse an untagged mapping where a field holds one of several kinds: Drake's
-    loader would silently read it as the Union's first kind (a hanging ball's
-    ``scene: {contact: ...}`` as a fresh PegInHole), and keep a scalar there as the
-    field's value. The checks Drake lacks."""
-    if typing.get_origin(schema) is Union:
-        options = [a for a in typing.get_args(schema) if a is not type(None)]
-        kinds = [option for option in options if dataclasses.is_dataclass(option)]
+def _check_structure(raw, hint, keys=()) -> None:
+    """What Drake's loader would refuse or misread, found from the schema itself: an
+    unknown field; a tag that is not one of the field's kinds; an untagged mapping
+    where a field holds one of several kinds (Drake would read a hanging ball's
+    ``scene: {contact: ...}`` as a fresh PegInHole); a scalar there (Drake would keep
+    it as the field's value)."""
+    options = _options(hint)
+    kinds = [option for option in options if dataclasses.is_dataclass(option)]
+    if len(options) > 1:
+        nullable = type(None) in typing.get_args(hint)
         if len(kinds) > 1 and raw is not None and not isinstance(raw, dict):
-            # Drake's loader would keep the scalar as the field's value.
-            raise ScenarioError(f"{_field_path(keys)} = {_flow_yaml(raw)}: must be one of "
-                                + ", ".join(f"!{kind.__name__} {{...}}" for kind in kinds)
-                                + (", or null" if type(None) in typing.get_args(schema) else ""))
-        if len(options) > 1 and isinstance(raw, dict):
+            raise ScenarioError(f"{_field_path(keys)} = {_flow_yaml(raw)}: must be "
+                                + _phrase(hint))
+        if isinstance(raw, dict):
             named = {option.__name__: option for option in options}
-            tags = ", ".join(f"!{name}" for name in named)
             tag = raw.get("_tag", "").lstrip("!")
             if not tag:
                 raise ScenarioError(f"{_field_path(keys)}: needs a tag to choose its kind, one "
-                                    f"of {tags} (e.g. {keys[-1]}: !{options[0].__name__} {{}})")
-            _check_union_tags(raw, named.get(tag), keys)
-        elif len(options) == 1:
-            _check_union_tags(raw, options[0], keys)
-    elif typing.get_origin(schema) is list and isinstance(raw, list):
+                                    f"of {_tags(options)}")
+            if tag not in named:
+                raise ScenarioError(f"{_field_path(keys)}: !{tag} is not one of "
+                                    f"{_tags(options)}" + (", or null" if nullable else ""))
+            _check_structure(raw, named[tag], keys)
+        return
+    schema = options[0]
+    if typing.get_origin(schema) is list and isinstance(raw, list):
         for i, item in enumerate(raw):
-            _check_union_tags(item, typing.get_args(schema)[0], keys + (i,))
+            _check_structure(item, typing.get_args(schema)[0], keys + (i,))
     elif dataclasses.is_dataclass(schema) and isinstance(raw, dict):
         hints = typing.get_type_hints(schema)
         for key, value in raw.items():
-            if key in hints:
-                _check_union_tags(value, hints[key], keys + (key,))
+            if key == "_tag":
+                continue
+            if key not in hints:
+                raise ScenarioError(f"{_field_path(keys + (key,))}: unknown field; "
+                                    f"{schema.__name__} has "
+                                    + ", ".join(f.name for f in dataclasses.fields(schema)))
+            _check_structure(value, hints[key], keys + (key,))
 
 
 # What Drake's YAML loader raises on data that does not fit the schema (its Python
@@ -268,69 +311,67 @@ def _check_union_tags(raw, schema, keys=()) -> None:
 LOAD_ERRORS = (RuntimeError, ValueError, TypeError, AssertionError)
 
 
-def _with_only(raw: dict, keys) -> dict:
-    """``raw`` cut down to the field at ``keys`` (its whole value) and the tags of
-    the mappings on the way."""
+def _with_only(node, keys):
+    """``node`` cut down to the field at ``keys`` (its whole value), the tags of the
+    mappings on the way, and a list's one item on the way."""
     if not keys:
-        return raw
-    cut = {"_tag": raw["_tag"]} if "_tag" in raw else {}
-    cut[keys[0]] = _with_only(raw[keys[0]], keys[1:]) if len(keys) > 1 else raw[keys[0]]
+        return node
+    inner = _with_only(node[keys[0]], keys[1:])
+    if isinstance(node, list):
+        return [inner]
+    cut = {"_tag": node["_tag"]} if "_tag" in node else {}
+    cut[keys[0]] = inner
     return cut
 
 
 def _failing_field(raw: dict, load_raw) -> tuple:
     """The deepest key path in ``raw`` whose field alone ``load_raw`` still refuses
-    (down through mappings; a list is one field); () if none does alone."""
+    (down through the schema's mappings and lists); () if none does alone."""
     keys, node = (), raw
-    while isinstance(node, dict):
-        for key, value in node.items():
-            if key == "_tag":
-                continue
+    while True:
+        schema = _options(_hint_at(raw, keys))[0] if keys else Scenario
+        if isinstance(node, dict) and dataclasses.is_dataclass(schema) or (
+                isinstance(node, dict) and len(_options(_hint_at(raw, keys))) > 1):
+            items = [(key, value) for key, value in node.items() if key != "_tag"]
+        elif isinstance(node, list) and typing.get_origin(schema) is list:
+            items = list(enumerate(node))
+        else:
+            return keys
+        for key, value in items:
             try:
                 load_raw(_with_only(raw, keys + (key,)))
             except LOAD_ERRORS:
                 keys, node = keys + (key,), value
                 break
         else:
-            break
-    return keys
+            return keys
 
 
 def _load_typed(source: str, raw: dict, load, load_raw):
-    """``load()`` (Drake's yaml_load_typed, which checks keys, types and tags); its
-    error as a ScenarioError that names the field's path: found in ``raw`` from the
-    names the error quotes, else by loading ``raw``'s fields alone (``load_raw(raw)``)."""
+    """``load()`` (Drake's yaml_load_typed, which checks keys, types and tags), with
+    any refusal as a ScenarioError of one line naming the field, its value and what it
+    must be: unknown fields and tags are found from the schema before loading; a value
+    Drake cannot convert, by loading ``raw``'s fields alone (``load_raw(cut)``).
+    Drake's own message is shown only where no single field is to blame."""
     try:
-        _check_union_tags(raw, Scenario)
+        _check_structure(raw, Scenario)
         return load()
     except ScenarioError as error:
         raise ScenarioError(f"{source}: {error}") from None
     except LOAD_ERRORS as error:
-        # Its one assert on data: a value where a mapping of fields belongs.
-        message = ("expected a mapping of its fields" if isinstance(error, AssertionError)
-                   else (str(error).splitlines() or [type(error).__name__])[0])
-        # Drake names a Union's options as classes: say them as the tags to write.
-        message = re.sub(r"\(\((.*)\)\)", lambda options: "(" + ", ".join(
-            f"!{name}" for name in re.findall(r"<class '[\w.]*?(\w+)'>", options[1])
-            if name != "NoneType") + ")", message)
-        tokens = re.findall(r"'([^']+)'", message)
-        paths = sorted({path for token in tokens for path in _paths_to(raw, token)})
-        if paths and "unknown to the schema" in message:
-            parent = _schema_at(raw, paths[0][:-1])
-            if dataclasses.is_dataclass(parent):
-                message = (f"unknown field; {parent.__name__} has "
-                           + ", ".join(f.name for f in dataclasses.fields(parent)))
-        if not paths:  # the error names no field: find it, and say what it takes
-            keys = _failing_field(raw, load_raw)
-            if keys:
-                value = raw
-                for key in keys:
-                    value = value[key]
-                raise ScenarioError(
-                    f"{source}: {_field_path(keys)} = {_flow_yaml(value)}: must be "
-                    f"{_type_name(_schema_at(raw, keys))} ({message})") from None
-        where = ", ".join(_field_path(path) for path in paths)
-        raise ScenarioError(f"{source}: {where + ': ' if where else ''}{message}") from None
+        keys = _failing_field(raw, load_raw)
+        if not keys:
+            message = (str(error).splitlines() or [type(error).__name__])[0]
+            raise ScenarioError(f"{source}: {message}") from None
+        value = raw
+        for key in keys:
+            value = value[key]
+        hint = _hint_at(raw, keys)
+        named = [key for key in keys if isinstance(key, str)][-1]
+        what = _phrase(hint, named) if hint is not None else (
+            f"what {named} takes ({(str(error).splitlines() or [''])[0]})")
+        raise ScenarioError(f"{source}: {_field_path(keys)} = {_flow_yaml(value)}: must be "
+                            f"{what}") from None
 
 
 def _flow_yaml(value) -> str:
@@ -338,9 +379,49 @@ def _flow_yaml(value) -> str:
         "...").strip()
 
 
-def _type_name(hint) -> str:
-    """``float``, ``List[float]``, ``Optional[float]``: a schema type as a user reads it."""
-    return hint.__name__ if isinstance(hint, type) else str(hint).replace("typing.", "")
+# A field's unit, from its name's suffix (the schema's convention).
+UNITS = (("_m_s", "m/s"), ("_rad_s", "rad/s"), ("_n_m", "N*m"), ("_mm", "mm"), ("_hz", "Hz"),
+         ("_s", "s"), ("_m", "m"), ("_a", "A"), ("_n", "N"), ("_c", "C"), ("_kg", "kg"),
+         ("_rad", "rad"), ("_deg", "deg"), ("_ohm", "ohm"), ("_w", "W"), ("_j", "J"),
+         ("_v", "V"), ("_h", "H"))
+
+
+def _unit(name: str) -> str:
+    return next((f" ({unit})" for suffix, unit in UNITS if name.endswith(suffix)), "")
+
+
+def _tags(options) -> str:
+    return ", ".join(f"!{option.__name__} {{...}}" for option in options)
+
+
+def _phrase(hint, name: str = "") -> str:
+    """What a value of the schema type ``hint`` must be, as a user reads it: ``a number
+    (s)``, ``a whole number``, ``a list of numbers (m)``, ``one of !A {...}, !B {...}``."""
+    options = _options(hint)
+    null = ", or null" if type(None) in typing.get_args(hint) else ""
+    if len(options) > 1:
+        return "one of " + _tags(options) + null
+    schema = options[0]
+    if schema is float:
+        return "a number" + _unit(name) + null
+    if schema is int:
+        return "a whole number" + null
+    if schema is bool:
+        return "true or false" + null
+    if schema is str:
+        return "a string" + null
+    if typing.get_origin(schema) is list:
+        item = typing.get_args(schema)[0]
+        items = {float: "numbers" + _unit(name), int: "whole numbers", str: "strings",
+                 bool: "true or false"}.get(item)
+        if items is None:
+            items = (f"{item.__name__} mappings" if dataclasses.is_dataclass(item)
+                     else "mappings, each " + _phrase(item))
+        return f"a list of {items}" + null
+    if dataclasses.is_dataclass(schema):
+        return (f"a mapping of {schema.__name__}'s fields ("
+                + ", ".join(f.name for f in dataclasses.fields(schema)) + ")" + null)
+    return f"a {getattr(schema, '__name__', str(schema))}" + null
 
 
 def load_scenario(name_or_path: str, name: Optional[str] = None,

@@ -10,6 +10,9 @@ from typing import List
 import yaml
 
 _LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)  # libyaml's where PyYAML has it
+# The longest a run, and each script in it, may last (s): a script's setpoints are
+# tabled at every control tick (~0.1 kB a tick) and a paced run times every tick.
+LONGEST_S = 3600.0
 SCENARIO_DIR = Path(__file__).resolve().parent.parent / "scenarios"
 
 

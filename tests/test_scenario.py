@@ -35,7 +35,7 @@ def test_levitate_names_the_required_scenarios():
     ("a: {motion: {waypoints: [{pose: [0, 0, 0.02, 0, 0, 0], hold: 1}]}}",
      "motion.waypoints[0].hold: unknown field"),
     ("a: {device: {tracker: {rate_hz: fast}}}",
-     "device.tracker.rate_hz: could not convert string to float: 'fast'"),
+     "device.tracker.rate_hz = fast: must be a number (Hz)"),
     ("a: {device: {instrument_mass_kg: -0.1}}", "device.instrument_mass_kg = -0.1: must be a finite number > 0"),
     ("a: {device: {instrument: three_magnet}}", "device.instrument = 'three_magnet': must be one of"),
     ("a: {motion: {waypoints: [{pose: [0, 0, 0.02]}]}}", "motion.waypoints[0].pose = [0.0, 0.0, 0.02]: must be a list of 6"),
@@ -44,7 +44,8 @@ def test_levitate_names_the_required_scenarios():
     ("a: {occlusions: [{marker: 5, start_s: 1, end_s: 2}]}", "occlusions[0].marker = 5"),
     ("a: {marker_dropout_probability: 1.5}", "marker_dropout_probability = 1.5: must be in [0, 1]"),
     ("a: {hardware: real}", "hardware: unknown field"),
-    ("a: {station: {url: x}}", "station: needs a tag to choose its kind, one of !SimStation, !LcmStation"),
+    ("a: {station: {url: x}}", "station: needs a tag to choose its kind, one of !SimStation {...}, "
+     "!LcmStation {...}"),
     ("a: {station: !LcmStation {url: 'tcp://10.0.0.1'}}", "station.url = 'tcp://10.0.0.1': must be an LCM UDP multicast URL"),
     ("a: {station: !LcmStation {stale_margin_s: -1}}", "station.stale_margin_s = -1"),
 ])
@@ -110,3 +111,75 @@ def test_cli_out_that_is_a_file_is_a_one_line_error(tmp_path, capsys):
     assert main(["run", "levitate", "--no-meshcat", "--duration", "0.05",
                  "--out", str(existing)]) == 2
     assert "error:" in capsys.readouterr().err
+
+
+# Every refusal of the loader, whole: each message is built from the schema (the field's
+# path, its value, what its type takes), never from Drake's error text, so a Drake
+# upgrade that words its errors differently changes none of them.
+@pytest.mark.parametrize("text, message", [
+    ("{duration_s: three}", "duration_s = three: must be a number (s), or null"),
+    ("{duration_s: [1, 2]}", "duration_s = [1, 2]: must be a number (s), or null"),
+    ("{control_rate_hz: true}", "control_rate_hz = true: must be a number (Hz)"),
+    ("{random_seed: 1.5}", "random_seed = 1.5: must be a whole number"),
+    ("{random_seed: abc}", "random_seed = abc: must be a whole number"),
+    ("{motion: 3}", "motion = 3: must be a mapping of MotionScript's fields (start_xy_yaw, "
+     "takeoff_at_s, force_ramp_s, waypoints, landing_s, settle_s)"),
+    ("{motion: {waypoints: 3}}", "motion.waypoints = 3: must be a list of Waypoint mappings"),
+    ("{motion: {waypoints: [{pose: abc}]}}",
+     "motion.waypoints[0].pose = abc: must be a list of numbers"),
+    ("{motion: {waypoints: [{pose: [0, 0, x, 0, 0, 0]}]}}",
+     "motion.waypoints[0].pose[2] = x: must be a number"),
+    ("{motion: {start_xy_yaw: -1}}", "motion.start_xy_yaw = -1: must be a list of numbers"),
+    ("{occlusions: [{marker: x}]}", "occlusions[0].marker = x: must be a whole number, or null"),
+    ("{motion: {nope: 1}}", "motion.nope: unknown field; MotionScript has start_xy_yaw, "
+     "takeoff_at_s, force_ramp_s, waypoints, landing_s, settle_s"),
+    ("{station: !Foo {}}", "station: !Foo is not one of !SimStation {...}, !LcmStation {...}"),
+    ("{hand: !Foo {}}", "hand: !Foo is not one of !ScriptedHand {...}, !MeshcatHand {...}, "
+     "or null"),
+    ("{hand: 3}", "hand = 3: must be one of !ScriptedHand {...}, !MeshcatHand {...}, or null"),
+    ("{faults: [{at_s: 1}]}", "faults[0]: needs a tag to choose its kind, one of "
+     "!LatencySpike {...}, !CorruptSample {...}, !StuckAmplifier {...}, !Shove {...}"),
+])
+def test_each_loader_refusal_is_one_line_built_from_the_schema(text, message):
+    with pytest.raises(ScenarioError) as error:
+        load_scenario("levitate", scenario_text=text)
+    assert str(error.value) == f"levitate:takeoff_hover_land (--scenario-text): {message}"
+
+
+@pytest.mark.parametrize("text, message", [
+    ("{motion: {waypoints: [{hold_s: 1.0e308}]}}", "motion.waypoints[0].hold_s = 1e+308: "
+     "takes its script to 1e+308 s; a script lasts at most 3600 s"),
+    ("{motion: {waypoints: [{move_s: 1.0e300}]}}", "motion.waypoints[0].move_s = 1e+300: "
+     "takes its script to 1e+300 s; a script lasts at most 3600 s"),
+    ("{motion: {takeoff_at_s: 1.0e308}}", "motion.takeoff_at_s = 1e+308: "
+     "takes its script to 1e+308 s; a script lasts at most 3600 s"),
+    ("{motion: {waypoints: [{hold_s: 3599}]}}", "motion.waypoints[0].hold_s = 3599.0: "
+     "takes its script to 3600.4 s; a script lasts at most 3600 s"),
+    ("{duration_s: 1.0e308}", "duration_s = 1e+308: a run lasts at most 3600 s"),
+    ("{control_rate_hz: 1.0e308}", "control_rate_hz = 1e+308: must be at most 100000 Hz"),
+    ("{log_rate_hz: 1.0e300}", "log_rate_hz = 1e+300: must be at most 100000 Hz"),
+])
+def test_a_huge_finite_time_or_rate_is_refused_naming_its_field(text, message):
+    """A hold of 1e308 s once ended in Drake's 'Times must be in increasing order.'"""
+    with pytest.raises(ScenarioError) as error:
+        load_scenario("levitate", scenario_text=text)
+    assert str(error.value) == f"levitate:takeoff_hover_land: {message}"
+
+
+@pytest.mark.parametrize("file, text, field", [
+    ("peg_in_hole", "{hand: !ScriptedHand {waypoints: [{hold_s: 1.0e308}]}}",
+     "hand.waypoints[0].hold_s = 1e+308"),
+    ("peg_in_hole", "{hand: !ScriptedHand {events: [{at_s: 1.0e308}]}}",
+     "hand.events[0].at_s = 1e+308"),
+    ("stereo_display", "{stereo: {head: {waypoints: [{move_s: 1.0e308}]}}}",
+     "stereo.head.waypoints[0].move_s = 1e+308"),
+])
+def test_the_hands_and_the_heads_scripts_are_bounded_too(file, text, field):
+    with pytest.raises(ScenarioError, match=r"a script lasts at most 3600 s$") as error:
+        load_scenario(file, scenario_text=text)
+    assert field in str(error.value)
+
+
+def test_a_long_hold_within_the_bound_loads():
+    scenario = load_scenario("levitate", scenario_text="{motion: {waypoints: [{hold_s: 600}]}}")
+    assert scenario.motion.waypoints[0].hold_s == 600
