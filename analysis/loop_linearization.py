@@ -349,13 +349,17 @@ def multirate_study(scenario, progress=None) -> Dict:
     single_radius_over_period = _radius(single["M"]) ** steps
     return {"operating_point_s": true["operating_point_s"], "hyperperiod_s": period,
             "states": true["names"], **stability(M, true["names"], period),
-            "held_states": true["held"], "decay_per_s": _radius(M) ** (1.0 / period),
+            # The slowest mode's amplitude one second on, per unit now: the spectral
+            # radius over a second (a factor, not a rate).
+            "held_states": true["held"],
+            "slowest_mode_left_after_1_s": _radius(M) ** (1.0 / period),
             "single_rate": {"hyperperiod_s": single["hyperperiod_s"],
                             "periods_per_hyperperiod": steps,
                             "spectral_radius": _radius(single["M"]),
                             "spectral_radius_over_multirate_hyperperiod":
                                 single_radius_over_period,
-                            "decay_per_s": _radius(single["M"]) ** (1.0 / single["hyperperiod_s"])},
+                            "slowest_mode_left_after_1_s":
+                                _radius(single["M"]) ** (1.0 / single["hyperperiod_s"])},
             "modes": _mode_rows(M, period, true["names"]),
             "single_rate_modes": _mode_rows(single["M"], single["hyperperiod_s"], single["names"]),
             "wall_s": true["wall_s"] + single["wall_s"],

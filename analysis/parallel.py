@@ -95,8 +95,10 @@ def run_searches(function: Callable[[Any], Any], searches: Sequence[Search], *,
             raise OSError(f"Dask scheduler {scheduler!r}: could not connect ({error})") from None
         with client:
             return _run_on(client, *arguments, where=f"Dask scheduler {scheduler}")
+    # The scheduler's web server on any free port (":0"): where 8787 is taken (another
+    # cluster, a second study), Dask would warn in four lines that it moved.
     with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                      host="127.0.0.1", dashboard_address=None) as cluster, \
+                      host="127.0.0.1", dashboard_address=":0") as cluster, \
             Client(cluster) as client:
         return _run_on(client, *arguments, where=f"{workers} local worker processes")
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from typing import Dict, Optional
 
 import numpy as np
@@ -14,6 +15,7 @@ from maglev_haptics.systems.haptic_supervisor import HAPTIC
 from maglev_haptics.systems.rotations import rotation_matrix, rotations_of_quaternions
 
 HOVER_SETTLE_S = 0.5  # skipped at the start of each hold before hover errors count (s)
+HOLD_POSE_TOLERANCE = 1e-6  # the commanded pose is the hold's within this (m, rad)
 
 
 def rpy_from_quaternions(q: np.ndarray) -> np.ndarray:
@@ -150,6 +152,33 @@ def first_touchdown(log: Dict[str, np.ndarray], rest_height_m: float):
             "tilt_deg": float(np.degrees(np.arccos(np.clip(R_WI[2, 2], -1.0, 1.0))))}
 
 
+def for_people(value, digits: int = 6):
+    """``value`` (a number, or dicts and lists of them) with each float rounded to
+    ``digits`` significant digits: 6.6, not 6.6000000000000005."""
+    if isinstance(value, float):
+        return float(f"{value:.{digits}g}") if math.isfinite(value) else value
+    if isinstance(value, dict):
+        return {key: for_people(item, digits) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [for_people(item, digits) for item in value]
+    return value
+
+
+def hold_window(log: Dict[str, np.ndarray], plan: FlightPlan, start: float, end: float,
+                rest_height_m: float) -> np.ndarray:
+    """The samples of the hold from ``start`` to ``end`` (s) that count as hovering:
+    after HOVER_SETTLE_S (or half a short hold), with the instrument in the air and
+    the hold's pose still commanded (not a run stopped before takeoff, not a landing
+    after a fault)."""
+    t = log["t"]
+    p_WI, _, _, _ = recorded_pose(log)
+    pose = plan.setpoint.value(start).ravel()
+    commanded = np.hstack((log["p_WI_desired"], log["rpy_WI_desired"]))
+    return ((t >= start + min(HOVER_SETTLE_S, (end - start) / 2)) & (t <= end)
+            & (p_WI[:, 2] > rest_height_m + AIRBORNE_M)
+            & np.all(np.abs(commanded - pose) < HOLD_POSE_TOLERANCE, axis=1))
+
+
 def _finite_or_none(value):
     """JSON has no infinity: a float, or None where ``value`` is not finite."""
     return float(value) if np.isfinite(value) else None
@@ -170,7 +199,7 @@ def summarize(log: Dict[str, np.ndarray], plan: FlightPlan, *, rest_height_m: fl
             end = min(end, holds_before_s)
             if end <= start:
                 continue
-        window = (t >= start + min(HOVER_SETTLE_S, (end - start) / 2)) & (t <= end)
+        window = hold_window(log, plan, start, end, rest_height_m)
         if not window.any():
             continue
         position_error = p_WI[window] - log["p_WI_desired"][window]
@@ -187,16 +216,17 @@ def summarize(log: Dict[str, np.ndarray], plan: FlightPlan, *, rest_height_m: fl
             "max_coil_current_a": float(np.max(np.abs(log["coil_currents"][window]))),
             "mean_power_w": float(np.mean(log["coil_power_w"][window])),
             # Where the busiest coil would settle if the hold lasted at these currents (the
-            # time constant is ~1 min; the thermal allocation would spread the load as it
-            # warmed); None where it never settles (thermal runaway: I^2 dR/dT beats cooling).
-            "busiest_coil_steady_temperature_c": _finite_or_none(np.max(steady_state_temperature_c(
+            # time constant is ~1 min): a what-if, not a forecast, since the thermal
+            # allocation spreads the load as a coil nears its limit; None where it never
+            # settles (thermal runaway: I^2 dR/dT beats cooling).
+            "busiest_coil_steady_temperature_at_hold_currents_c": _finite_or_none(np.max(steady_state_temperature_c(
                 thermal, np.sqrt(np.mean(log["coil_currents"][window] ** 2, axis=0))))),
         })
     touchdown = first_touchdown(log, rest_height_m)
     shortfall = np.linalg.norm(log["allocation_shortfall_W"], axis=1)
     tracked_before = np.cumsum(log["tracking_ok"] > 0.5) > 0
     dt = np.diff(t, prepend=t[0])
-    return {
+    return for_people({
         # "measured" with a station on LCM: no truth, so errors are the tracker's view.
         "pose_source": source,
         "max_coil_current_a": float(np.max(np.abs(log["coil_currents"]))),
@@ -208,10 +238,10 @@ def summarize(log: Dict[str, np.ndarray], plan: FlightPlan, *, rest_height_m: fl
         "hover_angle_error_rms_deg": max((h["angle_error_rms_deg"] for h in holds), default=None),
         "hover_max_coil_current_a": holds[0]["max_coil_current_a"] if holds else None,
         "hover_mean_power_w": holds[0]["mean_power_w"] if holds else None,
-        "hover_busiest_coil_steady_temperature_c":
-            holds[0]["busiest_coil_steady_temperature_c"] if holds else None,
+        "hover_busiest_coil_steady_temperature_at_hold_currents_c":
+            holds[0]["busiest_coil_steady_temperature_at_hold_currents_c"] if holds else None,
         "touchdown": touchdown,
         # Counted from the first estimate on: the log's t = 0 sample precedes it.
         "tracking_lost_s": float(np.sum(dt[tracked_before & (log["tracking_ok"] < 0.5)])),
         "allocation_saturated_s": float(np.sum(dt[shortfall > 1e-6])),
-    }
+    })

@@ -14,6 +14,7 @@ from maglev_haptics.diagrams.runner import TickTimes, realtime_report  # noqa: E
 from maglev_haptics.systems.haptic_supervisor import HAPTIC  # noqa: E402
 
 AXIS_COLORS = ("tab:red", "tab:green", "tab:blue")
+MIN_TEMPERATURE_SPAN_C = 1.0  # the temperature axis spans at least this (K)
 
 
 def save_figure(figure, path: Path, *, dpi: int = 110, tight: bool = True) -> Path:
@@ -25,7 +26,17 @@ def save_figure(figure, path: Path, *, dpi: int = 110, tight: bool = True) -> Pa
     return path
 
 def _legend_outside(ax) -> None:
-    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.07, 1.0), borderaxespad=0.0)
+    legend = ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.07, 1.0),
+                       borderaxespad=0.0)
+    for line in legend.get_lines():  # a faint or thin trace still gets a legible key
+        line.set_linewidth(2.0)
+        line.set_alpha(1.0)
+
+
+def _round_up_125(value: float) -> float:
+    """The least of 1, 2, 5 times a power of ten that is >= ``value`` (> 0)."""
+    power = 10.0 ** np.floor(np.log10(value))
+    return float(next(step * power for step in (1, 2, 5, 10) if step * power >= value * 0.9999))
 
 
 def plot_run(log: Dict[str, np.ndarray], out_dir: Path, *, title: str,
@@ -48,7 +59,7 @@ def plot_run(log: Dict[str, np.ndarray], out_dir: Path, *, title: str,
                 label=f"{axis} {source}")
         if source == "true":  # the estimate over the truth
             ax.plot(t[measured], 1e3 * log["p_WI_measured"][measured, i], color="k", lw=0.5,
-                    alpha=0.5, label="measured" if i == 0 else None)
+                    alpha=0.5, label="measured (each axis)" if i == 0 else None)
     ax.set_ylabel("position of I in W [mm]")
     _legend_outside(ax)
 
@@ -65,12 +76,19 @@ def plot_run(log: Dict[str, np.ndarray], out_dir: Path, *, title: str,
     error_mm = 1e3 * (p_WI - log["p_WI_desired"])
     for i, axis in enumerate("xyz"):
         ax.plot(t, error_mm[:, i], color=AXIS_COLORS[i], lw=0.6, label=f"{axis} error")
-    # Scale to the flight, not to resting or the scripted press into the glass.
+    # Linear over the hover's errors, logarithmic beyond them (takeoff, touchdown, the
+    # scripted press into the glass), so that none runs off the panel.
     z_desired = log["p_WI_desired"][:, 2]
     flying = z_desired > z_desired.min() + 2e-3
     span = max(np.percentile(np.abs(error_mm[flying] if flying.any() else error_mm), 99), 1e-3)
-    ax.set_ylim(-1.5 * span, 1.5 * span)
-    ax.set_ylabel(f"{source} - commanded [mm]")
+    linear = _round_up_125(1.5 * span)
+    reach = max(linear, 1.2 * np.nanmax(np.abs(error_mm[shown])))
+    ax.set_yscale("symlog", linthresh=linear, linscale=2.0)
+    ax.set_ylim(-reach, reach)
+    marks = linear * 10.0 ** np.arange(0, 1 + max(0, int(np.floor(np.log10(reach / linear)))))
+    ax.set_yticks(np.concatenate((-marks[::-1], [0.0], marks)))
+    ax.set_yticklabels([f"{value:g}" for value in np.concatenate((-marks[::-1], [0.0], marks))])
+    ax.set_ylabel(f"{source} - commanded [mm]\n(linear within +-{linear:g}, log beyond)")
     angle_deg = angle_between_deg(q_WI, log["rpy_WI_desired"])
     angle = ax.twinx()
     angle.plot(t, angle_deg, color="k", lw=0.6)
@@ -96,7 +114,13 @@ def plot_run(log: Dict[str, np.ndarray], out_dir: Path, *, title: str,
                         label="tracking lost")
     ax.set_ylabel("power [W]")
     hottest = ax.twinx()
-    hottest.plot(t, log["coil_temperature_c"].max(axis=1), color="tab:red", lw=1)
+    temperature_c = log["coil_temperature_c"].max(axis=1)
+    hottest.plot(t, temperature_c, color="tab:red", lw=1)
+    hottest.ticklabel_format(axis="y", useOffset=False)  # 25.004, not 0.004 + 2.5e1
+    low, high = temperature_c.min(), temperature_c.max()
+    if high - low < MIN_TEMPERATURE_SPAN_C:  # a short run: the warming shown within a kelvin
+        middle = (low + high) / 2
+        hottest.set_ylim(middle - MIN_TEMPERATURE_SPAN_C / 2, middle + MIN_TEMPERATURE_SPAN_C / 2)
     hottest.set_ylabel("hottest coil [deg C] (red)", color="tab:red")
     _legend_outside(ax)
     ax.set_xlabel("time [s]")
@@ -144,21 +168,26 @@ def plot_haptics(log: Dict[str, np.ndarray], out_dir: Path, *, title: str) -> Pa
 
 
 def plot_tick_times(times: TickTimes, out_dir: Path, *, title: str) -> Path:
-    """Write ``realtime.png``: each paced tick's compute time against its wall-clock
-    slot (misses in red), and their distribution."""
+    """Write ``realtime.png``: each paced tick's compute time, and when it ended after
+    its wall-clock slot began (a miss ends past the slot: a long compute, or a start
+    delayed behind a late tick), and the compute times' distribution."""
     report = realtime_report(times)
     compute_us = 1e6 * times.compute_s
     slot_us = 1e6 * times.slot_s
+    ended_us = slot_us + 1e6 * times.lateness_s  # after its slot's start
     missed = times.lateness_s > 0
     tick = np.arange(compute_us.size)
     fig, (trace, spread) = plt.subplots(2, 1, figsize=(11, 7.5))
+    # The end behind the compute: orange shows only where a tick started late.
+    trace.plot(tick, np.maximum(ended_us, compute_us), lw=0.4, color="tab:orange",
+               label="ended, after its slot began\n(a late start included)")
     trace.plot(tick, compute_us, lw=0.4, color="tab:blue", label="compute of a tick")
-    trace.plot(tick[missed], compute_us[missed], "o", ms=3, color="tab:red",
-               label=f"missed its slot ({report['deadline_misses']})")
+    trace.plot(tick[missed], ended_us[missed], "o", ms=3, color="tab:red",
+               label=f"missed its slot ({report['deadline_misses']}):\nended past it")
     trace.axhline(slot_us, color="k", ls="--", lw=1, label=f"slot {slot_us:.0f} us")
     trace.set_yscale("log")
     trace.set_xlabel("tick")
-    trace.set_ylabel("compute [us]")
+    trace.set_ylabel("wall time [us]")
     _legend_outside(trace)
     bins = np.geomspace(max(compute_us.min(), 1.0), max(compute_us.max(), slot_us) * 1.05, 80)
     spread.hist(compute_us, bins=bins, color="tab:blue")

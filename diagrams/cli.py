@@ -140,6 +140,7 @@ def _load(args):
 
 def _cmd_run(args) -> int:
     from maglev_haptics.diagrams.haptics import interactive_variant
+    from maglev_haptics.analysis.run_metrics import for_people
     from maglev_haptics.analysis.run_results import run_scenario
     from maglev_haptics.diagrams.meshcat_lifetime import close_meshcat
     from maglev_haptics.diagrams.lcm_station import LcmStation, SimStation
@@ -180,11 +181,12 @@ def _cmd_run(args) -> int:
         print(f"maglev run: {label}: {error}", file=sys.stderr)
         return EXIT_DEVICE_IN_USE
     printed = {k: v for k, v in result.summary.items() if k != "holds"}
-    print(json.dumps(printed, indent=2))
-    plots = "levitation.png" + (", haptics.png" if scenario.haptics is not None else "")
-    plots += ", stereo.png" if "head_pose" in result.log else ""
-    plots += ", realtime.png" if "realtime" in result.summary else ""
-    print(f"wrote {out}/log.npz, {out}/summary.json, {out}/{plots}")
+    print(json.dumps(for_people(printed), indent=2))
+    names = ["log.npz", "summary.json", "levitation.png"]
+    names += ["haptics.png"] if scenario.haptics is not None else []
+    names += ["stereo.png"] if "head_pose" in result.log else []
+    names += ["realtime.png"] if "realtime" in result.summary else []
+    print("wrote " + " ".join(str(out / name) for name in names))
     realtime_summary = result.summary.get("realtime")
     if realtime_summary and realtime_summary["miss_fraction"] > MISS_WARNING_FRACTION:
         print(f"warning: {realtime_summary['deadline_misses']} of {realtime_summary['ticks']} "
@@ -194,7 +196,7 @@ def _cmd_run(args) -> int:
               f"{realtime_summary['longest_stall_ms']:.1f} ms: see {out}/realtime.png",
               file=sys.stderr)
     for name in result.summary.get("stereo", {}).get("video", {}).get("files", []):
-        print(f"wrote {out}/{name}")
+        print(f"wrote {out / name}")
     stopped_by = result.summary.get("stopped_by")
     if stopped_by is not None:
         landed = " after landing" if result.summary["landed_before_stopping"] else ""
@@ -204,8 +206,8 @@ def _cmd_run(args) -> int:
     # A fault in a run that injected none: said in one line, last, with its own code.
     outcome = instrument_outcome(scenario, result.summary, result.log, label)
     if result.meshcat is not None:
-        replay = "" if args.interactive else " (the run's recording is replayable there)"
-        print(f"Meshcat: {result.meshcat.web_url()}{replay}")
+        print(_meshcat_last_line(result.meshcat.web_url(), waits=sys.stdin.isatty(),
+                                 replay=not args.interactive))
         if sys.stdin.isatty():
             input("press Enter to close Meshcat and exit ")
         close_meshcat(result.meshcat)
@@ -213,6 +215,16 @@ def _cmd_run(args) -> int:
         print(outcome, file=sys.stderr)
         return EXIT_INSTRUMENT_LOST
     return 0
+
+
+def _meshcat_last_line(url: str, *, waits: bool, replay: bool) -> str:
+    """What the run says of its Meshcat at the end: it serves until Enter where there
+    is a terminal to wait on, and closes with the process where there is none."""
+    if waits:
+        return f"Meshcat: {url}" + (" (the run's recording is replayable there)" if replay
+                                    else "")
+    return (f"Meshcat ({url}) closed with the run: no terminal to wait on"
+            + (" (run it from a terminal to replay the recording there)" if replay else ""))
 
 
 def _cmd_device_sim(args) -> int:
@@ -403,6 +415,7 @@ def _cmd_sweep(args) -> int:
 
 
 def _cmd_analyze(args) -> int:
+    from maglev_haptics.analysis.run_metrics import for_people
     from maglev_haptics.analysis.studies import format_modes, run_study
 
     scenario, label = _load(args)
@@ -416,7 +429,7 @@ def _cmd_analyze(args) -> int:
     else:
         headline = {key: value for key, value in results.items()
                     if not isinstance(value, (list, dict)) or key in ("parameters",)}
-        print(json.dumps(headline, indent=2))
+        print(json.dumps(for_people(headline), indent=2))
         if "modes" in results:
             print(format_modes(results["modes"]))
         files = [f"{args.study.replace('-', '_')}.json"] + results["plots"]

@@ -177,3 +177,24 @@ def test_the_onset_study_says_why_it_does_not_apply():
     """Levitation alone has no hand holding the instrument with haptics on."""
     for point in onset_study(load_scenario("levitate")):
         assert "scripted hand holding the instrument" in point["not_found"], point
+
+
+@pytest.mark.slow
+def test_local_workers_start_quietly_where_port_8787_is_taken(capfd):
+    """Dask's scheduler serves its web page on any free port: no 'Port 8787 is already
+    in use' warning when another cluster (or anything) holds Dask's default port."""
+    import socket
+    import warnings
+    holder = socket.socket()
+    try:
+        holder.bind(("127.0.0.1", 8787))
+        holder.listen()
+    except OSError:
+        pass  # already taken by something else: the case this test is about
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        results = map_jobs(operator.neg, [1, 2, 3], workers=2, progress=False)
+    holder.close()
+    assert results.results == [-1, -2, -3]
+    assert not [w for w in caught if "already in use" in str(w.message)]
+    assert "already in use" not in capfd.readouterr().err
