@@ -193,9 +193,37 @@ def run_sweep(spec: SweepSpec, out_dir: Path, *, workers: int = 1,
                                                       out_dir / "sweep.json", plot]}
 
 
+def _cell(value) -> str:
+    if value is None:
+        return "-"
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    return str(value)
+
+
+def format_table(spec: SweepSpec, rows: List[Dict]) -> str:
+    """The sweep as the terminal shows it: a row a point, the varied fields then the
+    metrics (4 significant digits; "-": no value), a failed point's error last."""
+    columns = [*spec.vary, *spec.metrics]
+    cells = [[_cell(row[column]) for column in columns]
+             + ([f"error: {row['error']}"] if row.get("error") else []) for row in rows]
+    widths = [max([len(column)] + [len(line[i]) for line in cells])
+              for i, column in enumerate(columns)]
+    lines = ["  ".join(column.rjust(width) for column, width in zip(columns, widths))]
+    lines += ["  ".join(cell.rjust(width) for cell, width in zip(line, widths))
+              + ("  " + line[-1] if len(line) > len(columns) else "") for line in cells]
+    return "\n".join(lines)
+
+
+# A metric whose positive values span more than this ratio is plotted on a log axis (one
+# diverged point would flatten the others on a linear one).
+LOG_AXIS_RATIO = 20.0
+
+
 def plot_sweep(spec: SweepSpec, rows: List[Dict], path: Path) -> Path:
     """A panel for each (metric, varied field): the metric at every point against the
-    field's value, the points that share the other fields' values joined."""
+    field's value, the points that share the other fields' values joined; a log axis
+    where a metric's values span more than LOG_AXIS_RATIO."""
     fields, metrics = list(spec.vary), spec.metrics
     figure, panels = plt.subplots(len(metrics), len(fields), squeeze=False,
                                   figsize=(4.0 * len(fields), 2.8 * len(metrics)))
@@ -216,8 +244,14 @@ def plot_sweep(spec: SweepSpec, rows: List[Dict], path: Path) -> Path:
                     x, y = zip(*points)
                     label = ", ".join(f"{f}={v}" for f, v in zip(others, key)) or None
                     panel.plot(x, y, "o-", ms=4, label=label)
+            values = [row[name] for row in rows if isinstance(row[name], (int, float))
+                      and math.isfinite(row[name])]
+            log_axis = bool(values) and min(values) > 0 and max(values) > LOG_AXIS_RATIO * min(
+                values)
+            if log_axis:
+                panel.set_yscale("log")
             panel.set_xlabel(varied)
-            panel.set_ylabel(name)
+            panel.set_ylabel(name + (" (log)" if log_axis else ""))
             if others and len(groups) <= 8 and i == 0:
                 panel.legend(fontsize=6)
     figure.suptitle(f"sweep of {spec.scenario}" + (f":{spec.name}" if spec.name else ""))

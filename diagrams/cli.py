@@ -394,7 +394,7 @@ def _cmd_faults(args) -> int:
 
 
 def _cmd_sweep(args) -> int:
-    from maglev_haptics.analysis.sweep import parse_spec, run_sweep
+    from maglev_haptics.analysis.sweep import format_table, parse_spec, run_sweep
 
     path = Path(args.spec)
     try:
@@ -405,12 +405,11 @@ def _cmd_sweep(args) -> int:
     out_dir = _writable_folder(Path(args.out))
     results = run_sweep(spec, out_dir, workers=args.workers, scheduler=args.scheduler)
     failed = [row for row in results["rows"] if row["error"]]
-    for row in failed:
-        print(f"point {', '.join(f'{f}={row[f]}' for f in spec.vary)}: {row['error']}")
+    print(format_table(spec, results["rows"]))
     jobs = results["jobs"]
     print(f"{len(results['rows'])} points on {jobs['where']}"
           + (f" ({jobs['reran']} rerun after their worker died)" if jobs["reran"] else "")
-          + "; wrote " + ", ".join(str(path) for path in results["files"]))
+          + "; wrote " + " ".join(str(path) for path in results["files"]))
     return 0 if not failed else 1
 
 

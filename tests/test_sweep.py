@@ -68,3 +68,36 @@ def test_a_bad_spec_names_its_field_before_any_run(text, message):
     with pytest.raises(ScenarioError, match="^spec.yaml: .*" + message.replace(
             "(", r"\(").replace(")", r"\)").replace("[", r"\[").replace("{", r"\{")):
         parse_spec(text, "spec.yaml")
+
+
+def _spec():
+    return parse_spec("scenario: levitate\nvary: {estimator.bandwidth_hz: [20, 50, 100]}\n"
+                      "metrics: [hover_position_error_rms_mm, touchdown.speed_m_s]")
+
+
+ROWS = [{"estimator.bandwidth_hz": 20, "hover_position_error_rms_mm": 17.123456,
+         "touchdown.speed_m_s": None, "error": None},
+        {"estimator.bandwidth_hz": 50, "hover_position_error_rms_mm": 0.0123456,
+         "touchdown.speed_m_s": 0.0051, "error": None},
+        {"estimator.bandwidth_hz": 100, "hover_position_error_rms_mm": None,
+         "touchdown.speed_m_s": None, "error": "RuntimeError: boom"}]
+
+
+def test_the_terminal_gets_the_sweep_as_a_table():
+    from maglev_haptics.analysis.sweep import format_table
+    assert format_table(_spec(), ROWS).splitlines() == [
+        "estimator.bandwidth_hz  hover_position_error_rms_mm  touchdown.speed_m_s",
+        "                    20                        17.12                    -",
+        "                    50                      0.01235               0.0051",
+        "                   100                            -                    -"
+        "  error: RuntimeError: boom"]
+
+
+def test_a_diverged_point_puts_its_metric_on_a_log_axis(tmp_path, monkeypatch):
+    from maglev_haptics.analysis import sweep
+    figures = []
+    monkeypatch.setattr(sweep, "save_figure", lambda figure, path: figures.append(figure) or path)
+    sweep.plot_sweep(_spec(), ROWS, tmp_path / "sweep.png")
+    hover, touchdown = (figures[0].axes[0], figures[0].axes[1])
+    assert hover.get_yscale() == "log" and hover.get_ylabel().endswith("(log)")
+    assert touchdown.get_yscale() == "linear"
