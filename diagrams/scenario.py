@@ -101,10 +101,15 @@ class Haptics:
     supervisor: SupervisorConfig = field(default_factory=SupervisorConfig)
     enable_at_s: float = 2.0  # (s)
     disable_at_s: Optional[float] = None  # (s)
+    # A rigid scene's plant steps in a worker process on the other core ("worker"),
+    # bit for bit as in this diagram ("in_place", which the loop's linearization needs).
+    scene_stepping: str = "worker"
 
     def validate(self, path: str = "haptics") -> None:
         """Range checks; a ValueError names ``path.field``, its value and what is allowed."""
         self.scene.validate(f"{path}.scene")
+        require(self.scene_stepping in ("worker", "in_place"), f"{path}.scene_stepping",
+                self.scene_stepping, "one of worker, in_place")
         nonnegative(f"{path}.enable_at_s", self.enable_at_s)
         if self.disable_at_s is not None:
             require(isinstance(self.disable_at_s, (int, float))
@@ -124,8 +129,8 @@ class Scenario:
     marker_dropout_probability: float = 0.0  # per marker and sample
     control_rate_hz: float = 1000.0  # controller, allocator, amplifiers (860: synchronous with the tracker)
     log_rate_hz: float = 1000.0
-    # The station's plant: the instrument and the glass, point contact (~15 us a step
-    # in flight, ~75 us resting on the glass). Unsampled output ports: the plant then
+    # The station's plant: the instrument and the glass, point contact (its cost a
+    # step: `maglev bench`, "plant step"). Unsampled output ports: the plant then
     # steps in the same discrete update as the loop instead of an unrestricted update
     # before it, so the loop's cached values are computed once a tick (and the
     # plant linearizes: a sampled output would linearize to the identity).
