@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # One entry point for a fresh Debian or Ubuntu machine with Python 3.12 or newer:
 #   ./run.sh demo   install everything, then run the levitation demo in Meshcat
-#   ./run.sh test   install everything, then run the test suite
+#   ./run.sh test   install everything, then run the default test suite (-m slow: the long
+#                   tests; .ci/run runs both)
 # Anything after the first word is passed on (to `maglev run` or to pytest).
 # MAGLEV_PYTHON=/path/to/python picks the interpreter; else the newest 3.12+ found.
 set -euo pipefail
