@@ -11,8 +11,8 @@ given a Meshcat, the visualizers.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Dict, Optional
+from dataclasses import dataclass, field
+from typing import Dict, List, Optional
 
 import numpy as np
 from pydrake.geometry import Meshcat, MeshcatVisualizer, MeshcatVisualizerParams, Role
@@ -41,6 +41,9 @@ from maglev_haptics.systems.pose_estimator import PoseEstimator
 from maglev_haptics.systems.stereo_renderer import AddStereoRenderer, SurfaceLayer
 
 MESHCAT_PERIOD_S = 1 / 30
+# A paced run draws its frames between ticks (``diagrams/runner.py``), not in them:
+# the visualizers' own periodic events then have a period no run reaches (s).
+FRAMES_BETWEEN_TICKS_PERIOD_S = 1e6
 # The coils' thermal model runs at 100 Hz: its time constant is ~1 min (s).
 THERMAL_PERIOD_S = 0.01
 # The device supervisor's watchdogs check at 200 Hz (s; its docstring says why).
@@ -69,6 +72,8 @@ class BuiltDiagram:
     haptics: Optional[object] = None  # diagrams.haptics.HapticParts
     meshcat_hand: Optional[object] = None  # the MeshcatHandInput whose controls to delete
     stereo: Optional[object] = None  # diagrams.stereo_display.StereoParts
+    # Paced runs: the visualizers the runner publishes every MESHCAT_PERIOD_S between ticks.
+    frame_publishers: List[object] = field(default_factory=list)
 
 
 def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
@@ -78,7 +83,9 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
     """The whole diagram for ``scenario``; ``label`` names it in error messages.
 
     With the stereo display, ``frame_sink(t, left, right)`` receives the rendered
-    eye images (none rendered without it); ``realtime`` lets rendering skip frames.
+    eye images (none rendered without it). ``realtime`` (a paced run) lets rendering skip
+    frames, and leaves the Meshcat frames to the runner, between ticks
+    (``frame_publishers``): a frame may be late, a tick may not.
     ``hand_target_offset_input``: export ``hand_target_offset`` (analysis only; the
     caller must fix it). ``device_api``: the ``device_supervisor`` starts resting on
     the glass, coils off, for the device API to command (instead of flying the
@@ -193,6 +200,8 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
         logged_ports["hand_state"] = station.GetOutputPort("hand_state")
         logged_ports["hand_wrench_on_instrument_W"] = station.GetOutputPort(
             "hand_wrench_on_instrument_W")
+    frame_period_s = FRAMES_BETWEEN_TICKS_PERIOD_S if realtime else MESHCAT_PERIOD_S
+    frame_publishers = []
     stereo = None
     if scenario.stereo is not None:
         surface = None
@@ -211,7 +220,10 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
             virtual_world = station.GetOutputPort("query_object")
         stereo = AddStereoDisplay(builder, scenario=scenario, station=station,
                                   query_object_port=virtual_world, meshcat=meshcat,
-                                  frame_sink=frame_sink, realtime=realtime, surface=surface)
+                                  frame_period_s=frame_period_s, frame_sink=frame_sink,
+                                  realtime=realtime, surface=surface)
+        if stereo.visualizer is not None:
+            frame_publishers.append(stereo.visualizer)
         if simulated:  # the true head
             logged_ports["head_pose"] = station.GetOutputPort("head_pose")
         logged_ports["glasses_measured"] = station.GetOutputPort("glasses_measured")
@@ -246,13 +258,14 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
 
     if meshcat is not None:
         if simulated:  # the true instrument and the glass; the measured one is drawn below
-            MeshcatVisualizer.AddToBuilder(
+            frame_publishers.append(MeshcatVisualizer.AddToBuilder(
                 builder, station.GetOutputPort("query_object"), meshcat,
-                MeshcatVisualizerParams(publish_period=MESHCAT_PERIOD_S,
-                                        role=Role.kIllustration))
+                MeshcatVisualizerParams(publish_period=frame_period_s,
+                                        role=Role.kIllustration)))
         visualizer = builder.AddNamedSystem("device_visualizer", DeviceVisualizer(
-            meshcat=meshcat, device=device, period_s=MESHCAT_PERIOD_S,
+            meshcat=meshcat, device=device, period_s=frame_period_s,
             close_view=scenario.haptics is not None))
+        frame_publishers.append(visualizer)
         builder.Connect(station.GetOutputPort("coil_currents"),
                         visualizer.GetInputPort("coil_currents"))
         builder.Connect(controller_setpoint, visualizer.GetInputPort("setpoint"))
@@ -263,23 +276,24 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
         builder.Connect(controller.GetOutputPort("wrench_rendered_W"),
                         visualizer.GetInputPort("wrench_rendered_W"))
         if haptics is not None:
-            MeshcatVisualizer.AddToBuilder(
+            frame_publishers.append(MeshcatVisualizer.AddToBuilder(
                 builder, haptics.scene.scene_graph.get_query_output_port(), meshcat,
-                MeshcatVisualizerParams(publish_period=MESHCAT_PERIOD_S,
-                                        role=Role.kIllustration, prefix="scene"))
+                MeshcatVisualizerParams(publish_period=frame_period_s,
+                                        role=Role.kIllustration, prefix="scene")))
             scene = haptics.scene
             if scene.surface is None:
-                ContactVisualizer.AddToBuilder(
+                frame_publishers.append(ContactVisualizer.AddToBuilder(
                     builder, scene.plant, meshcat,
-                    ContactVisualizerParams(publish_period=MESHCAT_PERIOD_S, prefix="contact",
-                                            newtons_per_meter=10.0, newton_meters_per_meter=1.0))
+                    ContactVisualizerParams(publish_period=frame_period_s, prefix="contact",
+                                            newtons_per_meter=10.0, newton_meters_per_meter=1.0)))
             else:
                 # The lattice is no geometry of the scene plant: it draws itself.
                 config = scenario.haptics.scene
                 surface_visualizer = builder.AddNamedSystem(
                     "lattice_visualizer", LatticeVisualizer(
                         meshcat=meshcat, lattice=scene.lattice, p_TP_m=config.tool_offset_m,
-                        probe_radius_m=config.probe.radius_m, period_s=MESHCAT_PERIOD_S))
+                        probe_radius_m=config.probe.radius_m, period_s=frame_period_s))
+                frame_publishers.append(surface_visualizer)
                 for name in ("surface_positions_m", "wrench_on_tool_W"):
                     builder.Connect(scene.surface.GetOutputPort(name),
                                     surface_visualizer.GetInputPort(name))
@@ -288,5 +302,5 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
     diagram.set_name("maglev_haptics")
     return BuiltDiagram(diagram=diagram, plan=plan, logger=logger, log_layout=log_layout,
                         magnetics=magnetics, tick_s=1.0 / scenario.control_rate_hz,
-                        haptics=haptics, meshcat_hand=meshcat_hand,
-                        stereo=stereo)
+                        haptics=haptics, meshcat_hand=meshcat_hand, stereo=stereo,
+                        frame_publishers=frame_publishers if realtime else [])

@@ -5,7 +5,10 @@ tick of ``tick_s`` simulated seconds is released at its wall-clock slot
 (``tick_s / realtime_rate`` wall seconds long), computed with one ``AdvanceTo``,
 and timed. A tick whose compute ends after its slot has missed its deadline; the
 next tick then starts at once, so a late loop catches up rather than skipping
-ticks (a haptic loop may not drop its samples).
+ticks (a haptic loop may not drop its samples). What is not the loop's (Meshcat's
+frames, moving the log to disk, the progress bar) runs between ticks, only where
+its measured cost fits before the next slot (``BetweenTicks``): a frame may be
+late, a tick may not.
 """
 
 from __future__ import annotations
@@ -15,13 +18,15 @@ import math
 import signal
 import threading
 import time
-from dataclasses import dataclass
-from typing import Dict
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Callable, Dict, List
 
 import numpy as np
 from pydrake.systems.analysis import Simulator
 from tqdm import tqdm
 
+from maglev_haptics.diagrams.application import MESHCAT_PERIOD_S
 from maglev_haptics.diagrams.motion import IDLE_AFTER_S
 from maglev_haptics.hardware.kernels import compile_kernels
 
@@ -134,6 +139,69 @@ class LandBeforeStopping:
         return t_s >= self.landing_end_s + IDLE_AFTER_S
 
 
+# A job runs between ticks only where COST_SAFETY times the median of its last
+# COST_MEMORY costs, and this margin, fit before the next tick's release (s). The
+# median, not the most: one run that the host preempted must not bar a job for good.
+BETWEEN_TICKS_MARGIN_S = 50e-6
+COST_MEMORY = 15
+COST_SAFETY = 1.5
+
+
+@dataclass
+class BetweenTicksJob:
+    """Work due every ``period_s`` of simulated time, first at ``due_s`` (s)."""
+    name: str
+    run: Callable[[], None]
+    period_s: float
+    due_s: float = 0.0
+    costs_s: deque = field(default_factory=lambda: deque(maxlen=COST_MEMORY))
+    runs: int = 0
+    late_s: float = 0.0  # the longest a run came after it was due (simulated s)
+
+    def timed_run(self) -> None:
+        begin = time.perf_counter()
+        self.run()
+        self.costs_s.append(time.perf_counter() - begin)
+        self.runs += 1
+
+    def cost_s(self) -> float:
+        return COST_SAFETY * float(np.median(self.costs_s)) if self.costs_s else 0.0
+
+
+class BetweenTicks:
+    """The paced loop's gaps: each due job runs, most overdue first, while its cost
+    (as measured) fits before ``release`` (time.perf_counter's clock, s). A job whose
+    cost never fits is never run in the loop, rather than make a tick late."""
+
+    def __init__(self, jobs: List[BetweenTicksJob]):
+        self.jobs = jobs
+
+    def measure(self) -> None:
+        """Run every job once, off the clock, for a first measure of its cost."""
+        for job in self.jobs:
+            job.timed_run()
+
+    def fill_gap(self, t_s: float, release: float) -> None:
+        """Run the jobs due at simulated time ``t_s`` that fit before ``release``."""
+        for job in sorted((job for job in self.jobs if job.due_s <= t_s),
+                          key=lambda job: job.due_s):
+            if release - time.perf_counter() < job.cost_s() + BETWEEN_TICKS_MARGIN_S:
+                continue
+            job.late_s = max(job.late_s, t_s - job.due_s)
+            job.timed_run()
+            job.due_s += job.period_s
+            if job.due_s <= t_s:  # a period or more behind: the missed runs are skipped
+                job.due_s = t_s + job.period_s
+
+
+def frame_jobs(publishers, context, period_s: float) -> List[BetweenTicksJob]:
+    """One job a visualizer: its ForcedPublish at the context's time."""
+    return [BetweenTicksJob(
+        name=publisher.get_name(), period_s=period_s,
+        run=lambda publisher=publisher: publisher.ForcedPublish(
+            publisher.GetMyContextFromRoot(context))) for publisher in publishers]
+
+
 class PacedTicks:
     """The timing of a paced run as it goes: kept when Ctrl-C ends the run early."""
 
@@ -150,17 +218,32 @@ class PacedTicks:
 
 
 def advance_paced(simulator, duration_s: float, tick_s: float, ticks: PacedTicks, bar,
-                  stop=None, spin_s: float = math.inf, on_progress=None):
+                  stop=None, spin_s: float = math.inf, on_progress=None,
+                  frame_publishers=(), frame_period_s: float = 1 / 30) -> BetweenTicks:
     """Tick by tick to ``duration_s``, each released at its wall-clock slot; ``stop(context)``,
-    asked every PROGRESS_CHUNK_S, ends the run early when it returns True; so often
-    ``on_progress(context)`` is called too. The wait for a slot spins for its last
-    ``spin_s`` (s) and sleeps before that."""
-    start_s = simulator.get_context().get_time()
+    asked every PROGRESS_CHUNK_S, ends the run early when it returns True. Between
+    ticks, where they fit (``BetweenTicks``): the progress bar and ``on_progress(context)``
+    every PROGRESS_CHUNK_S, and each of ``frame_publishers`` published every
+    ``frame_period_s`` (s). The wait for a slot spins for its last ``spin_s`` (s) and
+    sleeps before that. Returns the gaps' jobs, with what they cost and how late they ran."""
+    context = simulator.get_context()
+    start_s = context.get_time()
     ticks_per_update = max(1, int(round(PROGRESS_CHUNK_S / tick_s)))
+
+    def report_progress():
+        bar.update(context.get_time() - bar.n)
+        bar.set_postfix_str(f"missed {ticks.missed}/{ticks.done}", refresh=False)
+        if on_progress is not None:
+            on_progress(context)
+
+    between = BetweenTicks([BetweenTicksJob("progress", report_progress, PROGRESS_CHUNK_S)]
+                           + frame_jobs(frame_publishers, context, frame_period_s))
+    between.measure()
     clock_zero = time.perf_counter()
     try:
         for k in range(ticks.compute_s.size):
             release = clock_zero + k * ticks.slot_s
+            between.fill_gap(context.get_time(), release)
             wait_until(release, spin_s)
             begin = time.perf_counter()
             simulator.AdvanceTo(start_s + (k + 1) * tick_s)
@@ -169,15 +252,13 @@ def advance_paced(simulator, duration_s: float, tick_s: float, ticks: PacedTicks
             ticks.lateness_s[k] = end - (release + ticks.slot_s)
             ticks.missed += ticks.lateness_s[k] > 0.0
             ticks.done = k + 1
-            if ticks.done % ticks_per_update == 0:
-                bar.update(simulator.get_context().get_time() - bar.n)
-                bar.set_postfix_str(f"missed {ticks.missed}/{ticks.done}", refresh=False)
-                if on_progress is not None:
-                    on_progress(simulator.get_context())
-                if stop is not None and stop(simulator.get_context()):
-                    break
+            if ticks.done % ticks_per_update == 0 and stop is not None and stop(context):
+                break
     finally:
-        bar.update(simulator.get_context().get_time() - bar.n)
+        # The last frame and the log's tail, off the clock.
+        for job in between.jobs:
+            job.run()
+    return between
 
 
 def simulate(built, duration_s: float, *, realtime_rate: float = 0.0,
@@ -209,7 +290,8 @@ def simulate(built, duration_s: float, *, realtime_rate: float = 0.0,
                   ) as bar:
             if paced is not None:
                 advance_paced(simulator, duration_s, built.tick_s, paced, bar, stop,
-                              SHARED_SPIN_S if shares_cores else math.inf, on_progress)
+                              SHARED_SPIN_S if shares_cores else math.inf, on_progress,
+                              built.frame_publishers, MESHCAT_PERIOD_S)
             else:
                 chunks = np.append(np.arange(PROGRESS_CHUNK_S, duration_s, PROGRESS_CHUNK_S),
                                    duration_s)

@@ -22,7 +22,6 @@ from maglev_haptics.systems.stereo_renderer import StereoRenderer
 from maglev_haptics.systems.stereo_visualizer import StereoVisualizer
 
 ENCODERS = ("auto", "png")
-MESHCAT_PERIOD_S = 1 / 30
 
 
 @dataclass
@@ -96,15 +95,17 @@ class StereoParts:
     predictor: HeadPosePredictor
     view: StereoView
     renderer: Optional[StereoRenderer]
+    visualizer: Optional[StereoVisualizer] = None
 
 
 def AddStereoDisplay(builder: DiagramBuilder, *, scenario, station, query_object_port,
-                     meshcat=None, frame_sink=None, realtime: bool = False,
-                     surface=None) -> StereoParts:
+                     meshcat=None, frame_period_s: float = 1 / 30, frame_sink=None,
+                     realtime: bool = False, surface=None) -> StereoParts:
     """Predictor, views and (given a ``frame_sink(t, left, right)`` and images on)
     the renderer of the virtual world behind ``query_object_port`` (its SceneGraph
     must have the stereo renderer, ``AddStereoRenderer``). ``surface``: a
-    (SurfaceLayer, output port of its vertex positions) drawn over that world."""
+    (SurfaceLayer, output port of its vertex positions) drawn over that world.
+    With ``meshcat``, the glasses and frusta are drawn every ``frame_period_s`` (s)."""
     stereo, device = scenario.stereo, scenario.device
     period_s = view_period_s(stereo, device.display)
     screen = display_rectangle(device.display)
@@ -129,12 +130,13 @@ def AddStereoDisplay(builder: DiagramBuilder, *, scenario, station, query_object
             builder.Connect(surface[1], renderer.GetInputPort("surface_positions_m"))
         for name in ("camera_left", "camera_right", "view_ok"):
             builder.Connect(view.GetOutputPort(name), renderer.GetInputPort(name))
+    visualizer = None
     if meshcat is not None:
         visualizer = builder.AddNamedSystem("stereo_visualizer", StereoVisualizer(
             meshcat=meshcat, display_corners_W=screen.corners_W,
-            p_GK_m=device.glasses.p_GK_m, period_s=MESHCAT_PERIOD_S))
+            p_GK_m=device.glasses.p_GK_m, period_s=frame_period_s))
         builder.Connect(predictor.GetOutputPort("X_WG_predicted"),
                         visualizer.GetInputPort("X_WG"))
         builder.Connect(view.GetOutputPort("eye_positions_W"),
                         visualizer.GetInputPort("eye_positions_W"))
-    return StereoParts(predictor=predictor, view=view, renderer=renderer)
+    return StereoParts(predictor=predictor, view=view, renderer=renderer, visualizer=visualizer)

@@ -1,0 +1,92 @@
+"""Work between the paced loop's ticks: frames, the log, the progress bar run only where they fit."""
+
+import time
+
+import pytest
+
+from maglev_haptics.diagrams.runner import (
+    BETWEEN_TICKS_MARGIN_S, BetweenTicks, BetweenTicksJob, PacedTicks, advance_paced)
+
+TICK_S = 1e-3
+
+
+def busy(seconds: float):
+    def run():
+        end = time.perf_counter() + seconds
+        while time.perf_counter() < end:
+            pass
+    return run
+
+
+class FakeSimulator:
+    """AdvanceTo takes TICK_COST_S of wall time; time is the tick's end."""
+    TICK_COST_S = 100e-6
+
+    def __init__(self):
+        self._time = 0.0
+
+    def get_context(self):
+        return self
+
+    def get_time(self):
+        return self._time
+
+    def AdvanceTo(self, t):
+        busy(self.TICK_COST_S)()
+        self._time = t
+
+
+class Bar:
+    n = 0.0
+
+    def update(self, step):
+        self.n += step
+
+    def set_postfix_str(self, *_, **__):
+        pass
+
+
+def test_a_job_runs_when_due_and_only_where_its_cost_fits():
+    job = BetweenTicksJob("frame", lambda: None, period_s=0.01)
+    job.costs_s.extend([200e-6] * 3)  # as if measured
+    gaps = BetweenTicks([job])
+    gaps.fill_gap(0.0, time.perf_counter() + 0.1)  # due at 0, room to spare
+    assert job.runs == 1 and job.due_s == pytest.approx(0.01)
+    gaps.fill_gap(0.005, time.perf_counter() + 0.1)  # not yet due
+    assert job.runs == 1
+    gaps.fill_gap(0.02, time.perf_counter() + 200e-6 + BETWEEN_TICKS_MARGIN_S)
+    assert job.runs == 1  # due, but with its safety factor it would run into the next slot
+    gaps.fill_gap(0.05, time.perf_counter() + 0.1)
+    assert job.runs == 2
+    assert job.late_s == pytest.approx(0.04)
+    assert job.due_s == pytest.approx(0.06)  # the frames it missed are skipped, not queued
+
+
+def test_paced_loop_publishes_frames_between_ticks_and_not_one_that_cannot_fit():
+    class Publisher:
+        def __init__(self, name, cost_s):
+            self.name, self.run, self.times = name, busy(cost_s), []
+
+        def get_name(self):
+            return self.name
+
+        def GetMyContextFromRoot(self, context):
+            return context
+
+        def ForcedPublish(self, context):
+            self.times.append(context.get_time())
+            self.run()
+
+    cheap, too_slow = Publisher("cheap", 100e-6), Publisher("too slow", 2e-3)
+    ticks = PacedTicks(300, slot_s=TICK_S)
+    simulator = FakeSimulator()
+    gaps = advance_paced(simulator, 0.3, TICK_S, ticks, Bar(), frame_publishers=[cheap, too_slow],
+                         frame_period_s=0.03)
+    # Measured before the clock, each 30 ms in the loop where due (a loaded host may
+    # delay some), and the last frame after it.
+    assert 5 <= len(cheap.times) - 2 <= 11
+    assert cheap.times[0] == 0.0 and cheap.times[-1] == pytest.approx(0.3)
+    # 2 ms never fits a 1 ms slot: drawn before and after the loop only, however the
+    # host delayed it.
+    assert too_slow.times == [0.0, pytest.approx(0.3)]
+    assert {job.name for job in gaps.jobs} == {"progress", "cheap", "too slow"}
