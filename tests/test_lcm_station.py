@@ -151,6 +151,7 @@ def test_no_message_is_lost_in_steady_state(lockstep_run):
 TWO_PROCESS_RATE = 0.5
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["levitate", "peg_in_hole"])
 def test_device_sim_and_application_in_two_processes(tmp_path, name):
     """The acceptance run: `maglev device-sim` and `maglev run --station lcm`, each its
@@ -182,10 +183,12 @@ def test_device_sim_and_application_in_two_processes(tmp_path, name):
     # The link's latency (wall clock, the wait for the reading tick included) is
     # measured, and on average under two of the reader's ticks (measured: markers
     # 1.4 ms at half speed, 0.86 ms at full speed, where a tick is 2 and 1 ms).
+    # A process the host paused raises the mean: judged with the flight, below.
     tick_ms = 1.0 / TWO_PROCESS_RATE
-    for counts in (*summary["station"]["channels"].values(), device_summary["commands"]):
+    link_counts = (*summary["station"]["channels"].values(), device_summary["commands"])
+    for counts in link_counts:
         assert 0.0 < counts["latency_ms_mean"] <= counts["latency_ms_max"]
-        assert counts["latency_ms_mean"] < 2 * tick_ms
+    latency_ms = max(counts["latency_ms_mean"] for counts in link_counts)
     assert summary["pose_source"] == "measured"
     # A channel goes stale (markers unseen: the controller carries the weight alone,
     # then drops the instrument; commands: the coils off) when the host pauses a
@@ -227,6 +230,8 @@ def test_device_sim_and_application_in_two_processes(tmp_path, name):
         flight_checks["a soft, level touchdown"] = (summary["touchdown"] is not None and
                                                    summary["touchdown"]["speed_m_s"] < 0.05
                                                    and summary["touchdown"]["tilt_deg"] < 1.0)
+    flight_checks[f"link latency mean {latency_ms:.2f} ms < {2 * tick_ms:g}"] = (
+        latency_ms < 2 * tick_ms)
     failed = [check for check, ok in flight_checks.items() if not ok]
     if failed and stale_gaps and max(stalls_ms) > tolerated_ms:
         pytest.skip(f"this machine paused a process for {max(stalls_ms):.0f} ms, past the "
