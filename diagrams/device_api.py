@@ -44,11 +44,12 @@ from pydrake.systems.analysis import Simulator
 from pydrake.trajectories import PiecewisePolynomial
 
 from maglev_haptics.diagrams.application import BuildDiagram
-from maglev_haptics.diagrams.lcm_station import LcmStation
+from maglev_haptics.diagrams.lcm_station import LcmStation, station_lease
 from maglev_haptics.diagrams.motion import check_pose_reachable
 from maglev_haptics.diagrams.runner import SHARED_SPIN_S, wait_until
 from maglev_haptics.diagrams.scenario import Scenario, load_scenario
 from maglev_haptics.hardware.kernels import compile_kernels
+from maglev_haptics.hardware.lease import DeviceInUseError  # noqa: F401 (connect raises it)
 from maglev_haptics.systems.blends import minimum_jerk_plan
 from maglev_haptics.systems.device_supervisor import (  # noqa: F401 (the API's fault bits)
     FAULT_COIL_OVER_CURRENT, FAULT_COIL_OVER_TEMPERATURE, FAULT_OVER_SPEED,
@@ -102,7 +103,10 @@ class MaglevDevice:
     # --- connection ---------------------------------------------------------
 
     def connect(self) -> None:
-        """Build the diagram and start the device: resting on the glass, coils off."""
+        """Build the diagram and start the device: resting on the glass, coils off.
+        With a station on LCM, first take the device's lease (``hardware/lease.py``):
+        if another application holds it, raises DeviceInUseError, having commanded
+        no coil."""
         compile_kernels(progress=False)
         self._built = BuildDiagram(self.scenario, device_api=True, label="device")
         diagram = self._built.diagram
@@ -124,6 +128,14 @@ class MaglevDevice:
         self._shares_cores = isinstance(self.scenario.station, LcmStation)
         self._clock_zero, self._ticks = time.perf_counter(), 0
         self.state = self._read_state()
+        if self._shares_cores:  # on LCM: the lease before anything else
+            lease = station_lease(diagram)
+            try:
+                self._run_until(lambda: lease.granted, self.scenario.station.wait_for_station_s,
+                                "connect (the device's lease)", on_timeout=lambda: None)
+            except Exception:
+                self._simulator = None
+                raise
 
     def disconnect(self) -> None:
         """Coils off at once (no landing: land first), and the diagram released."""
@@ -131,6 +143,8 @@ class MaglevDevice:
         self._coils_off()
         self.set_feedforward_wrench(np.zeros(6))
         self._tick()
+        if self._shares_cores:
+            station_lease(self._built.diagram).release()
         self._simulator = None
 
     # --- commands (each takes effect on the next tick) ---------------------

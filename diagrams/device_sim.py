@@ -5,11 +5,18 @@ amplifiers, tracker and (scripted) hand as the all-in-one run, publishing the
 markers, the currents that flow and the device's status, and taking its coil
 currents from the application's commands. Run paced to the wall clock, as the
 real device is.
+
+Every command is checked before it reaches the coils (``hardware/link_checks.py``):
+one that does not decode, commands another coil count, holds a non-finite current
+or one past the amplifiers' limit, comes from a session that does not hold the
+lease (``hardware/lease.py``) or repeats an old sequence is refused, counted and
+never used; like a lost command, the last good one holds until
+``command_timeout_s`` turns the coils off.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from pydrake.systems.framework import Diagram, DiagramBuilder
@@ -17,10 +24,13 @@ from pydrake.systems.primitives import ConstantVectorSource, Demultiplexer, Mult
 
 from maglev_haptics.diagrams.haptics import AddHandCommands
 from maglev_haptics.diagrams.lcm_station import (
-    COIL_CURRENTS, COIL_CURRENTS_COMMANDED, DEVICE_STATUS, GLASSES, MARKERS, SimStation,
-    channel, lcm_config, open_lcm)
+    COIL_CURRENTS, COIL_CURRENTS_COMMANDED, DEVICE_STATUS, GLASSES, LEASE, LEASE_REQUEST,
+    MARKERS, SimStation, channel, lcm_config, open_lcm)
 from maglev_haptics.diagrams.station import MakeStation
-from maglev_haptics.hardware.lcm_messages import coil_currents_t, device_status_t
+from maglev_haptics.hardware.lcm_link import publish
+from maglev_haptics.hardware.lcm_messages import coil_currents_t, device_status_t, lease_t
+from maglev_haptics.hardware.lease import LeaseServer
+from maglev_haptics.hardware.link_checks import LinkLimits, check_command, check_lease_request
 from maglev_haptics.hardware.magnetics import load_magnetics
 from maglev_haptics.hardware.thermal import coil_thermal
 from maglev_haptics.systems.coil_thermal import CoilTemperatures
@@ -32,6 +42,7 @@ from maglev_haptics.systems.station_messages import (
 # tracker need no more than 100 Hz.
 STATUS_PERIOD_S = 0.01
 COMMANDS_PORT = "commands"  # the receiver's: [currents (A); power], the station's two inputs
+LEASE_REQUESTS = "lease_requests"  # the receiver's channel of lease requests (no port)
 
 
 @dataclass
@@ -40,6 +51,8 @@ class DeviceSim:
     tick_s: float  # the station's control period (s)
     command_receiver: MessageReceiver  # counts the application's commands
     stop_after_silence_s: float
+    lease: LeaseServer  # who may command the coils
+    frame_publishers: list = field(default_factory=list)  # none: device-sim draws nothing
 
     def application_gone(self, context) -> bool:
         """Whether commands came and then stopped for ``stop_after_silence_s``."""
@@ -50,36 +63,71 @@ class DeviceSim:
         return context.get_time() - arrival_s > self.stop_after_silence_s
 
     def command_counts(self, context) -> dict:
-        """What the device read and lost of the application's commands (``receiver_counts``)."""
+        """What the device read, refused (by reason) and lost of the application's
+        commands (``MessageReceiver.counts``)."""
         return self.command_receiver.counts(
             self.command_receiver.GetMyContextFromRoot(context), COMMANDS_PORT)
+
+    def lease_counts(self, context) -> dict:
+        """The lease requests read and refused, the holder now and the grants made."""
+        counts = self.command_receiver.counts(
+            self.command_receiver.GetMyContextFromRoot(context), LEASE_REQUESTS)
+        return {"requests_received": counts["messages_received"],
+                **{k: counts[k] for k in ("messages_refused", "refused", "first_refused")},
+                **self.lease.counts()}
+
+
+def MakeCommandReceiver(*, lcm, station, limits: LinkLimits, lease: LeaseServer,
+                        period_s: float, log=None) -> MessageReceiver:
+    """The device's receiver of the application's lease requests and commands on ``lcm``
+    (``station``: the LcmStation's channels and timeouts): output ``commands``
+    [currents (A); power], the lease holder's newest good command, zeros once it is
+    older than ``command_timeout_s``."""
+    n_coils = limits.n_coils
+    return MessageReceiver(
+        lcm=lcm, on_tick=lease.on_tick, period_s=period_s,
+        **({} if log is None else {"log": log}), channels=[
+            # Requests first: a command that follows its session's request in the same
+            # tick finds the lease granted.
+            ReceivedChannel(
+                port=LEASE_REQUESTS, channel=channel(station, LEASE_REQUEST),
+                message_type=lease_t, size=0, decode=None, check=check_lease_request,
+                session_of=lambda message: message.session, admit=lease.admit_request,
+                on_accept=lease.request),
+            ReceivedChannel(
+                port=COMMANDS_PORT, channel=channel(station, COIL_CURRENTS_COMMANDED),
+                message_type=coil_currents_t, size=n_coils + 1,
+                decode=lambda message, _: currents_and_power_from_message(message),
+                stale_value=np.zeros(n_coils + 1), stale_after_s=station.command_timeout_s,
+                check=lambda message: check_command(message, limits),
+                session_of=lambda message: message.session, admit=lease.admit,
+                on_accept=lambda message, t_s: lease.keep_alive(t_s))])
 
 
 def BuildDeviceSim(scenario) -> DeviceSim:
     """The simulated station of ``scenario`` alone, its ports on LCM (the module
     docstring's channels), with the simulated hand's script when it has one.
-    Commands older than ``command_timeout_s`` turn every coil off and cut the power."""
+    Commands older than ``command_timeout_s`` turn every coil off and cut the power;
+    only the lease holder's commands that pass the link's checks are used."""
     station_config = lcm_config(scenario)
     device = scenario.device
     n_coils = device.n_coils
+    limits = LinkLimits.from_device(device)
     period_s = 1.0 / scenario.control_rate_hz
     tracker_period_s = 1.0 / device.tracker.rate_hz
     builder = DiagramBuilder()
     station = builder.AddSystem(MakeStation(scenario, magnetics=load_magnetics(device),
                                             station=SimStation()))
-    commands = builder.AddNamedSystem("commands_receiver", MessageReceiver(
-        lcm=open_lcm(station_config.command_url), channels=[ReceivedChannel(
-            port=COMMANDS_PORT, channel=channel(station_config, COIL_CURRENTS_COMMANDED),
-            message_type=coil_currents_t, size=n_coils + 1,
-            decode=lambda message, _: currents_and_power_from_message(message),
-            stale_value=np.zeros(n_coils + 1), stale_after_s=station_config.command_timeout_s)],
-        period_s=period_s))
+    publisher = open_lcm(station_config.url)
+    lease = LeaseServer(timeout_s=station_config.lease_timeout_s, publish_reply=lambda message:
+                        publish(publisher, channel(station_config, LEASE), message))
+    commands = builder.AddNamedSystem("commands_receiver", MakeCommandReceiver(
+        lcm=open_lcm(station_config.command_url), station=station_config, limits=limits,
+        lease=lease, period_s=period_s))
     command = builder.AddNamedSystem("command", Demultiplexer([n_coils, 1]))
     builder.Connect(commands.GetOutputPort(COMMANDS_PORT), command.get_input_port())
     builder.Connect(command.get_output_port(0), station.GetInputPort("coil_currents_commanded"))
     builder.Connect(command.get_output_port(1), station.GetInputPort("coil_power"))
-
-    publisher = open_lcm(station_config.url)
 
     def send(name, value_port, encode, send_period_s):
         sender = builder.AddNamedSystem(f"{name.lower()}_sender", MessageSender(
@@ -124,4 +172,4 @@ def BuildDeviceSim(scenario) -> DeviceSim:
     diagram = builder.Build()
     diagram.set_name("device_sim")
     return DeviceSim(diagram=diagram, tick_s=period_s, command_receiver=commands,
-                     stop_after_silence_s=station_config.stop_after_silence_s)
+                     stop_after_silence_s=station_config.stop_after_silence_s, lease=lease)

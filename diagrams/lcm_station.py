@@ -14,7 +14,15 @@ other end: the simulated station alone, speaking the same messages. Channels
 - ``DEVICE_STATUS`` (device_status_t, device -> application: grip, faults, coil
   temperatures);
 - ``GLASSES`` (glasses_t, device -> application, with the stereo display: the
-  head tracker's samples).
+  head tracker's samples);
+- ``LEASE_REQUEST`` (lease_t, application -> device: asks for the one-controller
+  lease, and lets it go) and ``LEASE`` (lease_t, device -> application: who holds
+  it; ``hardware/lease.py``).
+
+Every inbound message is checked before it is used, at both ends
+(``hardware/link_checks.py``): one that does not decode, has the wrong sizes, a
+non-finite or out-of-range number, another session's command or an old sequence
+is refused, counted per channel and reason, and never used.
 
 The device's messages go on ``url``, the commands on ``command_url``: UDP
 multicast with ttl=0 by default, so they never leave this host, one port a
@@ -39,7 +47,11 @@ from pydrake.systems.primitives import Multiplexer
 
 from maglev_haptics.hardware.config_checks import positive, require
 from maglev_haptics.hardware.lcm_messages import (
-    coil_currents_t, device_status_t, glasses_t, markers_t)
+    coil_currents_t, device_status_t, glasses_t, lease_t, markers_t)
+from maglev_haptics.hardware.lease import LeaseClient
+from maglev_haptics.hardware.link_checks import (
+    REASONS, LinkLimits, check_glasses, check_lease_reply, check_markers,
+    check_measured_currents, check_status)
 from maglev_haptics.systems.station_messages import (
     MessageReceiver, MessageSender, ReceivedChannel, currents_message,
     glasses_measurement_from_message, markers_from_message)
@@ -51,10 +63,13 @@ COIL_CURRENTS_COMMANDED = "COIL_CURRENTS_COMMANDED"
 COIL_CURRENTS = "COIL_CURRENTS"
 DEVICE_STATUS = "DEVICE_STATUS"
 GLASSES = "GLASSES"
+LEASE = "LEASE"
+LEASE_REQUEST = "LEASE_REQUEST"
 GLASSES_MEASUREMENT_SIZE = 9  # [capture time, q_WG (wxyz), p_WG, ok]: systems/head_sensor.py
 # The station's output port each inbound channel feeds.
 INBOUND_PORTS = {MARKERS: "markers_measured", COIL_CURRENTS: "coil_currents",
-                 DEVICE_STATUS: "handle_gripped", GLASSES: "glasses_measured"}
+                 DEVICE_STATUS: "handle_gripped", GLASSES: "glasses_measured",
+                 LEASE: "lease"}  # the lease's answers feed no port
 
 
 @dataclass
@@ -81,6 +96,8 @@ class LcmStation:
     # ``maglev device-sim`` stops once none has come for ``stop_after_silence_s``.
     command_timeout_s: float = 0.010
     stop_after_silence_s: float = 1.0
+    # The device's lease lapses once its holder's commands have been silent this long (s).
+    lease_timeout_s: float = 0.5
 
     def validate(self, path: str = "station") -> None:
         """Range checks; a ValueError names ``path.field``, its value and what is allowed."""
@@ -92,7 +109,8 @@ class LcmStation:
                 f"{path}.channel_prefix", self.channel_prefix,
                 "must be letters, digits and underscores")
         positive(f"{path}.stale_margin_s", self.stale_margin_s)
-        for name in ("wait_for_station_s", "command_timeout_s", "stop_after_silence_s"):
+        for name in ("wait_for_station_s", "command_timeout_s", "stop_after_silence_s",
+                     "lease_timeout_s"):
             positive(f"{path}.{name}", getattr(self, name))
 
 
@@ -119,48 +137,70 @@ def marker_stale_after_s(scenario, station: LcmStation) -> float:
     return 1.0 / tracker.rate_hz + tracker.latency_s + station.stale_margin_s
 
 
-def MakeLcmStation(scenario) -> Diagram:
-    """The application's station for ``scenario.station`` (an LcmStation), named
-    ``station``: inputs ``coil_currents_commanded`` and ``coil_power``; outputs ``markers_measured``,
-    ``coil_currents``, with a hand in the scenario ``handle_gripped``, with the
-    stereo display ``glasses_measured``. Its ``receiver`` counts the messages it
-    read and lost on each channel; building it waits up to ``wait_for_station_s``
-    for the station's markers."""
+def station_channels(scenario, lease: LeaseClient) -> list:
+    """The application's inbound channels for ``scenario`` (its LcmStation's names),
+    each with the link's checks (``hardware/link_checks.py``), the lease's answers
+    going to ``lease``."""
     station = scenario.station
     device = scenario.device
     n_coils = device.n_coils
     n_markers = len(device.instrument_spec().p_IK_m)
-    period_s = 1.0 / scenario.control_rate_hz
-    builder = DiagramBuilder()
+    limits = LinkLimits.from_device(device)
 
-    def inbound(name, message_type, size, decode, **options):
+    def inbound(name, message_type, size, decode, check, **options):
         return ReceivedChannel(port=INBOUND_PORTS[name], channel=channel(station, name),
-                               message_type=message_type, size=size, decode=decode, **options)
+                               message_type=message_type, size=size, decode=decode,
+                               check=lambda message: check(message, limits), **options)
 
     channels = [
+        inbound(LEASE, lease_t, 0, None, check_lease_reply, on_accept=lease.on_reply),
         inbound(MARKERS, markers_t, 3 * n_markers,
-                lambda message, _: markers_from_message(message, n_markers),
+                lambda message, _: markers_from_message(message, n_markers), check_markers,
                 stale_value=np.full(3 * n_markers, np.nan),
                 stale_after_s=marker_stale_after_s(scenario, station),
                 wait_s=station.wait_for_station_s),
         inbound(COIL_CURRENTS, coil_currents_t, n_coils,
                 lambda message, _: np.array(message.current_a, dtype=float),
-                initial_value=np.zeros(n_coils))]
+                check_measured_currents, initial_value=np.zeros(n_coils))]
     if scenario.hand is not None:
         channels.append(inbound(DEVICE_STATUS, device_status_t, 1,
                                 lambda message, _: np.array([float(message.handle_gripped)]),
-                                initial_value=np.zeros(1)))
+                                check_status, initial_value=np.zeros(1)))
     if scenario.stereo is not None:
         channels.append(inbound(GLASSES, glasses_t, GLASSES_MEASUREMENT_SIZE,
-                                glasses_measurement_from_message,
+                                glasses_measurement_from_message, check_glasses,
                                 initial_value=glasses_measurement_from_message(glasses_t(), 0.0)))
+    return channels
+
+
+def MakeLcmStation(scenario) -> Diagram:
+    """The application's station for ``scenario.station`` (an LcmStation), named
+    ``station``: inputs ``coil_currents_commanded`` and ``coil_power``; outputs ``markers_measured``,
+    ``coil_currents``, with a hand in the scenario ``handle_gripped``, with the
+    stereo display ``glasses_measured``. Its ``receiver`` checks and counts the
+    messages it read, refused and lost on each channel; building it waits up to
+    ``wait_for_station_s`` for the station's markers. Its first tick asks for the
+    device's lease (``receiver.lease``, a LeaseClient): an answer naming another
+    holder raises DeviceInUseError, and no grant within ``wait_for_station_s``
+    a TimeoutError."""
+    station = scenario.station
+    n_coils = scenario.device.n_coils
+    period_s = 1.0 / scenario.control_rate_hz
+    builder = DiagramBuilder()
+    command_lcm = open_lcm(station.command_url)
+    lease = LeaseClient(lcm=command_lcm, channel=channel(station, LEASE_REQUEST),
+                        wait_s=station.wait_for_station_s)
+    channels = station_channels(scenario, lease)
     receiver = builder.AddNamedSystem("receiver", MessageReceiver(
-        lcm=open_lcm(station.url), channels=channels, period_s=period_s))
+        lcm=open_lcm(station.url), channels=channels, period_s=period_s,
+        on_tick=lease.on_tick))
+    receiver.lease = lease
     for port in receiver.ports():
         builder.ExportOutput(receiver.GetOutputPort(port), port)
     sender = builder.AddNamedSystem("coil_currents_commanded_sender", MessageSender(
-        lcm=open_lcm(station.command_url), channel=channel(station, COIL_CURRENTS_COMMANDED),
-        size=n_coils + 1, encode=currents_message, period_s=period_s))
+        lcm=command_lcm, channel=channel(station, COIL_CURRENTS_COMMANDED),
+        size=n_coils + 1, period_s=period_s,
+        encode=lambda sequence, t, value: currents_message(sequence, t, value, lease.session)))
     command = builder.AddNamedSystem("command", Multiplexer([n_coils, 1]))
     builder.Connect(command.get_output_port(), sender.GetInputPort("value"))
     builder.ExportInput(command.get_input_port(0), "coil_currents_commanded")
@@ -170,14 +210,23 @@ def MakeLcmStation(scenario) -> Diagram:
     return diagram
 
 
+def station_lease(diagram) -> LeaseClient:
+    """The application's end of the device's lease, in a diagram with an LCM station."""
+    return diagram.GetSubsystemByName("station").GetSubsystemByName("receiver").lease
+
+
 def station_counts(diagram, context) -> dict:
-    """What the application's LCM station read and lost, and the gaps in which a
-    channel went stale, per channel and in all."""
+    """What the application's LCM station read, refused (by reason) and lost, and the
+    gaps in which a channel went stale, per channel and in all; and its lease."""
     receiver = diagram.GetSubsystemByName("station").GetSubsystemByName("receiver")
     receiver_context = receiver.GetMyContextFromRoot(context)
     counts = {name.lower(): receiver.counts(receiver_context, port)
-              for name, port in INBOUND_PORTS.items() if port in receiver.ports()}
+              for name, port in INBOUND_PORTS.items() if port in receiver.channels()}
     return {"messages_received": sum(c["messages_received"] for c in counts.values()),
             "messages_lost": sum(c["messages_lost"] for c in counts.values()),
+            "messages_refused": sum(c["messages_refused"] for c in counts.values()),
+            "refused": {reason: sum(c["refused"][reason] for c in counts.values())
+                        for reason in REASONS},
             "stale_gaps": sum(c["stale_gaps"] for c in counts.values()),
+            "lease": receiver.lease.counts(),
             "channels": counts}

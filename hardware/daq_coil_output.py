@@ -3,24 +3,34 @@
 A small adapter for current-mode amplifiers driven by an NI analog-output card
 through ``nidaqmx``: each ``coil_currents_t`` command on the application's
 channel becomes one voltage per coil, ``current / amps_per_volt``, written to
-the card's channels in coil order. A command that breaks the contract (another
-coil count, a non-finite or over-limit current) is never written: the outputs
-go to 0 V (coils off) and the reason is returned; so does a command with the
-power cut (``power_enabled`` false: wire the amplifiers' enable pins to the supply
-the application cuts, since a stuck amplifier ignores 0 V). NI-DAQmx itself (the vendor's
-runtime) must be installed on the machine with the card.
+the card's channels in coil order.
+
+The same policy as ``maglev device-sim`` (``hardware/link_checks.py``,
+``hardware/lease.py``): a command is written only if it decodes, commands the
+card's coil count, holds finite currents within the limit, comes from the session
+that holds the device's lease and is newer than the last one accepted. A refused
+command is a lost command: it is counted and never reaches the coils, and the last
+good one holds until ``command_timeout_s`` turns the coils off (0 V). A command
+with the power cut (``power_enabled`` false: wire the amplifiers' enable pins to
+the supply the application cuts, since a stuck amplifier ignores 0 V) is a good
+command, and writes 0 V. NI-DAQmx itself (the vendor's runtime) must be installed
+on the machine with the card.
 """
 
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import List, Optional, Tuple
+from typing import Callable, List
 
 import numpy as np
 
 from maglev_haptics.hardware.extras import MissingDriverError, require_extra
-from maglev_haptics.hardware.lcm_messages import coil_currents_t
+from maglev_haptics.hardware.lcm_link import publish
+from maglev_haptics.hardware.lcm_messages import coil_currents_t, lease_t
+from maglev_haptics.hardware.lease import LeaseServer
+from maglev_haptics.hardware.link_checks import (
+    InboundGate, LinkLimits, check_command, check_lease_request, log_to_stderr)
 
 
 @dataclass
@@ -37,26 +47,68 @@ class CoilOutputContract:
             raise ValueError(f"amps_per_volt = {self.amps_per_volt}: must be a finite "
                              "number > 0 (A/V)")
 
+    def limits(self) -> LinkLimits:
+        return LinkLimits(n_coils=self.n_coils, n_markers=0,
+                          current_limit_a=self.current_limit_a)
 
-def coil_voltages(message: coil_currents_t,
-                  contract: CoilOutputContract) -> Tuple[np.ndarray, Optional[str]]:
-    """(volts (n_coils,), None) for a command within the contract; else
-    (zeros, why): every coil off."""
-    off = np.zeros(contract.n_coils)
+
+def coil_voltages(message: coil_currents_t, contract: CoilOutputContract) -> np.ndarray:
+    """Volts (n_coils,) for a command within the contract (zeros with the power cut);
+    raises Refused (``hardware/link_checks.py``) for one outside it."""
+    check_command(message, contract.limits())
     if not message.power_enabled:
-        return off, "the application cut the coils' power"
-    if message.num_coils != contract.n_coils:
-        return off, (f"command for {message.num_coils} coils: the card drives "
-                     f"{contract.n_coils}")
-    currents = np.asarray(message.current_a, dtype=float)
-    if not np.all(np.isfinite(currents)):
-        return off, "command holds a non-finite current"
-    worst = float(np.max(np.abs(currents))) if currents.size else 0.0
-    # A hair over from rounding is the limit; more is a broken command.
-    if worst > contract.current_limit_a * (1 + 1e-9):
-        return off, (f"command of {worst:.3f} A exceeds the {contract.current_limit_a} A "
-                     "current limit")
-    return currents / contract.amps_per_volt, None
+        return np.zeros(contract.n_coils)
+    return np.asarray(message.current_a, dtype=float) / contract.amps_per_volt
+
+
+class CommandLink:
+    """The device's end of the link without the card: lease requests and commands
+    in (raw LCM data), the lease's answers out (``publish_reply``), and the
+    commands that pass every check handed to ``apply(message)``. Times are
+    ``clock()``'s (s, monotonic)."""
+
+    def __init__(self, contract: CoilOutputContract, *, apply: Callable,
+                 publish_reply: Callable, lease_timeout_s: float,
+                 command_channel: str = "COIL_CURRENTS_COMMANDED",
+                 lease_channel: str = "LEASE_REQUEST", clock: Callable = time.monotonic,
+                 log: Callable[[str], None] = log_to_stderr):
+        self._apply = apply
+        self._clock = clock
+        self.lease = LeaseServer(timeout_s=lease_timeout_s, publish_reply=publish_reply)
+        limits = contract.limits()
+        self.commands = InboundGate(command_channel, coil_currents_t,
+                                    lambda message: check_command(message, limits),
+                                    session_of=lambda message: message.session,
+                                    admit=self.lease.admit, log=log)
+        self.requests = InboundGate(lease_channel, lease_t, check_lease_request,
+                                    session_of=lambda message: message.session,
+                                    admit=self.lease.admit_request, log=log)
+        self.applied = 0
+
+    def on_request(self, data: bytes) -> None:
+        now_s = self._clock()
+        message = self.requests.accept(data, now_s)
+        if message is not None:
+            self.lease.request(message, now_s)
+
+    def on_command(self, data: bytes) -> bool:
+        """Whether the command was applied."""
+        now_s = self._clock()
+        message = self.commands.accept(data, now_s)
+        if message is None:
+            return False
+        self.lease.keep_alive(now_s)
+        self._apply(message)
+        self.applied += 1
+        return True
+
+    def on_tick(self) -> None:
+        self.lease.on_tick(self._clock())
+
+    def counts(self) -> dict:
+        return {"applied": self.applied, **self.commands.counts(),
+                "lease": {"requests_refused": self.requests.counts()["refused"],
+                          **self.lease.counts()}}
 
 
 class DaqCoilOutput:
@@ -89,38 +141,47 @@ class DaqCoilOutput:
             raise OSError(f"channels: NI-DAQmx refused {channels}: "
                           f"{str(error).splitlines()[0]}") from None
 
-    def apply(self, message: coil_currents_t) -> Optional[str]:
-        volts, why = coil_voltages(message, self._contract)
+    def apply(self, message: coil_currents_t) -> None:
+        """Write one command; raises Refused, writing nothing, for one outside the
+        contract (only the lease and the sequence are left to ``serve``)."""
+        volts = coil_voltages(message, self._contract)
         self._task.write(volts.tolist(), auto_start=True)
-        return why
 
-    def serve(self, lcm, channel: str, duration_s: float, command_timeout_s: float) -> dict:
-        """Apply every command on ``channel`` of ``lcm`` for ``duration_s`` s (wall
-        clock), the coils off whenever the newest is older than ``command_timeout_s``
-        (s: the application stopped) and at the end; {"applied", "refused",
-        "timeouts"} counts."""
-        counts = {"applied": 0, "refused": 0, "timeouts": 0}
-        newest = [-float("inf")]  # when the newest command was applied (monotonic s)
+    def serve(self, lcm, channel: str, duration_s: float, command_timeout_s: float, *,
+              lease_channel: str, reply_lcm, reply_channel: str,
+              lease_timeout_s: float) -> dict:
+        """Apply every good command on ``channel`` of ``lcm`` for ``duration_s`` s (wall
+        clock), the lease's requests on ``lease_channel`` answered on ``reply_channel``
+        of ``reply_lcm``; the coils off whenever the newest good command is older than
+        ``command_timeout_s`` (s: the application stopped, or its commands were
+        refused) and at the end. Returns ``CommandLink.counts()`` and "timeouts"."""
+        newest = [-float("inf")]  # when the newest good command was applied (monotonic s)
 
-        def apply(_, data):
-            why = self.apply(coil_currents_t.decode(data))
-            counts["refused" if why else "applied"] += 1
+        def apply(message):
+            self.apply(message)
             newest[0] = time.monotonic()
 
-        lcm.subscribe(channel, apply)
+        link = CommandLink(self._contract, apply=apply, lease_timeout_s=lease_timeout_s,
+                           publish_reply=lambda message: publish(reply_lcm, reply_channel,
+                                                                 message),
+                           command_channel=channel, lease_channel=lease_channel)
+        lcm.subscribe(lease_channel, lambda _, data: link.on_request(data))
+        lcm.subscribe(channel, lambda _, data: link.on_command(data))
         end = time.monotonic() + duration_s
         off = True
+        timeouts = 0
         try:
             while time.monotonic() < end:
                 lcm.handle_timeout(1)
+                link.on_tick()
                 stale = time.monotonic() - newest[0] > command_timeout_s
                 if stale and not off:
                     self._task.write([0.0] * self._contract.n_coils, auto_start=True)
-                    counts["timeouts"] += 1
+                    timeouts += 1
                 off = stale
         finally:
             self.close()
-        return counts
+        return {**link.counts(), "timeouts": timeouts}
 
     def close(self) -> None:
         self._task.write([0.0] * self._contract.n_coils, auto_start=True)  # coils off

@@ -5,7 +5,11 @@ into messages; the application side turns messages back into the same port
 values, so the application cannot tell a simulated station from a real one.
 Times on the wire are integer microseconds on the sender's clock.
 
-Each receiver counts what it got: ``received`` messages it read, ``lost`` the
+Each receiver takes every message through its channel's ``InboundGate``
+(``hardware/link_checks.py``: it decodes, its sizes match the scenario, its numbers
+are finite and in range, its session holds the lease, its sequence is newer than
+the last accepted) and never uses one it refuses; it counts them by reason. Of
+what it accepted it counts ``received``, ``lost`` the
 gaps in their ``sequence`` numbers (messages that never arrived), and the latency
 the link added: from a message's ``sent_wall_utime`` to the tick that read it, on
 the wall clock (meaningful where sender and receiver share it: one host, or
@@ -27,6 +31,7 @@ import numpy as np
 from pydrake.systems.framework import LeafSystem
 
 from maglev_haptics.hardware.lcm_link import publish
+from maglev_haptics.hardware.link_checks import InboundGate, log_to_stderr
 from maglev_haptics.hardware.lcm_messages import (
     coil_currents_t, device_status_t, glasses_t, markers_t)
 
@@ -100,11 +105,13 @@ def glasses_measurement_from_message(message: glasses_t, arrival_s: float) -> np
     return np.array([arrival_s - age_s, *message.quaternion_wxyz, *message.position_m, 1.0])
 
 
-def currents_message(sequence: int, t_s: float,
-                     currents_and_power: np.ndarray) -> coil_currents_t:
-    """``currents_and_power``: the coils' currents (A) then the supply (1 on, 0 off)."""
+def currents_message(sequence: int, t_s: float, currents_and_power: np.ndarray,
+                     session: int = 0) -> coil_currents_t:
+    """``currents_and_power``: the coils' currents (A) then the supply (1 on, 0 off);
+    ``session``: the commanding application's lease session (0: measured currents)."""
     message = coil_currents_t()
     message.sequence = int(sequence)
+    message.session = int(session)
     message.utime = to_utime(t_s)
     message.num_coils = len(currents_and_power) - 1
     message.current_a = currents_and_power[:-1].tolist()
@@ -172,13 +179,20 @@ def message_sequence(data: bytes) -> tuple:
 class ReceivedChannel:
     """One LCM channel a ``MessageReceiver`` reads, and the vector port it feeds.
 
-    ``port``: the output port's name; ``decode(message, arrival_s) -> (size,)``;
+    ``port``: the output port's name (size 0: no port, the channel only feeds
+    ``on_accept``); ``decode(message, arrival_s) -> (size,)``;
     ``stale_value`` (or None: hold the newest) is output before the first message
     and once the newest is older than ``stale_after_s`` (s, on the diagram's clock,
     which a paced run keeps on the wall clock); ``initial_value`` (default the
     stale value) is held before the first message; with ``wait_s`` > 0,
     initialization waits that long (wall-clock seconds) for a first message and
-    raises a TimeoutError naming the channel if none comes."""
+    raises a TimeoutError naming the channel if none comes.
+
+    The gate (``hardware/link_checks.py``): ``check(message)`` raises Refused for a
+    message outside what the scenario allows; ``session_of(message)`` keys the
+    sequence gate by session (default: one sender); ``admit(message, t_s)`` raises
+    Refused("other_session") for a message the lease does not admit;
+    ``on_accept(message, t_s)`` sees every message accepted, in order."""
     port: str
     channel: str
     message_type: type
@@ -188,6 +202,10 @@ class ReceivedChannel:
     stale_after_s: float = math.inf
     initial_value: Optional[np.ndarray] = None
     wait_s: float = 0.0
+    check: Callable = lambda message: None
+    session_of: Optional[Callable] = None
+    admit: Optional[Callable] = None
+    on_accept: Optional[Callable] = None
 
 
 class MessageReceiver(LeafSystem):
@@ -200,16 +218,25 @@ class MessageReceiver(LeafSystem):
         - (one per channel, named by its port)
 
     Every ``period_s`` (s) one update reads everything that arrived on ``lcm`` (an
-    ``lcm.LCM``), counts it per channel and keeps each channel's newest message:
-    one Python call a tick for every channel, since each call is what a 1 kHz
-    tick pays for. A gap between two messages in which a tick read the channel's
-    stale value counts as a stale gap (``counts``).
+    ``lcm.LCM``), takes each message through its channel's gate, counts it and
+    keeps each channel's newest accepted message: one Python call a tick for every
+    channel, since each call is what a 1 kHz tick pays for. A gap between two
+    messages in which a tick read the channel's stale value counts as a stale gap
+    (``counts``). ``on_tick(t_s)``, if given, is called at the end of every update
+    (the lease's ends ask and answer there). What a gate refused is counted in the
+    gate (I/O, as the messages are), the rest in the discrete state.
     """
 
-    def __init__(self, *, lcm, channels: Sequence[ReceivedChannel], period_s: float):
+    def __init__(self, *, lcm, channels: Sequence[ReceivedChannel], period_s: float,
+                 on_tick: Optional[Callable[[float], None]] = None,
+                 log: Callable[[str], None] = log_to_stderr):
         super().__init__()
         self._lcm = lcm
+        self._on_tick = on_tick
         self._channels = {spec.port: spec for spec in channels}
+        self._gates = {spec.port: InboundGate(
+            spec.channel, spec.message_type, spec.check, session_of=spec.session_of,
+            admit=spec.admit, log=log) for spec in channels}
         # A tick reads a channel stale once its newest message is older than
         # stale_after_s: the gap to the next message is then longer than this (s).
         self._stale_gap_s = {spec.port: (spec.stale_after_s + period_s if spec.stale_value
@@ -225,6 +252,8 @@ class MessageReceiver(LeafSystem):
             # tick late by tens of ms must still read every message.
             subscription.set_queue_capacity(MESSAGE_QUEUE_CAPACITY)
             self._counters[spec.port] = self.DeclareDiscreteState(_NEVER)
+            if spec.size == 0:
+                continue
             initial = spec.stale_value if spec.initial_value is None else spec.initial_value
             self._held[spec.port] = self.DeclareDiscreteState(np.asarray(initial, float))
             self.DeclareVectorOutputPort(
@@ -260,17 +289,30 @@ class MessageReceiver(LeafSystem):
         for port, arrived in self._arrived.items():
             if not arrived:
                 continue
-            spec = self._channels[port]
-            counters = context.get_discrete_state(self._counters[port]).get_value().tolist()
+            spec, gate = self._channels[port], self._gates[port]
+            counters = None
+            newest = None
             for data in arrived:
-                sequence, sent_wall_utime = message_sequence(data)
-                counters = receiver_step(counters, sequence, t_s,
-                                         (now_utime - sent_wall_utime) / US_PER_S,
+                message = gate.accept(data, t_s)
+                if message is None:
+                    continue
+                if counters is None:
+                    counters = context.get_discrete_state(self._counters[port]).get_value() \
+                        .tolist()
+                counters = receiver_step(counters, message.sequence, t_s,
+                                         (now_utime - message.sent_wall_utime) / US_PER_S,
                                          self._stale_gap_s[port])
-            discrete_state.set_value(self._counters[port], counters)
-            discrete_state.set_value(self._held[port], spec.decode(
-                spec.message_type.decode(arrived[-1]), t_s))
+                if spec.on_accept is not None:
+                    spec.on_accept(message, t_s)
+                newest = message
             arrived.clear()
+            if newest is None:  # every one refused: what was held holds
+                continue
+            discrete_state.set_value(self._counters[port], counters)
+            if spec.size:
+                discrete_state.set_value(self._held[port], spec.decode(newest, t_s))
+        if self._on_tick is not None:
+            self._on_tick(t_s)
 
     def _calc_value(self, spec, context, output):
         arrival = context.get_discrete_state(self._counters[spec.port]).GetAtIndex(1)
@@ -280,7 +322,11 @@ class MessageReceiver(LeafSystem):
             output.SetFromVector(context.get_discrete_state(self._held[spec.port]).get_value())
 
     def ports(self) -> list:
-        """The output ports' names, one a channel."""
+        """The output ports' names, one a channel that feeds one."""
+        return [port for port, spec in self._channels.items() if spec.size]
+
+    def channels(self) -> list:
+        """The names its channels are counted under (``counts``), ports or not."""
         return list(self._channels)
 
     def newest_arrival_s(self, context, port: str) -> float:
@@ -288,8 +334,10 @@ class MessageReceiver(LeafSystem):
         return context.get_discrete_state(self._counters[port]).GetAtIndex(1)
 
     def counts(self, context, port: str) -> dict:
-        """What ``receiver_counts`` says so far for ``port``'s channel."""
-        return receiver_counts(context.get_discrete_state(self._counters[port]).get_value())
+        """What ``receiver_counts`` says so far for ``port``'s channel, and what its gate
+        refused (``messages_refused``, ``refused`` by reason, ``first_refused``)."""
+        return {**receiver_counts(context.get_discrete_state(self._counters[port]).get_value()),
+                **self._gates[port].counts()}
 
 
 class MessageSender(LeafSystem):

@@ -8,3 +8,4 @@ from .coil_currents_t import coil_currents_t as coil_currents_t
 from .device_status_t import device_status_t as device_status_t
 from .glasses_t import glasses_t as glasses_t
 from .markers_t import markers_t as markers_t
+from .lease_t import lease_t as lease_t

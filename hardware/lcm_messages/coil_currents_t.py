@@ -13,11 +13,11 @@ class coil_currents_t(object):
     by the station's amplifiers; and the amplifiers' supply (the enable line).
     """
 
-    __slots__ = ["sequence", "sent_wall_utime", "utime", "num_coils", "current_a", "power_enabled"]
+    __slots__ = ["sequence", "sent_wall_utime", "session", "utime", "num_coils", "current_a", "power_enabled"]
 
-    __typenames__ = ["int64_t", "int64_t", "int64_t", "int16_t", "double", "boolean"]
+    __typenames__ = ["int64_t", "int64_t", "int64_t", "int64_t", "int16_t", "double", "boolean"]
 
-    __dimensions__ = [None, None, None, None, ["num_coils"], None]
+    __dimensions__ = [None, None, None, None, None, ["num_coils"], None]
 
     def __init__(self):
         self.sequence = 0
@@ -28,10 +28,17 @@ class coil_currents_t(object):
         LCM Type: int64_t
         """
 
-        self.utime = 0
+        self.session = 0
         """
         Unix time when it left the sender (us): against a receiver's clock
         kept in step (one host, or PTP) it gives the transport's latency
+        LCM Type: int64_t
+        """
+
+        self.utime = 0
+        """
+        commanded: the application's lease session (random, non-zero; lease_t);
+        a command of any other session is refused. Measured: 0
         LCM Type: int64_t
         """
 
@@ -57,7 +64,7 @@ class coil_currents_t(object):
         return buf.getvalue()
 
     def _encode_one(self, buf):
-        buf.write(struct.pack(">qqqh", self.sequence, self.sent_wall_utime, self.utime, self.num_coils))
+        buf.write(struct.pack(">qqqqh", self.sequence, self.sent_wall_utime, self.session, self.utime, self.num_coils))
         buf.write(struct.pack('>%dd' % self.num_coils, *self.current_a[:self.num_coils]))
         buf.write(struct.pack(">b", self.power_enabled))
 
@@ -74,7 +81,7 @@ class coil_currents_t(object):
     @staticmethod
     def _decode_one(buf):
         self = coil_currents_t()
-        self.sequence, self.sent_wall_utime, self.utime, self.num_coils = struct.unpack(">qqqh", buf.read(26))
+        self.sequence, self.sent_wall_utime, self.session, self.utime, self.num_coils = struct.unpack(">qqqqh", buf.read(34))
         self.current_a = struct.unpack('>%dd' % self.num_coils, buf.read(self.num_coils * 8))
         self.power_enabled = bool(struct.unpack('b', buf.read(1))[0])
         return self
@@ -82,7 +89,7 @@ class coil_currents_t(object):
     @staticmethod
     def _get_hash_recursive(parents):
         if coil_currents_t in parents: return 0
-        tmphash = (0x7db2d3e3ae40f708) & 0xffffffffffffffff
+        tmphash = (0xe20ae31490cb66f5) & 0xffffffffffffffff
         tmphash  = (((tmphash<<1)&0xffffffffffffffff) + (tmphash>>63)) & 0xffffffffffffffff
         return tmphash
     _packed_fingerprint = None

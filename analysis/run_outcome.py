@@ -1,0 +1,79 @@
+"""What happened to the instrument in a run that injected no fault: one line, and an
+exit code.
+
+A scenario whose ``faults`` and ``occlusions`` are empty means the instrument to
+fly its script. If a fault still latched (tracking lost past the grace, the
+boundary left, over-speed, over-current or over-temperature), the run says what
+and when in one line, with what it knows of why: the markers' longest silence on
+an LCM station, the messages the link refused, a lease lost to another
+application, the ticks the loop missed; ``maglev run`` then exits with
+``EXIT_INSTRUMENT_LOST``. Runs with injected faults (and the fault campaign) are
+judged by their own checks instead.
+"""
+
+from __future__ import annotations
+
+from typing import Dict, Optional
+
+import numpy as np
+
+from maglev_haptics.systems.device_supervisor import (
+    FAULT_COIL_OVER_CURRENT, FAULT_COIL_OVER_TEMPERATURE, FAULT_OVER_SPEED,
+    FAULT_SENSOR_OUT_OF_RANGE)
+
+EXIT_DEVICE_IN_USE = 4  # maglev run: another application holds the device's lease
+EXIT_INSTRUMENT_LOST = 5  # maglev run: a fault latched in a run that injected none
+
+FAULT_NAMES = {FAULT_SENSOR_OUT_OF_RANGE: "sensor out of range",
+               FAULT_COIL_OVER_TEMPERATURE: "coil over-temperature",
+               FAULT_COIL_OVER_CURRENT: "coil over-current", FAULT_OVER_SPEED: "over-speed"}
+
+
+def fault_names(bits: int) -> str:
+    return ", ".join(name for bit, name in FAULT_NAMES.items() if bits & bit) or f"{bits:#x}"
+
+
+def injects_faults(scenario) -> bool:
+    """Whether the scenario injects a fault (a ``faults`` entry or an occlusion)."""
+    return bool(scenario.faults) or bool(scenario.occlusions)
+
+
+def instrument_outcome(scenario, summary: Dict, log: Dict[str, np.ndarray],
+                       label: str) -> Optional[str]:
+    """One line saying when and how the instrument was lost, or a fault latched, in a
+    run of ``scenario`` that injected no fault; None when none latched (or the
+    scenario injected one)."""
+    if injects_faults(scenario) or "fault_bits" not in log:
+        return None
+    bits = np.asarray(log["fault_bits"]).astype(np.int64)
+    latched = np.flatnonzero(bits)
+    if latched.size == 0:
+        return None
+    first = int(latched[0])
+    at_s = float(log["t"][first])
+    what = ("the instrument was lost" if bits[first] & FAULT_SENSOR_OUT_OF_RANGE
+            else "a fault latched")
+    reasons = []
+    station = summary.get("station")
+    if station is not None:
+        markers = station.get("channels", {}).get("markers", {})
+        if markers.get("stale_gaps"):
+            reasons.append(f"markers stale {markers['stale_gaps']} times, the longest "
+                           f"silence {markers['longest_gap_ms']:.0f} ms")
+        if station.get("messages_refused"):
+            refused = ", ".join(f"{count} {reason}" for reason, count in
+                                station["refused"].items() if count)
+            reasons.append(f"the link refused {station['messages_refused']} messages "
+                           f"({refused})")
+        lost_to = station.get("lease", {}).get("lost_to")
+        if lost_to:
+            reasons.append(f"the device's lease went to {lost_to}")
+    realtime = summary.get("realtime")
+    if realtime and realtime.get("deadline_misses"):
+        reasons.append(f"the application missed {100 * realtime['miss_fraction']:.0f}% of "
+                       f"its ticks (longest stall {realtime['longest_stall_ms']:.0f} ms)")
+    touchdown = summary.get("touchdown")
+    if touchdown is not None and touchdown.get("time_s", -1.0) >= at_s:
+        reasons.append(f"touchdown at {touchdown['speed_m_s']:.3f} m/s")
+    because = f": {'; '.join(reasons)}" if reasons else ""
+    return f"{label}: {what} at {at_s:.3f} s ({fault_names(int(bits[first]))}){because}"
