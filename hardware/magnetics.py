@@ -109,6 +109,11 @@ class MagneticsModel:
             raise ValueError(f"R_AI = {R_AI!r}: must be a rotation matrix (orthonormal, det +1)")
         return matrix
 
+    def kernel_arguments(self) -> tuple:
+        """(values, axes, p_ACj, p_IM, scratch): ``wrench_matrix_kernel``'s model arguments,
+        for a kernel that computes the matrix inside its own compiled call."""
+        return self._values, self._axes, self.p_ACj, self.p_IM, self._scratch
+
     def coil_magnet_wrench(self, p_CM, u_C) -> tuple[np.ndarray, np.ndarray]:
         """(force [N/A], torque [N m/A]) of one coil at +1 A on one instrument magnet.
 

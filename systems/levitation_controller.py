@@ -11,17 +11,20 @@ and yaw unwrapped, so a 360 deg turn is a ramp.
 """
 
 from dataclasses import dataclass, field
-from typing import List, Optional
+from typing import List, Optional, Tuple
 
 import numpy as np
-from pydrake.common.value import AbstractValue
-from pydrake.systems.framework import BasicVector, LeafSystem, ValueProducer
+from numba.extending import register_jitable
+from pydrake.systems.framework import BasicVector, Diagram, DiagramBuilder, LeafSystem
+from pydrake.systems.primitives import Demultiplexer, Multiplexer
 
 from maglev_haptics.hardware.config_checks import each, nonnegative, positive, require
 from maglev_haptics.hardware.constants import GRAVITY_M_S2
-from maglev_haptics.hardware.kernels import SCALAR, VECTOR, kernel
+from maglev_haptics.hardware.kernels import (
+    FLAG, FLOAT32_TENSOR4, FLOAT32_VECTOR, MATRIX, SCALAR, VECTOR, kernel)
 from maglev_haptics.hardware.thermal import (
-    CoilThermal, current_bounds_a, thermal_budget, winding_resistance_ohm)
+    CoilThermal, interpolated, resistance_at_ohm, thermal_budget)
+from maglev_haptics.hardware.wrench_kernel import POSE_OK, wrench_matrix_kernel
 from maglev_haptics.systems.current_allocator import (
     ALLOCATIONS, TORQUE_WEIGHT_PER_M, allocate_currents, bounded_minimum_power_currents)
 from maglev_haptics.systems.magnetic_actuation import wrench_matrix_at
@@ -108,20 +111,22 @@ def pd_wrench(setpoint, pose, velocity, kp, kd, mass_kg):
     return np.concatenate((force, torque))
 
 
-def carries_weight_while_lost(lost_time_s: float, config: ControllerConfig) -> bool:
+@register_jitable
+def carries_weight_while_lost(lost_time_s: float, lost_grace_s: float) -> bool:
     """Whether the weight is still carried after tracking has been lost this long (s).
 
     A levitated magnet is unstable without feedback (Earnshaw): any lift held on
     a stale pose rolls the instrument over within a few hundred ms. So the lift
-    is carried only through short dropouts; after that the coils go dead and the
-    instrument, under gravity alone, drops level onto the glass.
+    is carried only through short dropouts (``lost_grace_s``); after that the coils
+    go dead and the instrument, under gravity alone, drops level onto the glass.
     """
-    return lost_time_s <= config.lost_grace_s
+    return lost_time_s <= lost_grace_s
 
 
+@register_jitable
 def commanded_wrenches(setpoint, pose, velocity, tracking_ok: float, enable: float,
                        pd_gain: float, brake_gain: float, feedforward, lost_time_s: float,
-                       kp, kd, mass_kg: float, config: ControllerConfig):
+                       kp, kd, mass_kg: float, lost_grace_s: float):
     """(commanded, rendered): the wrench [f; tau] in W (N, N*m) asked of the coils, and
     the part of it that acts on the hand (the commanded less the weight it carries).
 
@@ -130,7 +135,7 @@ def commanded_wrenches(setpoint, pose, velocity, tracking_ok: float, enable: flo
     tracking has been lost for ``lost_time_s``.
     """
     weight = np.zeros(6)
-    if carries_weight_while_lost(lost_time_s, config):
+    if carries_weight_while_lost(lost_time_s, lost_grace_s):
         weight[2] = enable * mass_kg * GRAVITY_M_S2
     if lost_time_s > 0.0 or tracking_ok < 0.5:
         return weight, np.zeros(6)
@@ -148,6 +153,7 @@ def commanded_wrenches(setpoint, pose, velocity, tracking_ok: float, enable: flo
 THERMAL_SHORTFALL_OF_WEIGHT = 0.02
 
 
+@register_jitable
 def is_thermally_limited(currents, bound_a, shortfall, current_limit_a: float,
                          mass_kg: float) -> bool:
     """Whether the wrench falls short by more than THERMAL_SHORTFALL_OF_WEIGHT of the
@@ -159,7 +165,147 @@ def is_thermally_limited(currents, bound_a, shortfall, current_limit_a: float,
     return bool(np.any(at_bound & (bound_a < current_limit_a)))
 
 
-class LevitationController(LeafSystem):
+def controller_inputs(n_coils: int) -> Tuple[Tuple[str, int], ...]:
+    """The controller's input ports (name, size), in the order of the law's one input."""
+    return (("setpoint", 12), ("X_WI_measured", 7), ("V_WI_measured", 6), ("tracking_ok", 1),
+            ("enable", 1), ("pd_gain", 1), ("brake_gain", 1), ("wrench_feedforward_W", 6),
+            ("tracking_lost_s", 1), ("coil_temperature_c", n_coils), ("coil_currents", n_coils),
+            ("coils_stuck", n_coils))
+
+
+def controller_outputs(n_coils: int) -> Tuple[Tuple[str, int], ...]:
+    """The controller's output ports (name, size), in the order of the law's one output."""
+    return (("wrench_commanded_W", 6), ("wrench_rendered_W", 6),
+            ("coil_currents_commanded", n_coils), ("allocation_shortfall_W", 6),
+            ("thermally_limited", 1))
+
+
+# The law's memo of the last pose (flag, 7) and the last temperatures (flag, n_coils):
+# the wrench matrix changes at the tracker's rate, the coils' bounds at the thermal
+# model's, the command every tick.
+@kernel((VECTOR, VECTOR, VECTOR, SCALAR, SCALAR, VECTOR,
+         FLOAT32_TENSOR4, MATRIX, MATRIX, MATRIX, FLOAT32_VECTOR, VECTOR, MATRIX,
+         FLAG, SCALAR, SCALAR, SCALAR, SCALAR, SCALAR, VECTOR, SCALAR, SCALAR,
+         VECTOR, VECTOR, VECTOR))
+def control_law(inputs, kp, kd, mass_kg, lost_grace_s, p_WA,
+                values, axes, p_ACj, p_IM, scratch, pose_seen, A,
+                thermal_allocation, resistance_ref_ohm, alpha_per_k, reference_c,
+                bound_lowest_c, bound_step_c, bound_table_a, current_limit_a, torque_weight,
+                temperature_seen, limits, out):
+    """One tick of the controller: ``inputs`` (``controller_inputs`` stacked) to ``out``
+    (``controller_outputs`` stacked). Returns the wrench matrix's pose status
+    (``POSE_OK``: done). With ``thermal_allocation`` False only the wrenches are
+    written (the pseudoinverse allocation, for comparison, is Python's)."""
+    n = A.shape[1]
+    pose = inputs[12:19].copy()
+    if pose_seen[0] != 1.0 or np.any(pose_seen[1:] != pose):
+        status, matrix = wrench_matrix_kernel(values, axes, p_ACj, p_IM, pose[4:7] - p_WA,
+                                              rotation_from_quaternion(pose[0:4].copy()),
+                                              scratch)
+        if status != POSE_OK:
+            pose_seen[0] = 0.0
+            return status
+        A[:, :] = matrix
+        pose_seen[0] = 1.0
+        pose_seen[1:] = pose
+    commanded, rendered = commanded_wrenches(
+        inputs[0:12].copy(), pose, inputs[19:25].copy(), inputs[25], inputs[26], inputs[27],
+        inputs[28], inputs[29:35].copy(), inputs[35], kp, kd, mass_kg, lost_grace_s)
+    out[0:6] = commanded
+    out[6:12] = rendered
+    if not thermal_allocation:
+        return POSE_OK
+    temperature_c = inputs[36:36 + n].copy()
+    if temperature_seen[0] != 1.0 or np.any(temperature_seen[1:] != temperature_c):
+        limits[:n] = resistance_at_ohm(temperature_c, resistance_ref_ohm, alpha_per_k,
+                                       reference_c)
+        limits[n:] = interpolated(temperature_c, bound_lowest_c, bound_step_c, bound_table_a)
+        temperature_seen[0] = 1.0
+        temperature_seen[1:] = temperature_c
+    resistance, bounds = limits[:n].copy(), limits[n:].copy()
+    wanted, allowed = commanded, bounds
+    stuck = inputs[36 + 2 * n:36 + 3 * n] > 0.5
+    if np.any(stuck):  # the stuck coils' wrench is a given; they get nothing
+        measured = inputs[36 + n:36 + 2 * n].copy()
+        wanted = commanded - A[:, stuck] @ measured[stuck]
+        allowed = np.where(stuck, 0.0, bounds)
+    currents, shortfall = bounded_minimum_power_currents(A, wanted, resistance, allowed,
+                                                         torque_weight)
+    out[12:12 + n] = currents
+    out[12 + n:18 + n] = shortfall
+    limited = is_thermally_limited(currents, bounds, shortfall, current_limit_a, mass_kg)
+    out[18 + n] = 1.0 if limited else 0.0
+    return POSE_OK
+
+
+class LevitationLaw(LeafSystem):
+    """The controller's arithmetic, one compiled call a tick (``control_law``): one
+    input, ``inputs`` (``controller_inputs`` stacked), one output, ``command``
+    (``controller_outputs`` stacked). ``LevitationController`` wraps it with named
+    ports. The PD gains ``kp`` and ``kd`` (6 each) are numeric parameters 0 and 1.
+
+    .. pydrake_system::
+
+        name: LevitationLaw
+        input_ports:
+        - inputs
+        output_ports:
+        - command
+    """
+
+    def __init__(self, *, config: ControllerConfig, mass_kg: float, inertia_diag,
+                 magnetics, p_WA, current_limit_a: float, thermal: CoilThermal):
+        LeafSystem.__init__(self)
+        n = magnetics.n_coils
+        self._config = config
+        self._mass_kg = float(mass_kg)
+        kp, kd = pd_gains(config, mass_kg, np.asarray(inertia_diag, dtype=float))
+        # Parameters, not constants: the device API sets them between ticks.
+        self.kp_index = self.DeclareNumericParameter(BasicVector(kp))
+        self.kd_index = self.DeclareNumericParameter(BasicVector(kd))
+        self._magnetics = magnetics
+        self._p_WA = np.asarray(p_WA, dtype=float)
+        self._current_limit_a = float(current_limit_a)
+        budget = thermal_budget(thermal, horizon_s=config.thermal_horizon_s,
+                                margin_c=config.thermal_margin_c,
+                                current_limit_a=current_limit_a)
+        self._thermal_arguments = (
+            config.allocation == "thermal", thermal.resistance_ref_ohm, thermal.alpha_per_k,
+            thermal.reference_temperature_c, budget.lowest_c, budget.step_c,
+            np.ascontiguousarray(budget.bound_a, dtype=float), self._current_limit_a,
+            TORQUE_WEIGHT_PER_M)
+        # A memo of pure functions of the inputs (exact match or recomputed), so any
+        # context, cloned or nudged by the analysis, gets the same numbers.
+        self._pose_seen = np.zeros(8)
+        self._matrix = np.zeros((6, n))
+        self._temperature_seen = np.zeros(n + 1)
+        self._limits = np.zeros(2 * n)
+        self._inputs = self.DeclareVectorInputPort(
+            "inputs", sum(size for _, size in controller_inputs(n)))
+        self.DeclareVectorOutputPort("command", sum(size for _, size in controller_outputs(n)),
+                                     self._calc_command)
+
+    def _calc_command(self, context, output):
+        inputs = self._inputs.EvalBasicVector(context).value()
+        out = output.get_mutable_value()
+        status = control_law(
+            inputs, context.get_numeric_parameter(self.kp_index).value(),
+            context.get_numeric_parameter(self.kd_index).value(), self._mass_kg,
+            self._config.lost_grace_s, self._p_WA, *self._magnetics.kernel_arguments(),
+            self._pose_seen, self._matrix, *self._thermal_arguments,
+            self._temperature_seen, self._limits, out)
+        if status != POSE_OK:  # the model's own error, naming the pose
+            wrench_matrix_at(self._magnetics, self._p_WA, inputs[12:19])
+        if self._config.allocation != "thermal":
+            currents, shortfall, _ = allocate_currents(self._matrix, out[0:6].copy(),
+                                                       self._current_limit_a)
+            n = currents.size
+            out[12:12 + n] = currents
+            out[12 + n:18 + n] = shortfall
+            out[18 + n] = 0.0
+
+
+class LevitationController(Diagram):
     """Levitation controller (MLHI style): PD about a setpoint, gravity
     compensation, feed-forward wrench, safe force ramp, blind landing, and the
     coil currents that produce the wrench (``systems/current_allocator.py``).
@@ -210,131 +356,56 @@ class LevitationController(LeafSystem):
     ``coils_stuck`` (n_coils, 1/0) is allocated nothing (bound 0) and its measured
     current (``coil_currents``, A) is taken as a given: the others produce the
     wrench less what it makes (thermal allocation only).
-    The wrench law and the allocation are one computation a tick, whose outputs
-    all read it: the Python calls, not the arithmetic, are what a 1 kHz tick
-    pays for. Direct feedthrough: the amplifiers sample the currents at the
-    control rate, so they always use the newest estimate.
+    Direct feedthrough: the amplifiers sample the currents at the control rate, so
+    they always use the newest estimate.
+
+    A diagram of three blocks, so that a tick pays for one Python call: a C++
+    ``Multiplexer`` ("inputs") stacks the ports for ``LevitationLaw`` ("law"), whose
+    one compiled call computes the wrench law and the allocation, and a C++
+    ``Demultiplexer`` ("outputs") splits its result into the named outputs.
 
     ``tracking_lost_s`` is how long tracking has been lost (s; 0 while tracking),
     latched once past ``lost_grace_s``: the device supervisor counts it
     (``systems/device_supervisor.py``), which also raises the fault. No state: the PD
-    gains ``kp`` and ``kd`` (6 each, ``pd_gains``) are numeric parameters 0 and 1
-    (``set_gains``).
+    gains (``set_gains``, ``gains``) are the law's numeric parameters.
     """
 
     def __init__(self, *, config: ControllerConfig, mass_kg: float, inertia_diag,
                  magnetics, p_WA, current_limit_a: float, thermal: CoilThermal):
-        LeafSystem.__init__(self)
-        self._config = config
-        self._mass_kg = float(mass_kg)
-        kp, kd = pd_gains(config, mass_kg, np.asarray(inertia_diag, dtype=float))
-        # Parameters, not constants: the device API sets them between ticks.
-        self._kp = self.DeclareNumericParameter(BasicVector(kp))
-        self._kd = self.DeclareNumericParameter(BasicVector(kd))
-        self._magnetics = magnetics
-        self._p_WA = np.asarray(p_WA, dtype=float)
-        self._current_limit_a = float(current_limit_a)
-        self._thermal = thermal
-        self._budget = thermal_budget(thermal, horizon_s=config.thermal_horizon_s,
-                                      margin_c=config.thermal_margin_c,
-                                      current_limit_a=current_limit_a)
-        self._setpoint = self.DeclareVectorInputPort("setpoint", 12)
-        self._pose = self.DeclareVectorInputPort("X_WI_measured", 7)
-        self._velocity = self.DeclareVectorInputPort("V_WI_measured", 6)
-        self._tracking_ok = self.DeclareVectorInputPort("tracking_ok", 1)
-        self._enable = self.DeclareVectorInputPort("enable", 1)
-        self._pd_gain = self.DeclareVectorInputPort("pd_gain", 1)
-        self._brake_gain = self.DeclareVectorInputPort("brake_gain", 1)
-        self._feedforward = self.DeclareVectorInputPort("wrench_feedforward_W", 6)
-        self._tracking_lost = self.DeclareVectorInputPort("tracking_lost_s", 1)
+        Diagram.__init__(self)
         n = magnetics.n_coils
-        self._temperature = self.DeclareVectorInputPort("coil_temperature_c", n)
-        self._measured = self.DeclareVectorInputPort("coil_currents", n)
-        self._stuck = self.DeclareVectorInputPort("coils_stuck", n)
-        # [resistances (ohm); bounds (A)]: they change at the thermal model's rate.
-        self._coil_limits = self.DeclareCacheEntry(
-            "coil_limits",
-            ValueProducer(allocate=lambda: AbstractValue.Make(np.zeros(2 * n)),
-                          calc=self._calc_coil_limits),
-            {self._temperature.ticket()})
-        # The matrix depends on the estimate alone, which changes at the tracker
-        # rate; the command on everything, which changes every tick.
-        self._matrix = self.DeclareCacheEntry(
-            "wrench_matrix",
-            ValueProducer(allocate=lambda: AbstractValue.Make(np.zeros((6, n))),
-                          calc=self._calc_matrix),
-            {self._pose.ticket()})
-        # [commanded (6), rendered (6), currents (n), shortfall (6), thermally limited (1)]
-        self._command = self.DeclareCacheEntry(
-            "command",
-            ValueProducer(allocate=lambda: AbstractValue.Make(np.zeros(19 + n)),
-                          calc=self._calc_command),
-            {self.all_input_ports_ticket(), self.all_parameters_ticket()})
-        for name, rows in (("wrench_commanded_W", slice(0, 6)),
-                           ("wrench_rendered_W", slice(6, 12)),
-                           ("coil_currents_commanded", slice(12, 12 + n)),
-                           ("allocation_shortfall_W", slice(12 + n, 18 + n)),
-                           ("thermally_limited", slice(18 + n, 19 + n))):
-            self.DeclareVectorOutputPort(
-                name, rows.stop - rows.start,
-                lambda context, output, rows=rows: output.SetFromVector(
-                    self._command.Eval(context)[rows]),
-                {self._command.ticket()})
+        builder = DiagramBuilder()
+        self._law = builder.AddNamedSystem("law", LevitationLaw(
+            config=config, mass_kg=mass_kg, inertia_diag=inertia_diag, magnetics=magnetics,
+            p_WA=p_WA, current_limit_a=current_limit_a, thermal=thermal))
+        inputs = builder.AddNamedSystem("inputs", Multiplexer(
+            [size for _, size in controller_inputs(n)]))
+        for i, (name, _) in enumerate(controller_inputs(n)):
+            builder.ExportInput(inputs.get_input_port(i), name)
+        builder.Connect(inputs.get_output_port(), self._law.get_input_port())
+        outputs = builder.AddNamedSystem("outputs", Demultiplexer(
+            [size for _, size in controller_outputs(n)]))
+        builder.Connect(self._law.get_output_port(), outputs.get_input_port())
+        for i, (name, _) in enumerate(controller_outputs(n)):
+            builder.ExportOutput(outputs.get_output_port(i), name)
+        builder.BuildInto(self)
 
     def set_gains(self, context, kp=None, kd=None) -> None:
-        """Per-axis gains in ``context`` (N/m, N*m/rad; N*s/m, N*m*s/rad; the axes of
-        ``ControllerConfig``), from the next evaluation on; None keeps one."""
-        for index, gains, name in ((self._kp, kp, "kp"), (self._kd, kd, "kd")):
+        """Per-axis gains in the controller's ``context`` (N/m, N*m/rad; N*s/m,
+        N*m*s/rad; the axes of ``ControllerConfig``), from the next evaluation on;
+        None keeps one."""
+        law_context = self.GetMutableSubsystemContext(self._law, context)
+        for index, gains, name in ((self._law.kp_index, kp, "kp"),
+                                   (self._law.kd_index, kd, "kd")):
             if gains is None:
                 continue
             gains = np.asarray(gains, dtype=float)
             if gains.shape != (6,) or not np.all(np.isfinite(gains)) or np.any(gains < 0):
                 raise ValueError(f"{name} = {gains.tolist()}: must be 6 finite gains >= 0")
-            context.get_mutable_numeric_parameter(index).SetFromVector(gains)
+            law_context.get_mutable_numeric_parameter(index).SetFromVector(gains)
 
     def gains(self, context):
-        """(kp, kd) in ``context``."""
-        return (context.get_numeric_parameter(self._kp).CopyToVector(),
-                context.get_numeric_parameter(self._kd).CopyToVector())
-
-    def _scalar(self, port, context) -> float:
-        # A scalar input without Eval's copy into a new array (~4 us a read).
-        return port.EvalBasicVector(context).GetAtIndex(0)
-
-    def _calc_matrix(self, context, matrix):
-        matrix.set_value(wrench_matrix_at(self._magnetics, self._p_WA, self._pose.Eval(context)))
-
-    def _calc_coil_limits(self, context, limits):
-        temperature_c = self._temperature.Eval(context)
-        limits.set_value(np.concatenate((winding_resistance_ohm(self._thermal, temperature_c),
-                                         current_bounds_a(self._budget, temperature_c))))
-
-    def _calc_command(self, context, command):
-        commanded, rendered = commanded_wrenches(
-            self._setpoint.Eval(context), self._pose.Eval(context),
-            self._velocity.Eval(context), self._scalar(self._tracking_ok, context),
-            self._scalar(self._enable, context), self._scalar(self._pd_gain, context),
-            self._scalar(self._brake_gain, context), self._feedforward.Eval(context),
-            self._scalar(self._tracking_lost, context),
-            context.get_numeric_parameter(self._kp).CopyToVector(),
-            context.get_numeric_parameter(self._kd).CopyToVector(), self._mass_kg, self._config)
-        A = self._matrix.Eval(context)
-        if self._config.allocation == "thermal":
-            limits = self._coil_limits.Eval(context)
-            n = limits.size // 2
-            resistance, bounds = limits[:n], limits[n:]
-            wanted, allowed = commanded, bounds
-            stuck = self._stuck.EvalBasicVector(context).get_value() > 0.5
-            if stuck.any():  # the stuck coils' wrench is a given; they get nothing
-                measured = self._measured.Eval(context)
-                wanted = commanded - A[:, stuck] @ measured[stuck]
-                allowed = np.where(stuck, 0.0, bounds)
-            currents, shortfall = bounded_minimum_power_currents(
-                A, wanted, resistance, allowed, TORQUE_WEIGHT_PER_M)
-            limited = is_thermally_limited(currents, bounds, shortfall,
-                                           self._current_limit_a, self._mass_kg)
-        else:
-            currents, shortfall, _ = allocate_currents(A, commanded, self._current_limit_a)
-            limited = False
-        command.set_value(np.concatenate((commanded, rendered, currents, shortfall,
-                                          [float(limited)])))
+        """(kp, kd) in the controller's ``context``."""
+        law_context = self.GetSubsystemContext(self._law, context)
+        return (law_context.get_numeric_parameter(self._law.kp_index).CopyToVector(),
+                law_context.get_numeric_parameter(self._law.kd_index).CopyToVector())
