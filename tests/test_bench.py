@@ -2,7 +2,7 @@
 
 import pytest
 
-from maglev_haptics.analysis.bench import physics_floor_us
+from maglev_haptics.analysis.bench import floor_us, physics_floor_us
 from maglev_haptics.diagrams.scenario import load_scenario
 
 
@@ -20,3 +20,9 @@ def test_lattice_tick_is_listed_not_added():
     assert floor["lattice_tick_other_core_us"] == 400.0
     assert floor["total_us"] == pytest.approx(
         floor["station_plant_us"] + floor["wrench_matrices_us"] + floor["allocation_us"])
+
+
+def test_the_tick_is_judged_against_the_longer_of_the_serial_floor_and_the_lattice():
+    assert floor_us({"total_us": 150.0}) == 150.0
+    assert floor_us({"total_us": 150.0, "lattice_tick_other_core_us": 400.0}) == 400.0
+    assert floor_us({"total_us": 500.0, "lattice_tick_other_core_us": 400.0}) == 500.0
