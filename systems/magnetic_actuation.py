@@ -5,6 +5,9 @@ from __future__ import annotations
 import numpy as np
 from pydrake.systems.framework import LeafSystem
 
+from maglev_haptics.hardware.kernels import (
+    FLOAT32_TENSOR4, FLOAT32_VECTOR, MATRIX, VECTOR, kernel)
+from maglev_haptics.hardware.wrench_kernel import POSE_OK, wrench_matrix_kernel
 from maglev_haptics.systems.rotations import rotation_from_quaternion
 
 
@@ -18,19 +21,31 @@ def wrench_matrix_at(magnetics, p_WA, q_WI):
     return magnetics.wrench_matrix_from(q_WI[4:7] - p_WA, rotation_from_quaternion(q_WI[0:4]))
 
 
-def instrument_generalized_force(magnetics, p_WA, instrument_state, coil_currents):
-    """[tau; f] in W (N*m about I's origin, N) on the instrument's free body.
+@kernel((VECTOR, VECTOR, VECTOR, FLOAT32_TENSOR4, MATRIX, MATRIX, MATRIX, FLOAT32_VECTOR, VECTOR))
+def instrument_generalized_force(instrument_state, coil_currents, p_WA, values, axes, p_ACj,
+                                 p_IM, scratch, out):
+    """[tau; f] in W (N*m about I's origin, N) on the instrument's free body, into ``out``;
+    returns the wrench matrix's pose status (``POSE_OK``: written).
 
     ``instrument_state`` is the plant's free-body state [q_WI (wxyz), p_WI, ...];
     the ordering [tau; f] is that of a quaternion floating joint's generalized
-    forces, so the result feeds the plant's ``applied_generalized_force`` port.
+    forces, so the result feeds the plant's ``applied_generalized_force`` port. The
+    model arguments are ``MagneticsModel.kernel_arguments()``.
     """
-    wrench = wrench_matrix_at(magnetics, p_WA, instrument_state[0:7]) @ coil_currents
-    return np.concatenate([wrench[3:6], wrench[0:3]])
+    status, A = wrench_matrix_kernel(values, axes, p_ACj, p_IM, instrument_state[4:7] - p_WA,
+                                     rotation_from_quaternion(instrument_state[0:4].copy()),
+                                     scratch)
+    if status != POSE_OK:
+        return status
+    wrench = A @ coil_currents
+    out[0:3] = wrench[3:6]
+    out[3:6] = wrench[0:3]
+    return POSE_OK
 
 
 class MagneticActuation(LeafSystem):
-    """The coils' wrench on the instrument's magnets, from the electromagnetic model.
+    """The coils' wrench on the instrument's magnets, from the electromagnetic model:
+    one compiled call a tick (``instrument_generalized_force``).
 
     .. pydrake_system::
 
@@ -51,6 +66,9 @@ class MagneticActuation(LeafSystem):
         self.DeclareVectorOutputPort("generalized_force", 6, self._calc_generalized_force)
 
     def _calc_generalized_force(self, context, output):
-        output.SetFromVector(instrument_generalized_force(
-            self._magnetics, self._p_WA, self._state.Eval(context),
-            self._currents.Eval(context)))
+        state = self._state.EvalBasicVector(context).value()
+        status = instrument_generalized_force(
+            state, self._currents.EvalBasicVector(context).value(), self._p_WA,
+            *self._magnetics.kernel_arguments(), output.get_mutable_value())
+        if status != POSE_OK:  # the model's own error, naming the pose
+            wrench_matrix_at(self._magnetics, self._p_WA, state[0:7])
