@@ -110,8 +110,10 @@ class MaglevDevice:
         compile_kernels(progress=False)
         self._built = BuildDiagram(self.scenario, device_api=True, label="device")
         diagram = self._built.diagram
-        self._simulator = Simulator(diagram)
-        self._simulator.Initialize()
+        simulator = Simulator(diagram)
+        self._simulator = None
+        simulator.Initialize()  # on LCM, DeviceInUseError where another holds the lease
+        self._simulator = simulator
         root = self._simulator.get_mutable_context()
         self._supervisor = diagram.GetSubsystemByName("device_supervisor")
         self._feedforward = diagram.GetSubsystemByName("haptic_feedforward")

@@ -180,9 +180,9 @@ def MakeLcmStation(scenario) -> Diagram:
     stereo display ``glasses_measured``. Its ``receiver`` checks and counts the
     messages it read, refused and lost on each channel; building it waits up to
     ``wait_for_station_s`` for the station's markers. Its first tick asks for the
-    device's lease (``receiver.lease``, a LeaseClient): an answer naming another
-    holder raises DeviceInUseError, and no grant within ``wait_for_station_s``
-    a TimeoutError."""
+    device's lease (``receiver.lease``, a LeaseClient), and it sends no command
+    until the lease is granted: an answer naming another holder raises
+    DeviceInUseError, and no grant within ``wait_for_station_s`` a TimeoutError."""
     station = scenario.station
     n_coils = scenario.device.n_coils
     period_s = 1.0 / scenario.control_rate_hz
@@ -199,7 +199,7 @@ def MakeLcmStation(scenario) -> Diagram:
         builder.ExportOutput(receiver.GetOutputPort(port), port)
     sender = builder.AddNamedSystem("coil_currents_commanded_sender", MessageSender(
         lcm=command_lcm, channel=channel(station, COIL_CURRENTS_COMMANDED),
-        size=n_coils + 1, period_s=period_s,
+        size=n_coils + 1, period_s=period_s, ready=lambda: lease.granted,
         encode=lambda sequence, t, value: currents_message(sequence, t, value, lease.session)))
     command = builder.AddNamedSystem("command", Multiplexer([n_coils, 1]))
     builder.Connect(command.get_output_port(), sender.GetInputPort("value"))

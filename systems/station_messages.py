@@ -351,18 +351,24 @@ class MessageSender(LeafSystem):
 
     ``encode(sequence, t_s, value) -> message``; the sequence is the tick number
     ``round(t / period_s) + 1``, so a receiver counts a gap as a lost message.
+    ``ready()``, if given, holds every message back while it is False (the
+    application's commands, until the device's lease is granted).
     """
 
-    def __init__(self, *, lcm, channel: str, size: int, encode, period_s: float):
+    def __init__(self, *, lcm, channel: str, size: int, encode, period_s: float,
+                 ready: Optional[Callable[[], bool]] = None):
         super().__init__()
         self._lcm = lcm
         self._channel = channel
         self._encode = encode
+        self._ready = ready
         self._period_s = float(period_s)
         self._value = self.DeclareVectorInputPort("value", size)
         self.DeclarePeriodicPublishEvent(period_s, 0.0, self._publish)
 
     def _publish(self, context):
+        if self._ready is not None and not self._ready():
+            return
         t = context.get_time()
         publish(self._lcm, self._channel,
                 self._encode(round(t / self._period_s) + 1, t, self._value.Eval(context)))

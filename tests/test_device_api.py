@@ -1,12 +1,27 @@
 """The MLHI-style device API: blocking takeoff and landing, commands on the next tick,
 the tick callback, the boundary sphere's fault, estimated coil temperatures."""
 
+import json
+import os
+import re
+import socket
+import subprocess
+import sys
+import threading
+import time
+
+import lcm
 import numpy as np
 import pytest
 
 from maglev_haptics.diagrams.device_api import (
-    FAULT_SENSOR_OUT_OF_RANGE, DeviceFaultError, DeviceTimeoutError, MaglevDevice)
+    FAULT_SENSOR_OUT_OF_RANGE, DeviceFaultError, DeviceInUseError, DeviceTimeoutError,
+    MaglevDevice)
 from maglev_haptics.diagrams.scenario import load_scenario
+from maglev_haptics.hardware.lcm_link import publish
+from maglev_haptics.hardware.lcm_messages import lease_t
+from maglev_haptics.hardware.lease import LeaseClient
+from maglev_haptics.systems.station_messages import currents_message
 
 REST_Z_M = 0.0067  # the two-magnet instrument's origin resting on the glass (about, m)
 
@@ -121,3 +136,61 @@ def test_after_tracking_is_lost_and_back_a_reset_lets_it_fly_again():
     assert np.linalg.norm(device.state.X_WI[4:7] - hover[0:3]) < 0.5e-3
     device.land()
     device.disconnect()
+
+
+@pytest.mark.slow
+def test_connect_is_refused_while_another_application_holds_the_device():
+    """With a station on LCM, connect takes the device's lease first: while another
+    application holds it (this test, commanding coils off), connect raises
+    DeviceInUseError naming the holder, and its diagram commanded nothing."""
+    port = 8400 + 2 * (os.getpid() % 50)
+    url, command_url = (f"udpm://239.255.76.67:{port}?ttl=0",
+                        f"udpm://239.255.76.67:{port + 1}?ttl=0")
+    station = f"{{station: !LcmStation {{url: '{url}', command_url: '{command_url}'}}}}"
+    device = subprocess.Popen(
+        [sys.executable, "-m", "maglev_haptics.diagrams.cli", "device-sim", "levitate",
+         "--scenario-text", station, "--duration", "120"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    listener, commands = lcm.LCM(url), lcm.LCM(command_url)
+    replies = []
+    listener.subscribe("MAGLEV_LEASE", lambda _, data: replies.append(lease_t.decode(data)))
+    holder = LeaseClient(lcm=commands, channel="MAGLEV_LEASE_REQUEST", wait_s=180.0)
+    stop = threading.Event()
+
+    def keep_alive():  # the holder commands the coils off at 100 Hz
+        sequence = 0
+        while not stop.wait(0.01):
+            sequence += 1
+            publish(commands, "MAGLEV_COIL_CURRENTS_COMMANDED",
+                    currents_message(sequence, 0.0, np.zeros(28), holder.session))
+
+    thread = threading.Thread(target=keep_alive)
+    try:
+        start = time.monotonic()
+        while not holder.granted:
+            assert device.poll() is None, device.communicate()[1][-2000:]
+            holder.on_tick(time.monotonic() - start)
+            listener.handle_timeout(20)
+            for reply in replies:
+                holder.on_reply(reply, 0.0)
+            replies.clear()
+        thread.start()
+        api = MaglevDevice(load_scenario("levitate", scenario_text=station))
+        with pytest.raises(DeviceInUseError, match=re.escape(
+                f"in use by another application (session {holder.session:#x}, process "
+                f"{os.getpid()} on {socket.gethostname()})")):
+            api.connect()
+        with pytest.raises(RuntimeError, match="not connected"):
+            api.takeoff()
+        stop.set()
+        thread.join()
+        out, err = device.communicate(timeout=60)  # stops once the holder is silent
+    finally:
+        stop.set()
+        device.kill()
+    assert device.returncode == 0, err[-2000:]
+    report = json.loads(out)
+    # Only the holder's commands came: the refused connect sent none.
+    assert report["commands"]["messages_received"] > 0
+    assert report["commands"]["messages_refused"] == 0, report["commands"]["first_refused"]
+    assert report["lease"]["grants"] == 1
