@@ -44,12 +44,13 @@ import numba
 import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.math import RigidTransform
-from pydrake.systems.framework import LeafSystem, ValueProducer
+from pydrake.systems.framework import Diagram, LeafSystem, ValueProducer
 
 from maglev_haptics.hardware.config_checks import each, nonnegative, positive, require
 from maglev_haptics.hardware.kernels import MATRIX, SCALAR, VECTOR, kernel
 from maglev_haptics.hardware.limits import LIMIT_KINDS
 from maglev_haptics.systems.rotations import rotation_from_quaternion
+from maglev_haptics.systems.stacked_ports import BuildStacked
 
 
 @dataclass
@@ -253,7 +254,117 @@ def ramp_step(fraction: float, enable: float, period_s: float, ramp_s: float) ->
     return min(fraction + period_s / ramp_s, 1.0)
 
 
-class HapticCoupling(LeafSystem):
+# The coupling's input ports (name, size), in the order of the law's one input.
+COUPLING_INPUTS = (("X_WI_measured", 7), ("V_WI_measured", 6), ("X_WT", 7), ("V_WT", 6),
+                   ("haptics_enable", 1))
+# Its output ports that the law computes (name, size), in the order of the law's one output.
+COUPLING_OUTPUTS = (("wrench_on_tool_W", 6), ("wrench_feedforward_W", 6),
+                    ("coupling_clamped", 1))
+
+
+class CouplingLaw(LeafSystem):
+    """``HapticCoupling``'s arithmetic and state: one input, ``inputs``
+    (COUPLING_INPUTS stacked), one output, ``wrenches`` (COUPLING_OUTPUTS stacked),
+    and the state output ``passivity_dissipated_j``.
+
+    .. pydrake_system::
+
+        name: CouplingLaw
+        input_ports:
+        - inputs
+        output_ports:
+        - wrenches
+        - passivity_dissipated_j
+    """
+
+    def __init__(self, *, config: CouplingConfig, period_s: float, X_IT: RigidTransform,
+                 port_delay_ticks: int):
+        LeafSystem.__init__(self)
+        for name in ("max_force_n", "max_torque_nm", "rotational_stiffness",
+                     "rotational_damping"):
+            if getattr(config, name) is None:
+                raise ValueError(f"CouplingConfig.{name} is None: give a value, or let "
+                                 "the diagram builder derive it from the device")
+        self._config = config
+        self._period_s = float(period_s)
+        # Writable C-ordered copies: the argument types the kernel is compiled for.
+        self._R_IT = np.array(X_IT.rotation().matrix(), order="C")
+        self._p_IT = np.array(X_IT.translation())
+        self._k, self._b = coupling_gains(config)
+        self._inputs = self.DeclareVectorInputPort(
+            "inputs", sum(size for _, size in COUPLING_INPUTS))
+        self._ramp = self.DeclareDiscreteState(1)
+        self._V_WI_filtered = self.DeclareDiscreteState(6)
+        if port_delay_ticks < 1:
+            raise ValueError(f"port_delay_ticks = {port_delay_ticks}: must be >= 1")
+        self._port_delay_ticks = int(port_delay_ticks)
+        self._energy = self.DeclareDiscreteState(6)
+        self._sent = self.DeclareDiscreteState(6 * port_delay_ticks)
+        self._dissipated = self.DeclareDiscreteState(1)
+        # The energy a debt is measured against: the coupling's spring at the wrench limit;
+        # an axis without a spring has none to measure against, and is not scaled.
+        limit_squared = np.concatenate((np.full(3, config.max_force_n) ** 2,
+                                        np.full(3, config.max_torque_nm) ** 2))
+        self._reference_energy_j = np.divide(limit_squared, 2 * self._k,
+                                             out=np.full(6, np.inf), where=self._k > 0)
+        self._alpha = velocity_filter_gain(config.velocity_filter_hz, period_s)
+        self.DeclarePeriodicDiscreteUpdateEvent(period_s, 0.0, self._update)
+        # The output and the update (with the passivity controller) read it: compute once.
+        self._cache = self.DeclareCacheEntry(
+            description="limited wrenches",
+            value_producer=ValueProducer(allocate=AbstractValue.Make(()).Clone,
+                                         calc=self._calc_cache),
+            prerequisites_of_calc={self._inputs.ticket(), self.xd_ticket()})
+        self.DeclareVectorOutputPort("wrenches", sum(size for _, size in COUPLING_OUTPUTS),
+                                     self._calc_wrenches, {self._cache.ticket()})
+        self.DeclareStateOutputPort("passivity_dissipated_j", self._dissipated)
+
+    def _update(self, context, discrete_state):
+        inputs = self._inputs.EvalBasicVector(context).value()
+        fraction = ramp_step(context.get_discrete_state(self._ramp).GetAtIndex(0),
+                             inputs[26], self._period_s, self._config.ramp_s)
+        discrete_state.get_mutable_vector(self._ramp).SetAtIndex(0, fraction)
+        filtered = context.get_discrete_state(self._V_WI_filtered).CopyToVector()
+        filtered = filtered + self._alpha * (inputs[7:13] - filtered)
+        discrete_state.get_mutable_vector(self._V_WI_filtered).SetFromVector(filtered)
+        if self._config.passivity_controller:
+            _, _, _, (energy, sent, dissipated) = self._cache.Eval(context)
+            discrete_state.get_mutable_vector(self._energy).SetFromVector(energy)
+            discrete_state.get_mutable_vector(self._sent).SetFromVector(sent.ravel())
+            discrete_state.get_mutable_vector(self._dissipated).SetAtIndex(
+                0, context.get_discrete_state(self._dissipated).GetAtIndex(0) + dissipated)
+
+    def _calc_cache(self, context, value):
+        """(wrench on tool, wrench on instrument, clamp factor, the passivity observer's
+        state after this sample and what its controller dissipated in it, or None) after
+        ramp and clamp, with the passivity controller's damping on the instrument's."""
+        inputs = self._inputs.EvalBasicVector(context).value()
+        fraction = context.get_discrete_state(self._ramp).GetAtIndex(0)
+        if inputs[26] < 0.5:
+            fraction = 0.0
+        on_tool, on_instrument, scale = limited_wrenches(
+            inputs[0:7], context.get_discrete_state(self._V_WI_filtered).CopyToVector(),
+            inputs[13:20], inputs[20:26], self._R_IT, self._p_IT, self._k, self._b, fraction,
+            self._config.max_force_n, self._config.max_torque_nm)
+        observer = None
+        if self._config.passivity_controller:
+            state = context.get_discrete_state()
+            on_instrument, *observer = passivity_step(
+                on_instrument, inputs[7:13].copy(),
+                state.get_vector(self._energy).CopyToVector(),
+                state.get_vector(self._sent).CopyToVector().reshape(self._port_delay_ticks, 6),
+                self._period_s, self._reference_energy_j)
+        value.set_value((on_tool, on_instrument, scale, observer))
+
+    def _calc_wrenches(self, context, output):
+        on_tool, on_instrument, scale, _ = self._cache.Eval(context)
+        out = output.get_mutable_value()
+        out[0:6] = on_tool
+        out[6:12] = on_instrument
+        out[12] = 1.0 if scale < 1.0 else 0.0
+
+
+class HapticCoupling(Diagram):
     """Virtual coupling between the measured instrument and the scene's tool,
     with a safe force ramp at haptics start and a direction-preserving clamp.
 
@@ -293,101 +404,18 @@ class HapticCoupling(LeafSystem):
     lag; ``diagrams/haptics.py`` derives it). With
     ``passivity_controller`` the feed-forward is scaled on the axes in
     energy debt (``passivity_step``, which observes this sample's measured
-    velocity), so it feeds ``V_WI_measured`` through (the estimator's state:
-    no loop); otherwise the outputs do not.
+    velocity). Stacked, every input feeds every output through (``V_WI_measured``
+    is the estimator's state: no loop).
+
+    A diagram of three blocks (``systems/stacked_ports.py``): the inputs stacked for
+    ``CouplingLaw`` ("law"), which computes both wrenches once a tick, and its result
+    split into the named outputs; the discrete state is the law's.
     """
 
     def __init__(self, *, config: CouplingConfig, period_s: float,
                  X_IT: RigidTransform = RigidTransform(), port_delay_ticks: int = 1):
-        LeafSystem.__init__(self)
-        for name in ("max_force_n", "max_torque_nm", "rotational_stiffness",
-                     "rotational_damping"):
-            if getattr(config, name) is None:
-                raise ValueError(f"CouplingConfig.{name} is None: give a value, or let "
-                                 "the diagram builder derive it from the device")
-        self._config = config
-        self._period_s = float(period_s)
-        # Writable C-ordered copies: the argument types the kernel is compiled for.
-        self._R_IT = np.array(X_IT.rotation().matrix(), order="C")
-        self._p_IT = np.array(X_IT.translation())
-        self._k, self._b = coupling_gains(config)
-        self._X_WI = self.DeclareVectorInputPort("X_WI_measured", 7)
-        self._V_WI = self.DeclareVectorInputPort("V_WI_measured", 6)
-        self._X_WT = self.DeclareVectorInputPort("X_WT", 7)
-        self._V_WT = self.DeclareVectorInputPort("V_WT", 6)
-        self._enable = self.DeclareVectorInputPort("haptics_enable", 1)
-        self._ramp = self.DeclareDiscreteState(1)
-        self._V_WI_filtered = self.DeclareDiscreteState(6)
-        if port_delay_ticks < 1:
-            raise ValueError(f"port_delay_ticks = {port_delay_ticks}: must be >= 1")
-        self._port_delay_ticks = int(port_delay_ticks)
-        self._energy = self.DeclareDiscreteState(6)
-        self._sent = self.DeclareDiscreteState(6 * port_delay_ticks)
-        self._dissipated = self.DeclareDiscreteState(1)
-        # The energy a debt is measured against: the coupling's spring at the wrench limit;
-        # an axis without a spring has none to measure against, and is not scaled.
-        limit_squared = np.concatenate((np.full(3, config.max_force_n) ** 2,
-                                        np.full(3, config.max_torque_nm) ** 2))
-        self._reference_energy_j = np.divide(limit_squared, 2 * self._k,
-                                             out=np.full(6, np.inf), where=self._k > 0)
-        self._alpha = velocity_filter_gain(config.velocity_filter_hz, period_s)
-        self.DeclarePeriodicDiscreteUpdateEvent(period_s, 0.0, self._update)
-        # The scene reads one output and the controller the other: compute once.
-        self._cache = self.DeclareCacheEntry(
-            description="limited wrenches",
-            value_producer=ValueProducer(allocate=AbstractValue.Make(()).Clone,
-                                         calc=self._calc_cache),
-            prerequisites_of_calc={self._X_WI.ticket(), self._X_WT.ticket(),
-                                   self._V_WT.ticket(), self._enable.ticket(),
-                                   self.xd_ticket()} | (
-                {self._V_WI.ticket()} if config.passivity_controller else set()))
-        self.DeclareVectorOutputPort("wrench_on_tool_W", 6, self._calc_on_tool)
-        self.DeclareVectorOutputPort("wrench_feedforward_W", 6, self._calc_feedforward)
-        self.DeclareVectorOutputPort("coupling_clamped", 1, self._calc_clamped)
-        self.DeclareStateOutputPort("passivity_dissipated_j", self._dissipated)
-
-    def _update(self, context, discrete_state):
-        fraction = ramp_step(context.get_discrete_state(self._ramp).GetAtIndex(0),
-                             self._enable.Eval(context)[0], self._period_s, self._config.ramp_s)
-        discrete_state.get_mutable_vector(self._ramp).SetAtIndex(0, fraction)
-        filtered = context.get_discrete_state(self._V_WI_filtered).CopyToVector()
-        filtered = filtered + self._alpha * (self._V_WI.Eval(context) - filtered)
-        discrete_state.get_mutable_vector(self._V_WI_filtered).SetFromVector(filtered)
-        if self._config.passivity_controller:
-            _, _, _, (energy, sent, dissipated) = self._cache.Eval(context)
-            discrete_state.get_mutable_vector(self._energy).SetFromVector(energy)
-            discrete_state.get_mutable_vector(self._sent).SetFromVector(sent.ravel())
-            discrete_state.get_mutable_vector(self._dissipated).SetAtIndex(
-                0, context.get_discrete_state(self._dissipated).GetAtIndex(0) + dissipated)
-
-    def _calc_cache(self, context, value):
-        """(wrench on tool, wrench on instrument, clamp factor, the passivity observer's
-        state after this sample and what its controller dissipated in it, or None) after
-        ramp and clamp, with the passivity controller's damping on the instrument's."""
-        fraction = context.get_discrete_state(self._ramp).GetAtIndex(0)
-        if self._enable.Eval(context)[0] < 0.5:
-            fraction = 0.0
-        on_tool, on_instrument, scale = limited_wrenches(
-            self._X_WI.Eval(context),
-            context.get_discrete_state(self._V_WI_filtered).CopyToVector(),
-            self._X_WT.Eval(context),
-            self._V_WT.Eval(context), self._R_IT, self._p_IT, self._k, self._b, fraction,
-            self._config.max_force_n, self._config.max_torque_nm)
-        observer = None
-        if self._config.passivity_controller:
-            state = context.get_discrete_state()
-            on_instrument, *observer = passivity_step(
-                on_instrument, self._V_WI.Eval(context),
-                state.get_vector(self._energy).CopyToVector(),
-                state.get_vector(self._sent).CopyToVector().reshape(self._port_delay_ticks, 6),
-                self._period_s, self._reference_energy_j)
-        value.set_value((on_tool, on_instrument, scale, observer))
-
-    def _calc_on_tool(self, context, output):
-        output.SetFromVector(self._cache.Eval(context)[0])
-
-    def _calc_feedforward(self, context, output):
-        output.SetFromVector(self._cache.Eval(context)[1])
-
-    def _calc_clamped(self, context, output):
-        output.SetFromVector([1.0 if self._cache.Eval(context)[2] < 1.0 else 0.0])
+        Diagram.__init__(self)
+        BuildStacked(self, leaf=CouplingLaw(config=config, period_s=period_s, X_IT=X_IT,
+                                            port_delay_ticks=port_delay_ticks),
+                     leaf_name="law", inputs=COUPLING_INPUTS, outputs=COUPLING_OUTPUTS,
+                     leaf_outputs=("passivity_dissipated_j",))

@@ -15,8 +15,7 @@ from typing import List, Optional, Tuple
 
 import numpy as np
 from numba.extending import register_jitable
-from pydrake.systems.framework import BasicVector, Diagram, DiagramBuilder, LeafSystem
-from pydrake.systems.primitives import Demultiplexer, Multiplexer
+from pydrake.systems.framework import BasicVector, Diagram, LeafSystem
 
 from maglev_haptics.hardware.config_checks import each, nonnegative, positive, require
 from maglev_haptics.hardware.constants import GRAVITY_M_S2
@@ -30,6 +29,7 @@ from maglev_haptics.systems.current_allocator import (
 from maglev_haptics.systems.magnetic_actuation import wrench_matrix_at
 from maglev_haptics.systems.rotations import (
     angular_velocity_from_rpy_rates, rotation_error_W, rotation_from_quaternion, rotation_from_rpy)
+from maglev_haptics.systems.stacked_ports import BuildStacked
 
 
 @dataclass
@@ -359,10 +359,10 @@ class LevitationController(Diagram):
     Direct feedthrough: the amplifiers sample the currents at the control rate, so
     they always use the newest estimate.
 
-    A diagram of three blocks, so that a tick pays for one Python call: a C++
-    ``Multiplexer`` ("inputs") stacks the ports for ``LevitationLaw`` ("law"), whose
-    one compiled call computes the wrench law and the allocation, and a C++
-    ``Demultiplexer`` ("outputs") splits its result into the named outputs.
+    A diagram of three blocks (``systems/stacked_ports.py``), so that a tick pays for
+    one Python call: the ports stacked for ``LevitationLaw`` ("law"), whose one
+    compiled call computes the wrench law and the allocation, and its result split
+    into the named outputs.
 
     ``tracking_lost_s`` is how long tracking has been lost (s; 0 while tracking),
     latched once past ``lost_grace_s``: the device supervisor counts it
@@ -373,22 +373,12 @@ class LevitationController(Diagram):
     def __init__(self, *, config: ControllerConfig, mass_kg: float, inertia_diag,
                  magnetics, p_WA, current_limit_a: float, thermal: CoilThermal):
         Diagram.__init__(self)
-        n = magnetics.n_coils
-        builder = DiagramBuilder()
-        self._law = builder.AddNamedSystem("law", LevitationLaw(
+        self._law = LevitationLaw(
             config=config, mass_kg=mass_kg, inertia_diag=inertia_diag, magnetics=magnetics,
-            p_WA=p_WA, current_limit_a=current_limit_a, thermal=thermal))
-        inputs = builder.AddNamedSystem("inputs", Multiplexer(
-            [size for _, size in controller_inputs(n)]))
-        for i, (name, _) in enumerate(controller_inputs(n)):
-            builder.ExportInput(inputs.get_input_port(i), name)
-        builder.Connect(inputs.get_output_port(), self._law.get_input_port())
-        outputs = builder.AddNamedSystem("outputs", Demultiplexer(
-            [size for _, size in controller_outputs(n)]))
-        builder.Connect(self._law.get_output_port(), outputs.get_input_port())
-        for i, (name, _) in enumerate(controller_outputs(n)):
-            builder.ExportOutput(outputs.get_output_port(i), name)
-        builder.BuildInto(self)
+            p_WA=p_WA, current_limit_a=current_limit_a, thermal=thermal)
+        BuildStacked(self, leaf=self._law, leaf_name="law",
+                     inputs=controller_inputs(magnetics.n_coils),
+                     outputs=controller_outputs(magnetics.n_coils))
 
     def set_gains(self, context, kp=None, kd=None) -> None:
         """Per-axis gains in the controller's ``context`` (N/m, N*m/rad; N*s/m,
