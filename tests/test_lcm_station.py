@@ -111,9 +111,31 @@ def lockstep_run(request):
     simulator = Simulator(application.diagram)
     simulator.Initialize()
     tick_s = application.tick_s
+    # Each side's messages of a step are delivered before the other side steps: a
+    # barrier message behind them on the sender's own socket (delivery is in order),
+    # awaited by a listener. Else a loaded host delivers some a step late.
+    device_lcm = device.diagram.GetSubsystemByName("coil_currents_sender")._lcm
+    application_lcm = application.diagram.GetSubsystemByName("station").GetSubsystemByName(
+        "coil_currents_commanded_sender")._lcm
+    barriers = []
+    for listener_url in (f"udpm://239.255.76.67:{port}?ttl=0",
+                         f"udpm://239.255.76.67:{port + 1}?ttl=0"):
+        listener, seen = lcm.LCM(listener_url), []
+        listener.subscribe("TEST_BARRIER", lambda _, data, seen=seen: seen.append(data))
+        barriers.append((listener, seen))
+
+    def delivered(sender, listener, seen):
+        before = len(seen)
+        sender.publish("TEST_BARRIER", b"")
+        deadline = time.monotonic() + 1.0
+        while len(seen) == before and time.monotonic() < deadline:
+            listener.handle_timeout(10)
+
     for k in range(int(round(duration_s / tick_s))):
         simulator.AdvanceTo((k + 1) * tick_s)
+        delivered(application_lcm, *barriers[1])
         device_simulator.AdvanceTo(0.001 + (k + 1) * tick_s)
+        delivered(device_lcm, *barriers[0])
     log = log_arrays(application.logger, application.log_layout, simulator.get_context(),
                      scenario.device)
     return name, scenario, duration_s, application, simulator.get_context(), log
