@@ -291,7 +291,8 @@ def _cmd_driver(args) -> int:
             sent = tracker.run(device.head_tracker.rate_hz, args.duration)
         finally:
             tracker.close()
-        print(json.dumps({"driver": args.kind, "scenario": label, "glasses_messages": sent}))
+        print(json.dumps({"driver": args.kind, "scenario": label, "glasses_messages": sent,
+                          "unreadable_frames": tracker.refused}))
         return 0
     from maglev_haptics.hardware.daq_coil_output import CoilOutputContract, DaqCoilOutput
 
