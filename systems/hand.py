@@ -36,9 +36,8 @@ from typing import List
 
 import numba
 import numpy as np
-from pydrake.common.value import AbstractValue
 from pydrake.multibody.tree import SpatialInertia
-from pydrake.systems.framework import LeafSystem, ValueProducer
+from pydrake.systems.framework import Diagram, LeafSystem
 
 from maglev_haptics.hardware.config_checks import finite, positive, require
 from maglev_haptics.hardware.constants import GRAVITY_M_S2
@@ -47,6 +46,7 @@ from maglev_haptics.systems.haptic_coupling import coupling_wrenches
 from maglev_haptics.systems.rotations import (
     angular_velocity_from_rpy_rates, pose_vector, quaternion_from_rotation_matrix,
     rigid_transform, rotation_from_quaternion, rotation_from_rpy)
+from maglev_haptics.systems.stacked_ports import BuildStacked
 
 HAND_MODEL_URL = "package://maglev_haptics/hand.sdf"
 HAND_BODY_NAME = "hand"
@@ -216,7 +216,66 @@ def explicit_step_spectral_radius(config: HandImpedanceConfig, instrument_mass_k
     return radius
 
 
-class SimulatedHand(LeafSystem):
+# The hand's input ports (name, size), in the order of the law's one input.
+HAND_INPUTS = (("hand_state", 13), ("instrument_state", 13), ("hand_target", 12), ("grip", 1))
+# Its output ports that the law computes (name, size), in the order of the law's one output.
+HAND_OUTPUTS = (("generalized_forces", 12), ("wrench_on_instrument_W", 6))
+
+
+class HandLaw(LeafSystem):
+    """``SimulatedHand``'s arithmetic and state: one input, ``inputs`` (HAND_INPUTS
+    stacked), one output, ``wrenches`` (HAND_OUTPUTS stacked), and the state output
+    ``handle_gripped``.
+
+    .. pydrake_system::
+
+        name: HandLaw
+        input_ports:
+        - inputs
+        output_ports:
+        - wrenches
+        - handle_gripped
+    """
+
+    def __init__(self, *, config: HandImpedanceConfig, period_s: float):
+        LeafSystem.__init__(self)
+        self._config = config
+        self._k_arm, self._b_arm, self._k_grip, self._b_grip = impedance_gains(config)
+        self._inputs = self.DeclareVectorInputPort(
+            "inputs", sum(size for _, size in HAND_INPUTS))
+        # The grip flag is a group of its own: its port is a plain state output.
+        self._gripped = self.DeclareDiscreteState(1)
+        self._X_HI = self.DeclareDiscreteState(IDENTITY_POSE)
+        self.DeclarePeriodicDiscreteUpdateEvent(period_s, 0.0, self._update_grip)
+        self.DeclareVectorOutputPort("wrenches", sum(size for _, size in HAND_OUTPUTS),
+                                     self._calc_wrenches)
+        self.DeclareStateOutputPort("handle_gripped", self._gripped)
+
+    def _update_grip(self, context, discrete_state):
+        inputs = self._inputs.EvalBasicVector(context).value()
+        gripped, X_HI = grip_update(
+            context.get_discrete_state(self._gripped).GetAtIndex(0),
+            context.get_discrete_state(self._X_HI).CopyToVector(), inputs[38],
+            inputs[0:7].copy(), inputs[13:20].copy())
+        discrete_state.get_mutable_vector(self._gripped).SetFromVector([gripped])
+        discrete_state.get_mutable_vector(self._X_HI).SetFromVector(X_HI)
+
+    def _calc_wrenches(self, context, output):
+        """The wrench on the hand, then on the instrument, as generalized forces
+        [tau; f] each; then the instrument's as [f; tau]."""
+        inputs = self._inputs.EvalBasicVector(context).value()
+        on_hand, on_instrument = hand_wrenches(
+            inputs[0:13], inputs[13:26], inputs[26:38],
+            context.get_discrete_state(self._gripped).GetAtIndex(0),
+            context.get_discrete_state(self._X_HI).CopyToVector(), self._k_arm, self._b_arm,
+            self._k_grip, self._b_grip, self._config.mass_kg)
+        out = output.get_mutable_value()
+        out[0:3], out[3:6] = on_hand[3:6], on_hand[0:3]
+        out[6:9], out[9:12] = on_instrument[3:6], on_instrument[0:3]
+        out[12:18] = on_instrument
+
+
+class SimulatedHand(Diagram):
     """The user's hand: arm impedance toward ``hand_target``, a latched grip on the
     instrument, and the handle's grip sensor.
 
@@ -250,58 +309,13 @@ class SimulatedHand(LeafSystem):
     updated every ``period_s``: on a rising edge of ``grip`` the current
     relative pose X_HI = X_WH^-1 X_WI is latched, so the grip starts relaxed;
     on a falling edge the hand releases.
+
+    A diagram of three blocks (``systems/stacked_ports.py``): the inputs stacked for
+    ``HandLaw`` ("law"), which computes both wrenches once a tick, and its result
+    split into the named outputs; the discrete state is the law's.
     """
 
     def __init__(self, *, config: HandImpedanceConfig, period_s: float):
-        LeafSystem.__init__(self)
-        self._config = config
-        self._k_arm, self._b_arm, self._k_grip, self._b_grip = impedance_gains(config)
-        self._hand_state = self.DeclareVectorInputPort("hand_state", 13)
-        self._instrument_state = self.DeclareVectorInputPort("instrument_state", 13)
-        self._target = self.DeclareVectorInputPort("hand_target", 12)
-        self._grip = self.DeclareVectorInputPort("grip", 1)
-        # The grip flag is a group of its own: its port is a plain state output.
-        self._gripped = self.DeclareDiscreteState(1)
-        self._X_HI = self.DeclareDiscreteState(IDENTITY_POSE)
-        self.DeclarePeriodicDiscreteUpdateEvent(period_s, 0.0, self._update_grip)
-        # The plant reads one output and the logger the other: compute once. The grip
-        # command acts only through the update, so the outputs do not depend on it.
-        self._wrenches = self.DeclareCacheEntry(
-            description="hand and instrument wrenches",
-            value_producer=ValueProducer(allocate=AbstractValue.Make(()).Clone,
-                                         calc=self._calc_wrenches),
-            prerequisites_of_calc={
-                self.input_port_ticket(port.get_index())
-                for port in (self._hand_state, self._instrument_state, self._target)
-            } | {self.xd_ticket()})
-        self.DeclareVectorOutputPort(
-            "generalized_forces", 12, self._calc_generalized_forces,
-            prerequisites_of_calc={self._wrenches.ticket()})
-        self.DeclareStateOutputPort("handle_gripped", self._gripped)
-        self.DeclareVectorOutputPort("wrench_on_instrument_W", 6,
-                                     self._calc_wrench_on_instrument,
-                                     prerequisites_of_calc={self._wrenches.ticket()})
-
-    def _update_grip(self, context, discrete_state):
-        gripped, X_HI = grip_update(
-            context.get_discrete_state(self._gripped).GetAtIndex(0),
-            context.get_discrete_state(self._X_HI).CopyToVector(), self._grip.Eval(context)[0],
-            self._hand_state.Eval(context)[0:7], self._instrument_state.Eval(context)[0:7])
-        discrete_state.get_mutable_vector(self._gripped).SetFromVector([gripped])
-        discrete_state.get_mutable_vector(self._X_HI).SetFromVector(X_HI)
-
-    def _calc_wrenches(self, context, value):
-        """(wrench on the hand, wrench on the instrument)."""
-        value.set_value(hand_wrenches(
-            self._hand_state.Eval(context), self._instrument_state.Eval(context),
-            self._target.Eval(context), context.get_discrete_state(self._gripped).GetAtIndex(0),
-            context.get_discrete_state(self._X_HI).CopyToVector(), self._k_arm, self._b_arm,
-            self._k_grip, self._b_grip, self._config.mass_kg))
-
-    def _calc_generalized_forces(self, context, output):
-        on_hand, on_instrument = self._wrenches.Eval(context)
-        output.SetFromVector(np.concatenate((on_hand[3:6], on_hand[0:3],
-                                             on_instrument[3:6], on_instrument[0:3])))
-
-    def _calc_wrench_on_instrument(self, context, output):
-        output.SetFromVector(self._wrenches.Eval(context)[1])
+        Diagram.__init__(self)
+        BuildStacked(self, leaf=HandLaw(config=config, period_s=period_s), leaf_name="law",
+                     inputs=HAND_INPUTS, outputs=HAND_OUTPUTS, leaf_outputs=("handle_gripped",))
