@@ -542,3 +542,32 @@ def test_a_second_application_is_refused_and_a_lost_instrument_is_said(tmp_path)
     assert report["commands"]["messages_refused"] == 0 and report["lease"]["grants"] == 1
     summary = json.loads((tmp_path / "first" / "summary.json").read_text())
     assert summary["station"]["lease"]["lapses"] == 0
+
+
+@pytest.mark.parametrize("outcome", ["in use", "lost", "flown"])
+def test_maglev_run_exit_codes_say_what_happened(monkeypatch, tmp_path, capsys, outcome):
+    """`maglev run`'s ends: another application holds the device (4, one line), a fault
+    latched in a run that injected none (5, the outcome last), a clean flight (0)."""
+    from maglev_haptics.analysis import run_results
+    from maglev_haptics.diagrams.cli import main
+
+    def run_scenario(scenario, **_):
+        if outcome == "in use":
+            raise DeviceInUseError("the device is in use by another application (session "
+                                   "0x2a, process 7 on labpc); this one commanded no coil")
+        t = np.arange(0.0, 1.0, 0.001)
+        bits = np.where(t >= 0.5, 1, 0) if outcome == "lost" else np.zeros_like(t, dtype=int)
+        return run_results.RunResult(summary={"duration_s": 1.0}, meshcat=None,
+                                     log={"t": t, "fault_bits": bits})
+
+    monkeypatch.setattr(run_results, "run_scenario", run_scenario)
+    code = main(["run", "levitate", "--no-meshcat", "--out", str(tmp_path)])
+    error = capsys.readouterr().err.strip().splitlines()
+    assert code == {"in use": 4, "lost": 5, "flown": 0}[outcome]
+    if outcome == "in use":
+        assert error[-1] == ("maglev run: levitate:takeoff_hover_land: the device is in use by "
+                             "another application (session 0x2a, process 7 on labpc); this "
+                             "one commanded no coil")
+    elif outcome == "lost":
+        assert error[-1] == ("levitate:takeoff_hover_land: the instrument was lost at 0.500 s "
+                             "(sensor out of range)")
