@@ -38,7 +38,9 @@ from maglev_haptics.systems.fault_injection import (
     CorruptSample, LatencySpike, Shove, StuckAmplifier)
 from maglev_haptics.systems.pose_estimator import PoseEstimatorConfig
 
-HIGHEST_RATE_HZ = 1e5  # the loop's and the log's rates at most (Hz)
+HIGHEST_RATE_HZ = 1e5  # the loop's, the log's and the trackers' rates at most (Hz)
+HIGHEST_DAMPING_RATIO = 100.0  # the controller's, at most (past it, the gains overflow)
+LONGEST_PLANT_STEP_S = 0.1  # the station plant's time step at most (s)
 
 
 def check_script_length(steps) -> None:
@@ -157,7 +159,21 @@ class Scenario:
         """Range checks of every config, each error naming ``label: path.field``, its
         value and what is allowed; then the checks across configs."""
         self.device.validate(f"{label}: device")
+        for tracker in ("tracker", "head_tracker"):
+            rate_hz = getattr(self.device, tracker).rate_hz
+            require(rate_hz <= HIGHEST_RATE_HZ, f"{label}: device.{tracker}.rate_hz", rate_hz,
+                    f"must be at most {HIGHEST_RATE_HZ:g} Hz")
         self.controller.validate(f"{label}: controller")
+        nyquist_hz = self.control_rate_hz / 2
+        for i, natural_hz in enumerate(self.controller.natural_frequency_hz):
+            require(natural_hz < nyquist_hz, f"{label}: controller.natural_frequency_hz[{i}]",
+                    natural_hz, f"must be below half the control rate ({nyquist_hz:g} Hz)")
+        for i, ratio in enumerate(self.controller.damping_ratio):
+            require(ratio <= HIGHEST_DAMPING_RATIO, f"{label}: controller.damping_ratio[{i}]",
+                    ratio, f"must be at most {HIGHEST_DAMPING_RATIO:g}")
+        require(self.plant_config.time_step <= LONGEST_PLANT_STEP_S,
+                f"{label}: plant_config.time_step", self.plant_config.time_step,
+                f"must be at most {LONGEST_PLANT_STEP_S:g} s")
         self.motion.validate(f"{label}: motion")
         self.watchdog.validate(f"{label}: watchdog")
         self.estimator.validate(f"{label}: estimator", self.device.tracker.rate_hz)

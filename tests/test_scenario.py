@@ -158,6 +158,17 @@ def test_each_loader_refusal_is_one_line_built_from_the_schema(text, message):
     ("{duration_s: 1.0e308}", "duration_s = 1e+308: a run lasts at most 3600 s"),
     ("{control_rate_hz: 1.0e308}", "control_rate_hz = 1e+308: must be at most 100000 Hz"),
     ("{log_rate_hz: 1.0e300}", "log_rate_hz = 1e+300: must be at most 100000 Hz"),
+    ("{device: {tracker: {rate_hz: 1.0e300}}}",
+     "device.tracker.rate_hz = 1e+300: must be at most 100000 Hz"),
+    ("{device: {head_tracker: {rate_hz: 1.0e300}}}",
+     "device.head_tracker.rate_hz = 1e+300: must be at most 100000 Hz"),
+    ("{plant_config: {time_step: 1.0e300}}", "plant_config.time_step = 1e+300: must be at "
+     "most 0.1 s"),
+    ("{controller: {natural_frequency_hz: [1.0e300, 10, 10, 10, 10, 10]}}",
+     "controller.natural_frequency_hz[0] = 1e+300: must be below half the control rate "
+     "(500 Hz)"),
+    ("{controller: {damping_ratio: [0.7, 0.7, 1.0e300, 0.7, 0.7, 0.7]}}",
+     "controller.damping_ratio[2] = 1e+300: must be at most 100"),
 ])
 def test_a_huge_finite_time_or_rate_is_refused_naming_its_field(text, message):
     """A hold of 1e308 s once ended in Drake's 'Times must be in increasing order.'"""
