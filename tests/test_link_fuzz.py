@@ -313,9 +313,12 @@ def bad_station_message(fuzzer, channel, newest: bytes, older: bytes):
         if kind == 2:
             message.position_m, message.visible = [[bad, 0.0, 0.0]] * 3, [True] * 3
             reason = "not_finite"
-        else:
+        elif fuzzer.rng.random() < 0.5:
             message.position_m, message.visible = [[0.0, 0.0, 0.01]] * 4, [True] * 4
             message.num_markers, reason = 4, "wrong_size"
+        else:  # beyond the tracker's volume
+            message.position_m, message.visible = [[3.0, 0.0, 0.01]] * 3, [True] * 3
+            reason = "out_of_range"
     elif channel == "MAGLEV_COIL_CURRENTS":
         message.current_a, reason = (([1e6] * 27, "out_of_range") if kind == 2
                                      else ([bad] * 27, "not_finite"))
