@@ -60,6 +60,7 @@ def test_study_names():
     assert set(LOOP_STUDIES) | {"linearize", "multirate", "workspace"} == set(study_names())
 
 
+@pytest.mark.slow
 def test_workspace_runs_on_every_scenario(tmp_path):
     """The workspace applies to every scenario: it depends on the scenario's device
     only, so each distinct device of the shipped scenarios gets one run (quick grids;
@@ -83,10 +84,9 @@ def _check_workspace(results, tmp_path):
     assert all((tmp_path / plot).stat().st_size > 10_000 for plot in results["plots"])
 
 
-# The default suite linearizes one levitation loop, one haptic loop with a scripted
-# hand (B, C, D) and the refused deformable scene; `-m slow` covers every scenario.
-QUICK_LINEARIZATIONS = {("linearize", "levitate"), ("linearize", "peg_in_hole"),
-                        ("linearize", "deformable_surface")}
+# The default suite linearizes one haptic loop with a scripted hand (B, C, D) and the
+# refused deformable scene; `-m slow` covers every scenario.
+QUICK_LINEARIZATIONS = {("linearize", "peg_in_hole"), ("linearize", "deformable_surface")}
 
 
 def first_of_each_file(study):
@@ -124,6 +124,7 @@ def test_loop_linearization_runs_or_says_why(study, file, name, tmp_path, capsys
         assert np.abs(D).max() == 0.0  # the rendered wrench is a held state
 
 
+@pytest.mark.slow
 def test_peg_multirate_against_single_rate(tmp_path):
     """The true 860 Hz / 1 kHz loop and the single-rate one agree on the slowest mode
     over the 50 ms hyperperiod (the hand on the arm, ~4 Hz)."""

@@ -63,6 +63,7 @@ class RunOutput:
             time.sleep(0.05)
 
 
+@pytest.mark.slow  # Chromium against a paced run with Meshcat
 def test_meshcat_hand_grips_and_lifts_the_instrument(tmp_path):
     out = tmp_path / "run"
     process = subprocess.Popen(

@@ -30,13 +30,14 @@ def palpation_flat():
     return palpate(FLAT)
 
 
-def test_the_default_lattice_is_the_papers_size(palpation):
-    scenario, _ = palpation
+def test_the_default_lattice_is_the_papers_size():
+    scenario = load_scenario("deformable_surface")
     lattice = build_scene_lattice(scenario.haptics.scene)
     assert lattice.num_masses >= 5000
     assert lattice.num_links > 10 * lattice.num_masses  # the 26-neighbour links
 
 
+@pytest.mark.slow  # the whole palpation script, twice below
 def test_strikes_give_force_peaks(palpation):
     scenario, result = palpation
     strikes = result.summary["palpation"]["strikes"]
@@ -46,6 +47,7 @@ def test_strikes_give_force_peaks(palpation):
     assert result.summary["max_coil_current_a"] <= scenario.device.amplifier.current_limit_a
 
 
+@pytest.mark.slow
 def test_sliding_over_texture_varies_the_z_force(palpation, palpation_flat):
     _, textured = palpation
     _, flat = palpation_flat

@@ -24,6 +24,7 @@ def test_the_plan_is_reproducible_and_takes_every_kind_in_turn():
     assert [p.fault_at_s for p in plan] != [p.fault_at_s for p in plan_campaign(20, seed=4)]
 
 
+@pytest.mark.slow
 def test_a_short_campaign_passes_every_check_and_writes_its_rows_and_plot(tmp_path, capsys):
     assert main(["faults", "--runs", str(len(FAULT_KINDS)), "--workers", "2",
                  "--out", str(tmp_path)]) == 0

@@ -20,6 +20,7 @@ def run(command, **kwargs):
     return result
 
 
+@pytest.mark.slow  # builds the wheel, installs it and compiles its kernels afresh
 @pytest.mark.skipif(not (REPO / "pyproject.toml").exists(), reason="needs the source tree")
 def test_wheel_installs_and_runs_a_scenario_from_anywhere(tmp_path):
     source, dist, site, elsewhere = (tmp_path / name for name in

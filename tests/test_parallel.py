@@ -37,6 +37,7 @@ def campaign_rows(tmp_path, *where):
     return json.loads((out / "faults.json").read_text())
 
 
+@pytest.mark.slow
 def test_the_campaign_gives_the_same_rows_wherever_it_runs(tmp_path, cluster):
     here = campaign_rows(tmp_path, "--workers", "1")
     local = campaign_rows(tmp_path, "--workers", "2")
@@ -48,6 +49,7 @@ def test_the_campaign_gives_the_same_rows_wherever_it_runs(tmp_path, cluster):
     assert dask["jobs"]["where"] == f"Dask scheduler {cluster.scheduler_address}"
 
 
+@pytest.mark.slow
 def test_a_worker_killed_mid_job_has_its_job_rerun_elsewhere(cluster):
     plans = plan_campaign(RUNS, 5)
     expected = [run_fault(plan) for plan in plans]
@@ -75,6 +77,7 @@ def test_a_worker_killed_mid_job_has_its_job_rerun_elsewhere(cluster):
     assert results.results == expected
 
 
+@pytest.mark.slow  # Dask's client waits out its 10 s connection timeout
 def test_an_unreachable_scheduler_is_one_line(tmp_path, capsys):
     assert main(["faults", "--runs", "1", "--scheduler", "tcp://127.0.0.1:1",
                  "--out", str(tmp_path / "x")]) == 2
@@ -133,6 +136,7 @@ def test_a_wider_search_speculates_and_finds_the_same_stiffness():
     assert rounds_taken == sorted(set(rounds_taken), reverse=True), rounds_taken
 
 
+@pytest.mark.slow
 def test_searches_find_the_same_on_workers_as_here(cluster):
     is_above = functools.partial(operator.lt, THRESHOLD_N_M)
     searches = [functools.partial(onset_of, []) for _ in range(3)]
@@ -165,9 +169,10 @@ def answering_at_once(width):
     yield
 
 
-@pytest.mark.parametrize("where", ["here", "there"])
-def test_a_search_hears_of_its_jobs_errors_and_may_need_no_jobs(where, cluster):
-    place = {"scheduler": cluster.scheduler_address} if where == "there" else {}
+@pytest.mark.parametrize("where", ["here", pytest.param("there", marks=pytest.mark.slow)])
+def test_a_search_hears_of_its_jobs_errors_and_may_need_no_jobs(where, request):
+    place = ({"scheduler": request.getfixturevalue("cluster").scheduler_address}
+             if where == "there" else {})
     found = run_searches(functools.partial(operator.truediv, 1.0),
                          [refusing, answering_at_once], progress=False, **place)
     assert found.results == ["ZeroDivisionError", "no jobs"]

@@ -40,6 +40,7 @@ def test_a_folder_without_a_log_is_named(tmp_path):
         load_run_log(tmp_path)
 
 
+@pytest.mark.slow  # a paced run in its own process, killed mid-flight
 def test_a_killed_run_leaves_its_log_to_within_a_second(tmp_path):
     """A paced run killed with SIGKILL mid-flight: no log.npz, but the chunks hold the
     flight up to less than a second before the kill."""
@@ -78,6 +79,7 @@ def test_a_killed_run_leaves_its_log_to_within_a_second(tmp_path):
     assert os.listdir(tmp_path / run_log.CHUNK_DIR)
 
 
+@pytest.mark.slow  # a paced run in its own process, stopped mid-flight
 @pytest.mark.parametrize("stop_signal", [signal.SIGTERM, signal.SIGINT])
 def test_a_stopped_run_writes_its_results_and_says_so_in_one_line(tmp_path, stop_signal):
     """SIGTERM or Ctrl-C on a scripted run: the flying instrument lands, the run ends

@@ -87,6 +87,7 @@ def malformed_scenarios(draw):
     return path, name, to_yaml(with_field(raw, keys, value)), named
 
 
+@pytest.mark.slow  # 300 scenarios loaded
 @settings(max_examples=300, deadline=None, derandomize=True,
           suppress_health_check=[HealthCheck.too_slow])
 @given(malformed_scenarios())
