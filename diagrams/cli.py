@@ -343,7 +343,7 @@ def _cmd_bench(args) -> int:
                              quick=args.quick)
     print(json.dumps(results, indent=2) if args.json else results["report"])
     if not args.json:
-        print(f"wrote {out_dir / 'bench.json'}, {out_dir / 'lattice_scaling.png'}")
+        print(f"wrote {out_dir / 'bench.json'} {out_dir / 'lattice_scaling.png'}")
     return 0
 
 
@@ -390,7 +390,7 @@ def _cmd_faults(args) -> int:
         print(f"run {row['run']} ({row['fault']}, {row['scenario']}): "
               + (f"crashed: {row['error']}" if row["crashed"] else "failed " + ", ".join(broken)))
     print(f"{len(results['runs']) - len(failed)} of {len(results['runs'])} runs passed every "
-          f"check; wrote {out_dir / 'faults.json'}, {out_dir / 'faults.png'}")
+          f"check; wrote {out_dir / 'faults.json'} {out_dir / 'faults.png'}")
     return 0 if not failed else 1
 
 
@@ -433,7 +433,7 @@ def _cmd_analyze(args) -> int:
         if "modes" in results:
             print(format_modes(results["modes"]))
         files = [f"{args.study.replace('-', '_')}.json"] + results["plots"]
-        print("wrote " + ", ".join(f"{out}/{name}" for name in files))
+        print("wrote " + " ".join(str(out / name) for name in files))
     return 0
 
 
@@ -592,7 +592,7 @@ def _add_bench_parser(commands) -> None:
     bench = commands.add_parser(
         "bench", formatter_class=FORMATTER,
         help="real-time factor of each scenario, per-tick costs",
-        description="Real-time factor of each shipped scenario, per-tick cost of each "
+        description="Real-time factor of each shipped scenario, per-tick cost of each\n"
         "system, lattice scaling and allocation cost (Meshcat off).\n\n" + BENCH_PARTS,
         epilog=_epilog("""
             maglev bench --quick
