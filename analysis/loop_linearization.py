@@ -41,6 +41,7 @@ from maglev_haptics.analysis.linearization import (  # noqa: E402
 from maglev_haptics.analysis.loop_studies import StudyNotApplicable  # noqa: E402
 from maglev_haptics.diagrams.application import BuildDiagram  # noqa: E402
 from maglev_haptics.diagrams.hand_script import ScriptedHand, hand_plan  # noqa: E402
+from maglev_haptics.diagrams.haptics import stepped_in_place  # noqa: E402
 from maglev_haptics.diagrams.station import hand_start_pose  # noqa: E402
 
 # Systems whose states feed nothing back into the loop (name prefixes).
@@ -196,7 +197,7 @@ def loop_map(scenario, *, progress: Optional[Callable[[int, int], None]] = None,
     check_applies(scenario)
     t0 = operating_point_s(scenario)
     with_hand = isinstance(scenario.hand, ScriptedHand)
-    built = BuildDiagram(scenario, hand_target_offset_input=with_hand)
+    built = BuildDiagram(stepped_in_place(scenario), hand_target_offset_input=with_hand)
     names = state_names(built.diagram)
     kept = [i for i, name in enumerate(names)
             if not name.startswith(RECORDING_ONLY + HELD_STATES)
@@ -208,7 +209,8 @@ def loop_map(scenario, *, progress: Optional[Callable[[int, int], None]] = None,
     if operating_point_from is None:
         context = _operating_context(built.diagram, t0)
     else:
-        reference = BuildDiagram(operating_point_from, hand_target_offset_input=with_hand)
+        reference = BuildDiagram(stepped_in_place(operating_point_from),
+                                 hand_target_offset_input=with_hand)
         context = built.diagram.CreateDefaultContext()
         _fix_inputs(built.diagram, context)
         context.SetTimeStateAndParametersFrom(_operating_context(reference.diagram, t0))

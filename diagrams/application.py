@@ -281,12 +281,14 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
                 MeshcatVisualizerParams(publish_period=frame_period_s,
                                         role=Role.kIllustration, prefix="scene")))
             scene = haptics.scene
-            if scene.surface is None:
+            # A scene stepped by a worker process has its contact results there: no
+            # contact forces drawn (the device's overlay draws the rendered wrench).
+            if scene.surface is None and scene.worker is None:
                 frame_publishers.append(ContactVisualizer.AddToBuilder(
                     builder, scene.plant, meshcat,
                     ContactVisualizerParams(publish_period=frame_period_s, prefix="contact",
                                             newtons_per_meter=10.0, newton_meters_per_meter=1.0)))
-            else:
+            elif scene.surface is not None:
                 # The lattice is no geometry of the scene plant: it draws itself.
                 config = scenario.haptics.scene
                 surface_visualizer = builder.AddNamedSystem(

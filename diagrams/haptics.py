@@ -89,6 +89,15 @@ def resolved_coupling_config(scenario: Scenario, magnetics) -> CouplingConfig:
                        else config.max_torque_nm))
 
 
+def stepped_in_place(scenario: Scenario) -> Scenario:
+    """``scenario`` with its rigid scene's plant stepped in the diagram, not in a
+    worker process: the loop's linearization reads the plant's states."""
+    if scenario.haptics is None:
+        return scenario
+    return dataclasses.replace(scenario, haptics=dataclasses.replace(
+        scenario.haptics, scene_stepping="in_place"))
+
+
 def haptics_request(scenario: Scenario) -> PiecewisePolynomial:
     """1 while haptics is requested, 0 otherwise (zero-order hold)."""
     haptics = scenario.haptics
@@ -122,7 +131,7 @@ def AddHaptics(builder, *, scenario: Scenario, magnetics, station, estimator, co
         scene = AddScene(builder, scene=haptics.scene, time_step_s=period_s,
                          use_sampled_output_ports=False,
                          contact_sample_period_s=CONTACT_SAMPLE_PERIOD_S,
-                         X_WI_start=X_WI_start)
+                         X_WI_start=X_WI_start, stepping=haptics.scene_stepping)
     config = resolved_coupling_config(scenario, magnetics)
     coupling = builder.AddNamedSystem("haptic_coupling", HapticCoupling(
         config=config, period_s=period_s, X_IT=scene.X_IT,

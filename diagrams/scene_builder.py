@@ -60,10 +60,12 @@ import numpy as np
 from pydrake.geometry import DefaultProximityProperties, SceneGraph, SceneGraphConfig
 from pydrake.math import RigidTransform
 from pydrake.multibody.parsing import Parser
-from pydrake.multibody.plant import AddMultibodyPlant, MultibodyPlant, MultibodyPlantConfig
+from pydrake.multibody.plant import (
+    AddMultibodyPlant, ApplyMultibodyPlantConfig, MultibodyPlant, MultibodyPlantConfig)
 from pydrake.multibody.tree import LinearSpringDamper, RigidBody
 from pydrake.systems.framework import DiagramBuilder, InputPort, OutputPort
 from pydrake.systems.primitives import Demultiplexer, MatrixGain, ZeroOrderHold
+from pydrake.systems.rendering import MultibodyPositionToGeometryPose
 
 from maglev_haptics.diagrams.scene import (
     ContactProperties, HangingBall, PaddleBall, PegInHole, SceneConfig, hanging_drop_m,
@@ -74,6 +76,8 @@ from maglev_haptics.plant_models.scene_geometry import (
 from maglev_haptics.plant_models.scene_sdf import (
     ANCHOR_RGBA, BALL_RGBA, BLOCK_RGBA, PADDLE_RGBA, PEG_RGBA, Part, box_geometry, model_sdf,
     register_table, sphere_geometry)
+from maglev_haptics.systems.remote_scene import RemoteScene
+from maglev_haptics.systems.scene_worker import CONTACT, STEP, SceneWorker
 from maglev_haptics.systems.tool_contact import ToolContactSensor
 
 
@@ -95,6 +99,9 @@ class SceneParts:
     in_contact_output: OutputPort  # 1.0 while anything touches the tool (sampled)
     surface: Optional[object] = None  # the DeformableSurface system of a deformable scene
     lattice: Optional[object] = None  # its Lattice at rest
+    # The RemoteScene system when a worker process steps the plant: ``plant`` is then
+    # a copy outside the diagram that only poses ``scene_graph``'s geometry.
+    worker: Optional[object] = None
 
 
 
@@ -173,35 +180,14 @@ def block_sdf(scene: PegInHole) -> str:
 
 
 
-def AddScene(builder: DiagramBuilder, *, scene: SceneConfig, time_step_s: float,
-             X_WI_start: RigidTransform, use_sampled_output_ports: bool = True,
-             contact_sample_period_s: Optional[float] = None) -> SceneParts:
-    """Add the scene's plant and scene graph, its models and its ports to ``builder``.
+SCENE_STEPPING = ("worker", "in_place")
 
-    The tool starts at X_WI_start * X_IT (X_IT the identity); the hanging ball at its static hanging
-    point below the anchor; the paddle's ball at ``ball_start_m``; all at rest.
-    A ValueError names a bad config field, or X_WI_start if it would start the
-    tool or the ball inside the scene. ``use_sampled_output_ports=False`` (for
-    linearization: Drake otherwise linearizes a sampled output to the identity) makes the plant's outputs, the contact
-    wrench among them, functions of the current state instead of the last step's.
-    ``contact_sample_period_s`` (s), when given, samples the contact wrench and
-    the contact flag at that period instead of every step.
-    """
-    scene.validate()
-    positive("time_step_s", time_step_s)
-    X_IT = RigidTransform()
-    X_WT = X_WI_start @ X_IT
-    overlap = start_overlap(scene, X_WT @ RigidTransform(np.asarray(scene.tool_offset_m, float)))
-    if overlap is not None:
-        raise ValueError(
-            f"X_WI_start (p_WI = {np.round(X_WI_start.translation(), 6).tolist()} m): {overlap}; "
-            "start the instrument where the tool and the ball are clear of the scene")
-    config = MultibodyPlantConfig(time_step=time_step_s, discrete_contact_approximation="lagged",
-                                  contact_model="hydroelastic_with_fallback",
-                                  use_sampled_output_ports=use_sampled_output_ports)
-    plant, scene_graph = AddMultibodyPlant(config, builder)
-    plant.set_name("scene_plant")
-    scene_graph.set_name("scene_graph")
+
+def _add_models(plant: MultibodyPlant, scene_graph: SceneGraph, scene: SceneConfig,
+                X_WT: RigidTransform):
+    """The scene's models in ``plant`` (registered with ``scene_graph``), which is
+    then finalized, the tool at X_WT and the balls at their starts. Returns
+    (tool body, ball body or None)."""
     parser = Parser(plant)
     tool = parser.AddModelsFromString(tool_sdf(scene), "sdf")[0]
     plant.set_gravity_enabled(tool, False)
@@ -237,13 +223,61 @@ def AddScene(builder: DiagramBuilder, *, scene: SceneConfig, time_step_s: float,
     elif isinstance(scene, PaddleBall):
         plant.SetDefaultFloatingBaseBodyPose(ball_body, RigidTransform(
             np.asarray(scene.ball_start_m, dtype=float)))
+    return tool_body, ball_body
+
+
+def AddScene(builder: DiagramBuilder, *, scene: SceneConfig, time_step_s: float,
+             X_WI_start: RigidTransform, use_sampled_output_ports: bool = True,
+             contact_sample_period_s: Optional[float] = None,
+             stepping: str = "in_place") -> SceneParts:
+    """Add the scene's plant and scene graph, its models and its ports to ``builder``.
+
+    The tool starts at X_WI_start * X_IT (X_IT the identity); the hanging ball at its static hanging
+    point below the anchor; the paddle's ball at ``ball_start_m``; all at rest.
+    A ValueError names a bad config field, or X_WI_start if it would start the
+    tool or the ball inside the scene. ``use_sampled_output_ports=False`` (for
+    linearization: Drake otherwise linearizes a sampled output to the identity) makes the plant's outputs, the contact
+    wrench among them, functions of the current state instead of the last step's.
+    ``contact_sample_period_s`` (s), when given, samples the contact wrench and
+    the contact flag at that period instead of every step.
+
+    ``stepping="worker"`` steps the plant in a process of its own on the other core
+    (``systems/remote_scene.py``), with the numbers of ``use_sampled_output_ports=False``
+    bit for bit; it needs ``contact_sample_period_s``. The diagram then holds the
+    plant's state in "scene_plant_worker" and poses the scene graph's geometry from
+    it; ``SceneParts.plant`` is a copy outside the diagram that only does that.
+    """
+    scene.validate()
+    positive("time_step_s", time_step_s)
+    if stepping not in SCENE_STEPPING:
+        raise ValueError(f"stepping = {stepping!r}: one of {', '.join(SCENE_STEPPING)}")
+    X_IT = RigidTransform()
+    X_WT = X_WI_start @ X_IT
+    overlap = start_overlap(scene, X_WT @ RigidTransform(np.asarray(scene.tool_offset_m, float)))
+    if overlap is not None:
+        raise ValueError(
+            f"X_WI_start (p_WI = {np.round(X_WI_start.translation(), 6).tolist()} m): {overlap}; "
+            "start the instrument where the tool and the ball are clear of the scene")
+    config = MultibodyPlantConfig(time_step=time_step_s, discrete_contact_approximation="lagged",
+                                  contact_model="hydroelastic_with_fallback",
+                                  use_sampled_output_ports=use_sampled_output_ports)
+    if stepping == "worker":
+        if contact_sample_period_s is None:
+            raise ValueError("stepping = 'worker' samples the contact: "
+                             "give contact_sample_period_s")
+        return _add_worker_scene(builder, scene=scene, config=config, X_WI_start=X_WI_start,
+                                 X_IT=X_IT, contact_sample_period_s=contact_sample_period_s)
+    plant, scene_graph = AddMultibodyPlant(config, builder)
+    plant.set_name("scene_plant")
+    scene_graph.set_name("scene_graph")
+    tool_body, ball_body = _add_models(plant, scene_graph, scene, X_WT)
 
     gain = builder.AddNamedSystem("scene_tool_wrench", MatrixGain(
         wrench_to_generalized_force(tool_body.floating_velocities_start_in_v(),
                                     plant.num_velocities())))
     builder.Connect(gain.get_output_port(), plant.get_applied_generalized_force_input_port())
     split = builder.AddNamedSystem("scene_tool_state", Demultiplexer([7, 6]))
-    builder.Connect(plant.get_state_output_port(tool), split.get_input_port())
+    builder.Connect(plant.get_state_output_port(tool_body.model_instance()), split.get_input_port())
     sensor = builder.AddNamedSystem("scene_tool_contact", ToolContactSensor(plant, tool_body))
     builder.Connect(plant.get_contact_results_output_port(), sensor.GetInputPort("contact_results"))
     builder.Connect(split.get_output_port(0), sensor.GetInputPort("X_WT"))
@@ -263,3 +297,95 @@ def AddScene(builder: DiagramBuilder, *, scene: SceneConfig, time_step_s: float,
         wrench_on_tool_input=gain.get_input_port(), X_WT_output=split.get_output_port(0),
         V_WT_output=split.get_output_port(1),
         contact_wrench_output=contact_wrench, in_contact_output=in_contact)
+
+
+def _first(builder: DiagramBuilder, name: str, port: OutputPort, size: int) -> OutputPort:
+    """The first ``size`` elements of ``port``."""
+    if port.size() == size:
+        return port
+    split = builder.AddNamedSystem(name, Demultiplexer([size, port.size() - size]))
+    builder.Connect(port, split.get_input_port())
+    return split.get_output_port(0)
+
+
+def _add_worker_scene(builder: DiagramBuilder, *, scene: SceneConfig,
+                      config: MultibodyPlantConfig, X_WI_start: RigidTransform,
+                      X_IT: RigidTransform, contact_sample_period_s: float) -> SceneParts:
+    """AddScene's ``stepping="worker"``: the plant's state stepped by a worker process
+    (which builds the in-place plant with use_sampled_output_ports=False), and a
+    copy of the plant outside the diagram that poses the scene graph's geometry."""
+    scene_graph = builder.AddNamedSystem("scene_graph", SceneGraph())
+    plant = MultibodyPlant(config.time_step)
+    plant.set_name("scene_plant")
+    ApplyMultibodyPlantConfig(config, plant)
+    plant.RegisterAsSourceForSceneGraph(scene_graph)
+    tool_body, ball_body = _add_models(plant, scene_graph, scene, X_WI_start @ X_IT)
+    # The tool comes first: its pose and velocity lead q and v.
+    assert tool_body.floating_positions_start() == 0
+    assert tool_body.floating_velocities_start_in_v() == 0
+    nq, nv = plant.num_positions(), plant.num_velocities()
+    worker = SceneWorker("maglev_haptics.diagrams.scene_process",
+                         (scene, config.time_step, X_WI_start.GetAsMatrix4()), nq + nv)
+    remote = builder.AddNamedSystem("scene_plant_worker", RemoteScene(
+        worker, SceneStepper(scene, config.time_step, X_WI_start),
+        x0=plant.GetPositionsAndVelocities(plant.CreateDefaultContext()),
+        period_s=config.time_step, contact_period_s=contact_sample_period_s))
+    state = builder.AddNamedSystem("scene_state", Demultiplexer([nq, nv]))
+    builder.Connect(remote.GetOutputPort("x"), state.get_input_port())
+    to_pose = builder.AddNamedSystem("scene_geometry_pose", MultibodyPositionToGeometryPose(plant))
+    builder.Connect(state.get_output_port(0), to_pose.get_input_port())
+    builder.Connect(to_pose.get_output_port(), scene_graph.get_source_pose_port(
+        plant.get_source_id()))
+    return SceneParts(
+        plant=plant, scene_graph=scene_graph, tool_body=tool_body, X_IT=X_IT, ball_body=ball_body,
+        wrench_on_tool_input=remote.GetInputPort("wrench_on_tool_W"),
+        X_WT_output=_first(builder, "scene_tool_pose", state.get_output_port(0), 7),
+        V_WT_output=_first(builder, "scene_tool_velocity", state.get_output_port(1), 6),
+        contact_wrench_output=remote.GetOutputPort("contact_wrench_on_tool_W"),
+        in_contact_output=remote.GetOutputPort("in_contact"), worker=remote)
+
+
+class SceneStepper:
+    """The scene's plant outside any simulated diagram, stepped on request: what a
+    scene worker process computes (``systems/scene_worker.py``), and what
+    ``RemoteScene`` computes itself when it does not wait for one. Built by
+    AddScene (unsampled ports, the raw contact sensor), so its numbers are the
+    in-place plant's bit for bit: the same plant, the same update handler, on the
+    same state and input.
+
+    ``stepper(kind, [x; u], result)`` writes x_next (STEP) and/or the contact
+    sample [wrench on the tool (6), in contact] (CONTACT) at state x = [q; v]
+    and tool wrench u into ``result`` [x_next; contact].
+    """
+
+    def __init__(self, scene, time_step_s: float, X_WI_start: RigidTransform):
+        builder = DiagramBuilder()
+        parts = AddScene(builder, scene=scene, time_step_s=time_step_s, X_WI_start=X_WI_start,
+                         use_sampled_output_ports=False)
+        self._diagram = builder.Build()
+        context = self._diagram.CreateDefaultContext()
+        self._plant = parts.plant
+        self._plant_context = parts.plant.GetMyMutableContextFromRoot(context)
+        gain = parts.wrench_on_tool_input.get_system()
+        self._wrench = parts.wrench_on_tool_input.FixValue(
+            gain.GetMyMutableContextFromRoot(context), np.zeros(6))
+        self._contact_ports = [(port, port.get_system().GetMyContextFromRoot(context))
+                               for port in (parts.contact_wrench_output, parts.in_contact_output)]
+        self.n = parts.plant.num_positions() + parts.plant.num_velocities()
+        self._at = np.full(self.n + 6, np.nan)  # the (x, u) the context holds
+
+    def __call__(self, kind: int, request: np.ndarray, result: np.ndarray) -> None:
+        n = self.n
+        # The same (x, u) again (the contact sample after its tick's step) keeps the
+        # context, and with it the contact solver's cached results.
+        if not np.array_equal(request.view(np.int64), self._at.view(np.int64)):
+            self._at[:] = request
+            self._plant.SetPositionsAndVelocities(self._plant_context, request[:n])
+            self._wrench.GetMutableData().get_mutable_value().SetFromVector(request[n:])
+        if kind & STEP:
+            result[:n] = self._plant.EvalUniquePeriodicDiscreteUpdate(
+                self._plant_context).get_vector(0).value()
+        if kind & CONTACT:
+            (wrench, wrench_context), (flag, flag_context) = self._contact_ports
+            result[n:n + 6] = wrench.Eval(wrench_context)
+            result[n + 6] = flag.Eval(flag_context)[0]
