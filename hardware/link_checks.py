@@ -36,6 +36,8 @@ from dataclasses import dataclass
 from io import BytesIO
 from typing import Callable, Dict, Optional
 
+from tqdm import tqdm
+
 from maglev_haptics.hardware.lcm_messages import device_status_t, lease_t
 
 REASONS = ("malformed", "wrong_size", "not_finite", "out_of_range", "other_session", "replayed")
@@ -208,7 +210,8 @@ def check_lease_reply(message, limits: LinkLimits = None) -> None:
 
 
 def log_to_stderr(line: str) -> None:
-    print(line, file=sys.stderr, flush=True)
+    """One line on stderr, on a line of its own beside a progress bar."""
+    tqdm.write(line, file=sys.stderr)
 
 
 class InboundGate:
