@@ -9,11 +9,15 @@ import time
 
 import numpy as np
 import pytest
+from pydrake.math import RigidTransform
 from pydrake.systems.analysis import Simulator
+from pydrake.systems.framework import DiagramBuilder
 
 from maglev_haptics.analysis.run_results import run_scenario
 from maglev_haptics.diagrams.application import BuildDiagram
-from maglev_haptics.diagrams.scenario import load_scenario
+from maglev_haptics.diagrams.scenario import ScenarioError, load_scenario
+from maglev_haptics.diagrams.scene import PegInHole
+from maglev_haptics.diagrams.scene_builder import AddScene
 from maglev_haptics.systems.remote_scene import falls_on
 from maglev_haptics.systems.scene_worker import IDLE_EXIT_S
 
@@ -117,3 +121,15 @@ def test_the_worker_ends_with_its_parent():
 def test_contact_samples_fall_on_the_ticks_they_share_a_time_with():
     assert all(falls_on(k * 0.001, 0.005) == (k % 5 == 0) for k in range(20000))
     assert not falls_on(1 / 860, 0.005)
+
+
+def test_stepping_is_checked():
+    builder = DiagramBuilder()
+    with pytest.raises(ValueError, match=r"stepping = 'elsewhere': one of worker, in_place"):
+        AddScene(builder, scene=PegInHole(), time_step_s=0.001,
+                 X_WI_start=RigidTransform([0, 0, 0.05]), stepping="elsewhere")
+    with pytest.raises(ValueError, match=r"give contact_sample_period_s"):
+        AddScene(builder, scene=PegInHole(), time_step_s=0.001,
+                 X_WI_start=RigidTransform([0, 0, 0.05]), stepping="worker")
+    with pytest.raises(ScenarioError, match=r"haptics.scene_stepping = 'thread': one of worker"):
+        stepping("peg_in_hole", "thread")
