@@ -111,31 +111,34 @@ def lockstep_run(request):
     simulator = Simulator(application.diagram)
     simulator.Initialize()
     tick_s = application.tick_s
-    # Each side's messages of a step are delivered before the other side steps: a
-    # barrier message behind them on the sender's own socket (delivery is in order),
-    # awaited by a listener. Else a loaded host delivers some a step late.
-    device_lcm = device.diagram.GetSubsystemByName("coil_currents_sender")._lcm
-    application_lcm = application.diagram.GetSubsystemByName("station").GetSubsystemByName(
-        "coil_currents_commanded_sender")._lcm
-    barriers = []
-    for listener_url in (f"udpm://239.255.76.67:{port}?ttl=0",
-                         f"udpm://239.255.76.67:{port + 1}?ttl=0"):
-        listener, seen = lcm.LCM(listener_url), []
-        listener.subscribe("TEST_BARRIER", lambda _, data, seen=seen: seen.append(data))
-        barriers.append((listener, seen))
+    # Each side's messages of a step are in the other side's hands before it steps: a
+    # barrier message behind them on the sender's socket (delivery is in order),
+    # awaited on the receiver's own LCM, which queues what comes before it for the
+    # receiver's next update. Else a loaded host hands some over a step late (LCM
+    # reads its socket on a thread of its own).
+    station = application.diagram.GetSubsystemByName("station")
+    links = []  # (sender's LCM, receiver's LCM, barriers seen)
+    for sender, receiver in (
+            (station.GetSubsystemByName("coil_currents_commanded_sender"),
+             device.command_receiver),
+            (device.diagram.GetSubsystemByName("coil_currents_sender"),
+             station.GetSubsystemByName("receiver"))):
+        seen = []
+        receiver._lcm.subscribe("TEST_BARRIER", lambda _, data, seen=seen: seen.append(data))
+        links.append((sender._lcm, receiver._lcm, seen))
 
-    def delivered(sender, listener, seen):
+    def handed_over(sender, receiver, seen):
         before = len(seen)
         sender.publish("TEST_BARRIER", b"")
         deadline = time.monotonic() + 1.0
         while len(seen) == before and time.monotonic() < deadline:
-            listener.handle_timeout(10)
+            receiver.handle_timeout(10)
 
     for k in range(int(round(duration_s / tick_s))):
         simulator.AdvanceTo((k + 1) * tick_s)
-        delivered(application_lcm, *barriers[1])
+        handed_over(*links[0])
         device_simulator.AdvanceTo(0.001 + (k + 1) * tick_s)
-        delivered(device_lcm, *barriers[0])
+        handed_over(*links[1])
     log = log_arrays(application.logger, application.log_layout, simulator.get_context(),
                      scenario.device)
     return name, scenario, duration_s, application, simulator.get_context(), log
@@ -212,8 +215,9 @@ def test_device_sim_and_application_in_two_processes(tmp_path, name):
         assert " the instrument was lost at " in outcome or " a fault latched at " in outcome
     device_summary = json.loads(device_out)
     summary = json.loads((tmp_path / "run" / "summary.json").read_text())
-    assert device_summary["commands"]["messages_lost"] == 0
-    assert summary["station"]["messages_lost"] == 0
+    # No message lost: judged with the flight, below (a process the host paused past
+    # its socket's buffer loses what came meanwhile).
+    lost = summary["station"]["messages_lost"] + device_summary["commands"]["messages_lost"]
     # The link's latency (wall clock, the wait for the reading tick included) is
     # measured, and on average under two of the reader's ticks (measured: markers
     # 1.4 ms at half speed, 0.86 ms at full speed, where a tick is 2 and 1 ms).
@@ -264,6 +268,7 @@ def test_device_sim_and_application_in_two_processes(tmp_path, name):
         flight_checks["a soft, level touchdown"] = (summary["touchdown"] is not None and
                                                    summary["touchdown"]["speed_m_s"] < 0.05
                                                    and summary["touchdown"]["tilt_deg"] < 1.0)
+    flight_checks[f"{lost} messages lost"] = lost == 0
     if application.returncode == 5:
         flight_checks[outcome] = False
     flight_checks[f"link latency mean {latency_ms:.2f} ms < {2 * tick_ms:g}"] = (
