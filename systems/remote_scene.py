@@ -18,14 +18,23 @@ stepped in place gives. Where the worker was not asked about the context's
 (x, u) (a context changed from outside, an update called directly, a contact
 sample between ticks), or has not yet taken the request up (no free core: the
 process it would wait for is not running), the update steps ``local``, a copy
-of the plant in this process, instead of waiting. A worker that has died, or
-has been on one request for a second, raises a RuntimeError.
+of the plant in this process, instead of waiting. After MISSES_TO_PAUSE such
+misses in a row (a machine with no core to spare) it is not asked for PAUSE_S
+(wall-clock): fed while it cannot keep up, it took CPU time from its parent and
+did work thrown away (a loaded two-core machine ran 20-50% slower than in place,
+measured). A worker that has died, or has been on one request for its HUNG_S,
+raises a RuntimeError.
 """
+
+import time
 
 import numpy as np
 from pydrake.systems.framework import LeafSystem
 
 from maglev_haptics.systems.scene_worker import CONTACT, CONTACT_SIZE, STEP, SceneWorker
+
+MISSES_TO_PAUSE = 3
+PAUSE_S = 0.1  # (s)
 
 
 def falls_on(t: float, period_s: float) -> bool:
@@ -64,6 +73,8 @@ class RemoteScene(LeafSystem):
         self._local_request = np.zeros(n + 6)
         self._local_result = np.zeros(n + CONTACT_SIZE)
         self._contact_period_s = contact_period_s
+        self._misses = 0  # requests in a row that the worker had not taken up in time
+        self._paused_until = 0.0  # (perf_counter, s)
         self._u = self.DeclareVectorInputPort("wrench_on_tool_W", 6)
         self._x = self.DeclareDiscreteState(np.asarray(x0, dtype=float))
         self._wrench = self.DeclareDiscreteState(6)
@@ -85,6 +96,8 @@ class RemoteScene(LeafSystem):
         if not worker.idle():  # still on an earlier request: this tick steps locally
             worker.check()
             return
+        if time.perf_counter() < self._paused_until:
+            return
         kind = STEP | (CONTACT if falls_on(context.get_time(), self._contact_period_s) else 0)
         worker.request(context.get_discrete_state(self._x).value(), self._u.Eval(context), kind)
 
@@ -94,8 +107,14 @@ class RemoteScene(LeafSystem):
         x = context.get_discrete_state(self._x).value()
         u = self._u.Eval(context)
         worker = self._worker
-        if worker.answers(x, u, kind) and worker.started():
-            return worker.wait()
+        if worker.answers(x, u, kind):
+            if worker.started():
+                self._misses = 0
+                return worker.wait()
+            self._misses += 1
+            if self._misses == MISSES_TO_PAUSE:
+                self._misses = 0
+                self._paused_until = time.perf_counter() + PAUSE_S
         request = self._local_request
         request[:self._n] = x
         request[self._n:] = u
