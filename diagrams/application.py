@@ -74,6 +74,7 @@ class BuiltDiagram:
     stereo: Optional[object] = None  # diagrams.stereo_display.StereoParts
     # Paced runs: the visualizers the runner publishes every MESHCAT_PERIOD_S between ticks.
     frame_publishers: List[object] = field(default_factory=list)
+    meshcat: Optional[Meshcat] = None  # the one given, if any
 
 
 def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
@@ -305,4 +306,4 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
     return BuiltDiagram(diagram=diagram, plan=plan, logger=logger, log_layout=log_layout,
                         magnetics=magnetics, tick_s=1.0 / scenario.control_rate_hz,
                         haptics=haptics, meshcat_hand=meshcat_hand, stereo=stereo,
-                        frame_publishers=frame_publishers if realtime else [])
+                        frame_publishers=frame_publishers if realtime else [], meshcat=meshcat)

@@ -219,22 +219,30 @@ class PacedTicks:
 
 def advance_paced(simulator, duration_s: float, tick_s: float, ticks: PacedTicks, bar,
                   stop=None, spin_s: float = math.inf, on_progress=None,
-                  frame_publishers=(), frame_period_s: float = 1 / 30) -> BetweenTicks:
+                  frame_publishers=(), frame_period_s: float = 1 / 30,
+                  show_rate=None) -> BetweenTicks:
     """Tick by tick to ``duration_s``, each released at its wall-clock slot; ``stop(context)``,
     asked every PROGRESS_CHUNK_S, ends the run early when it returns True. Between
     ticks, where they fit (``BetweenTicks``): the progress bar and ``on_progress(context)``
     every PROGRESS_CHUNK_S, and each of ``frame_publishers`` published every
-    ``frame_period_s`` (s). The wait for a slot spins for its last ``spin_s`` (s) and
-    sleeps before that. Returns the gaps' jobs, with what they cost and how late they ran."""
+    ``frame_period_s`` (s), and ``show_rate(rate)`` told the real-time rate (Meshcat's
+    panel: its visualizers, published from here, do not compute it). The wait for a
+    slot spins for its last ``spin_s`` (s) and sleeps before that. Returns the gaps'
+    jobs, with what they cost and how late they ran."""
     context = simulator.get_context()
     start_s = context.get_time()
     ticks_per_update = max(1, int(round(PROGRESS_CHUNK_S / tick_s)))
+    last = [time.perf_counter(), start_s]  # wall (s), simulated (s) at the last report
 
     def report_progress():
         bar.update(context.get_time() - bar.n)
         bar.set_postfix_str(f"missed {ticks.missed}/{ticks.done}", refresh=False)
         if on_progress is not None:
             on_progress(context)
+        now, t_s = time.perf_counter(), context.get_time()
+        if show_rate is not None and t_s > last[1]:
+            show_rate((t_s - last[1]) / (now - last[0]))
+        last[:] = now, t_s
 
     between = BetweenTicks([BetweenTicksJob("progress", report_progress, PROGRESS_CHUNK_S)]
                            + frame_jobs(frame_publishers, context, frame_period_s))
@@ -291,7 +299,9 @@ def simulate(built, duration_s: float, *, realtime_rate: float = 0.0,
             if paced is not None:
                 advance_paced(simulator, duration_s, built.tick_s, paced, bar, stop,
                               SHARED_SPIN_S if shares_cores else math.inf, on_progress,
-                              built.frame_publishers, MESHCAT_PERIOD_S)
+                              built.frame_publishers, MESHCAT_PERIOD_S,
+                              built.meshcat.SetRealtimeRate if built.meshcat is not None
+                              else None)
             else:
                 chunks = np.append(np.arange(PROGRESS_CHUNK_S, duration_s, PROGRESS_CHUNK_S),
                                    duration_s)
