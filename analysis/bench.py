@@ -57,6 +57,10 @@ HAPTIC_FILES = [SCENARIO_DIR / f"{name}.yaml" for name in ("hanging_ball", "padd
                                                             "stereo_display")]
 HOVER_TIME_S = 1.5  # operating point for the per-system costs (s into takeoff_hover_land)
 FLOOR_TOOL_PUSH_N = 1.0  # the peg is pushed down this hard onto the block (N)
+# --paced: the scenarios paced at 1x (the four kinds of loop: levitation, rigid contact
+# held and bouncing, the lattice on the other core), (file, name: None for the first)
+PACED_SCENARIOS = (("levitate", "takeoff_hover_land"), ("peg_in_hole", None),
+                   ("paddle_ball", None), ("deformable_surface", None))
 QUICK_DURATION_S = 1.0  # --quick: simulated seconds a scenario
 QUICK_LATTICE_SIZES = 2  # --quick: the lattice's smallest sizes only
 
@@ -170,24 +174,43 @@ def allocation_cost_us(config: DeviceConfig, n: int = 2000) -> Dict[str, Dict[st
     }
 
 
+def paced_runs(duration_s: float, progress: bool = True) -> Dict[str, Dict]:
+    """Each of PACED_SCENARIOS paced at 1x for ``duration_s`` (s), Meshcat off: its
+    summary's ``realtime`` block (missed slots, compute percentiles)."""
+    from maglev_haptics.analysis.run_results import run_scenario
+
+    results = {}
+    for file, name in PACED_SCENARIOS:
+        scenario = load_scenario(file, name)
+        label = file if name is None else f"{file}:{name}"
+        results[label] = run_scenario(scenario, label=label, realtime_rate=1.0,
+                                      duration_s=duration_s, progress=progress
+                                      ).summary["realtime"]
+    return results
+
+
 def run_benchmarks(duration_s: Optional[float] = None, progress: bool = True,
-                   out_dir: Optional[Path] = None, quick: bool = False) -> Dict:
+                   out_dir: Optional[Path] = None, quick: bool = False, runs: int = 1,
+                   paced_s: Optional[float] = None) -> Dict:
     """Everything ``maglev bench`` reports; each scenario runs its whole script by
-    default. ``quick``: QUICK_DURATION_S a scenario, no offline analysis, the lattice's
-    smallest QUICK_LATTICE_SIZES. With ``out_dir``, writes bench.json and
-    lattice_scaling.png there."""
+    default, ``runs`` times (the median is reported: the host's speed drifts).
+    ``quick``: QUICK_DURATION_S a scenario, no offline analysis, the lattice's
+    smallest QUICK_LATTICE_SIZES. ``paced_s``: also PACED_SCENARIOS paced at 1x for
+    that long. With ``out_dir``, writes bench.json and lattice_scaling.png there."""
     if quick:
         duration_s = QUICK_DURATION_S
     results: Dict = {"scenarios": {}, "systems_us": {}, "wrench_matrix_us": {}, "allocation": {}}
-    runs = [(LEVITATE_FILE, name) for name in scenario_names(LEVITATE_FILE)]
-    runs += [(path, scenario_names(path)[0]) for path in HAPTIC_FILES]
-    for path, name in runs:
+    scenarios = [(LEVITATE_FILE, name) for name in scenario_names(LEVITATE_FILE)]
+    scenarios += [(path, scenario_names(path)[0]) for path in HAPTIC_FILES]
+    for path, name in scenarios:
         scenario = load_scenario(str(path), name)
         built = BuildDiagram(scenario)
         simulate(built, 0.05, progress=False)  # loads the compiled kernels, off the clock
         length_s = scenario.duration_s if scenario.duration_s is not None else built.plan.end_s
         sim_s = length_s if duration_s is None else min(duration_s, length_s)
-        _, wall_s, _ = simulate(built, sim_s, progress=progress, label=name)
+        walls_s = [simulate(built, sim_s, progress=progress, label=name)[1]
+                   for _ in range(runs)]
+        wall_s = float(np.median(walls_s))
         tick_us = 1e6 * wall_s * built.tick_s / sim_s
         lattice = built.haptics.scene.lattice if built.haptics is not None else None
         floor = physics_floor_us(scenario, None if lattice is None else lattice_costs(
@@ -195,6 +218,7 @@ def run_benchmarks(duration_s: Optional[float] = None, progress: bool = True,
         results["scenarios"][name] = {
             "instrument": scenario.device.instrument,
             "simulated_s": sim_s,
+            "runs": runs,
             "realtime_factor": sim_s / wall_s,
             "wall_us_per_1ms_tick": tick_us,
             "physics_floor": floor,
@@ -217,6 +241,8 @@ def run_benchmarks(duration_s: Optional[float] = None, progress: bool = True,
     sizes = LATTICE_SIZES[:QUICK_LATTICE_SIZES] if quick else LATTICE_SIZES
     with tqdm(total=len(sizes), desc="lattice sizes", disable=not progress) as bar:
         results["lattice"] = lattice_scaling(sizes, progress=lambda _: bar.update(1))
+    if paced_s is not None:
+        results["paced"] = paced_runs(paced_s, progress=progress)
     results["report"] = format_report(results)
     if out_dir is not None:
         out_dir.mkdir(parents=True, exist_ok=True)
@@ -269,4 +295,10 @@ def format_report(results: Dict) -> str:
         f"{name} {seconds:.1f}" for name, seconds in results["analysis"].items())
         or "not run (--quick)"))
     lines.append(format_lattice_report(results["lattice"]))
+    if "paced" in results:
+        lines.append("Paced at 1x, Meshcat off: missed slots, compute p50 / p99 / max (us):")
+        for name, r in results["paced"].items():
+            lines.append(f"  {name:<32}{r['deadline_misses']:>6} of {r['ticks']:<7}"
+                         f"({100 * r['miss_fraction']:.3f}%)  {r['tick_compute_us_p50']:.0f} / "
+                         f"{r['tick_compute_us_p99']:.0f} / {r['tick_compute_us_max']:.0f}")
     return "\n".join(lines)

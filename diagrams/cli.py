@@ -340,7 +340,7 @@ def _cmd_bench(args) -> int:
 
     out_dir = _writable_folder(Path(args.out))
     results = run_benchmarks(duration_s=args.duration, progress=not args.json, out_dir=out_dir,
-                             quick=args.quick)
+                             quick=args.quick, runs=args.runs, paced_s=args.paced)
     print(json.dumps(results, indent=2) if args.json else results["report"])
     if not args.json:
         print(f"wrote {out_dir / 'bench.json'} {out_dir / 'lattice_scaling.png'}")
@@ -465,6 +465,8 @@ What it runs, and how long each part takes on a 2-core machine:
   stereo         view matrices and a rendered frame pair (about 10 s)
   analysis       the multirate, linearize and zwidth studies of peg_in_hole (about 3 min)
   lattice        the deformable lattice's step against its size (about 45 s)
+  paced          --paced S: four scenarios paced at 1x, S seconds each (4 S in all)
+--runs N: the scenarios N times each (N times as long).
 --quick: one simulated second a scenario, no offline analysis, the lattice's two
 smallest sizes (about 2 min in all)."""
 
@@ -598,6 +600,7 @@ def _add_bench_parser(commands) -> None:
             maglev bench --quick
             maglev bench
             maglev bench --duration 1 --json > bench.json
+            maglev bench --runs 3 --paced 60     # the README's performance table
             """, with_scenarios=False))
     bench.add_argument("--json", action="store_true", help="print JSON instead of a table")
     length = bench.add_mutually_exclusive_group()
@@ -605,6 +608,12 @@ def _add_bench_parser(commands) -> None:
                         help="simulated seconds per scenario (default: each whole script)")
     length.add_argument("--quick", action="store_true",
                         help="a first look in about 2 minutes (see above)")
+    bench.add_argument("--runs", type=_positive_count, default=1,
+                       help="run each scenario this many times; the median is reported "
+                       "(default 1; the README's table: 3)")
+    bench.add_argument("--paced", type=_positive_seconds, metavar="S",
+                       help="also fly levitate, peg_in_hole, paddle_ball and "
+                       "deformable_surface paced at 1x for S seconds each: missed slots")
     bench.add_argument("--out", default="out/bench",
                        help="folder for bench.json and lattice_scaling.png (default: out/bench)")
     bench.set_defaults(func=_cmd_bench)

@@ -2,6 +2,7 @@
 
 import pytest
 
+from maglev_haptics.analysis import bench
 from maglev_haptics.analysis.bench import floor_us, physics_floor_us
 from maglev_haptics.diagrams.scenario import load_scenario
 
@@ -26,3 +27,14 @@ def test_the_tick_is_judged_against_the_longer_of_the_serial_floor_and_the_latti
     assert floor_us({"total_us": 150.0}) == 150.0
     assert floor_us({"total_us": 150.0, "lattice_tick_other_core_us": 400.0}) == 400.0
     assert floor_us({"total_us": 500.0, "lattice_tick_other_core_us": 400.0}) == 500.0
+
+
+def test_paced_runs_report_every_tick_of_each_scenario(monkeypatch):
+    monkeypatch.setattr(bench, "PACED_SCENARIOS", (("levitate", "square"),))
+    results = bench.paced_runs(0.2, progress=False)
+    assert list(results) == ["levitate:square"]
+    report = results["levitate:square"]
+    assert report["ticks"] == 200 and report["slot_us"] == pytest.approx(1000.0)
+    assert 0 <= report["deadline_misses"] <= 200
+    assert report["tick_compute_us_p50"] <= report["tick_compute_us_p99"] \
+        <= report["tick_compute_us_max"]
