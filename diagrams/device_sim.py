@@ -17,6 +17,7 @@ never used; like a lost command, the last good one holds until
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Optional
 
 import numpy as np
 from pydrake.systems.framework import Diagram, DiagramBuilder
@@ -53,6 +54,7 @@ class DeviceSim:
     stop_after_silence_s: float
     lease: LeaseServer  # who may command the coils
     frame_publishers: list = field(default_factory=list)  # none: device-sim draws nothing
+    meshcat: Optional[object] = None  # nor has a Meshcat (the runner asks)
 
     def application_gone(self, context) -> bool:
         """Whether commands came and then stopped for ``stop_after_silence_s``."""
