@@ -128,9 +128,12 @@ class SceneWorker:
         self._processes.clear()
         self._block.control[:] = 0
         self._asked = (b"", 0)
+        # A process group of its own: the terminal's Ctrl-C goes to the parent alone,
+        # which stops the run between ticks and still needs its worker for that.
         process = subprocess.Popen(
             [sys.executable, "-m", self._module, str(self._memory_fd), str(self._wake)],
-            stdin=subprocess.PIPE, pass_fds=(self._memory_fd, self._wake))
+            stdin=subprocess.PIPE, pass_fds=(self._memory_fd, self._wake), process_group=0,
+            env={**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, sys.path))})
         self._processes.append(process)
         process.stdin.write(self._payload)
         process.stdin.close()
