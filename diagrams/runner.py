@@ -31,6 +31,9 @@ from maglev_haptics.diagrams.motion import IDLE_AFTER_S
 from maglev_haptics.hardware.kernels import compile_kernels
 
 PROGRESS_CHUNK_S = 0.25  # simulated seconds between progress-bar updates
+# A loop so far behind that no gap fits the progress job still moves its log to disk
+# this often (simulated s), so the logger never grows without bound.
+PROGRESS_MAX_LATE_S = 2.0
 MISS_WARNING_FRACTION = 0.001  # more missed deadlines than this and the terminal says so
 
 
@@ -149,11 +152,14 @@ COST_SAFETY = 1.5
 
 @dataclass
 class BetweenTicksJob:
-    """Work due every ``period_s`` of simulated time, first at ``due_s`` (s)."""
+    """Work due every ``period_s`` of simulated time, first at ``due_s`` (s). One that
+    must not wait for ever (moving the log to disk) runs in the next gap once it is
+    ``max_late_s`` (simulated s) late, fitting or not: the loop is behind already."""
     name: str
     run: Callable[[], None]
     period_s: float
     due_s: float = 0.0
+    max_late_s: float = math.inf
     costs_s: deque = field(default_factory=lambda: deque(maxlen=COST_MEMORY))
     runs: int = 0
     late_s: float = 0.0  # the longest a run came after it was due (simulated s)
@@ -185,7 +191,8 @@ class BetweenTicks:
         """Run the jobs due at simulated time ``t_s`` that fit before ``release``."""
         for job in sorted((job for job in self.jobs if job.due_s <= t_s),
                           key=lambda job: job.due_s):
-            if release - time.perf_counter() < job.cost_s() + BETWEEN_TICKS_MARGIN_S:
+            if (release - time.perf_counter() < job.cost_s() + BETWEEN_TICKS_MARGIN_S
+                    and t_s - job.due_s <= job.max_late_s):
                 continue
             job.late_s = max(job.late_s, t_s - job.due_s)
             job.timed_run()
@@ -244,7 +251,8 @@ def advance_paced(simulator, duration_s: float, tick_s: float, ticks: PacedTicks
             show_rate((t_s - last[1]) / (now - last[0]))
         last[:] = now, t_s
 
-    between = BetweenTicks([BetweenTicksJob("progress", report_progress, PROGRESS_CHUNK_S)]
+    between = BetweenTicks([BetweenTicksJob("progress", report_progress, PROGRESS_CHUNK_S,
+                                            max_late_s=PROGRESS_MAX_LATE_S)]
                            + frame_jobs(frame_publishers, context, frame_period_s))
     between.measure()
     clock_zero = time.perf_counter()

@@ -90,3 +90,13 @@ def test_paced_loop_publishes_frames_between_ticks_and_not_one_that_cannot_fit()
     # host delayed it.
     assert too_slow.times == [0.0, pytest.approx(0.3)]
     assert {job.name for job in gaps.jobs} == {"progress", "cheap", "too slow"}
+
+
+def test_a_job_that_must_not_wait_for_ever_runs_once_it_is_that_late():
+    job = BetweenTicksJob("log to disk", lambda: None, period_s=0.25, max_late_s=2.0)
+    job.costs_s.append(1.0)  # as if measured: never fits a gap
+    gaps = BetweenTicks([job])
+    gaps.fill_gap(1.5, time.perf_counter() + 1e-3)
+    assert job.runs == 0
+    gaps.fill_gap(2.5, time.perf_counter() + 1e-3)
+    assert job.runs == 1 and job.due_s == pytest.approx(2.75)
