@@ -265,6 +265,16 @@ def _options(hint) -> list:
     return [hint]
 
 
+def _fields(schema):
+    """{field name: type} of a config class (a dataclass, or a Drake config type with
+    ``__fields__``), in their order; None for anything else."""
+    if dataclasses.is_dataclass(schema):
+        return typing.get_type_hints(schema)
+    if isinstance(schema, type) and hasattr(schema, "__fields__"):
+        return {f.name: f.type for f in schema.__fields__}
+    return None
+
+
 def _hint_at(raw, keys):
     """The schema's type hint of the field at ``keys`` (a Union as written), None where
     the path leaves the dataclasses (an unknown field, or inside a Drake config)."""
@@ -277,8 +287,8 @@ def _hint_at(raw, keys):
             if typing.get_origin(schema) is not list:
                 return None
             hint = typing.get_args(schema)[0]
-        elif dataclasses.is_dataclass(schema):
-            hint = typing.get_type_hints(schema).get(key)
+        elif _fields(schema) is not None:
+            hint = _fields(schema).get(key)
             if hint is None:
                 return None
         else:
@@ -315,15 +325,14 @@ def _check_structure(raw, hint, keys=()) -> None:
     if typing.get_origin(schema) is list and isinstance(raw, list):
         for i, item in enumerate(raw):
             _check_structure(item, typing.get_args(schema)[0], keys + (i,))
-    elif dataclasses.is_dataclass(schema) and isinstance(raw, dict):
-        hints = typing.get_type_hints(schema)
+    elif _fields(schema) is not None and isinstance(raw, dict):
+        hints = _fields(schema)
         for key, value in raw.items():
             if key == "_tag":
                 continue
             if key not in hints:
                 raise ScenarioError(f"{_field_path(keys + (key,))}: unknown field; "
-                                    f"{schema.__name__} has "
-                                    + ", ".join(f.name for f in dataclasses.fields(schema)))
+                                    f"{schema.__name__} has " + ", ".join(hints))
             _check_structure(value, hints[key], keys + (key,))
 
 
@@ -351,7 +360,7 @@ def _failing_field(raw: dict, load_raw) -> tuple:
     keys, node = (), raw
     while True:
         schema = _options(_hint_at(raw, keys))[0] if keys else Scenario
-        if isinstance(node, dict) and dataclasses.is_dataclass(schema) or (
+        if isinstance(node, dict) and _fields(schema) is not None or (
                 isinstance(node, dict) and len(_options(_hint_at(raw, keys))) > 1):
             items = [(key, value) for key, value in node.items() if key != "_tag"]
         elif isinstance(node, list) and typing.get_origin(schema) is list:
@@ -439,9 +448,9 @@ def _phrase(hint, name: str = "") -> str:
             items = (f"{item.__name__} mappings" if dataclasses.is_dataclass(item)
                      else "mappings, each " + _phrase(item))
         return f"a list of {items}" + null
-    if dataclasses.is_dataclass(schema):
-        return (f"a mapping of {schema.__name__}'s fields ("
-                + ", ".join(f.name for f in dataclasses.fields(schema)) + ")" + null)
+    if _fields(schema) is not None:
+        return (f"a mapping of {schema.__name__}'s fields (" + ", ".join(_fields(schema))
+                + ")" + null)
     return f"a {getattr(schema, '__name__', str(schema))}" + null
 
 

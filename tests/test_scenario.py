@@ -137,6 +137,11 @@ def test_cli_out_that_is_a_file_is_a_one_line_error(tmp_path, capsys):
     ("{hand: !Foo {}}", "hand: !Foo is not one of !ScriptedHand {...}, !MeshcatHand {...}, "
      "or null"),
     ("{hand: 3}", "hand = 3: must be one of !ScriptedHand {...}, !MeshcatHand {...}, or null"),
+    ("{plant_config: {time_step: abc}}", "plant_config.time_step = abc: must be a number"),
+    ("{plant_config: {nope: 1}}", "plant_config.nope: unknown field; MultibodyPlantConfig has "
+     "time_step, use_sampled_output_ports, penetration_allowance, stiction_tolerance, "
+     "contact_model, discrete_contact_approximation, sap_near_rigid_threshold, "
+     "contact_surface_representation, adjacent_bodies_collision_filters"),
     ("{faults: [{at_s: 1}]}", "faults[0]: needs a tag to choose its kind, one of "
      "!LatencySpike {...}, !CorruptSample {...}, !StuckAmplifier {...}, !Shove {...}"),
 ])
