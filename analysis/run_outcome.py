@@ -4,7 +4,8 @@ exit code.
 A scenario whose ``faults`` and ``occlusions`` are empty means the instrument to
 fly its script. If a fault still latched (tracking lost past the grace, the
 boundary left, over-speed, over-current or over-temperature), the run says what
-and when in one line, with what it knows of why: the markers' longest silence on
+and when in one line ("the instrument was lost" where the sensor's fault is among
+them), each fault with its time, and what it knows of why: the markers' longest silence on
 an LCM station, the messages the link refused, a lease lost to another
 application, the ticks the loop missed; ``maglev run`` then exits with
 ``EXIT_INSTRUMENT_LOST``. Runs with injected faults (and the fault campaign) are
@@ -29,10 +30,6 @@ FAULT_NAMES = {FAULT_SENSOR_OUT_OF_RANGE: "sensor out of range",
                FAULT_COIL_OVER_CURRENT: "coil over-current", FAULT_OVER_SPEED: "over-speed"}
 
 
-def fault_names(bits: int) -> str:
-    return ", ".join(name for bit, name in FAULT_NAMES.items() if bits & bit) or f"{bits:#x}"
-
-
 def injects_faults(scenario) -> bool:
     """Whether the scenario injects a fault (a ``faults`` entry or an occlusion)."""
     return bool(scenario.faults) or bool(scenario.occlusions)
@@ -49,10 +46,15 @@ def instrument_outcome(scenario, summary: Dict, log: Dict[str, np.ndarray],
     latched = np.flatnonzero(bits)
     if latched.size == 0:
         return None
-    first = int(latched[0])
-    at_s = float(log["t"][first])
-    what = ("the instrument was lost" if bits[first] & FAULT_SENSOR_OUT_OF_RANGE
+    t = np.asarray(log["t"])
+    at_s = float(t[latched[0]])
+    # Each fault that latched, in the order it did, with its time.
+    firsts = sorted((float(t[np.argmax(bits & bit)]), name) for bit, name in FAULT_NAMES.items()
+                    if np.any(bits & bit))
+    what = ("the instrument was lost" if np.any(bits & FAULT_SENSOR_OUT_OF_RANGE)
             else "a fault latched")
+    faults = ", ".join(name if when == at_s else f"{name} at {when:.3f} s"
+                       for when, name in firsts)
     reasons = []
     station = summary.get("station")
     if station is not None:
@@ -76,4 +78,4 @@ def instrument_outcome(scenario, summary: Dict, log: Dict[str, np.ndarray],
     if touchdown is not None and touchdown.get("time_s", -1.0) >= at_s:
         reasons.append(f"touchdown at {touchdown['speed_m_s']:.3f} m/s")
     because = f": {'; '.join(reasons)}" if reasons else ""
-    return f"{label}: {what} at {at_s:.3f} s ({fault_names(int(bits[first]))}){because}"
+    return f"{label}: {what} at {at_s:.3f} s ({faults}){because}"
