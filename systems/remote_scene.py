@@ -93,10 +93,10 @@ class RemoteScene(LeafSystem):
     def _request(self, context):
         worker = self._worker
         worker.wait_ready()  # Simulator.Initialize publishes: before the clock starts
-        if not worker.idle():  # still on an earlier request: this tick steps locally
+        # Still on an earlier request, or not asked for now: this tick steps here. A
+        # dead or hung worker is an error, not a run stepped here for ever.
+        if not worker.idle() or time.perf_counter() < self._paused_until:
             worker.check()
-            return
-        if time.perf_counter() < self._paused_until:
             return
         kind = STEP | (CONTACT if falls_on(context.get_time(), self._contact_period_s) else 0)
         worker.request(context.get_discrete_state(self._x).value(), self._u.Eval(context), kind)

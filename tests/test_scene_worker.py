@@ -6,6 +6,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,7 +15,6 @@ from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 
 from maglev_haptics.analysis.run_results import run_scenario
-from maglev_haptics.diagrams.application import BuildDiagram
 from maglev_haptics.diagrams.scenario import ScenarioError, load_scenario
 from maglev_haptics.diagrams.scene import PegInHole
 from maglev_haptics.diagrams.scene_builder import AddScene
@@ -42,7 +42,7 @@ def gone(pid: int, within_s: float = 5.0) -> bool:
 
 
 # The peg rests on the table from 0.03 s; the paddle's ball lands on it at ~0.2 s.
-@pytest.mark.parametrize("name, duration_s", [("peg_in_hole", 1.0), ("paddle_ball", 0.6)])
+@pytest.mark.parametrize("name, duration_s", [("peg_in_hole", 0.5), ("paddle_ball", 0.6)])
 def test_worker_run_is_the_in_place_run_bit_for_bit(name, duration_s):
     logs = {mode: run_scenario(stepping(name, mode), label=mode, duration_s=duration_s,
                                progress=False).log for mode in ("in_place", "worker")}
@@ -52,68 +52,91 @@ def test_worker_run_is_the_in_place_run_bit_for_bit(name, duration_s):
     assert logs["worker"]["tool_in_contact"].any()
 
 
-def test_a_killed_worker_is_a_clear_error():
-    built = BuildDiagram(stepping("peg_in_hole", "worker"))
-    pid = built.haptics.scene.worker.worker.pid
-    simulator = Simulator(built.diagram)
-    simulator.AdvanceTo(0.01)
-    os.kill(pid, signal.SIGKILL)
-    with pytest.raises(RuntimeError,
-                       match=rf"scene worker \(pid {pid}\) died \(killed by signal 9\)"):
-        simulator.AdvanceTo(0.1)
+PUSH_W = [0.0, 0.0, -0.5, 1e-5, 0.0, 0.0]  # on the peg: into the hole, barely tilting it (N, N*m)
 
 
-def X_WT(port, simulator):
-    return port.Eval(port.get_system().GetMyContextFromRoot(simulator.get_context()))
+class Scene:
+    """The peg scene alone, pushed by PUSH_W: stepped in place or by a worker."""
 
+    def __init__(self, mode: str):
+        builder = DiagramBuilder()
+        self.parts = AddScene(builder, scene=PegInHole(), time_step_s=0.001,
+                              X_WI_start=RigidTransform([0.0, 0.0, 0.05]),
+                              use_sampled_output_ports=False, contact_sample_period_s=0.005,
+                              stepping=mode)
+        self.diagram = builder.Build()
 
-def test_no_worker_outlives_its_use_and_the_next_request_starts_one():
-    built = BuildDiagram(stepping("hanging_ball", "worker"))
-    reference = BuildDiagram(stepping("hanging_ball", "in_place"))
-    simulator, truth = Simulator(built.diagram), Simulator(reference.diagram)
-    simulator.AdvanceTo(0.01)
-    pid = built.haptics.scene.worker.worker.pid
-    assert gone(pid, within_s=IDLE_EXIT_S + 4.0)
-    simulator.AdvanceTo(0.03)
-    assert built.haptics.scene.worker.worker.pid != pid
-    truth.AdvanceTo(0.03)
-    assert np.array_equal(X_WT(built.haptics.scene.X_WT_output, simulator),
-                          X_WT(reference.haptics.scene.X_WT_output, truth))
+    def simulator(self) -> Simulator:
+        simulator = Simulator(self.diagram)
+        port = self.parts.wrench_on_tool_input
+        port.FixValue(port.get_system().GetMyMutableContextFromRoot(simulator.get_mutable_context()),
+                      PUSH_W)
+        simulator.Initialize()
+        return simulator
+
+    def outputs(self, simulator) -> np.ndarray:
+        """[X_WT, V_WT, contact wrench, in contact] now."""
+        return np.concatenate([
+            port.Eval(port.get_system().GetMyContextFromRoot(simulator.get_context()))
+            for port in (self.parts.X_WT_output, self.parts.V_WT_output,
+                         self.parts.contact_wrench_output, self.parts.in_contact_output)])
+
+    @property
+    def pid(self) -> int:
+        return self.parts.worker.worker.pid
 
 
 def test_a_second_context_gets_its_own_state_not_the_first_ones_result():
-    """Two simulators of one diagram, advanced in turns, each match its own run."""
-    built = BuildDiagram(stepping("peg_in_hole", "worker"))
-    reference = BuildDiagram(stepping("peg_in_hole", "in_place"))
-    port = built.haptics.scene.X_WT_output
-    reference_port = reference.haptics.scene.X_WT_output
-    first, second = Simulator(built.diagram), Simulator(built.diagram)
-    truth = Simulator(reference.diagram)
-    for simulator in (first, second, truth):
-        simulator.Initialize()
+    """Two simulators of one diagram, advanced in turns, each match the plant
+    stepped in place; the peg reaches the hole's floor."""
+    scene, reference = Scene("worker"), Scene("in_place")
+    first, second, truth = scene.simulator(), scene.simulator(), reference.simulator()
     first.AdvanceTo(0.05)
     for t in (0.02, 0.05, 0.08):
         second.AdvanceTo(t)
         first.AdvanceTo(0.05 + t)
     truth.AdvanceTo(0.08)
-    assert np.array_equal(X_WT(port, second), X_WT(reference_port, truth))
+    assert np.array_equal(scene.outputs(second), reference.outputs(truth))
     truth.AdvanceTo(0.13)
-    assert np.array_equal(X_WT(port, first), X_WT(reference_port, truth))
+    assert np.array_equal(scene.outputs(first), reference.outputs(truth))
+    assert scene.outputs(first)[-1] == 1.0
+
+
+def test_a_killed_worker_is_a_clear_error():
+    scene = Scene("worker")
+    simulator = scene.simulator()
+    simulator.AdvanceTo(0.01)
+    pid = scene.pid
+    os.kill(pid, signal.SIGKILL)
+    # Until the kill is seen (its threads take tens of ms to end) the plant steps here.
+    with pytest.raises(RuntimeError,
+                       match=rf"scene worker \(pid {pid}\) died \(killed by signal 9\)"):
+        simulator.AdvanceTo(2.0)
+
+
+def test_no_worker_outlives_its_use_and_the_next_request_starts_one():
+    scene, reference = Scene("worker"), Scene("in_place")
+    simulator, truth = scene.simulator(), reference.simulator()
+    simulator.AdvanceTo(0.01)
+    pid = scene.pid
+    assert gone(pid, within_s=IDLE_EXIT_S + 4.0)
+    simulator.AdvanceTo(0.03)
+    assert scene.pid != pid
+    truth.AdvanceTo(0.03)
+    assert np.array_equal(scene.outputs(simulator), reference.outputs(truth))
 
 
 def test_the_worker_ends_with_its_parent():
     script = (
-        "import os, sys\n"
-        "from pydrake.systems.analysis import Simulator\n"
-        "from maglev_haptics.diagrams.application import BuildDiagram\n"
-        "from maglev_haptics.diagrams.scenario import load_scenario\n"
-        "built = BuildDiagram(load_scenario('hanging_ball', scenario_text="
-        "'{haptics: {scene_stepping: worker}}'))\n"
-        "Simulator(built.diagram).AdvanceTo(0.01)\n"
-        "print(built.haptics.scene.worker.worker.pid, flush=True)\n"
+        "import os\n"
+        "from tests.test_scene_worker import Scene\n"
+        "scene = Scene('worker')\n"
+        "scene.simulator().AdvanceTo(0.01)\n"
+        "print(scene.pid, flush=True)\n"
         "os._exit(0)\n")  # no finalizers, no atexit: as if killed
     parent = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
-                            timeout=120, env={**os.environ, "MPLBACKEND": "Agg"})
+                            timeout=120, cwd=Path(__file__).parent.parent,
+                            env={**os.environ, "MPLBACKEND": "Agg"})
     assert parent.returncode == 0, parent.stderr
     assert gone(int(parent.stdout.split()[-1]))
 
