@@ -6,7 +6,6 @@ import signal
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -129,14 +128,18 @@ def test_no_worker_outlives_its_use_and_the_next_request_starts_one():
 def test_the_worker_ends_with_its_parent():
     script = (
         "import os\n"
-        "from tests.test_scene_worker import Scene\n"
-        "scene = Scene('worker')\n"
-        "scene.simulator().AdvanceTo(0.01)\n"
-        "print(scene.pid, flush=True)\n"
+        "from pydrake.math import RigidTransform\n"
+        "from pydrake.systems.framework import DiagramBuilder\n"
+        "from maglev_haptics.diagrams.scene import PegInHole\n"
+        "from maglev_haptics.diagrams.scene_builder import AddScene\n"
+        "parts = AddScene(DiagramBuilder(), scene=PegInHole(), time_step_s=0.001,\n"
+        "                 X_WI_start=RigidTransform([0, 0, 0.05]), contact_sample_period_s=0.005,\n"
+        "                 stepping='worker')\n"
+        "parts.worker.worker.wait_ready()\n"
+        "print(parts.worker.worker.pid, flush=True)\n"
         "os._exit(0)\n")  # no finalizers, no atexit: as if killed
     parent = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
-                            timeout=120, cwd=Path(__file__).parent.parent,
-                            env={**os.environ, "MPLBACKEND": "Agg"})
+                            timeout=120)
     assert parent.returncode == 0, parent.stderr
     assert gone(int(parent.stdout.split()[-1]))
 
