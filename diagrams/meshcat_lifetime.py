@@ -38,11 +38,6 @@ def start_meshcat(params: Optional[MeshcatParams] = None) -> Meshcat:
     return meshcat
 
 
-def open_meshcats() -> int:
-    """How many Meshcats are started and not yet destroyed (closed ones still referenced count)."""
-    return len(_OPEN) + len(_CLOSED)
-
-
 def close_meshcat(meshcat: Meshcat) -> None:
     """Release ``meshcat`` on the thread that made it (after the diagrams that used it are
     dropped): it is destroyed here once its caller's last reference goes."""
