@@ -46,6 +46,20 @@ made 43 and cost ~230 us), sliding on it ~105 us (11), on the floor and against 
 wall ~230 us (the wall's mesh against the peg's makes ~19 polygons, the table
 ~10); the ball on the table ~65 us, on the paddle ~170 us.
 
+That cost need not be the tick's: with ``stepping="worker"`` (the scenario's
+default) a worker process steps the plant on the other core while the rest of
+the tick runs (``systems/remote_scene.py``, ``diagrams/scene_process.py``),
+bit for bit as in place. The diagram then holds the plant's state, and a copy of
+the plant outside it poses the scene graph's geometry for Meshcat and the stereo
+renderer; the contact results stay in the worker (no ContactVisualizer).
+Measured on the 2-core machine with this process and its worker at real-time
+priority (other users' processes pushed aside; `maglev run ... --duration 3`,
+alternated): peg_in_hole 3.3-3.8x real time in place, 4.7-4.8x with the
+worker; paddle_ball 2.2-2.3x and 4.0x. Without priority, on the machine loaded
+by others (load 4-7 on 2 cores), the worker rarely finds a core in time, the
+plant steps here instead (``RemoteScene``'s fallback), and alternated runs of
+either kind scattered from 0.5x to 4x: the load, not the stepping, decided.
+
 Drake 1.51's clipping of a rigid mesh by a half-space fails a check
 ("mesh_half_space_intersection.cc ... sgn(s_a) != sgn(s_b)") when two vertices
 of one triangle lie exactly on the plane: a level tool, never perturbed, whose

@@ -19,10 +19,11 @@ stepped in place gives. Where the worker was not asked about the context's
 sample between ticks), or has not yet taken the request up (no free core: the
 process it would wait for is not running), the update steps ``local``, a copy
 of the plant in this process, instead of waiting. After MISSES_TO_PAUSE such
-misses in a row (a machine with no core to spare) it is not asked for PAUSE_S
-(wall-clock): fed while it cannot keep up, it took CPU time from its parent and
-did work thrown away (a loaded two-core machine ran 20-50% slower than in place,
-measured). A worker that has died, or has been on one request for its HUNG_S,
+misses in a row (a machine with no core to spare) it is not asked for a pause
+(wall-clock) that starts at PAUSE_S and doubles, up to MAX_PAUSE_S, each time
+it misses again after one, until it keeps up: fed while it cannot keep up, it
+took CPU time from its parent and did work thrown away (a loaded two-core
+machine ran 20-50% slower than in place, measured). A worker that has died, or has been on one request for its HUNG_S,
 raises a RuntimeError.
 """
 
@@ -35,6 +36,7 @@ from maglev_haptics.systems.scene_worker import CONTACT, CONTACT_SIZE, STEP, Sce
 
 MISSES_TO_PAUSE = 3
 PAUSE_S = 0.1  # (s)
+MAX_PAUSE_S = 0.8  # (s): shorter than the worker's IDLE_EXIT_S, so it stays started
 
 
 def falls_on(t: float, period_s: float) -> bool:
@@ -75,6 +77,7 @@ class RemoteScene(LeafSystem):
         self._contact_period_s = contact_period_s
         self._misses = 0  # requests in a row that the worker had not taken up in time
         self._paused_until = 0.0  # (perf_counter, s)
+        self._pause_s = PAUSE_S  # the next pause
         self._u = self.DeclareVectorInputPort("wrench_on_tool_W", 6)
         self._x = self.DeclareDiscreteState(np.asarray(x0, dtype=float))
         self._wrench = self.DeclareDiscreteState(6)
@@ -110,11 +113,13 @@ class RemoteScene(LeafSystem):
         if worker.answers(x, u, kind):
             if worker.started():
                 self._misses = 0
+                self._pause_s = PAUSE_S
                 return worker.wait()
             self._misses += 1
             if self._misses == MISSES_TO_PAUSE:
                 self._misses = 0
-                self._paused_until = time.perf_counter() + PAUSE_S
+                self._paused_until = time.perf_counter() + self._pause_s
+                self._pause_s = min(2 * self._pause_s, MAX_PAUSE_S)
         request = self._local_request
         request[:self._n] = x
         request[self._n:] = u
