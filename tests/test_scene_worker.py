@@ -9,6 +9,7 @@ import time
 
 import numpy as np
 import pytest
+from pydrake.common.eigen_geometry import Quaternion
 from pydrake.math import RigidTransform
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
@@ -159,3 +160,16 @@ def test_stepping_is_checked():
                  X_WI_start=RigidTransform([0, 0, 0.05]), stepping="worker")
     with pytest.raises(ScenarioError, match=r"haptics.scene_stepping = 'thread': one of worker"):
         stepping("peg_in_hole", "thread")
+
+
+def test_the_scene_graph_draws_the_worker_stepped_tool_where_it_is():
+    scene = Scene("worker")
+    simulator = scene.simulator()
+    simulator.AdvanceTo(0.1)
+    parts = scene.parts
+    query = parts.scene_graph.get_query_output_port().Eval(
+        parts.scene_graph.GetMyContextFromRoot(simulator.get_context()))
+    X_WT = RigidTransform(Quaternion(scene.outputs(simulator)[0:4]), scene.outputs(simulator)[4:7])
+    X_WT_drawn = query.GetPoseInWorld(parts.plant.GetBodyFrameIdOrThrow(parts.tool_body.index()))
+    assert X_WT_drawn.IsNearlyEqualTo(X_WT, 1e-12)
+    assert X_WT.translation()[2] < 0.03  # it has moved: the peg rests on the hole's floor
