@@ -23,8 +23,8 @@ misses in a row (a machine with no core to spare) it is not asked for a pause
 (wall-clock) that starts at PAUSE_S and doubles, up to MAX_PAUSE_S, each time
 it misses again after one, until it keeps up: fed while it cannot keep up, it
 took CPU time from its parent and did work thrown away (a loaded two-core
-machine ran 20-50% slower than in place, measured). A worker that has died, or has been on one request for its HUNG_S,
-raises a RuntimeError.
+machine ran 20-50% slower than in place, measured). A worker that has died, or
+has been on one request for its HUNG_S, raises a RuntimeError.
 """
 
 import time

@@ -69,8 +69,8 @@ class Scene:
     def simulator(self) -> Simulator:
         simulator = Simulator(self.diagram)
         port = self.parts.wrench_on_tool_input
-        port.FixValue(port.get_system().GetMyMutableContextFromRoot(simulator.get_mutable_context()),
-                      PUSH_W)
+        port.FixValue(
+            port.get_system().GetMyMutableContextFromRoot(simulator.get_mutable_context()), PUSH_W)
         simulator.Initialize()
         return simulator
 
