@@ -6,9 +6,9 @@ tick of ``tick_s`` simulated seconds is released at its wall-clock slot
 and timed. A tick whose compute ends after its slot has missed its deadline; the
 next tick then starts at once, so a late loop catches up rather than skipping
 ticks (a haptic loop may not drop its samples). What is not the loop's (Meshcat's
-frames, moving the log to disk, the progress bar) runs between ticks, only where
-its measured cost fits before the next slot (``BetweenTicks``): a frame may be
-late, a tick may not.
+frames, moving the log to disk, the progress bar) runs between ticks, where its
+measured cost fits before the next slot, or once it is long overdue and the loop
+is behind its clock anyway (``BetweenTicks``): a frame may be late, a tick may not.
 """
 
 from __future__ import annotations
@@ -34,6 +34,9 @@ PROGRESS_CHUNK_S = 0.25  # simulated seconds between progress-bar updates
 # A loop so far behind that no gap fits the progress job still moves its log to disk
 # this often (simulated s), so the logger never grows without bound.
 PROGRESS_MAX_LATE_S = 2.0
+# A loop that is behind its clock (its ticks late already) still draws each visualizer
+# this often (simulated s), so an overloaded run's view is not frozen.
+FRAME_MAX_LATE_S = 1.0
 MISS_WARNING_FRACTION = 0.001  # more missed deadlines than this and the terminal says so
 
 
@@ -144,25 +147,31 @@ class LandBeforeStopping:
 
 # A job runs between ticks only where COST_SAFETY times the median of its last
 # COST_MEMORY costs, and this margin, fit before the next tick's release (s). The
-# median, not the most: one run that the host preempted must not bar a job for good.
+# median, not the most, and after RETRY_AFTER_SKIPS gaps that it did not fit, its
+# cheapest run: one run that the host preempted must not bar a job for good.
 BETWEEN_TICKS_MARGIN_S = 50e-6
 COST_MEMORY = 15
 COST_SAFETY = 1.5
+RETRY_AFTER_SKIPS = 250
+MEASURED_RUNS = 3  # timed before the clock starts, after one run that warms it up
 
 
 @dataclass
 class BetweenTicksJob:
-    """Work due every ``period_s`` of simulated time, first at ``due_s`` (s). One that
-    must not wait for ever (moving the log to disk) runs in the next gap once it is
-    ``max_late_s`` (simulated s) late, fitting or not: the loop is behind already."""
+    """Work due every ``period_s`` of simulated time, first at ``due_s`` (s). Once it is
+    ``max_late_s`` (simulated s) late it runs in the next gap, fitting or not, while the
+    loop is behind its clock anyway (its ticks are late already), or always if it
+    ``must_run`` (moving the log to disk: the logger must not grow without bound)."""
     name: str
     run: Callable[[], None]
     period_s: float
     due_s: float = 0.0
     max_late_s: float = math.inf
+    must_run: bool = False
     costs_s: deque = field(default_factory=lambda: deque(maxlen=COST_MEMORY))
     runs: int = 0
     late_s: float = 0.0  # the longest a run came after it was due (simulated s)
+    skipped: int = 0  # gaps in a row it was due but did not fit
 
     def timed_run(self) -> None:
         begin = time.perf_counter()
@@ -171,29 +180,40 @@ class BetweenTicksJob:
         self.runs += 1
 
     def cost_s(self) -> float:
-        return COST_SAFETY * float(np.median(self.costs_s)) if self.costs_s else 0.0
+        """What a gap must hold for it (s), as measured."""
+        if not self.costs_s:
+            return 0.0
+        if self.skipped >= RETRY_AFTER_SKIPS:
+            return min(self.costs_s)
+        return COST_SAFETY * float(np.median(self.costs_s))
 
 
 class BetweenTicks:
-    """The paced loop's gaps: each due job runs, most overdue first, while its cost
-    (as measured) fits before ``release`` (time.perf_counter's clock, s). A job whose
-    cost never fits is never run in the loop, rather than make a tick late."""
+    """The paced loop's gaps: each due job runs, most overdue first, where its cost
+    (as measured) fits before ``release`` (time.perf_counter's clock, s), so it makes
+    no tick late; a job that never fits runs only once it is ``max_late_s`` late."""
 
     def __init__(self, jobs: List[BetweenTicksJob]):
         self.jobs = jobs
 
     def measure(self) -> None:
-        """Run every job once, off the clock, for a first measure of its cost."""
+        """Run every job, off the clock, for a first measure of its cost."""
         for job in self.jobs:
-            job.timed_run()
+            job.run()  # a first call pays for caches and allocations
+            for _ in range(MEASURED_RUNS):
+                job.timed_run()
 
     def fill_gap(self, t_s: float, release: float) -> None:
         """Run the jobs due at simulated time ``t_s`` that fit before ``release``."""
         for job in sorted((job for job in self.jobs if job.due_s <= t_s),
                           key=lambda job: job.due_s):
-            if (release - time.perf_counter() < job.cost_s() + BETWEEN_TICKS_MARGIN_S
-                    and t_s - job.due_s <= job.max_late_s):
+            now = time.perf_counter()
+            fits = release - now >= job.cost_s() + BETWEEN_TICKS_MARGIN_S
+            forced = t_s - job.due_s > job.max_late_s and (job.must_run or release < now)
+            if not (fits or forced):
+                job.skipped += 1
                 continue
+            job.skipped = 0
             job.late_s = max(job.late_s, t_s - job.due_s)
             job.timed_run()
             job.due_s += job.period_s
@@ -202,9 +222,10 @@ class BetweenTicks:
 
 
 def frame_jobs(publishers, context, period_s: float) -> List[BetweenTicksJob]:
-    """One job a visualizer: its ForcedPublish at the context's time."""
+    """One job a visualizer: its ForcedPublish at the context's time; a loop that is
+    behind its clock still draws a frame every FRAME_MAX_LATE_S."""
     return [BetweenTicksJob(
-        name=publisher.get_name(), period_s=period_s,
+        name=publisher.get_name(), period_s=period_s, max_late_s=FRAME_MAX_LATE_S,
         run=lambda publisher=publisher: publisher.ForcedPublish(
             publisher.GetMyContextFromRoot(context))) for publisher in publishers]
 
@@ -252,7 +273,7 @@ def advance_paced(simulator, duration_s: float, tick_s: float, ticks: PacedTicks
         last[:] = now, t_s
 
     between = BetweenTicks([BetweenTicksJob("progress", report_progress, PROGRESS_CHUNK_S,
-                                            max_late_s=PROGRESS_MAX_LATE_S)]
+                                            max_late_s=PROGRESS_MAX_LATE_S, must_run=True)]
                            + frame_jobs(frame_publishers, context, frame_period_s))
     between.measure()
     clock_zero = time.perf_counter()
@@ -271,9 +292,11 @@ def advance_paced(simulator, duration_s: float, tick_s: float, ticks: PacedTicks
             if ticks.done % ticks_per_update == 0 and stop is not None and stop(context):
                 break
     finally:
-        # The last frame and the log's tail, off the clock.
-        for job in between.jobs:
-            job.run()
+        bar.update(context.get_time() - bar.n)
+    # The last frame and the log's tail, off the clock (not after an error: what
+    # raised it is what the caller must see).
+    for job in between.jobs:
+        job.run()
     return between
 
 
