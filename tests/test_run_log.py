@@ -84,10 +84,12 @@ def test_a_killed_run_leaves_its_log_to_within_a_second(tmp_path):
 def test_a_stopped_run_writes_its_results_and_says_so_in_one_line(tmp_path, stop_signal):
     """SIGTERM or Ctrl-C on a scripted run: the flying instrument lands, the run ends
     between ticks, writes the log, the summary and the plots of what it ran, and says
-    so in one line (no traceback)."""
+    so in one line (no traceback). The hover is held 40 s, so the signal finds the
+    instrument flying however late a loaded host lets this test send it."""
     process = subprocess.Popen(
         [sys.executable, "-m", "maglev_haptics.diagrams.cli", "run", "levitate", "--no-meshcat",
-         "--realtime", "1.0", "--duration", "60", "--out", str(tmp_path)],
+         "--realtime", "1.0", "--duration", "60", "--out", str(tmp_path), "--scenario-text",
+         "{motion: {waypoints: [{pose: [0, 0, 0.018, 0, 0, 0], hold_s: 40}]}}"],
         stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 240.0
     while not list((tmp_path / run_log.CHUNK_DIR).glob("chunk_000003.npy")):  # ~2 s flown
