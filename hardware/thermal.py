@@ -25,7 +25,6 @@ from dataclasses import dataclass
 
 import numba
 import numpy as np
-from numba.extending import register_jitable
 
 from maglev_haptics.hardware.device import CoilSpec, DeviceConfig, ThermalSpec
 from maglev_haptics.hardware.kernels import SCALAR, VECTOR, kernel
@@ -101,14 +100,8 @@ def coil_thermal(config: DeviceConfig) -> CoilThermal:
 
 def winding_resistance_ohm(model: CoilThermal, temperature_c):
     """R(T) [ohm] at winding temperature T [deg C] (array in, array out)."""
-    return resistance_at_ohm(np.asarray(temperature_c, dtype=float), model.resistance_ref_ohm,
-                             model.alpha_per_k, model.reference_temperature_c)
-
-
-@register_jitable
-def resistance_at_ohm(temperature_c, resistance_ref_ohm, alpha_per_k, reference_c):
-    """R(T) [ohm] of the linear copper model, in Python and inside the loop's kernels."""
-    return resistance_ref_ohm * (1 + alpha_per_k * (temperature_c - reference_c))
+    excess_k = np.asarray(temperature_c, dtype=float) - model.reference_temperature_c
+    return model.resistance_ref_ohm * (1 + model.alpha_per_k * excess_k)
 
 
 def _rate_and_drive(model: CoilThermal, current_a):
@@ -235,7 +228,7 @@ def thermal_budget(model: CoilThermal, *, horizon_s: float, margin_c: float,
 
 
 @kernel((VECTOR, SCALAR, SCALAR, VECTOR))
-def interpolated(x, lowest, step, table):
+def _interpolated(x, lowest, step, table):
     """``table`` (at lowest + k step) linearly interpolated at each of ``x``, held
     at its ends."""
     result = np.empty(x.size)
@@ -250,4 +243,4 @@ def interpolated(x, lowest, step, table):
 
 def current_bounds_a(budget: ThermalBudget, temperature_c: np.ndarray) -> np.ndarray:
     """Each coil's bound [A] at its winding temperature [deg C]."""
-    return interpolated(temperature_c, budget.lowest_c, budget.step_c, budget.bound_a)
+    return _interpolated(temperature_c, budget.lowest_c, budget.step_c, budget.bound_a)

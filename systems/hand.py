@@ -46,7 +46,7 @@ from maglev_haptics.systems.haptic_coupling import coupling_wrenches
 from maglev_haptics.systems.rotations import (
     angular_velocity_from_rpy_rates, pose_vector, quaternion_from_rotation_matrix,
     rigid_transform, rotation_from_quaternion, rotation_from_rpy)
-from maglev_haptics.systems.stacked_ports import BuildStacked
+from maglev_haptics.systems.stacked_ports import BuildStacked, stacked_size, stacked_slices
 
 HAND_MODEL_URL = "package://maglev_haptics/hand.sdf"
 HAND_BODY_NAME = "hand"
@@ -216,22 +216,25 @@ def explicit_step_spectral_radius(config: HandImpedanceConfig, instrument_mass_k
     return radius
 
 
-# The hand's input ports (name, size), in the order of the law's one input.
-HAND_INPUTS = (("hand_state", 13), ("instrument_state", 13), ("hand_target", 12), ("grip", 1))
+# The hand's input ports (name, size), in the order of the law's one input. The grip
+# command is the law's own port: it acts only through the grip's update, so the
+# wrenches do not depend on it.
+HAND_INPUTS = (("hand_state", 13), ("instrument_state", 13), ("hand_target", 12))
 # Its output ports that the law computes (name, size), in the order of the law's one output.
 HAND_OUTPUTS = (("generalized_forces", 12), ("wrench_on_instrument_W", 6))
 
 
 class HandLaw(LeafSystem):
     """``SimulatedHand``'s arithmetic and state: one input, ``inputs`` (HAND_INPUTS
-    stacked), one output, ``wrenches`` (HAND_OUTPUTS stacked), and the state output
-    ``handle_gripped``.
+    stacked), and ``grip``; one output, ``wrenches`` (HAND_OUTPUTS stacked), and the
+    state output ``handle_gripped``.
 
     .. pydrake_system::
 
         name: HandLaw
         input_ports:
         - inputs
+        - grip
         output_ports:
         - wrenches
         - handle_gripped
@@ -241,31 +244,35 @@ class HandLaw(LeafSystem):
         LeafSystem.__init__(self)
         self._config = config
         self._k_arm, self._b_arm, self._k_grip, self._b_grip = impedance_gains(config)
-        self._inputs = self.DeclareVectorInputPort(
-            "inputs", sum(size for _, size in HAND_INPUTS))
+        self._inputs = self.DeclareVectorInputPort("inputs", stacked_size(HAND_INPUTS))
+        self._rows = stacked_slices(HAND_INPUTS)
+        self._grip = self.DeclareVectorInputPort("grip", 1)
         # The grip flag is a group of its own: its port is a plain state output.
         self._gripped = self.DeclareDiscreteState(1)
         self._X_HI = self.DeclareDiscreteState(IDENTITY_POSE)
         self.DeclarePeriodicDiscreteUpdateEvent(period_s, 0.0, self._update_grip)
-        self.DeclareVectorOutputPort("wrenches", sum(size for _, size in HAND_OUTPUTS),
-                                     self._calc_wrenches)
+        self.DeclareVectorOutputPort(
+            "wrenches", stacked_size(HAND_OUTPUTS), self._calc_wrenches,
+            {self._inputs.ticket(), self.xd_ticket()})
         self.DeclareStateOutputPort("handle_gripped", self._gripped)
 
     def _update_grip(self, context, discrete_state):
-        inputs = self._inputs.EvalBasicVector(context).value()
+        inputs, rows = self._inputs.EvalBasicVector(context).value(), self._rows
         gripped, X_HI = grip_update(
             context.get_discrete_state(self._gripped).GetAtIndex(0),
-            context.get_discrete_state(self._X_HI).CopyToVector(), inputs[38],
-            inputs[0:7].copy(), inputs[13:20].copy())
+            context.get_discrete_state(self._X_HI).CopyToVector(),
+            self._grip.EvalBasicVector(context).GetAtIndex(0),
+            inputs[rows["hand_state"]][0:7].copy(), inputs[rows["instrument_state"]][0:7].copy())
         discrete_state.get_mutable_vector(self._gripped).SetFromVector([gripped])
         discrete_state.get_mutable_vector(self._X_HI).SetFromVector(X_HI)
 
     def _calc_wrenches(self, context, output):
         """The wrench on the hand, then on the instrument, as generalized forces
         [tau; f] each; then the instrument's as [f; tau]."""
-        inputs = self._inputs.EvalBasicVector(context).value()
+        inputs, rows = self._inputs.EvalBasicVector(context).value(), self._rows
         on_hand, on_instrument = hand_wrenches(
-            inputs[0:13], inputs[13:26], inputs[26:38],
+            inputs[rows["hand_state"]], inputs[rows["instrument_state"]],
+            inputs[rows["hand_target"]],
             context.get_discrete_state(self._gripped).GetAtIndex(0),
             context.get_discrete_state(self._X_HI).CopyToVector(), self._k_arm, self._b_arm,
             self._k_grip, self._b_grip, self._config.mass_kg)
@@ -289,8 +296,8 @@ class SimulatedHand(Diagram):
         - grip
         output_ports:
         - generalized_forces
-        - handle_gripped
         - wrench_on_instrument_W
+        - handle_gripped
 
     ``hand_state`` and ``instrument_state`` are the plant's per-model-instance
     state outputs (13: [qw, qx, qy, qz, x, y, z, wx, wy, wz, vx, vy, vz],
@@ -318,4 +325,5 @@ class SimulatedHand(Diagram):
     def __init__(self, *, config: HandImpedanceConfig, period_s: float):
         Diagram.__init__(self)
         BuildStacked(self, leaf=HandLaw(config=config, period_s=period_s), leaf_name="law",
-                     inputs=HAND_INPUTS, outputs=HAND_OUTPUTS, leaf_outputs=("handle_gripped",))
+                     inputs=HAND_INPUTS, outputs=HAND_OUTPUTS, leaf_inputs=("grip",),
+                     leaf_outputs=("handle_gripped",))

@@ -50,7 +50,7 @@ from maglev_haptics.hardware.config_checks import each, nonnegative, positive, r
 from maglev_haptics.hardware.kernels import MATRIX, SCALAR, VECTOR, kernel
 from maglev_haptics.hardware.limits import LIMIT_KINDS
 from maglev_haptics.systems.rotations import rotation_from_quaternion
-from maglev_haptics.systems.stacked_ports import BuildStacked
+from maglev_haptics.systems.stacked_ports import BuildStacked, stacked_size, stacked_slices
 
 
 @dataclass
@@ -291,8 +291,8 @@ class CouplingLaw(LeafSystem):
         self._R_IT = np.array(X_IT.rotation().matrix(), order="C")
         self._p_IT = np.array(X_IT.translation())
         self._k, self._b = coupling_gains(config)
-        self._inputs = self.DeclareVectorInputPort(
-            "inputs", sum(size for _, size in COUPLING_INPUTS))
+        self._inputs = self.DeclareVectorInputPort("inputs", stacked_size(COUPLING_INPUTS))
+        self._rows = stacked_slices(COUPLING_INPUTS)
         self._ramp = self.DeclareDiscreteState(1)
         self._V_WI_filtered = self.DeclareDiscreteState(6)
         if port_delay_ticks < 1:
@@ -315,17 +315,18 @@ class CouplingLaw(LeafSystem):
             value_producer=ValueProducer(allocate=AbstractValue.Make(()).Clone,
                                          calc=self._calc_cache),
             prerequisites_of_calc={self._inputs.ticket(), self.xd_ticket()})
-        self.DeclareVectorOutputPort("wrenches", sum(size for _, size in COUPLING_OUTPUTS),
+        self.DeclareVectorOutputPort("wrenches", stacked_size(COUPLING_OUTPUTS),
                                      self._calc_wrenches, {self._cache.ticket()})
         self.DeclareStateOutputPort("passivity_dissipated_j", self._dissipated)
 
     def _update(self, context, discrete_state):
-        inputs = self._inputs.EvalBasicVector(context).value()
+        inputs, rows = self._inputs.EvalBasicVector(context).value(), self._rows
         fraction = ramp_step(context.get_discrete_state(self._ramp).GetAtIndex(0),
-                             inputs[26], self._period_s, self._config.ramp_s)
+                             inputs[rows["haptics_enable"]][0], self._period_s,
+                             self._config.ramp_s)
         discrete_state.get_mutable_vector(self._ramp).SetAtIndex(0, fraction)
         filtered = context.get_discrete_state(self._V_WI_filtered).CopyToVector()
-        filtered = filtered + self._alpha * (inputs[7:13] - filtered)
+        filtered = filtered + self._alpha * (inputs[rows["V_WI_measured"]] - filtered)
         discrete_state.get_mutable_vector(self._V_WI_filtered).SetFromVector(filtered)
         if self._config.passivity_controller:
             _, _, _, (energy, sent, dissipated) = self._cache.Eval(context)
@@ -338,19 +339,20 @@ class CouplingLaw(LeafSystem):
         """(wrench on tool, wrench on instrument, clamp factor, the passivity observer's
         state after this sample and what its controller dissipated in it, or None) after
         ramp and clamp, with the passivity controller's damping on the instrument's."""
-        inputs = self._inputs.EvalBasicVector(context).value()
+        inputs, rows = self._inputs.EvalBasicVector(context).value(), self._rows
         fraction = context.get_discrete_state(self._ramp).GetAtIndex(0)
-        if inputs[26] < 0.5:
+        if inputs[rows["haptics_enable"]][0] < 0.5:
             fraction = 0.0
         on_tool, on_instrument, scale = limited_wrenches(
-            inputs[0:7], context.get_discrete_state(self._V_WI_filtered).CopyToVector(),
-            inputs[13:20], inputs[20:26], self._R_IT, self._p_IT, self._k, self._b, fraction,
-            self._config.max_force_n, self._config.max_torque_nm)
+            inputs[rows["X_WI_measured"]],
+            context.get_discrete_state(self._V_WI_filtered).CopyToVector(),
+            inputs[rows["X_WT"]], inputs[rows["V_WT"]], self._R_IT, self._p_IT, self._k, self._b,
+            fraction, self._config.max_force_n, self._config.max_torque_nm)
         observer = None
         if self._config.passivity_controller:
             state = context.get_discrete_state()
             on_instrument, *observer = passivity_step(
-                on_instrument, inputs[7:13].copy(),
+                on_instrument, inputs[rows["V_WI_measured"]].copy(),
                 state.get_vector(self._energy).CopyToVector(),
                 state.get_vector(self._sent).CopyToVector().reshape(self._port_delay_ticks, 6),
                 self._period_s, self._reference_energy_j)

@@ -13,23 +13,24 @@ and yaw unwrapped, so a 360 deg turn is a ramp.
 from dataclasses import dataclass, field
 from typing import List, Optional, Tuple
 
+import numba
 import numpy as np
-from numba.extending import register_jitable
-from pydrake.systems.framework import BasicVector, Diagram, LeafSystem
+from pydrake.common.value import AbstractValue
+from pydrake.systems.framework import BasicVector, Diagram, LeafSystem, ValueProducer
 
 from maglev_haptics.hardware.config_checks import each, nonnegative, positive, require
 from maglev_haptics.hardware.constants import GRAVITY_M_S2
 from maglev_haptics.hardware.kernels import (
-    FLAG, FLOAT32_TENSOR4, FLOAT32_VECTOR, MATRIX, SCALAR, VECTOR, kernel)
+    FLAG, FLOAT32_TENSOR4, FLOAT32_VECTOR, INDEX_VECTOR, MATRIX, SCALAR, VECTOR, kernel)
 from maglev_haptics.hardware.thermal import (
-    CoilThermal, interpolated, resistance_at_ohm, thermal_budget)
-from maglev_haptics.hardware.wrench_kernel import POSE_OK, wrench_matrix_kernel
+    CoilThermal, current_bounds_a, thermal_budget, winding_resistance_ohm)
+from maglev_haptics.hardware.wrench_kernel import POSE_OK
 from maglev_haptics.systems.current_allocator import (
     ALLOCATIONS, TORQUE_WEIGHT_PER_M, allocate_currents, bounded_minimum_power_currents)
-from maglev_haptics.systems.magnetic_actuation import wrench_matrix_at
+from maglev_haptics.systems.magnetic_actuation import raise_pose_error, wrench_matrix_at_pose
 from maglev_haptics.systems.rotations import (
     angular_velocity_from_rpy_rates, rotation_error_W, rotation_from_quaternion, rotation_from_rpy)
-from maglev_haptics.systems.stacked_ports import BuildStacked
+from maglev_haptics.systems.stacked_ports import BuildStacked, stacked_size, stacked_slices
 
 
 @dataclass
@@ -79,8 +80,8 @@ def pd_gains(config: ControllerConfig, mass_kg: float, inertia_diag: np.ndarray)
     return kp, kd
 
 
-# The wrench laws run at 1 kHz: compiled by numba (3 us a call; 27 us in numpy).
-@kernel((VECTOR, VECTOR, VECTOR))
+# The wrench laws, compiled into the tick's one call (``control_law``).
+@numba.njit(cache=True)
 def brake_wrench(pose, velocity, kd):
     """The PD's damping alone, toward rest: [f; tau] in W (N, N*m)."""
     R_WI = rotation_from_quaternion(pose[0:4])
@@ -111,7 +112,7 @@ def pd_wrench(setpoint, pose, velocity, kp, kd, mass_kg):
     return np.concatenate((force, torque))
 
 
-@register_jitable
+@numba.njit(cache=True)
 def carries_weight_while_lost(lost_time_s: float, lost_grace_s: float) -> bool:
     """Whether the weight is still carried after tracking has been lost this long (s).
 
@@ -123,7 +124,7 @@ def carries_weight_while_lost(lost_time_s: float, lost_grace_s: float) -> bool:
     return lost_time_s <= lost_grace_s
 
 
-@register_jitable
+@numba.njit(cache=True)
 def commanded_wrenches(setpoint, pose, velocity, tracking_ok: float, enable: float,
                        pd_gain: float, brake_gain: float, feedforward, lost_time_s: float,
                        kp, kd, mass_kg: float, lost_grace_s: float):
@@ -153,7 +154,7 @@ def commanded_wrenches(setpoint, pose, velocity, tracking_ok: float, enable: flo
 THERMAL_SHORTFALL_OF_WEIGHT = 0.02
 
 
-@register_jitable
+@kernel((VECTOR, VECTOR, VECTOR, SCALAR, SCALAR))
 def is_thermally_limited(currents, bound_a, shortfall, current_limit_a: float,
                          mass_kg: float) -> bool:
     """Whether the wrench falls short by more than THERMAL_SHORTFALL_OF_WEIGHT of the
@@ -162,15 +163,15 @@ def is_thermally_limited(currents, bound_a, shortfall, current_limit_a: float,
     if np.linalg.norm(shortfall) <= THERMAL_SHORTFALL_OF_WEIGHT * mass_kg * GRAVITY_M_S2:
         return False
     at_bound = np.abs(currents) >= bound_a * (1 - 1e-9)
-    return bool(np.any(at_bound & (bound_a < current_limit_a)))
+    return np.any(at_bound & (bound_a < current_limit_a))
 
 
+# The controller's input ports (name, size) in the order of the law's one input (the
+# coils' temperatures are the law's own port: they change at the thermal model's rate).
 def controller_inputs(n_coils: int) -> Tuple[Tuple[str, int], ...]:
-    """The controller's input ports (name, size), in the order of the law's one input."""
     return (("setpoint", 12), ("X_WI_measured", 7), ("V_WI_measured", 6), ("tracking_ok", 1),
             ("enable", 1), ("pd_gain", 1), ("brake_gain", 1), ("wrench_feedforward_W", 6),
-            ("tracking_lost_s", 1), ("coil_temperature_c", n_coils), ("coil_currents", n_coils),
-            ("coils_stuck", n_coils))
+            ("tracking_lost_s", 1), ("coil_currents", n_coils), ("coils_stuck", n_coils))
 
 
 def controller_outputs(n_coils: int) -> Tuple[Tuple[str, int], ...]:
@@ -180,28 +181,25 @@ def controller_outputs(n_coils: int) -> Tuple[Tuple[str, int], ...]:
             ("thermally_limited", 1))
 
 
-# The law's memo of the last pose (flag, 7) and the last temperatures (flag, n_coils):
-# the wrench matrix changes at the tracker's rate, the coils' bounds at the thermal
-# model's, the command every tick.
-@kernel((VECTOR, VECTOR, VECTOR, SCALAR, SCALAR, VECTOR,
+# ``pose_seen`` (flag, then the 7 of the pose) memoizes the wrench matrix ``A``: it
+# changes at the tracker's rate, the command every tick.
+@kernel((VECTOR, INDEX_VECTOR, VECTOR, VECTOR, SCALAR, SCALAR, VECTOR,
          FLOAT32_TENSOR4, MATRIX, MATRIX, MATRIX, FLOAT32_VECTOR, VECTOR, MATRIX,
-         FLAG, SCALAR, SCALAR, SCALAR, SCALAR, SCALAR, VECTOR, SCALAR, SCALAR,
-         VECTOR, VECTOR, VECTOR))
-def control_law(inputs, kp, kd, mass_kg, lost_grace_s, p_WA,
+         FLAG, VECTOR, SCALAR, SCALAR, VECTOR))
+def control_law(inputs, starts, kp, kd, mass_kg, lost_grace_s, p_WA,
                 values, axes, p_ACj, p_IM, scratch, pose_seen, A,
-                thermal_allocation, resistance_ref_ohm, alpha_per_k, reference_c,
-                bound_lowest_c, bound_step_c, bound_table_a, current_limit_a, torque_weight,
-                temperature_seen, limits, out):
-    """One tick of the controller: ``inputs`` (``controller_inputs`` stacked) to ``out``
-    (``controller_outputs`` stacked). Returns the wrench matrix's pose status
-    (``POSE_OK``: done). With ``thermal_allocation`` False only the wrenches are
-    written (the pseudoinverse allocation, for comparison, is Python's)."""
+                thermal_allocation, limits, current_limit_a, torque_weight, out):
+    """One tick of the controller: ``inputs`` (``controller_inputs`` stacked, each port
+    from its entry of ``starts``) to ``out`` (``controller_outputs`` stacked), with the
+    coils' ``limits`` [resistances (ohm); thermal bounds (A)]. Returns the wrench
+    matrix's pose status (``POSE_OK``: done). With ``thermal_allocation`` False only
+    the wrenches are written (the pseudoinverse allocation, for comparison, is Python's)."""
     n = A.shape[1]
-    pose = inputs[12:19].copy()
+    setpoint, pose, velocity = (inputs[starts[0]:starts[0] + 12].copy(),
+                                inputs[starts[1]:starts[1] + 7].copy(),
+                                inputs[starts[2]:starts[2] + 6].copy())
     if pose_seen[0] != 1.0 or np.any(pose_seen[1:] != pose):
-        status, matrix = wrench_matrix_kernel(values, axes, p_ACj, p_IM, pose[4:7] - p_WA,
-                                              rotation_from_quaternion(pose[0:4].copy()),
-                                              scratch)
+        status, matrix = wrench_matrix_at_pose(pose, p_WA, values, axes, p_ACj, p_IM, scratch)
         if status != POSE_OK:
             pose_seen[0] = 0.0
             return status
@@ -209,38 +207,33 @@ def control_law(inputs, kp, kd, mass_kg, lost_grace_s, p_WA,
         pose_seen[0] = 1.0
         pose_seen[1:] = pose
     commanded, rendered = commanded_wrenches(
-        inputs[0:12].copy(), pose, inputs[19:25].copy(), inputs[25], inputs[26], inputs[27],
-        inputs[28], inputs[29:35].copy(), inputs[35], kp, kd, mass_kg, lost_grace_s)
+        setpoint, pose, velocity, inputs[starts[3]], inputs[starts[4]], inputs[starts[5]],
+        inputs[starts[6]], inputs[starts[7]:starts[7] + 6].copy(), inputs[starts[8]], kp, kd,
+        mass_kg, lost_grace_s)
     out[0:6] = commanded
     out[6:12] = rendered
     if not thermal_allocation:
         return POSE_OK
-    temperature_c = inputs[36:36 + n].copy()
-    if temperature_seen[0] != 1.0 or np.any(temperature_seen[1:] != temperature_c):
-        limits[:n] = resistance_at_ohm(temperature_c, resistance_ref_ohm, alpha_per_k,
-                                       reference_c)
-        limits[n:] = interpolated(temperature_c, bound_lowest_c, bound_step_c, bound_table_a)
-        temperature_seen[0] = 1.0
-        temperature_seen[1:] = temperature_c
     resistance, bounds = limits[:n].copy(), limits[n:].copy()
     wanted, allowed = commanded, bounds
-    stuck = inputs[36 + 2 * n:36 + 3 * n] > 0.5
+    stuck = inputs[starts[10]:starts[10] + n] > 0.5
     if np.any(stuck):  # the stuck coils' wrench is a given; they get nothing
-        measured = inputs[36 + n:36 + 2 * n].copy()
+        measured = inputs[starts[9]:starts[9] + n].copy()
         wanted = commanded - A[:, stuck] @ measured[stuck]
         allowed = np.where(stuck, 0.0, bounds)
     currents, shortfall = bounded_minimum_power_currents(A, wanted, resistance, allowed,
                                                          torque_weight)
     out[12:12 + n] = currents
     out[12 + n:18 + n] = shortfall
-    limited = is_thermally_limited(currents, bounds, shortfall, current_limit_a, mass_kg)
-    out[18 + n] = 1.0 if limited else 0.0
+    out[18 + n] = 1.0 if is_thermally_limited(currents, bounds, shortfall, current_limit_a,
+                                              mass_kg) else 0.0
     return POSE_OK
 
 
 class LevitationLaw(LeafSystem):
     """The controller's arithmetic, one compiled call a tick (``control_law``): one
-    input, ``inputs`` (``controller_inputs`` stacked), one output, ``command``
+    input, ``inputs`` (``controller_inputs`` stacked), the coils' temperatures
+    ``coil_temperature_c`` (deg C) apart, and one output, ``command``
     (``controller_outputs`` stacked). ``LevitationController`` wraps it with named
     ports. The PD gains ``kp`` and ``kd`` (6 each) are numeric parameters 0 and 1.
 
@@ -249,6 +242,7 @@ class LevitationLaw(LeafSystem):
         name: LevitationLaw
         input_ports:
         - inputs
+        - coil_temperature_c
         output_ports:
         - command
     """
@@ -266,37 +260,46 @@ class LevitationLaw(LeafSystem):
         self._magnetics = magnetics
         self._p_WA = np.asarray(p_WA, dtype=float)
         self._current_limit_a = float(current_limit_a)
-        budget = thermal_budget(thermal, horizon_s=config.thermal_horizon_s,
-                                margin_c=config.thermal_margin_c,
-                                current_limit_a=current_limit_a)
-        self._thermal_arguments = (
-            config.allocation == "thermal", thermal.resistance_ref_ohm, thermal.alpha_per_k,
-            thermal.reference_temperature_c, budget.lowest_c, budget.step_c,
-            np.ascontiguousarray(budget.bound_a, dtype=float), self._current_limit_a,
-            TORQUE_WEIGHT_PER_M)
-        # A memo of pure functions of the inputs (exact match or recomputed), so any
+        self._thermal = thermal
+        self._budget = thermal_budget(thermal, horizon_s=config.thermal_horizon_s,
+                                      margin_c=config.thermal_margin_c,
+                                      current_limit_a=current_limit_a)
+        ports = controller_inputs(n)
+        self._starts = np.array([rows.start for rows in stacked_slices(ports).values()])
+        # A memo of a pure function of the pose (exact match or recomputed), so any
         # context, cloned or nudged by the analysis, gets the same numbers.
         self._pose_seen = np.zeros(8)
         self._matrix = np.zeros((6, n))
-        self._temperature_seen = np.zeros(n + 1)
-        self._limits = np.zeros(2 * n)
-        self._inputs = self.DeclareVectorInputPort(
-            "inputs", sum(size for _, size in controller_inputs(n)))
-        self.DeclareVectorOutputPort("command", sum(size for _, size in controller_outputs(n)),
+        self._inputs = self.DeclareVectorInputPort("inputs", stacked_size(ports))
+        self._temperature = self.DeclareVectorInputPort("coil_temperature_c", n)
+        # [resistances (ohm); bounds (A)]: they change at the thermal model's rate.
+        self._coil_limits = self.DeclareCacheEntry(
+            "coil_limits",
+            ValueProducer(allocate=lambda: AbstractValue.Make(np.zeros(2 * n)),
+                          calc=self._calc_coil_limits),
+            {self._temperature.ticket()})
+        self.DeclareVectorOutputPort("command", stacked_size(controller_outputs(n)),
                                      self._calc_command)
+
+    def _calc_coil_limits(self, context, limits):
+        temperature_c = self._temperature.Eval(context)
+        limits.set_value(np.concatenate((winding_resistance_ohm(self._thermal, temperature_c),
+                                         current_bounds_a(self._budget, temperature_c))))
 
     def _calc_command(self, context, output):
         inputs = self._inputs.EvalBasicVector(context).value()
         out = output.get_mutable_value()
+        thermal = self._config.allocation == "thermal"
         status = control_law(
-            inputs, context.get_numeric_parameter(self.kp_index).value(),
+            inputs, self._starts, context.get_numeric_parameter(self.kp_index).value(),
             context.get_numeric_parameter(self.kd_index).value(), self._mass_kg,
             self._config.lost_grace_s, self._p_WA, *self._magnetics.kernel_arguments(),
-            self._pose_seen, self._matrix, *self._thermal_arguments,
-            self._temperature_seen, self._limits, out)
-        if status != POSE_OK:  # the model's own error, naming the pose
-            wrench_matrix_at(self._magnetics, self._p_WA, inputs[12:19])
-        if self._config.allocation != "thermal":
+            self._pose_seen, self._matrix, thermal, self._coil_limits.Eval(context),
+            self._current_limit_a, TORQUE_WEIGHT_PER_M, out)
+        if status != POSE_OK:
+            raise_pose_error(self._magnetics, self._p_WA,
+                             inputs[self._starts[1]:self._starts[1] + 7])
+        if not thermal:
             currents, shortfall, _ = allocate_currents(self._matrix, out[0:6].copy(),
                                                        self._current_limit_a)
             n = currents.size
@@ -378,7 +381,8 @@ class LevitationController(Diagram):
             p_WA=p_WA, current_limit_a=current_limit_a, thermal=thermal)
         BuildStacked(self, leaf=self._law, leaf_name="law",
                      inputs=controller_inputs(magnetics.n_coils),
-                     outputs=controller_outputs(magnetics.n_coils))
+                     outputs=controller_outputs(magnetics.n_coils),
+                     leaf_inputs=("coil_temperature_c",))
 
     def set_gains(self, context, kp=None, kd=None) -> None:
         """Per-axis gains in the controller's ``context`` (N/m, N*m/rad; N*s/m,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 from pydrake.systems.framework import LeafSystem
 
@@ -21,6 +22,22 @@ def wrench_matrix_at(magnetics, p_WA, q_WI):
     return magnetics.wrench_matrix_from(q_WI[4:7] - p_WA, rotation_from_quaternion(q_WI[0:4]))
 
 
+def raise_pose_error(magnetics, p_WA, q_WI) -> None:
+    """Raise the model's own error for a pose the wrench kernel refused (its status not
+    ``POSE_OK``): a ValueError naming the pose."""
+    wrench_matrix_at(magnetics, p_WA, np.array(q_WI))
+    raise RuntimeError(f"q_WI = {list(q_WI)}: the wrench kernel refused it; the model did not")
+
+
+@numba.njit(cache=True)
+def wrench_matrix_at_pose(q_WI, p_WA, values, axes, p_ACj, p_IM, scratch):
+    """(status, (6, n_coils) wrench matrix) for the pose vector q_WI (C-ordered, 7) in
+    W: ``wrench_matrix_at`` inside a kernel; the model arguments are
+    ``MagneticsModel.kernel_arguments()``."""
+    return wrench_matrix_kernel(values, axes, p_ACj, p_IM, q_WI[4:7] - p_WA,
+                                rotation_from_quaternion(q_WI[0:4].copy()), scratch)
+
+
 @kernel((VECTOR, VECTOR, VECTOR, FLOAT32_TENSOR4, MATRIX, MATRIX, MATRIX, FLOAT32_VECTOR, VECTOR))
 def instrument_generalized_force(instrument_state, coil_currents, p_WA, values, axes, p_ACj,
                                  p_IM, scratch, out):
@@ -32,9 +49,8 @@ def instrument_generalized_force(instrument_state, coil_currents, p_WA, values, 
     forces, so the result feeds the plant's ``applied_generalized_force`` port. The
     model arguments are ``MagneticsModel.kernel_arguments()``.
     """
-    status, A = wrench_matrix_kernel(values, axes, p_ACj, p_IM, instrument_state[4:7] - p_WA,
-                                     rotation_from_quaternion(instrument_state[0:4].copy()),
-                                     scratch)
+    status, A = wrench_matrix_at_pose(instrument_state[0:7].copy(), p_WA, values, axes, p_ACj,
+                                      p_IM, scratch)
     if status != POSE_OK:
         return status
     wrench = A @ coil_currents
@@ -70,5 +86,5 @@ class MagneticActuation(LeafSystem):
         status = instrument_generalized_force(
             state, self._currents.EvalBasicVector(context).value(), self._p_WA,
             *self._magnetics.kernel_arguments(), output.get_mutable_value())
-        if status != POSE_OK:  # the model's own error, naming the pose
-            wrench_matrix_at(self._magnetics, self._p_WA, state[0:7])
+        if status != POSE_OK:
+            raise_pose_error(self._magnetics, self._p_WA, state[0:7])

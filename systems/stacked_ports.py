@@ -8,7 +8,7 @@ compiled call, and the leaf's one output vector split into the named outputs.
 The diagram, the analysis and the tests see the same named ports as before.
 """
 
-from typing import Sequence, Tuple
+from typing import Dict, Sequence, Tuple
 
 from pydrake.systems.framework import Diagram, DiagramBuilder, LeafSystem
 from pydrake.systems.primitives import Demultiplexer, Multiplexer
@@ -16,18 +16,36 @@ from pydrake.systems.primitives import Demultiplexer, Multiplexer
 Ports = Sequence[Tuple[str, int]]  # (name, size)
 
 
+def stacked_size(ports: Ports) -> int:
+    return sum(size for _, size in ports)
+
+
+def stacked_slices(ports: Ports) -> Dict[str, slice]:
+    """Each port's rows in the stacked vector, by name."""
+    slices, start = {}, 0
+    for name, size in ports:
+        slices[name] = slice(start, start + size)
+        start += size
+    return slices
+
+
 def BuildStacked(diagram: Diagram, *, leaf: LeafSystem, leaf_name: str, inputs: Ports,
-                 outputs: Ports, leaf_outputs: Sequence[str] = ()) -> None:
+                 outputs: Ports, leaf_inputs: Sequence[str] = (),
+                 leaf_outputs: Sequence[str] = ()) -> None:
     """Build into ``diagram``: ``leaf`` (its first input port takes ``inputs`` stacked in
     order, its first output port gives ``outputs`` stacked in order) between an
     "inputs" Multiplexer and an "outputs" Demultiplexer whose ports are exported by
-    name; then the leaf's own output ports named in ``leaf_outputs``, as they are."""
+    name; then the leaf's own ports named in ``leaf_inputs`` and ``leaf_outputs``, as
+    they are (an input that must not feed the stacked outputs through, an output of
+    state)."""
     builder = DiagramBuilder()
     builder.AddNamedSystem(leaf_name, leaf)
     stack = builder.AddNamedSystem("inputs", Multiplexer([size for _, size in inputs]))
     for i, (name, _) in enumerate(inputs):
         builder.ExportInput(stack.get_input_port(i), name)
     builder.Connect(stack.get_output_port(), leaf.get_input_port(0))
+    for name in leaf_inputs:
+        builder.ExportInput(leaf.GetInputPort(name), name)
     split = builder.AddNamedSystem("outputs", Demultiplexer([size for _, size in outputs]))
     builder.Connect(leaf.get_output_port(0), split.get_input_port())
     for i, (name, _) in enumerate(outputs):
