@@ -222,7 +222,6 @@ def run_benchmarks(duration_s: Optional[float] = None, progress: bool = True,
             "realtime_factor": sim_s / wall_s,
             "wall_us_per_1ms_tick": tick_us,
             "physics_floor": floor,
-            "overhead_us_per_tick": tick_us - floor["total_us"],
             "tick_over_floor": tick_us / floor_us(floor),
         }
     scenario = load_scenario(str(LEVITATE_FILE), "takeoff_hover_land")

@@ -35,8 +35,11 @@ def leaf_system_costs(built, context, n: int = 300, only=None) -> Dict[str, floa
     """
     costs = {}
     for system in leaf_systems(built.diagram):
-        if (isinstance(system, (VectorLogSink, MultibodyPlant))
-                or (only is not None and system.get_name() not in only)):
+        # Named by path below the root ("levitation_controller::law"): several stacked
+        # systems have a leaf named "law".
+        name = system.GetSystemPathname().split("::", 2)[-1]
+        if isinstance(system, (VectorLogSink, MultibodyPlant)) or (
+                only is not None and name not in only):
             continue
         sub = system.GetMyContextFromRoot(context)
         own = system.CreateDefaultContext()
@@ -61,9 +64,7 @@ def leaf_system_costs(built, context, n: int = 300, only=None) -> Dict[str, floa
                 if periodic:
                     system.EvalUniquePeriodicDiscreteUpdate(own)
             # Re-fixing the inputs is the harness's cost, not the system's.
-            # Named by path below the root ("levitation_controller::law"): several
-            # stacked systems have a leaf named "law".
-            costs[system.GetSystemPathname().split("::", 2)[-1]] = max(
+            costs[name] = max(
                 0.0, time_per_call_us(one_update, n, WINDOWS)
                 - time_per_call_us(fix_inputs, n, WINDOWS))
     return costs

@@ -253,8 +253,9 @@ def advance_paced(simulator, duration_s: float, tick_s: float, ticks: PacedTicks
     asked every PROGRESS_CHUNK_S, ends the run early when it returns True. Between
     ticks, where they fit (``BetweenTicks``): the progress bar and ``on_progress(context)``
     every PROGRESS_CHUNK_S, and each of ``frame_publishers`` published every
-    ``frame_period_s`` (s), and ``show_rate(rate)`` told the real-time rate (Meshcat's
-    panel: its visualizers, published from here, do not compute it). The wait for a
+    ``frame_period_s`` (s), and ``show_rate(rate)`` told the real-time rate over each
+    progress interval (Meshcat's panel, which stayed empty in Chromium with only the
+    visualizers, published from here, to fill it). The wait for a
     slot spins for its last ``spin_s`` (s) and sleeps before that. Returns the gaps'
     jobs, with what they cost and how late they ran."""
     context = simulator.get_context()

@@ -99,7 +99,7 @@ class StereoParts:
 
 
 def AddStereoDisplay(builder: DiagramBuilder, *, scenario, station, query_object_port,
-                     meshcat=None, frame_period_s: float = 1 / 30, frame_sink=None,
+                     frame_period_s: float, meshcat=None, frame_sink=None,
                      realtime: bool = False, surface=None) -> StereoParts:
     """Predictor, views and (given a ``frame_sink(t, left, right)`` and images on)
     the renderer of the virtual world behind ``query_object_port`` (its SceneGraph

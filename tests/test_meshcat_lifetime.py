@@ -1,13 +1,12 @@
 """A Meshcat ends on the thread that made it, whoever runs Python's collector."""
 
 import gc
+import re
 import subprocess
 import sys
 import threading
 import weakref
 from pathlib import Path
-
-import re
 
 import pytest
 from pydrake.geometry import MeshcatParams
