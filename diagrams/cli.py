@@ -457,18 +457,20 @@ Studies:
                  force and torque each way within the peak and thermal current limits"""
 
 BENCH_PARTS = """\
-What it runs, and how long each part takes on a 2-core machine:
-  scenarios      the ten shipped scenarios, each its whole script (about 4 min in all);
-                 --duration S: S simulated seconds each (about 10 s + 1.5 S a scenario)
-  systems        each leaf system's update at hover, best of five (about 15 s)
-  allocation     the wrench matrix and the current allocation (about 5 s)
-  stereo         view matrices and a rendered frame pair (about 10 s)
-  analysis       the multirate, linearize and zwidth studies of peg_in_hole (about 3 min)
-  lattice        the deformable lattice's step against its size (about 45 s)
+What it runs, and how long each part took on a quiet 2-core machine (a busy one
+takes several times as long):
+  scenarios      the ten shipped scenarios, each its whole script (about 35 s in all);
+                 --duration S: S simulated seconds each
+  systems        each leaf system's update at hover, best of five, and the physics
+                 floors (about 3 s)
+  allocation     the wrench matrix and the current allocation (about 2 s)
+  stereo         view matrices and a rendered frame pair (about 5 s)
+  analysis       the multirate, linearize and zwidth studies of peg_in_hole (about 25 s)
+  lattice        the deformable lattice's step against its size (about 5 s)
   paced          --paced S: four scenarios paced at 1x, S seconds each (4 S in all)
 --runs N: the scenarios N times each (N times as long).
 --quick: one simulated second a scenario, no offline analysis, the lattice's two
-smallest sizes (about 2 min in all)."""
+smallest sizes (about 30 s in all; the whole bench about 75 s)."""
 
 
 class _Parser(argparse.ArgumentParser):
@@ -607,7 +609,7 @@ def _add_bench_parser(commands) -> None:
     length.add_argument("--duration", type=_positive_seconds,
                         help="simulated seconds per scenario (default: each whole script)")
     length.add_argument("--quick", action="store_true",
-                        help="a first look in about 2 minutes (see above)")
+                        help="a first look in about 30 s (see above)")
     bench.add_argument("--runs", type=_positive_count, default=1,
                        help="run each scenario this many times; the median is reported "
                        "(default 1; the README's table: 3)")

@@ -38,3 +38,18 @@ def test_paced_runs_report_every_tick_of_each_scenario(monkeypatch):
     assert 0 <= report["deadline_misses"] <= 200
     assert report["tick_compute_us_p50"] <= report["tick_compute_us_p99"] \
         <= report["tick_compute_us_max"]
+
+
+@pytest.mark.slow  # the quick bench itself: about 30 s on a quiet 2-core machine
+def test_bench_quick_runs_a_second_a_scenario_no_analysis_and_two_lattice_sizes(tmp_path):
+    import json
+
+    from maglev_haptics.analysis.bench import QUICK_DURATION_S, QUICK_LATTICE_SIZES
+    from maglev_haptics.diagrams.cli import main
+    assert main(["bench", "--quick", "--json", "--out", str(tmp_path)]) == 0
+    results = json.loads((tmp_path / "bench.json").read_text())
+    assert {name: row["simulated_s"] for name, row in results["scenarios"].items()} == {
+        name: QUICK_DURATION_S for name in results["scenarios"]}
+    assert results["analysis"] == {}
+    assert len(results["lattice"]["sizes"]) == QUICK_LATTICE_SIZES
+    assert "Offline analysis (wall s): not run (--quick)" in results["report"]
