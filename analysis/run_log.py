@@ -5,7 +5,9 @@ A run with an output folder moves its logger's samples to disk every
 ``log_chunks/``, written under a temporary name and renamed, so a kill (even
 SIGKILL) leaves only whole chunks, and the logger never holds more than a chunk
 (an interactive run of an hour stays as small as one of a minute). The loop only
-copies the samples out (0.15-0.4 ms each half second); a thread writes them, since
+copies the samples out, between ticks and often (a paced run every 50 ms: each copy
+short, and about as long as the last, so the gap it is given holds it); a thread
+joins and writes them, since
 writing a chunk takes a tick's whole slot or more (1.4-1.9 ms for half a second of
 levitate's log on the test VM). The finished run writes ``log.npz`` and removes
 the chunks. ``load_run_log(out_dir)`` reads either: ``log.npz``, or what the
@@ -54,6 +56,7 @@ class RunLogWriter:
         _write_atomically(self._folder / LAYOUT_FILE,
                           lambda file: file.write(json.dumps(layout).encode()))
         self._chunks = 0
+        self._pieces = []  # (sample times, data) moved out of the logger since the last chunk
         self._last_wall_s = time.perf_counter()
         self._pending = queue.Queue()
         self._failure = None
@@ -62,19 +65,21 @@ class RunLogWriter:
         self._writer.start()
 
     def drain(self, context, force: bool = False) -> None:
-        """Write what the logger holds as the next chunk, once ``CHUNK_WALL_S`` has
-        passed since the last (or now, with ``force``), and empty the logger."""
+        """Move what the logger holds out of it, and hand what was moved since the last
+        chunk to the writer as the next chunk once ``CHUNK_WALL_S`` has passed (or now,
+        with ``force``). Every call costs the loop's thread about the same: only copies
+        of what was logged since the last call (the writer thread joins them)."""
+        log = self._logger.FindMutableLog(context)
+        if log.num_samples() > 0:
+            # Copies: the logger's arrays are views that its next samples overwrite.
+            self._pieces.append((log.sample_times().copy(), log.data().copy()))
+            log.Clear()
         now = time.perf_counter()
-        if not force and now - self._last_wall_s < CHUNK_WALL_S:
+        if not self._pieces or (not force and now - self._last_wall_s < CHUNK_WALL_S):
             return
         self._last_wall_s = now
-        log = self._logger.FindMutableLog(context)
-        if log.num_samples() == 0:
-            return
-        # Row 0 the sample times (s), then the logger's rows.
-        chunk = np.vstack((log.sample_times(), log.data()))
-        log.Clear()
-        self._pending.put((self._folder / f"chunk_{self._chunks:06d}.npy", chunk))
+        self._pending.put((self._folder / f"chunk_{self._chunks:06d}.npy", self._pieces))
+        self._pieces = []
         self._chunks += 1
 
     def finish(self, context) -> Dict[str, np.ndarray]:
@@ -93,7 +98,9 @@ class RunLogWriter:
 
     def _write_chunks(self) -> None:
         while (item := self._pending.get()) is not None:
-            path, chunk = item
+            path, pieces = item
+            # Row 0 the sample times (s), then the logger's rows.
+            chunk = np.hstack([np.vstack((times, data)) for times, data in pieces])
             try:
                 _write_atomically(path, lambda file: _write_npy(file, chunk))
             except OSError as error:  # reported by finish(); the run goes on

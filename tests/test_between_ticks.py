@@ -95,6 +95,17 @@ def test_paced_loop_publishes_frames_between_ticks_and_not_one_that_cannot_fit()
     assert {job.name for job in gaps.jobs} == {"progress", "cheap", "too slow"}
 
 
+def test_on_progress_is_called_often_and_last_after_the_clock():
+    calls = []
+    ticks = PacedTicks(300, slot_s=TICK_S)
+    simulator = FakeSimulator()
+    advance_paced(simulator, 0.3, TICK_S, ticks, Bar(),
+                  on_progress=lambda context: calls.append(context.get_time()))
+    # Measured before the clock, every 50 ms in it where due, and once at the end.
+    assert 4 <= len(calls) - (1 + MEASURED_RUNS) - 1 <= 6
+    assert calls[-1] == pytest.approx(0.3)
+
+
 def test_a_job_whose_first_run_was_slow_is_not_barred_by_it():
     calls = []
 
