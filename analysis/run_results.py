@@ -10,7 +10,7 @@ from typing import Dict, Optional
 import numpy as np
 from maglev_haptics.analysis.haptic_metrics import haptic_summary
 from maglev_haptics.analysis.run_log import RunLogWriter
-from maglev_haptics.analysis.run_metrics import log_arrays, summarize
+from maglev_haptics.analysis.run_metrics import for_people, log_arrays, summarize
 from maglev_haptics.analysis.run_plots import plot_haptics, plot_run, plot_tick_times
 from maglev_haptics.analysis.stereo_metrics import plot_colocation, stereo_summary
 from maglev_haptics.analysis.stereo_video import StereoVideoWriter
@@ -112,6 +112,7 @@ def run_scenario(scenario: Scenario, *, label: str, out_dir: Optional[Path] = No
         summary["coupling_limits"] = {"max_force_n": config.max_force_n,
                                       "max_torque_nm": config.max_torque_nm,
                                       "device_limit": config.device_limit}
+    summary = for_people(summary)  # 6.6 s, not 6.6000000000000005
     if out_dir is not None:
         out_dir = Path(out_dir)
         out_dir.mkdir(parents=True, exist_ok=True)
