@@ -39,12 +39,11 @@ and a compliant half-space, so under the balls the table is a rigid half-space
 (the ball is the soft side); a rigid tool pushed onto that table would meet it
 in point contact (the "fallback"), which the scripts never do.
 
-Measured cost of one scene plant step on a 2-core machine (the
-plant alone, best of several runs): ~15 us free; the peg pressed on the hole's
-floor ~80 us (16 contact polygons; the compliant box floor this table replaced
-made 43 and cost ~230 us), sliding on it ~105 us (11), on the floor and against a
-wall ~230 us (the wall's mesh against the peg's makes ~19 polygons, the table
-~10); the ball on the table ~65 us, on the paddle ~170 us.
+A scene plant step's cost follows its contact polygons (``maglev bench`` measures
+the peg pushed onto the hole's floor): the peg pressed on the floor makes ~16 (the
+compliant box floor this table replaced made 43, about three times the cost), on
+the floor and against a wall ~19 from the wall's mesh against the peg's and ~10
+from the table, the costliest case; free, a step costs a fraction of that.
 
 That cost need not be the tick's: with ``stepping="worker"`` (the scenario's
 default) a worker process steps the plant on the other core while the rest of

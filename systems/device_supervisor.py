@@ -78,8 +78,8 @@ def cut_coil_power(*, coils_stuck: bool, carrying: bool, force_shortfall_n: floa
 @dataclass(frozen=True, eq=False)
 class Motion:
     """A setpoint and force-ramp profile sampled at the control ticks (a row a tick:
-    the loop looks its command up rather than evaluating trajectories, ~1 us against
-    ~13 us a tick); before ``first_tick`` its first row holds, after its last its last.
+    the loop looks its command up rather than evaluating trajectories, a tenth of the
+    cost); before ``first_tick`` its first row holds, after its last its last.
     Compared by identity (it is state)."""
     # (n, 13): [pose [x y z roll pitch yaw] of I in W (m, rad); its rates (m/s,
     # rad/s); the controller's force gain 0..1] at ticks first_tick .. first_tick+n-1.
@@ -267,8 +267,8 @@ class DeviceSupervisor(LeafSystem):
     watchdog checks, the controller has been thermally limited (s: the fault once it
     reaches THERMAL_LIMIT_PERSIST_S). The watchdogs check every
     ``watchdog_period_s`` (s, to the nearest whole tick): reading the
-    measurements and checking them costs ~20-70 us, a large part of the loop's
-    headroom were it every tick, and no fault needs a faster answer (the amplifiers
+    measurements and checking them costs several times a plain tick's work (``maglev
+    bench``), and no fault needs a faster answer (the amplifiers
     clamp the current themselves, the coils heat over a minute, the controller lands
     a lost instrument on its own).
     ``plan_landing(pose, enable, period_s) -> commands`` (a Motion's, from the

@@ -17,8 +17,7 @@ Randomness: the noise and dropout of sample k = round(t_k * rate_hz) are a
 pure function of (seed, k), so a run, a re-run and a cloned Context all see the
 same measurements.
 
-Cost: one numba-compiled call a sample; an update takes ~5 us (~11 us in the
-running loop).
+Cost: one numba-compiled call a sample (``maglev bench`` lists what an update costs).
 """
 
 import math

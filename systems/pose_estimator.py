@@ -27,8 +27,8 @@ triangle of radius 35 mm, 60 mm above I; ``bandwidth_hz`` = 50):
   these numbers for other settings. The tracker's latency and the sampling are
   extra.
 
-Cost: the fit, the filter and the state update are one numba-compiled call;
-an update takes ~10 us (~17 us in the running loop), ~3 us of it the SVD.
+Cost: the fit, the filter and the state update are one numba-compiled call
+(``maglev bench`` lists what an update costs).
 """
 
 import math
@@ -66,7 +66,7 @@ class PoseEstimatorConfig:
     bandwidth_hz: float = 50.0  # velocity filter's natural frequency (damping 0.707) [Hz]
     max_residual_sigma: float = 20.0  # reject fits whose RMS marker residual exceeds this x noise_m
     # The PC's time from a tracker sample's arrival to its estimate (s): the fit and
-    # filter's compute time (~17 us an update in the running loop, ``maglev bench``).
+    # filter's compute time (tens of microseconds an update; ``maglev bench``).
     # Each update reads the sensor's latched sample this long after it was
     # published; 0 would read the one before it (a hand-off of one tracker period).
     processing_delay_s: float = 20e-6

@@ -8,8 +8,8 @@ contact the force at the contact point (``contact_force`` is on body B, its
 negative on body A) with no couple. The sensor moves each to the tool body's
 origin To and sums: tau_To = tau + (p_WC - p_WTo) x f.
 
-Cost: ~20 us an evaluation in contact, mostly the pybind calls that read the
-contact results; the sum is compiled by numba.
+Cost: in contact mostly the pybind calls that read the contact results; the sum
+is compiled by numba.
 """
 
 import numpy as np
