@@ -249,8 +249,9 @@ def AddScene(builder: DiagramBuilder, *, scene: SceneConfig, time_step_s: float,
     point below the anchor; the paddle's ball at ``ball_start_m``; all at rest.
     A ValueError names a bad config field, or X_WI_start if it would start the
     tool or the ball inside the scene. ``use_sampled_output_ports=False`` (for
-    linearization: Drake otherwise linearizes a sampled output to the identity) makes the plant's outputs, the contact
-    wrench among them, functions of the current state instead of the last step's.
+    linearization: Drake otherwise linearizes a sampled output to the identity) makes
+    the plant's outputs, the contact wrench among them, functions of the current
+    state instead of the last step's.
     ``contact_sample_period_s`` (s), when given, samples the contact wrench and
     the contact flag at that period instead of every step.
 
