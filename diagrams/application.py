@@ -1,12 +1,13 @@
 """The application half (docs/architecture.md) wired to a station: the whole diagram.
 
-``BuildDiagram(scenario)`` adds the station, the pose estimator, the coils' thermal
-model, the device supervisor (which flies the motion script and lands on a
-fault), the levitation controller (which allocates the currents),
-with haptics the scene, coupling and supervisor (``diagrams/haptics.py``),
-with a hand its commands, with the stereo display its predictor, views and
-renderer (``diagrams/stereo_display.py``), a logger at ``log_rate_hz`` and, when
-given a Meshcat, the visualizers.
+``BuildDiagram(scenario)`` is a recipe: ``MakeStation``; ``AddApplication`` (the pose
+estimator, the coils' thermal model, the device supervisor, which flies the motion
+script and lands on a fault, and the levitation controller, which allocates the
+currents); ``AddLevitationCommands`` or, with haptics, ``AddHaptics`` (the scene,
+coupling and supervisor, ``diagrams/haptics.py``); with a hand ``AddHandCommands``;
+with the stereo display ``AddStereo`` (``diagrams/stereo_display.py``);
+``AddLogging`` (a logger at ``log_rate_hz``); and, given a Meshcat,
+``AddVisualization``.
 """
 
 from __future__ import annotations
@@ -77,33 +78,26 @@ class BuiltDiagram:
     meshcat: Optional[Meshcat] = None  # the one given, if any
 
 
-def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
-                 label: str = "scenario", frame_sink=None, realtime: bool = False,
-                 hand_target_offset_input: bool = False,
-                 device_api: bool = False) -> BuiltDiagram:
-    """The whole diagram for ``scenario``; ``label`` names it in error messages.
+@dataclass
+class ApplicationParts:
+    """The application's systems on the device's loop, and the scripted command."""
+    estimator: PoseEstimator
+    temperatures: CoilTemperatures
+    supervisor: DeviceSupervisor
+    controller: LevitationController
+    scripted_setpoint: object  # the device supervisor's setpoint output port
+    scripted_enable: object  # and its force-ramp output port
 
-    With the stereo display, ``frame_sink(t, left, right)`` receives the rendered
-    eye images (none rendered without it). ``realtime`` (a paced run) lets rendering skip
-    frames, and leaves the Meshcat frames to the runner, between ticks
-    (``frame_publishers``): a frame may be late, a tick may not.
-    ``hand_target_offset_input``: export ``hand_target_offset`` (analysis only; the
-    caller must fix it). ``device_api``: the ``device_supervisor`` starts resting on
-    the glass, coils off, for the device API to command (instead of flying the
-    motion script), and the feed-forward wrench (``haptic_feedforward``) is a
-    constant source that the API sets.
-    """
+
+def AddApplication(builder: DiagramBuilder, *, scenario: Scenario, station, magnetics,
+                   plan: FlightPlan, device_api: bool, label: str) -> ApplicationParts:
+    """The pose estimator, the coils' thermal model, the device supervisor (which flies
+    ``plan``, or with ``device_api`` rests on the glass, coils off, until the API
+    commands) and the levitation controller, wired to ``station`` and each other."""
     device = scenario.device
     spec = device.instrument_spec()
-    magnetics = load_magnetics(device)
-    check_waypoints_reachable(scenario.motion, device, magnetics, label)
-    builder = DiagramBuilder()
-    simulated = not isinstance(scenario.station, LcmStation)
-    station = builder.AddSystem(MakeStation(scenario, magnetics=magnetics))
-
     estimator = builder.AddNamedSystem("pose_estimator", PoseEstimator(
         instrument=spec, tracker=device.tracker, config=scenario.estimator))
-    plan = flight_plan(scenario.motion, spec.rest_height_m)
     tick_s = 1.0 / scenario.control_rate_hz
     if device_api:  # resting on the glass, coils off, until the API commands
         if scenario.haptics is not None:
@@ -127,58 +121,73 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
     builder.Connect(station.GetOutputPort("coil_currents"),
                     supervisor.GetInputPort("coil_currents"))
     builder.Connect(temperatures.get_output_port(), supervisor.GetInputPort("coil_temperature_c"))
-    setpoint = supervisor.GetOutputPort("setpoint")
-    enable = supervisor.GetOutputPort("enable")
     controller = builder.AddNamedSystem("levitation_controller", LevitationController(
         config=scenario.controller, mass_kg=spec.mass_kg,
         inertia_diag=np.diag(spec.inertia_about_I()),
         magnetics=magnetics, p_WA=device.p_WA,
         current_limit_a=device.amplifier.current_limit_a, thermal=coil_thermal(device)))
     builder.Connect(temperatures.get_output_port(), controller.GetInputPort("coil_temperature_c"))
-    builder.Connect(controller.GetOutputPort("thermally_limited"),
-                    supervisor.GetInputPort("thermally_limited"))
-    builder.Connect(controller.GetOutputPort("coil_currents_commanded"),
-                    supervisor.GetInputPort("coil_currents_commanded"))
-    builder.Connect(controller.GetOutputPort("allocation_shortfall_W"),
-                    supervisor.GetInputPort("allocation_shortfall_W"))
+    for name in ("thermally_limited", "coil_currents_commanded", "allocation_shortfall_W"):
+        builder.Connect(controller.GetOutputPort(name), supervisor.GetInputPort(name))
     builder.Connect(supervisor.GetOutputPort("coils_stuck"), controller.GetInputPort("coils_stuck"))
     builder.Connect(supervisor.GetOutputPort("coil_power"), station.GetInputPort("coil_power"))
-    builder.Connect(station.GetOutputPort("coil_currents"), controller.GetInputPort("coil_currents"))
-
+    builder.Connect(station.GetOutputPort("coil_currents"),
+                    controller.GetInputPort("coil_currents"))
     builder.Connect(station.GetOutputPort("markers_measured"),
                     estimator.GetInputPort("markers_measured"))
     for name in ("X_WI_measured", "V_WI_measured", "tracking_ok"):
         builder.Connect(estimator.GetOutputPort(name), controller.GetInputPort(name))
     builder.Connect(supervisor.GetOutputPort("tracking_lost_s"),
                     controller.GetInputPort("tracking_lost_s"))
-    haptics = None
-    if scenario.haptics is None:
-        builder.Connect(setpoint, controller.GetInputPort("setpoint"))
-        builder.Connect(enable, controller.GetInputPort("enable"))
-        pd_gain = builder.AddNamedSystem("pd_gain", ConstantVectorSource([1.0]))
-        builder.Connect(pd_gain.get_output_port(), controller.GetInputPort("pd_gain"))
-        brake_gain = builder.AddNamedSystem("brake_gain", ConstantVectorSource([0.0]))
-        builder.Connect(brake_gain.get_output_port(), controller.GetInputPort("brake_gain"))
-        feedforward = builder.AddNamedSystem("haptic_feedforward",
-                                             ConstantVectorSource(np.zeros(6)))
-        builder.Connect(feedforward.get_output_port(),
-                        controller.GetInputPort("wrench_feedforward_W"))
-    else:
-        haptics = AddHaptics(builder, scenario=scenario, magnetics=magnetics, station=station,
-                             estimator=estimator, controller=controller,
-                             scripted_setpoint=setpoint, scripted_enable=enable,
-                             fault_bits=supervisor.GetOutputPort("fault_bits"))
-    # The setpoint the controller tracks: the device supervisor's, or with haptics the haptic one's.
-    controller_setpoint = (setpoint if haptics is None
-                           else haptics.supervisor.GetOutputPort("setpoint"))
-    meshcat_hand = None
-    if scenario.hand is not None and simulated:  # else the device's process moves the hand
-        meshcat_hand = AddHandCommands(builder, scenario=scenario, station=station,
-                                       meshcat=meshcat,
-                                       target_offset_input=hand_target_offset_input)
-    builder.Connect(controller.GetOutputPort("coil_currents_commanded"),
-                    station.GetInputPort("coil_currents_commanded"))
+    return ApplicationParts(
+        estimator=estimator, temperatures=temperatures, supervisor=supervisor,
+        controller=controller, scripted_setpoint=supervisor.GetOutputPort("setpoint"),
+        scripted_enable=supervisor.GetOutputPort("enable"))
 
+
+def AddLevitationCommands(builder: DiagramBuilder, *, app: ApplicationParts) -> None:
+    """Without haptics the controller flies the script at full PD, no brake, and a
+    feed-forward wrench (``haptic_feedforward``) that stays zero unless the device API
+    sets it."""
+    controller = app.controller
+    builder.Connect(app.scripted_setpoint, controller.GetInputPort("setpoint"))
+    builder.Connect(app.scripted_enable, controller.GetInputPort("enable"))
+    for name, port, value in (("pd_gain", "pd_gain", [1.0]),
+                              ("brake_gain", "brake_gain", [0.0]),
+                              ("haptic_feedforward", "wrench_feedforward_W", np.zeros(6))):
+        source = builder.AddNamedSystem(name, ConstantVectorSource(value))
+        builder.Connect(source.get_output_port(), controller.GetInputPort(port))
+
+
+def AddStereo(builder: DiagramBuilder, *, scenario: Scenario, station, haptics,
+              meshcat: Optional[Meshcat], frame_period_s: float, frame_sink,
+              realtime: bool):
+    """The stereo display (``diagrams/stereo_display.py``) of the virtual world: the
+    scene's, with the lattice's surface over it, or without a scene the instrument
+    where it is tracked (it should sit exactly on the real one)."""
+    surface = None
+    if haptics is not None:
+        AddStereoRenderer(haptics.scene.scene_graph)
+        virtual_world = haptics.scene.scene_graph.get_query_output_port()
+        if haptics.scene.surface is not None:
+            lattice = haptics.scene.lattice
+            surface = (SurfaceLayer(
+                surface_faces(lattice.surface, lattice.surface_triangles).T,
+                (JELLY_RGBA.r(), JELLY_RGBA.g(), JELLY_RGBA.b(), JELLY_RGBA.a())),
+                haptics.scene.surface.GetOutputPort("surface_positions_m"))
+    else:
+        virtual_world = station.GetOutputPort("query_object")
+    return AddStereoDisplay(builder, scenario=scenario, station=station,
+                            query_object_port=virtual_world, meshcat=meshcat,
+                            frame_period_s=frame_period_s, frame_sink=frame_sink,
+                            realtime=realtime, surface=surface)
+
+
+def AddLogging(builder: DiagramBuilder, *, scenario: Scenario, station, app: ApplicationParts,
+               setpoint, haptics, stereo, simulated: bool):
+    """(logger, layout): one logger of every logged signal stacked, sampled at
+    ``log_rate_hz``; ``layout`` maps each name to its rows."""
+    estimator, controller, supervisor = app.estimator, app.controller, app.supervisor
     # What only a simulation knows (the true state, the hand's) is logged only there.
     logged_ports = {"instrument_state": station.GetOutputPort("instrument_state")} \
         if simulated else {}
@@ -186,12 +195,12 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
         "X_WI_measured": estimator.GetOutputPort("X_WI_measured"),
         "V_WI_measured": estimator.GetOutputPort("V_WI_measured"),
         "tracking_ok": estimator.GetOutputPort("tracking_ok"),
-        "setpoint": controller_setpoint,
+        "setpoint": setpoint,
         "coil_currents": station.GetOutputPort("coil_currents"),
         "wrench_commanded_W": controller.GetOutputPort("wrench_commanded_W"),
         "wrench_rendered_W": controller.GetOutputPort("wrench_rendered_W"),
         "allocation_shortfall_W": controller.GetOutputPort("allocation_shortfall_W"),
-        "coil_temperature_c": temperatures.get_output_port(),
+        "coil_temperature_c": app.temperatures.get_output_port(),
         "fault_bits": supervisor.GetOutputPort("fault_bits"),
         "coil_power": supervisor.GetOutputPort("coil_power"),
     }
@@ -201,30 +210,7 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
         logged_ports["hand_state"] = station.GetOutputPort("hand_state")
         logged_ports["hand_wrench_on_instrument_W"] = station.GetOutputPort(
             "hand_wrench_on_instrument_W")
-    frame_period_s = FRAMES_BETWEEN_TICKS_PERIOD_S if realtime else MESHCAT_PERIOD_S
-    frame_publishers = []
-    stereo = None
-    if scenario.stereo is not None:
-        surface = None
-        if haptics is not None:
-            AddStereoRenderer(haptics.scene.scene_graph)
-            virtual_world = haptics.scene.scene_graph.get_query_output_port()
-            if haptics.scene.surface is not None:
-                lattice = haptics.scene.lattice
-                surface = (SurfaceLayer(
-                    surface_faces(lattice.surface, lattice.surface_triangles).T,
-                    (JELLY_RGBA.r(), JELLY_RGBA.g(), JELLY_RGBA.b(), JELLY_RGBA.a())),
-                    haptics.scene.surface.GetOutputPort("surface_positions_m"))
-        else:
-            # No virtual scene: the display draws the instrument where it is tracked,
-            # which should sit exactly on the real one.
-            virtual_world = station.GetOutputPort("query_object")
-        stereo = AddStereoDisplay(builder, scenario=scenario, station=station,
-                                  query_object_port=virtual_world, meshcat=meshcat,
-                                  frame_period_s=frame_period_s, frame_sink=frame_sink,
-                                  realtime=realtime, surface=surface)
-        if stereo.visualizer is not None:
-            frame_publishers.append(stereo.visualizer)
+    if stereo is not None:
         if simulated:  # the true head
             logged_ports["head_pose"] = station.GetOutputPort("head_pose")
         logged_ports["glasses_measured"] = station.GetOutputPort("glasses_measured")
@@ -254,53 +240,122 @@ def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
     logger = LogVectorOutput(sample.get_output_port(), builder, log_period_s)
     logger.set_name("logger")
     ends = np.cumsum(sizes)
-    log_layout = {name: slice(end - size, end)
-                  for name, size, end in zip(logged_ports, sizes, ends)}
+    return logger, {name: slice(end - size, end)
+                    for name, size, end in zip(logged_ports, sizes, ends)}
 
+
+def AddVisualization(builder: DiagramBuilder, *, scenario: Scenario, meshcat: Meshcat, station,
+                     app: ApplicationParts, setpoint, haptics, simulated: bool,
+                     frame_period_s: float) -> List[object]:
+    """Meshcat's layers: the true instrument and the glass (a simulated station's), the
+    device's overlay (coils, measured markers and pose, setpoint, rendered wrench), the
+    scene, its contact forces and the lattice's surface. Returns the visualizers, each
+    publishing every ``frame_period_s`` (s)."""
+    frame_publishers = []
+    if simulated:  # the true instrument and the glass; the measured one is drawn below
+        frame_publishers.append(MeshcatVisualizer.AddToBuilder(
+            builder, station.GetOutputPort("query_object"), meshcat,
+            MeshcatVisualizerParams(publish_period=frame_period_s, role=Role.kIllustration)))
+    visualizer = builder.AddNamedSystem("device_visualizer", DeviceVisualizer(
+        meshcat=meshcat, device=scenario.device, period_s=frame_period_s,
+        close_view=scenario.haptics is not None))
+    frame_publishers.append(visualizer)
+    builder.Connect(station.GetOutputPort("coil_currents"),
+                    visualizer.GetInputPort("coil_currents"))
+    builder.Connect(setpoint, visualizer.GetInputPort("setpoint"))
+    builder.Connect(app.estimator.GetOutputPort("X_WI_measured"),
+                    visualizer.GetInputPort("X_WI_measured"))
+    builder.Connect(station.GetOutputPort("markers_measured"),
+                    visualizer.GetInputPort("markers_measured"))
+    builder.Connect(app.controller.GetOutputPort("wrench_rendered_W"),
+                    visualizer.GetInputPort("wrench_rendered_W"))
+    if haptics is None:
+        return frame_publishers
+    frame_publishers.append(MeshcatVisualizer.AddToBuilder(
+        builder, haptics.scene.scene_graph.get_query_output_port(), meshcat,
+        MeshcatVisualizerParams(publish_period=frame_period_s, role=Role.kIllustration,
+                                prefix="scene")))
+    scene = haptics.scene
+    # A scene stepped by a worker process has its contact results there: no
+    # contact forces drawn (the device's overlay draws the rendered wrench).
+    if scene.surface is None and scene.worker is None:
+        frame_publishers.append(ContactVisualizer.AddToBuilder(
+            builder, scene.plant, meshcat,
+            ContactVisualizerParams(publish_period=frame_period_s, prefix="contact",
+                                    newtons_per_meter=10.0, newton_meters_per_meter=1.0)))
+    elif scene.surface is not None:
+        # The lattice is no geometry of the scene plant: it draws itself.
+        config = scenario.haptics.scene
+        surface_visualizer = builder.AddNamedSystem("lattice_visualizer", LatticeVisualizer(
+            meshcat=meshcat, lattice=scene.lattice, p_TP_m=config.tool_offset_m,
+            probe_radius_m=config.probe.radius_m, period_s=frame_period_s))
+        frame_publishers.append(surface_visualizer)
+        for name in ("surface_positions_m", "wrench_on_tool_W"):
+            builder.Connect(scene.surface.GetOutputPort(name),
+                            surface_visualizer.GetInputPort(name))
+        builder.Connect(scene.X_WT_output, surface_visualizer.GetInputPort("X_WT"))
+    return frame_publishers
+
+
+def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
+                 label: str = "scenario", frame_sink=None, realtime: bool = False,
+                 hand_target_offset_input: bool = False,
+                 device_api: bool = False) -> BuiltDiagram:
+    """The whole diagram for ``scenario``; ``label`` names it in error messages.
+
+    With the stereo display, ``frame_sink(t, left, right)`` receives the rendered
+    eye images (none rendered without it). ``realtime`` (a paced run) lets rendering skip
+    frames, and leaves the Meshcat frames to the runner, between ticks
+    (``frame_publishers``): a frame may be late, a tick may not.
+    ``hand_target_offset_input``: export ``hand_target_offset`` (analysis only; the
+    caller must fix it). ``device_api``: the ``device_supervisor`` starts resting on
+    the glass, coils off, for the device API to command (instead of flying the
+    motion script), and the feed-forward wrench (``haptic_feedforward``) is a
+    constant source that the API sets.
+    """
+    device = scenario.device
+    magnetics = load_magnetics(device)
+    check_waypoints_reachable(scenario.motion, device, magnetics, label)
+    plan = flight_plan(scenario.motion, device.instrument_spec().rest_height_m)
+    simulated = not isinstance(scenario.station, LcmStation)
+    builder = DiagramBuilder()
+    station = builder.AddSystem(MakeStation(scenario, magnetics=magnetics))
+    app = AddApplication(builder, scenario=scenario, station=station, magnetics=magnetics,
+                         plan=plan, device_api=device_api, label=label)
+    haptics = None
+    if scenario.haptics is None:
+        AddLevitationCommands(builder, app=app)
+    else:
+        haptics = AddHaptics(builder, scenario=scenario, magnetics=magnetics, station=station,
+                             estimator=app.estimator, controller=app.controller,
+                             scripted_setpoint=app.scripted_setpoint,
+                             scripted_enable=app.scripted_enable,
+                             fault_bits=app.supervisor.GetOutputPort("fault_bits"))
+    # The setpoint the controller tracks: the device supervisor's, or with haptics the haptic one's.
+    setpoint = (app.scripted_setpoint if haptics is None
+                else haptics.supervisor.GetOutputPort("setpoint"))
+    meshcat_hand = None
+    if scenario.hand is not None and simulated:  # else the device's process moves the hand
+        meshcat_hand = AddHandCommands(builder, scenario=scenario, station=station,
+                                       meshcat=meshcat,
+                                       target_offset_input=hand_target_offset_input)
+    builder.Connect(app.controller.GetOutputPort("coil_currents_commanded"),
+                    station.GetInputPort("coil_currents_commanded"))
+    frame_period_s = FRAMES_BETWEEN_TICKS_PERIOD_S if realtime else MESHCAT_PERIOD_S
+    stereo = None
+    if scenario.stereo is not None:
+        stereo = AddStereo(builder, scenario=scenario, station=station, haptics=haptics,
+                           meshcat=meshcat, frame_period_s=frame_period_s,
+                           frame_sink=frame_sink, realtime=realtime)
+    logger, log_layout = AddLogging(builder, scenario=scenario, station=station, app=app,
+                                    setpoint=setpoint, haptics=haptics, stereo=stereo,
+                                    simulated=simulated)
+    frame_publishers = [stereo.visualizer] if stereo is not None and stereo.visualizer else []
     if meshcat is not None:
-        if simulated:  # the true instrument and the glass; the measured one is drawn below
-            frame_publishers.append(MeshcatVisualizer.AddToBuilder(
-                builder, station.GetOutputPort("query_object"), meshcat,
-                MeshcatVisualizerParams(publish_period=frame_period_s,
-                                        role=Role.kIllustration)))
-        visualizer = builder.AddNamedSystem("device_visualizer", DeviceVisualizer(
-            meshcat=meshcat, device=device, period_s=frame_period_s,
-            close_view=scenario.haptics is not None))
-        frame_publishers.append(visualizer)
-        builder.Connect(station.GetOutputPort("coil_currents"),
-                        visualizer.GetInputPort("coil_currents"))
-        builder.Connect(controller_setpoint, visualizer.GetInputPort("setpoint"))
-        builder.Connect(estimator.GetOutputPort("X_WI_measured"),
-                        visualizer.GetInputPort("X_WI_measured"))
-        builder.Connect(station.GetOutputPort("markers_measured"),
-                        visualizer.GetInputPort("markers_measured"))
-        builder.Connect(controller.GetOutputPort("wrench_rendered_W"),
-                        visualizer.GetInputPort("wrench_rendered_W"))
-        if haptics is not None:
-            frame_publishers.append(MeshcatVisualizer.AddToBuilder(
-                builder, haptics.scene.scene_graph.get_query_output_port(), meshcat,
-                MeshcatVisualizerParams(publish_period=frame_period_s,
-                                        role=Role.kIllustration, prefix="scene")))
-            scene = haptics.scene
-            # A scene stepped by a worker process has its contact results there: no
-            # contact forces drawn (the device's overlay draws the rendered wrench).
-            if scene.surface is None and scene.worker is None:
-                frame_publishers.append(ContactVisualizer.AddToBuilder(
-                    builder, scene.plant, meshcat,
-                    ContactVisualizerParams(publish_period=frame_period_s, prefix="contact",
-                                            newtons_per_meter=10.0, newton_meters_per_meter=1.0)))
-            elif scene.surface is not None:
-                # The lattice is no geometry of the scene plant: it draws itself.
-                config = scenario.haptics.scene
-                surface_visualizer = builder.AddNamedSystem(
-                    "lattice_visualizer", LatticeVisualizer(
-                        meshcat=meshcat, lattice=scene.lattice, p_TP_m=config.tool_offset_m,
-                        probe_radius_m=config.probe.radius_m, period_s=frame_period_s))
-                frame_publishers.append(surface_visualizer)
-                for name in ("surface_positions_m", "wrench_on_tool_W"):
-                    builder.Connect(scene.surface.GetOutputPort(name),
-                                    surface_visualizer.GetInputPort(name))
-                builder.Connect(scene.X_WT_output, surface_visualizer.GetInputPort("X_WT"))
+        frame_publishers += AddVisualization(
+            builder, scenario=scenario, meshcat=meshcat, station=station, app=app,
+            setpoint=setpoint, haptics=haptics, simulated=simulated,
+            frame_period_s=frame_period_s)
     diagram = builder.Build()
     diagram.set_name("maglev_haptics")
     return BuiltDiagram(diagram=diagram, plan=plan, logger=logger, log_layout=log_layout,
