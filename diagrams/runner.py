@@ -249,7 +249,7 @@ class PacedTicks:
 
 def advance_paced(simulator, duration_s: float, tick_s: float, ticks: PacedTicks, bar,
                   stop=None, spin_s: float = math.inf, on_progress=None,
-                  frame_publishers=(), frame_period_s: float = 1 / 30,
+                  frame_publishers=(), frame_period_s: float = MESHCAT_PERIOD_S,
                   show_rate=None) -> BetweenTicks:
     """Tick by tick to ``duration_s``, each released at its wall-clock slot; ``stop(context)``,
     asked every PROGRESS_CHUNK_S, ends the run early when it returns True. Between
