@@ -3,7 +3,8 @@
 The device's end of ``diagrams/lcm_station.py``: the same instrument, coils,
 amplifiers, tracker and (scripted) hand as the all-in-one run, publishing the
 markers, the currents that flow and the device's status, and taking its coil
-currents from the application's commands. Run paced to the wall clock, as the
+currents from the application's commands. The hand's script waits for the
+application's first command and then runs on the application's clock. Run paced to the wall clock, as the
 real device is.
 
 Every command is checked before it reaches the coils (``hardware/link_checks.py``):
@@ -36,7 +37,7 @@ from maglev_haptics.hardware.magnetics import load_magnetics
 from maglev_haptics.hardware.thermal import coil_thermal
 from maglev_haptics.systems.coil_thermal import CoilTemperatures
 from maglev_haptics.systems.station_messages import (
-    MessageReceiver, MessageSender, ReceivedChannel, currents_and_power_from_message,
+    US_PER_S, MessageReceiver, MessageSender, ReceivedChannel, currents_and_power_from_message,
     currents_message, glasses_measurement_message, markers_message, status_message)
 
 # The grip sensor, the coils' temperatures (time constant ~1 min) and the 10 Hz head
@@ -80,12 +81,19 @@ class DeviceSim:
 
 
 def MakeCommandReceiver(*, lcm, station, limits: LinkLimits, lease: LeaseServer,
-                        period_s: float, log=None) -> MessageReceiver:
+                        period_s: float, log=None, on_command=None) -> MessageReceiver:
     """The device's receiver of the application's lease requests and commands on ``lcm``
     (``station``: the LcmStation's channels and timeouts): output ``commands``
     [currents (A); power], the lease holder's newest good command, zeros once it is
-    older than ``command_timeout_s``."""
+    older than ``command_timeout_s``. ``on_command(message, now_s)``, if given, hears
+    of every command accepted."""
     n_coils = limits.n_coils
+
+    def accepted(command, now_s: float) -> None:
+        lease.keep_alive(now_s)  # the holder's command: its lease runs on
+        if on_command is not None:
+            on_command(command, now_s)
+
     return MessageReceiver(
         lcm=lcm, on_tick=lease.on_tick, period_s=period_s,
         **({} if log is None else {"log": log}), channels=[
@@ -103,7 +111,7 @@ def MakeCommandReceiver(*, lcm, station, limits: LinkLimits, lease: LeaseServer,
                 stale_value=np.zeros(n_coils + 1), stale_after_s=station.command_timeout_s,
                 check=lambda message: check_command(message, limits),
                 session_of=lambda message: message.session, admit=lease.admit,
-                on_accept=lambda message, t_s: lease.keep_alive(t_s))])
+                on_accept=accepted)])
 
 
 def BuildDeviceSim(scenario) -> DeviceSim:
@@ -121,11 +129,22 @@ def BuildDeviceSim(scenario) -> DeviceSim:
     station = builder.AddSystem(MakeStation(scenario, magnetics=load_magnetics(device),
                                             station=SimStation()))
     publisher = open_lcm(station_config.url)
+    hand_script = None
+    if scenario.hand is not None:
+        hand_script = AddHandCommands(builder, scenario=scenario, station=station, meshcat=None,
+                                      wait_for_start=True)
+
+    def on_command(command, now_s: float) -> None:
+        # A command carries the application's clock when it was sent (us): the hand's
+        # script runs on the application's clock, within the link's latency.
+        if hand_script is not None:
+            hand_script.start(now_s - command.utime / US_PER_S)
+
     lease = LeaseServer(timeout_s=station_config.lease_timeout_s, publish_reply=lambda message:
                         publish(publisher, channel(station_config, LEASE), message))
     commands = builder.AddNamedSystem("commands_receiver", MakeCommandReceiver(
         lcm=open_lcm(station_config.command_url), station=station_config, limits=limits,
-        lease=lease, period_s=period_s))
+        lease=lease, period_s=period_s, on_command=on_command))
     command = builder.AddNamedSystem("command", Demultiplexer([n_coils, 1]))
     builder.Connect(commands.GetOutputPort(COMMANDS_PORT), command.get_input_port())
     builder.Connect(command.get_output_port(0), station.GetInputPort("coil_currents_commanded"))
@@ -155,7 +174,6 @@ def BuildDeviceSim(scenario) -> DeviceSim:
     status = builder.AddNamedSystem("status", Multiplexer([1, n_coils]))
     if scenario.hand is not None:
         builder.Connect(station.GetOutputPort("handle_gripped"), status.get_input_port(0))
-        AddHandCommands(builder, scenario=scenario, station=station, meshcat=None)
     else:
         no_grip = builder.AddNamedSystem("no_grip_sensor", ConstantVectorSource([0.0]))
         builder.Connect(no_grip.get_output_port(), status.get_input_port(0))

@@ -193,8 +193,34 @@ def interactive_variant(scenario: Scenario, duration_s: Optional[float]) -> Scen
         duration_s=duration_s)
 
 
+class WaitingHandScript:
+    """A scripted hand that holds its start target and grip until ``start``: the
+    device's simulated hand picks the instrument up on the application's clock, not
+    on the device's, which ran before the application came (``maglev device-sim``)."""
+
+    def __init__(self, target_source: TrajectorySource, grip_source: TrajectorySource,
+                 target: PiecewisePolynomial, grip: PiecewisePolynomial):
+        self._sources = (target_source, grip_source)
+        self._script = (target, grip)
+        self.started_at_s: Optional[float] = None  # the device's time of the script's 0 (s)
+        for source, trajectory in zip(self._sources, self._script):
+            held = trajectory.value(trajectory.start_time())
+            source.UpdateTrajectory(PiecewisePolynomial.ZeroOrderHold(
+                [0.0, 1.0], np.hstack([held, held])))
+
+    def start(self, script_zero_s: float) -> None:
+        """Run the script from ``script_zero_s`` (s, this diagram's clock) on; only
+        the first call counts."""
+        if self.started_at_s is not None:
+            return
+        self.started_at_s = float(script_zero_s)
+        for source, trajectory in zip(self._sources, self._script):
+            trajectory.shiftRight(self.started_at_s)
+            source.UpdateTrajectory(trajectory)
+
+
 def AddHandCommands(builder, *, scenario: Scenario, station, meshcat: Optional[Meshcat],
-                    target_offset_input: bool = False):
+                    target_offset_input: bool = False, wait_for_start: bool = False):
     """The hand's target and grip: from its script, or from Meshcat's controls.
 
     ``target_offset_input``: a scripted hand's target gets an offset (12: pose and
@@ -202,7 +228,7 @@ def AddHandCommands(builder, *, scenario: Scenario, station, meshcat: Optional[M
     matrix (the user's motion as the loop's input).
 
     Returns the MeshcatHandInput (whose controls the caller deletes after the
-    run), or None for a scripted hand.
+    run); for a scripted hand a WaitingHandScript with ``wait_for_start``, else None.
     """
     hand = scenario.hand
     start = hand_start_pose(scenario)
@@ -228,4 +254,4 @@ def AddHandCommands(builder, *, scenario: Scenario, station, meshcat: Optional[M
         target_port = offset.get_output_port()
     builder.Connect(target_port, station.GetInputPort("hand_target"))
     builder.Connect(grip_source.get_output_port(), station.GetInputPort("hand_grip"))
-    return None
+    return WaitingHandScript(target_source, grip_source, target, grip) if wait_for_start else None

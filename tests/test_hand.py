@@ -19,6 +19,7 @@ from pydrake.systems.primitives import Adder, ConstantVectorSource, MatrixGain, 
 
 from maglev_haptics.diagrams.hand_script import (
     GripEvent, MeshcatHand, ScriptedHand, hand_plan)
+from maglev_haptics.diagrams.haptics import WaitingHandScript
 from maglev_haptics.diagrams.station import generalized_force_placement
 from maglev_haptics.diagrams.waypoints import Waypoint
 from maglev_haptics.hardware.constants import GRAVITY_M_S2
@@ -369,6 +370,36 @@ def test_hand_plan_grip_steps_at_the_events():
         assert grip.value(t)[0, 0] == value, t
     _, grip = hand_plan(ScriptedHand(events=[GripEvent(at_s=0.0, grip=True)]), START)
     assert grip.value(0.0)[0, 0] == 1.0 and grip.value(10.0)[0, 0] == 1.0
+
+
+def test_a_waiting_script_holds_its_start_then_runs_from_its_start_time():
+    """device-sim's hand: its start target (rates zero) and grip until ``start``, then
+    the plan shifted to that time; a second start changes nothing."""
+    target, grip = hand_plan(moving_script([GripEvent(at_s=0.1, grip=True)]), START)
+    sources = (TrajectorySource(target, output_derivative_order=1), TrajectorySource(grip))
+    script = WaitingHandScript(*sources, *hand_plan(
+        moving_script([GripEvent(at_s=0.1, grip=True)]), START))
+    contexts = [source.CreateDefaultContext() for source in sources]
+
+    def outputs(t):
+        for context in contexts:
+            context.SetTime(t)
+        return [source.get_output_port().Eval(context)
+                for source, context in zip(sources, contexts)]
+
+    for t in (0.0, 0.55, 5.0):
+        held_target, held_grip = outputs(t)
+        np.testing.assert_allclose(held_target, np.r_[START, np.zeros(6)], atol=1e-12)
+        assert held_grip[0] == 0.0
+    script.start(2.0)
+    script.start(3.0)
+    assert script.started_at_s == 2.0
+    for t in (0.0, 0.1, 0.55, 1.0):
+        moved_target, moved_grip = outputs(2.0 + t)
+        np.testing.assert_allclose(moved_target[:6], target.value(t).ravel(), atol=1e-12)
+        np.testing.assert_allclose(moved_target[6:], target.derivative(1).value(t).ravel(),
+                                   atol=1e-9)
+        assert moved_grip[0] == grip.value(t)[0, 0]
 
 
 # --- the schema ---------------------------------------------------------------

@@ -184,19 +184,8 @@ def test_no_message_is_lost_in_steady_state(lockstep_run):
 TWO_PROCESS_RATE = 0.5
 
 
-# peg_in_hole's flight leaves the all-in-one run by 3-5 mm on a quiet host: the device's
-# clock (and its scripted hand's grip) starts when device-sim is built, the application's
-# when it is built, and the application now takes longer to start (its scene worker, the
-# lease), so the hand grips ~1 s early in the application's time. Open: start the
-# device's script at the lease's grant.
-PEG_CLOCKS_UNSYNCED = pytest.mark.xfail(
-    reason="device-sim's script starts on its own clock, ~1 s before the application's",
-    strict=False)
-
-
 @pytest.mark.slow
-@pytest.mark.parametrize("name", ["levitate",
-                                  pytest.param("peg_in_hole", marks=PEG_CLOCKS_UNSYNCED)])
+@pytest.mark.parametrize("name", ["levitate", "peg_in_hole"])
 def test_device_sim_and_application_in_two_processes(tmp_path, name):
     """The acceptance run: `maglev device-sim` and `maglev run --station lcm`, each its
     own paced process, on a loopback-only multicast port of this test's own, 10 s. The
