@@ -169,7 +169,7 @@ def image_heights(grey: np.ndarray, height_m: float, x_m: np.ndarray,
     return heights - heights.mean()
 
 
-def read_grey_image(file: str, path: str = "heightmap.file") -> np.ndarray:
+def read_grey_image(file: str, path: str) -> np.ndarray:
     """The greyscale image at ``file`` as (rows, columns) float64 greys in [0, 1], each
     pixel's value over its bit depth's maximum (GREY_MODE_MAX). A ValueError names
     ``path``, the file and what is wrong: no such file, not an image, not greyscale
