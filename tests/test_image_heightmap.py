@@ -110,6 +110,8 @@ BLACK_2X2 = np.zeros((2, 2), dtype=np.uint8)
      "heightmap.height_m = nan: must be a finite height > 0 (m)"),
     ("{file: image.png, height_m: .inf}", BLACK_2X2,
      "heightmap.height_m = inf: must be a finite height > 0 (m)"),
+    ("{file: image.png, height_m: 0.02}", BLACK_2X2,  # the default lattice is 15 mm deep
+     "heightmap.height_m = 0.02: must be below surface_z_m - base_z_m (0.015 m)"),
 ])
 def test_bad_images_are_one_line_errors_naming_the_field(tmp_path, capsys, heightmap, image,
                                                          fragment):
