@@ -25,7 +25,7 @@ from maglev_haptics.hardware.constants import GRAVITY_M_S2
 from maglev_haptics.plant_models.scene_sdf import probe_tool_sdf
 from maglev_haptics.systems.deformable_surface import DeformableSurface as DeformableSurfaceSystem
 from maglev_haptics.systems.heightmap import (
-    Heightmap, RandomHeightmap, heightmap_heights)
+    Heightmap, ImageHeightmap, RandomHeightmap, heightmap_heights)
 from maglev_haptics.systems.lattice_construction import Lattice, build_lattice
 from maglev_haptics.systems.lattice_dynamics import (
     INTEGRATORS, SYMPLECTIC_EULER, ProbeContact, lattice_model, max_stable_link_stiffness)
@@ -86,6 +86,12 @@ class DeformableSurface:
                 f"{path}.surface_z_m", self.surface_z_m,
                 f"a finite height above base_z_m ({self.base_z_m} m)")
         self.heightmap.validate(f"{path}.heightmap")
+        if isinstance(self.heightmap, ImageHeightmap):
+            # Black lies at most height_m under the mean, surface_z_m: keep it above the base.
+            depth_m = self.surface_z_m - self.base_z_m
+            require(self.heightmap.height_m < depth_m, f"{path}.heightmap.height_m",
+                    self.heightmap.height_m, f"must be below surface_z_m - base_z_m "
+                    f"({depth_m:.4g} m), so black stays above the lattice's base")
         positive(f"{path}.node_mass_kg", self.node_mass_kg)
         positive(f"{path}.link_stiffness_n_per_m", self.link_stiffness_n_per_m)
         nonnegative(f"{path}.link_damping_n_s_per_m", self.link_damping_n_s_per_m)

@@ -12,6 +12,7 @@ allowed.
 import dataclasses
 import typing
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import List, Optional, Union
 
 import yaml
@@ -32,6 +33,7 @@ from maglev_haptics.hardware.device import DeviceConfig
 from maglev_haptics.systems.device_supervisor import WatchdogConfig
 from maglev_haptics.systems.haptic_coupling import CouplingConfig
 from maglev_haptics.systems.haptic_supervisor import SupervisorConfig
+from maglev_haptics.systems.heightmap import ImageHeightmap
 from maglev_haptics.systems.levitation_controller import ControllerConfig
 from maglev_haptics.systems.marker_sensor import Occlusion
 from maglev_haptics.systems.fault_injection import (
@@ -471,10 +473,22 @@ def load_scenario(name_or_path: str, name: Optional[str] = None,
     scenario = _load_typed(label, raw[name] or {}, lambda: yaml_load_typed(
         schema=Scenario, data=text, child_name=name, defaults=Scenario()),
         lambda cut: yaml_load_typed(schema=Scenario, data=yaml_dump(cut), defaults=Scenario()))
+    _resolve_relative_files(scenario, path.absolute().parent)
     for layer in (scenario_text, *more_text):
         scenario = _layer(scenario, layer, label)
+        _resolve_relative_files(scenario, Path.cwd())
     validate_scenario(scenario, label)
     return scenario
+
+
+def _resolve_relative_files(scenario: Scenario, folder: Path) -> None:
+    """Make a relative image heightmap ``file`` absolute against ``folder``: the
+    scenario file's folder for what that file names, the working directory for
+    --scenario-text (a path already absolute, from an earlier text, stays)."""
+    scene = scenario.haptics.scene if scenario.haptics is not None else None
+    heightmap = scene.heightmap if isinstance(scene, DeformableSurface) else None
+    if isinstance(heightmap, ImageHeightmap) and heightmap.file:
+        heightmap.file = str(folder / Path(heightmap.file).expanduser())
 
 
 def _layer(scenario: Scenario, text: str, label: str) -> Scenario:

@@ -1,4 +1,5 @@
-"""Heightmaps for the deformable landscape: pseudo-random or a sum of two sine waves.
+"""Heightmaps for the deformable landscape: pseudo-random, a sum of two sine waves,
+or a greyscale image.
 
 A heightmap gives the height (m) of the landscape's surface above its mean level
 at each point of a rectangular grid of columns, x_m (nx,) by y_m (ny,) in W (m),
@@ -18,14 +19,27 @@ lattice beneath it is built by ``lattice_construction.build_lattice``.
   below half a spacing, where the ideal correlation between neighbours is under
   exp(-4) = 0.02, the heights are, correctly, nearly independent.
 - ``SineHeightmap``: a_x sin(2 pi x / l_x + phi_x) + a_y sin(2 pi y / l_y + phi_y).
+- ``ImageHeightmap``: an 8- or 16-bit greyscale image (a PNG, or any greyscale
+  file Pillow reads) stretched over the grid and seen from above: its column 0 at
+  the lowest x, its row 0 (the picture's top) at the highest y, its corner pixels'
+  centres on the grid's corner columns, so the picture looks in Meshcat's top view
+  as in an image viewer. Black is lowest and white ``height_m`` above it, in
+  proportion to grey over the bit depth's maximum (255 or 65535), so the same
+  picture at either depth gives the same heights; like a random map it is
+  de-meaned over the grid. Each column takes the image's bilinear interpolation
+  at its position: a picture finer than the columns is sampled, not averaged
+  (blur it first if that aliases). Colour images are refused, not guessed at:
+  convert them to greyscale first.
 """
 
 import math
+import typing
 from dataclasses import dataclass, field
 from typing import List, Union
 
 import numpy as np
-from scipy.ndimage import gaussian_filter
+from PIL import Image, UnidentifiedImageError
+from scipy.ndimage import gaussian_filter, map_coordinates
 
 from maglev_haptics.hardware.config_checks import finite, require
 
@@ -73,20 +87,45 @@ class SineHeightmap:
         _pair(f"{path}.phase_rad", self.phase_rad, -math.inf, False, "x and y phases, rad")
 
 
-Heightmap = Union[RandomHeightmap, SineHeightmap]
+@dataclass
+class ImageHeightmap:
+    """Heights from a greyscale image seen from above (see the module docstring):
+    black lowest, white ``height_m`` above it.
+
+    ``file`` is the image's path: in a scenario file relative to that file's folder
+    (in ``--scenario-text``, to the working directory); in Python, to the working
+    directory."""
+
+    file: str = ""  # an 8-bit (L) or 16-bit (I;16) greyscale image; required
+    height_m: float = 0.004  # white's height above black (m)
+
+    def validate(self, path: str = "heightmap") -> None:
+        """Range checks and a read of the image; a ValueError names ``path.field``, its
+        value and what is allowed."""
+        require(finite(self.height_m) and self.height_m > 0, f"{path}.height_m",
+                self.height_m, "must be a finite height > 0 (m), white's above black")
+        read_grey_image(self.file, f"{path}.file")
+
+
+Heightmap = Union[RandomHeightmap, SineHeightmap, ImageHeightmap]
+
+# Pillow's greyscale modes read here, and the largest grey of each: 16-bit PNGs open
+# as I;16 in current Pillow, as 32-bit I (still 16-bit values) in older releases.
+GREY_MODE_MAX = {"L": 255, "I;16": 65535, "I;16B": 65535, "I;16L": 65535, "I": 65535}
 
 
 def heightmap_heights(config: Heightmap, x_m: np.ndarray, y_m: np.ndarray) -> np.ndarray:
     """(nx, ny) heights (m) of the surface above its mean level at the grid points
     (x_m[ix], y_m[iy]) in W (m); x_m (nx,) and y_m (ny,) uniformly spaced and
-    ascending. A random map is de-meaned over the grid; a sine map's mean level is
-    its waves' mean over whole periods. Raises ValueError for an invalid config
-    or grid."""
-    require(isinstance(config, (RandomHeightmap, SineHeightmap)), "heightmap", config,
-            "must be a RandomHeightmap or a SineHeightmap")
+    ascending. A random or an image map is de-meaned over the grid; a sine map's
+    mean level is its waves' mean over whole periods. Raises ValueError for an
+    invalid config (an image map's unreadable image among them) or grid."""
+    require(isinstance(config, typing.get_args(Heightmap)), "heightmap", config,
+            "must be a RandomHeightmap, a SineHeightmap or an ImageHeightmap")
     config.validate(type(config).__name__)
-    # A random map's smoothing needs a spacing per axis, so at least 2 points.
-    min_points = 2 if isinstance(config, RandomHeightmap) else 1
+    # A random map's smoothing needs a spacing per axis, an image an extent to span:
+    # at least 2 points.
+    min_points = 1 if isinstance(config, SineHeightmap) else 2
     x_m = validate_grid_axis("x_m", x_m, min_points)
     y_m = validate_grid_axis("y_m", y_m, min_points)
     if isinstance(config, SineHeightmap):
@@ -94,6 +133,9 @@ def heightmap_heights(config: Heightmap, x_m: np.ndarray, y_m: np.ndarray) -> np
                                                   config.phase_rad)
         return (a_x * np.sin(2 * np.pi * x_m / l_x + phi_x))[:, None] \
             + (a_y * np.sin(2 * np.pi * y_m / l_y + phi_y))[None, :]
+    if isinstance(config, ImageHeightmap):
+        return image_heights(read_grey_image(config.file, "ImageHeightmap.file"),
+                             config.height_m, x_m, y_m)
     return _random_heights(config, x_m[1] - x_m[0], y_m[1] - y_m[0], (len(x_m), len(y_m)))
 
 
@@ -110,6 +152,52 @@ def _random_heights(config: RandomHeightmap, dx_m: float, dy_m: float, shape) ->
     rms = math.sqrt(np.mean(smooth ** 2))
     # A zero map (all noise smoothed away) stays zero rather than dividing by 0.
     return smooth * (config.amplitude_m / rms) if rms > 0 else smooth
+
+
+def image_heights(grey: np.ndarray, height_m: float, x_m: np.ndarray,
+                  y_m: np.ndarray) -> np.ndarray:
+    """(nx, ny) heights (m) about their mean from the (rows, columns) greys in [0, 1]
+    stretched over the grid x_m (nx,) by y_m (ny,) (m, ascending, >= 2 points each):
+    image column 0 at x_m[0], row 0 at y_m[-1], bilinear between pixel centres; grey
+    g stands g * height_m above black."""
+    rows, columns = grey.shape
+    image_column = (x_m - x_m[0]) / (x_m[-1] - x_m[0]) * (columns - 1)
+    image_row = (y_m[-1] - y_m) / (y_m[-1] - y_m[0]) * (rows - 1)
+    at_rows, at_columns = np.broadcast_arrays(image_row[None, :], image_column[:, None])
+    # mode="nearest" only absorbs rounding past the edge pixels' centres.
+    heights = height_m * map_coordinates(grey, [at_rows, at_columns], order=1, mode="nearest")
+    return heights - heights.mean()
+
+
+def read_grey_image(file: str, path: str) -> np.ndarray:
+    """The greyscale image at ``file`` as (rows, columns) float64 greys in [0, 1], each
+    pixel's value over its bit depth's maximum (GREY_MODE_MAX). A ValueError names
+    ``path``, the file and what is wrong: no such file, not an image, not greyscale
+    (colour is refused), smaller than 2 x 2 pixels, or 32-bit values past 16 bits."""
+    require(isinstance(file, str) and file != "", path, file,
+            "must name an 8- or 16-bit greyscale image file")
+    try:
+        with Image.open(file) as image:
+            mode, (columns, rows) = image.mode, image.size
+            require(mode in GREY_MODE_MAX, path, file,
+                    f"has Pillow mode {mode}: must be 8- or 16-bit greyscale (mode L or "
+                    "I;16); convert it to greyscale first")
+            require(rows >= 2 and columns >= 2, path, file,
+                    f"is {columns} x {rows} pixels: must be at least 2 x 2")
+            values = np.asarray(image)
+    except FileNotFoundError:
+        raise ValueError(f"{path} = {file!r}: no such file; must be an 8- or 16-bit "
+                         "greyscale image") from None
+    except UnidentifiedImageError:
+        raise ValueError(f"{path} = {file!r}: not an image Pillow can read; must be an 8- "
+                         "or 16-bit greyscale image (PNG)") from None
+    except OSError as error:  # a folder, no permission, a truncated image
+        raise ValueError(f"{path} = {file!r}: cannot be read ({error.strerror or error}); "
+                         "must be an 8- or 16-bit greyscale image") from None
+    largest = GREY_MODE_MAX[mode]
+    require(values.min() >= 0 and values.max() <= largest, path, file,
+            f"holds values from {values.min()} to {values.max()}: must be 0..{largest}")
+    return values.astype(float) / largest
 
 
 def validate_grid_axis(name: str, values, min_points: int) -> np.ndarray:

@@ -377,8 +377,8 @@ def test_validate_heightmap_names_the_field(config, message):
 
 def test_heightmap_heights_rejects_a_bad_config_or_grid():
     x = np.linspace(0, 0.01, 5)
-    with pytest.raises(ValueError, match="heightmap = 'flat': must be a RandomHeightmap or a "
-                                         "SineHeightmap"):
+    with pytest.raises(ValueError, match="heightmap = 'flat': must be a RandomHeightmap, a "
+                                         "SineHeightmap or an ImageHeightmap"):
         heightmap_heights("flat", x, x)
     with pytest.raises(ValueError, match=r"RandomHeightmap\.amplitude_m = -1"):
         heightmap_heights(RandomHeightmap(amplitude_m=-1), x, x)
