@@ -34,11 +34,13 @@ class RunResult:
 
 def run_scenario(scenario: Scenario, *, label: str, out_dir: Optional[Path] = None,
                  meshcat: bool = False, realtime_rate: float = 0.0,
-                 duration_s: Optional[float] = None, progress: bool = True) -> RunResult:
+                 duration_s: Optional[float] = None, progress: bool = True,
+                 raise_priority: bool = True) -> RunResult:
     """Simulate ``scenario``; write ``log.npz``, ``summary.json`` and plots to ``out_dir``.
 
     With a station on LCM the run is paced (at 1.0 unless told): the device keeps
-    the wall clock's time, so the application must too."""
+    the wall clock's time, so the application must too. ``raise_priority``: a paced
+    loop runs at real-time priority where the OS grants it."""
     if isinstance(scenario.station, LcmStation) and realtime_rate <= 0:
         realtime_rate = 1.0
     viewer = start_meshcat() if meshcat else None
@@ -71,7 +73,8 @@ def run_scenario(scenario: Scenario, *, label: str, out_dir: Optional[Path] = No
                 built, duration_s, realtime_rate=realtime_rate, progress=progress, label=label,
                 stop=stop,
                 shares_cores=isinstance(scenario.station, LcmStation),
-                on_progress=log_writer.drain if log_writer is not None else None)
+                on_progress=log_writer.drain if log_writer is not None else None,
+                raise_priority=raise_priority)
     finally:
         if built.meshcat_hand is not None:
             built.meshcat_hand.Delete()

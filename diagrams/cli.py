@@ -176,7 +176,8 @@ def _cmd_run(args) -> int:
     realtime = args.realtime if args.realtime is not None else (1.0 if meshcat else 0.0)
     try:
         result = run_scenario(scenario, label=label, out_dir=out, meshcat=meshcat,
-                              realtime_rate=realtime, duration_s=duration)
+                              realtime_rate=realtime, duration_s=duration,
+                              raise_priority=not args.normal_priority)
     except DeviceInUseError as error:  # another application holds the device's lease
         print(f"maglev run: {label}: {error}", file=sys.stderr)
         return EXIT_DEVICE_IN_USE
@@ -241,7 +242,7 @@ def _cmd_device_sim(args) -> int:
         simulator, wall_s, tick_times = simulate(
             device_sim, args.duration, realtime_rate=args.realtime, label=f"device-sim {label}",
             stop=lambda context: stop_signal(context) or device_sim.application_gone(context),
-            shares_cores=True)
+            shares_cores=True, raise_priority=not args.normal_priority)
     context = simulator.get_context()
     print(json.dumps({"scenario": label, "duration_s": context.get_time(), "wall_time_s": wall_s,
                       "commands": device_sim.command_counts(context),
@@ -518,6 +519,9 @@ def _add_run_parser(commands) -> None:
                      help="sim: the simulated station in this process; lcm: whatever answers "
                      "on LCM (maglev device-sim, or the device's drivers); default: the "
                      "scenario's station")
+    run.add_argument("--normal-priority", action="store_true",
+                     help="run the paced loop at normal priority (default: real-time "
+                     "priority, SCHED_FIFO, where the OS grants it; summary.json says which)")
     run.set_defaults(func=_cmd_run)
 
 
@@ -539,6 +543,9 @@ def _add_device_sim_parser(commands) -> None:
     device_sim.add_argument("--realtime", type=_positive_rate, default=1.0,
                             help="real-time rate > 0 (default 1); the application must run "
                             "at the same --realtime")
+    device_sim.add_argument("--normal-priority", action="store_true",
+                            help="run the paced loop at normal priority (default: real-time "
+                            "priority, SCHED_FIFO, where the OS grants it; summary.json says which)")
     device_sim.set_defaults(func=_cmd_device_sim)
 
 

@@ -28,6 +28,7 @@ from tqdm import tqdm
 
 from maglev_haptics.diagrams.application import MESHCAT_PERIOD_S
 from maglev_haptics.diagrams.motion import IDLE_AFTER_S
+from maglev_haptics.hardware.realtime_priority import RT_SPIN_S, is_realtime, realtime_priority
 from maglev_haptics.hardware.kernels import compile_kernels
 
 PROGRESS_CHUNK_S = 0.25  # simulated seconds between progress-bar updates
@@ -48,11 +49,12 @@ class TickTimes:
     slot_s: float  # wall seconds a tick may take: tick_s / realtime_rate
     compute_s: np.ndarray  # wall time each tick's AdvanceTo took
     lateness_s: np.ndarray  # when each tick's compute ended, past its slot's end (< 0: early)
+    priority: str = ""  # what the loop ran at (``realtime_priority``)
 
 
 def realtime_report(times: TickTimes) -> Dict:
     """The ``realtime`` block of summary.json: deadline misses and compute-time
-    percentiles of the ticks run (us, ms)."""
+    percentiles of the ticks run (us, ms), and the scheduling the loop ran at."""
     compute_us = 1e6 * times.compute_s
     missed = times.lateness_s > 0.0
     ticks = int(compute_us.size)
@@ -66,6 +68,7 @@ def realtime_report(times: TickTimes) -> Dict:
         "tick_compute_us_max": float(compute_us.max()) if ticks else 0.0,
         # The longest the loop ran behind its clock: one long tick, or a run of late ones.
         "longest_stall_ms": float(1e3 * max(0.0, times.lateness_s.max())) if ticks else 0.0,
+        "priority": times.priority,
     }
 
 
@@ -241,25 +244,27 @@ class PacedTicks:
         self.lateness_s = np.zeros(n_ticks)
         self.done = 0
         self.missed = 0  # counted as the run goes: the progress bar shows it
+        self.priority = ""
 
     def times(self) -> TickTimes:
         return TickTimes(slot_s=self.slot_s, compute_s=self.compute_s[:self.done],
-                         lateness_s=self.lateness_s[:self.done])
+                         lateness_s=self.lateness_s[:self.done], priority=self.priority)
 
 
 def advance_paced(simulator, duration_s: float, tick_s: float, ticks: PacedTicks, bar,
                   stop=None, spin_s: float = math.inf, on_progress=None,
                   frame_publishers=(), frame_period_s: float = MESHCAT_PERIOD_S,
-                  show_rate=None) -> BetweenTicks:
+                  show_rate=None, priority: bool = True) -> BetweenTicks:
     """Tick by tick to ``duration_s``, each released at its wall-clock slot; ``stop(context)``,
     asked every PROGRESS_CHUNK_S, ends the run early when it returns True. Between
     ticks, where they fit (``BetweenTicks``): the progress bar every PROGRESS_CHUNK_S,
     ``on_progress(context)`` every ON_PROGRESS_PERIOD_S, each of ``frame_publishers`` every
     ``frame_period_s`` (s), and ``show_rate(rate)`` told the real-time rate over each
     progress interval (Meshcat's panel, which stayed empty in Chromium with only the
-    visualizers, published from here, to fill it). The wait for a
-    slot spins for its last ``spin_s`` (s) and sleeps before that. Returns the gaps'
-    jobs, with what they cost and how late they ran."""
+    visualizers, published from here, to fill it). With ``priority`` the loop runs
+    at real-time priority where granted (``realtime_priority``: then it spins at most
+    RT_SPIN_S). The wait for a slot spins for its last ``spin_s`` (s) and sleeps
+    before that. Returns the gaps' jobs, with what they cost and how late they ran."""
     context = simulator.get_context()
     start_s = context.get_time()
     ticks_per_update = max(1, int(round(PROGRESS_CHUNK_S / tick_s)))
@@ -282,21 +287,24 @@ def advance_paced(simulator, duration_s: float, tick_s: float, ticks: PacedTicks
                                     must_run=True))
     between = BetweenTicks(jobs + frame_jobs(frame_publishers, context, frame_period_s))
     between.measure()
-    clock_zero = time.perf_counter()
     try:
-        for k in range(ticks.compute_s.size):
-            release = clock_zero + k * ticks.slot_s
-            between.fill_gap(context.get_time(), release)
-            wait_until(release, spin_s)
-            begin = time.perf_counter()
-            simulator.AdvanceTo(start_s + (k + 1) * tick_s)
-            end = time.perf_counter()
-            ticks.compute_s[k] = end - begin
-            ticks.lateness_s[k] = end - (release + ticks.slot_s)
-            ticks.missed += ticks.lateness_s[k] > 0.0
-            ticks.done = k + 1
-            if ticks.done % ticks_per_update == 0 and stop is not None and stop(context):
-                break
+        with realtime_priority(priority) as ticks.priority:
+            if is_realtime():
+                spin_s = min(spin_s, RT_SPIN_S)
+            clock_zero = time.perf_counter()
+            for k in range(ticks.compute_s.size):
+                release = clock_zero + k * ticks.slot_s
+                between.fill_gap(context.get_time(), release)
+                wait_until(release, spin_s)
+                begin = time.perf_counter()
+                simulator.AdvanceTo(start_s + (k + 1) * tick_s)
+                end = time.perf_counter()
+                ticks.compute_s[k] = end - begin
+                ticks.lateness_s[k] = end - (release + ticks.slot_s)
+                ticks.missed += ticks.lateness_s[k] > 0.0
+                ticks.done = k + 1
+                if ticks.done % ticks_per_update == 0 and stop is not None and stop(context):
+                    break
     finally:
         bar.update(context.get_time() - bar.n)
     # The last frame and the log's tail, off the clock (not after an error: what
@@ -308,7 +316,7 @@ def advance_paced(simulator, duration_s: float, tick_s: float, ticks: PacedTicks
 
 def simulate(built, duration_s: float, *, realtime_rate: float = 0.0,
              progress: bool = True, label: str = "", stop=None,
-             shares_cores: bool = False, on_progress=None):
+             shares_cores: bool = False, on_progress=None, raise_priority: bool = True):
     """Advance the diagram to ``duration_s``; returns (simulator, wall seconds,
     TickTimes of the paced ticks or None when not paced).
     ``stop(context)``, asked every PROGRESS_CHUNK_S of simulated time, ends the run
@@ -316,7 +324,8 @@ def simulate(built, duration_s: float, *, realtime_rate: float = 0.0,
     another paced process runs on this machine, so the wait between ticks sleeps
     (``SHARED_SPIN_S``).
     ``on_progress(context)`` is called every PROGRESS_CHUNK_S of simulated time
-    (paced: every ON_PROGRESS_PERIOD_S)."""
+    (paced: every ON_PROGRESS_PERIOD_S). ``raise_priority``: the paced loop runs at
+    real-time priority where the OS grants it (``hardware/realtime_priority.py``)."""
     # Nothing compiles inside the loop: every kernel is ready before the clock starts.
     compile_kernels(progress=progress)
     simulator = Simulator(built.diagram)
@@ -339,7 +348,7 @@ def simulate(built, duration_s: float, *, realtime_rate: float = 0.0,
                               SHARED_SPIN_S if shares_cores else math.inf, on_progress,
                               built.frame_publishers, MESHCAT_PERIOD_S,
                               built.meshcat.SetRealtimeRate if built.meshcat is not None
-                              else None)
+                              else None, raise_priority)
             else:
                 chunks = np.append(np.arange(PROGRESS_CHUNK_S, duration_s, PROGRESS_CHUNK_S),
                                    duration_s)

@@ -2,15 +2,19 @@
 (frames, the log, the progress bar run only where they fit), and a paced run's summary."""
 
 import json
+import os
 import time
 
 import numpy as np
 import pytest
 
+from maglev_haptics.diagrams import runner
 from maglev_haptics.diagrams.cli import main
 from maglev_haptics.diagrams.runner import (
     BETWEEN_TICKS_MARGIN_S, MEASURED_RUNS, RETRY_AFTER_SKIPS, BetweenTicks, BetweenTicksJob,
     PacedTicks, TickTimes, advance_paced, realtime_report)
+from maglev_haptics.hardware.realtime_priority import (
+    LOOP_PRIORITY, RT_SPIN_S, fifo_permitted, is_realtime)
 
 TICK_S = 1e-3
 
@@ -97,7 +101,6 @@ class VirtualSimulator(FakeSimulator):
 
 
 def test_paced_loop_holds_the_clock_and_catches_up_after_a_stall(monkeypatch):
-    from maglev_haptics.diagrams import runner
     clock = VirtualClock()
     monkeypatch.setattr(runner, "time", clock)
     stall_tick = 20
@@ -261,3 +264,26 @@ def test_a_job_that_must_not_wait_for_ever_runs_once_it_is_that_late():
     assert job.runs == 0
     gaps.fill_gap(2.5, time.perf_counter() + 1e-3)
     assert job.runs == 1 and job.due_s == pytest.approx(2.75)
+
+
+@pytest.mark.skipif(not fifo_permitted(), reason="this process may not use SCHED_FIFO")
+def test_paced_loop_runs_at_real_time_priority_and_sleeps_its_waits(monkeypatch):
+    """At SCHED_FIFO the wait for a slot spins at most RT_SPIN_S (a spinning FIFO thread
+    is throttled 50 ms a second); at normal priority it spins all of it."""
+    waits = []
+    policies = []
+    simulator = FakeSimulator(lambda k: policies.append(os.sched_getscheduler(0)) or 50e-6)
+    monkeypatch.setattr(runner, "wait_until",
+                        lambda wall_s, spin_s: waits.append(spin_s))
+    for priority in (True, False):
+        waits.clear()
+        policies.clear()
+        ticks = PacedTicks(20, slot_s=TICK_S)
+        advance_paced(simulator, simulator.get_time() + 20 * TICK_S, TICK_S, ticks, Bar(),
+                      priority=priority)
+        assert ticks.priority == (f"SCHED_FIFO {LOOP_PRIORITY}" if priority
+                                  else "normal: not asked for")
+        expected = os.SCHED_FIFO if priority else os.SCHED_OTHER
+        assert policies and set(policies) == {expected}
+        assert np.all(np.array(waits) <= RT_SPIN_S) == priority
+    assert not is_realtime()

@@ -19,7 +19,9 @@ from maglev_haptics.diagrams.scenario import ScenarioError, load_scenario
 from maglev_haptics.diagrams.scene import PegInHole
 from maglev_haptics.diagrams.scene_builder import AddScene
 from maglev_haptics.systems.remote_scene import falls_on
-from maglev_haptics.systems.scene_worker import IDLE_EXIT_S
+from maglev_haptics.hardware.realtime_priority import (
+    fifo_permitted, is_realtime, realtime_priority)
+from maglev_haptics.systems.scene_worker import FOLLOW_EVERY, IDLE_EXIT_S
 
 
 def stepping(name: str, mode: str):
@@ -100,6 +102,33 @@ def test_a_second_context_gets_its_own_state_not_the_first_ones_result():
     truth.AdvanceTo(0.13)
     assert np.array_equal(scene.outputs(first), reference.outputs(truth))
     assert scene.outputs(first)[-1] == 1.0
+
+
+@pytest.mark.skipif(not fifo_permitted(), reason="this process may not use SCHED_FIFO")
+def test_the_worker_runs_at_its_parents_priority():
+    """At real-time priority (a paced loop) the worker follows within FOLLOW_EVERY
+    requests, and sleeps between them; and back to normal after. Still bit for bit."""
+    scene, reference = Scene("worker"), Scene("in_place")
+    simulator, truth = scene.simulator(), reference.simulator()
+    tick = 0
+
+    def tick_until(done) -> bool:
+        """Ticks until ``done()``, for as many requests as the worker needs to look,
+        each with a pause for the worker to step (as a paced loop's wait gives it)."""
+        nonlocal tick
+        for _ in range(4 * FOLLOW_EVERY):
+            if done():
+                return True
+            tick += 1
+            simulator.AdvanceTo(tick * 0.001)
+            time.sleep(0.0005)
+        return False
+
+    with realtime_priority():
+        assert tick_until(lambda: is_realtime(scene.pid))
+    assert tick_until(lambda: not is_realtime(scene.pid))
+    truth.AdvanceTo(tick * 0.001)
+    assert np.array_equal(scene.outputs(simulator), reference.outputs(truth))
 
 
 def test_a_killed_worker_is_a_clear_error():
