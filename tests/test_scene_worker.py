@@ -21,7 +21,7 @@ from maglev_haptics.diagrams.scene_builder import AddScene
 from maglev_haptics.systems.remote_scene import falls_on
 from maglev_haptics.hardware.realtime_priority import (
     fifo_permitted, is_realtime, realtime_priority)
-from maglev_haptics.systems.scene_worker import FOLLOW_EVERY, IDLE_EXIT_S
+from maglev_haptics.systems.scene_worker import IDLE_EXIT_S
 
 
 def stepping(name: str, mode: str):
@@ -106,17 +106,17 @@ def test_a_second_context_gets_its_own_state_not_the_first_ones_result():
 
 @pytest.mark.skipif(not fifo_permitted(), reason="this process may not use SCHED_FIFO")
 def test_the_worker_runs_at_its_parents_priority():
-    """At real-time priority (a paced loop) the worker follows within FOLLOW_EVERY
-    requests, and sleeps between them; and back to normal after. Still bit for bit."""
+    """At real-time priority (a paced loop) the worker follows after its next request,
+    and sleeps between them; and back to normal after. Still bit for bit."""
     scene, reference = Scene("worker"), Scene("in_place")
     simulator, truth = scene.simulator(), reference.simulator()
     tick = 0
 
     def tick_until(done) -> bool:
-        """Ticks until ``done()``, for as many requests as the worker needs to look,
-        each with a pause for the worker to step (as a paced loop's wait gives it)."""
+        """Ticks until ``done()``, each with a pause for the worker to step (as a paced
+        loop's wait gives it)."""
         nonlocal tick
-        for _ in range(4 * FOLLOW_EVERY):
+        for _ in range(100):
             if done():
                 return True
             tick += 1
