@@ -11,8 +11,9 @@ normal priority, 36 and 37 at SCHED_FIFO.
 A SCHED_FIFO thread that never blocks owns its core, and Linux's throttle
 (``/proc/sys/kernel/sched_rt_runtime_us``: 950 ms of each second) then stops it
 for 50 ms: so at real-time priority the loop sleeps until RT_SPIN_S before each
-slot, and the scene worker, which follows its parent's priority, sleeps between
-requests instead of polling.
+slot, the scene worker (a process that follows its parent's priority) sleeps
+between requests, and the lattice's worker thread (told as a follower) polls by
+sleeping RT_POLL_US.
 
 Granted to root, to a process with CAP_SYS_NICE, or up to ``ulimit -r``
 (RLIMIT_RTPRIO, e.g. ``@realtime - rtprio 20`` in /etc/security/limits.conf).
@@ -21,8 +22,9 @@ Granted to root, to a process with CAP_SYS_NICE, or up to ``ulimit -r``
 from __future__ import annotations
 
 import os
+import weakref
 from contextlib import contextmanager
-from typing import Iterator
+from typing import Callable, Iterator
 
 # SCHED_FIFO priority (1-99) of the loop: above every normal thread, below the
 # interrupt threads of a PREEMPT_RT kernel (50), which the loop's I/O needs.
@@ -30,6 +32,40 @@ LOOP_PRIORITY = 10
 # At real-time priority the wait for a slot sleeps until this long before it, then
 # spins (s): a woken SCHED_FIFO thread runs within tens of microseconds.
 RT_SPIN_S = 150e-6
+# A helper thread at real-time priority polls for requests this often (us): no timer
+# slack at SCHED_FIFO, a few microseconds a look.
+RT_POLL_US = 20
+
+
+# Told when the loop enters (True) and leaves (False) real-time priority: the helper
+# threads it waits on, which take up its priority and stop polling by spinning.
+_followers: list = []  # weakref.WeakMethod
+
+
+def add_follower(method: Callable[[bool], None]) -> None:
+    """``method(realtime)``, a bound method held weakly, is called as the loop enters
+    (True) and leaves (False) real-time priority (``realtime_priority``)."""
+    _followers.append(weakref.WeakMethod(method))
+
+
+def _tell_followers(realtime: bool) -> None:
+    _followers[:] = [ref for ref in _followers if ref() is not None]
+    for ref in list(_followers):
+        method = ref()
+        if method is not None:
+            method(realtime)
+
+
+def set_thread_priority(thread_id: int, realtime: bool) -> None:
+    """Thread ``thread_id`` (a native id) at SCHED_FIFO LOOP_PRIORITY or back to normal;
+    no change where that is refused or the thread has ended."""
+    try:
+        if realtime:
+            os.sched_setscheduler(thread_id, os.SCHED_FIFO, os.sched_param(LOOP_PRIORITY))
+        else:
+            os.sched_setscheduler(thread_id, os.SCHED_OTHER, os.sched_param(0))
+    except (PermissionError, ProcessLookupError):
+        pass
 
 
 def is_realtime(pid: int = 0) -> bool:
@@ -51,8 +87,9 @@ def follow_scheduling(pid: int) -> None:
 @contextmanager
 def realtime_priority(wanted: bool = True) -> Iterator[str]:
     """The calling thread at SCHED_FIFO LOOP_PRIORITY while entered, where the OS
-    grants it; yields what it runs at (``"SCHED_FIFO 10"``, or ``"normal: why"``).
-    Threads and processes it starts meanwhile inherit the priority."""
+    grants it, and the followers told (``add_follower``); yields what it runs at
+    (``"SCHED_FIFO 10"``, or ``"normal: why"``). Threads and processes it starts
+    meanwhile inherit the priority."""
     if not wanted:
         yield "normal: not asked for"
         return
@@ -64,8 +101,10 @@ def realtime_priority(wanted: bool = True) -> Iterator[str]:
                "CAP_SYS_NICE, or raise `ulimit -r`)")
         return
     try:
+        _tell_followers(True)
         yield f"SCHED_FIFO {LOOP_PRIORITY}"
     finally:
+        _tell_followers(False)
         os.sched_setscheduler(0, *before)
 
 

@@ -10,7 +10,10 @@ otherwise (the first tick, a context changed from outside, a busy worker). The
 result is bit for bit the synchronous step's: the same kernel on the same numbers.
 
 Protocol, on ``control`` (int64): [0] stop flag, [1] the sequence number of the
-last request, [2] that of the last finished step. The main thread writes the
+last request, [2] that of the last finished step, [3] 1 while the paced loop runs
+at real-time priority (``hardware/realtime_priority.py``), which the worker then
+shares, polling by sleeping RT_POLL_US rather than yielding (a SCHED_FIFO thread
+that never sleeps is throttled by the kernel for 50 ms a second). The main thread writes the
 inputs only while the worker is idle ([1] == [2]) and then bumps [1]; the worker
 polls [1], steps, and sets [2]. x86 keeps stores in order, and an opaque libc
 call before [2] is set keeps the compiler from moving the result's stores after
@@ -30,13 +33,15 @@ import numpy as np
 from numba import types
 
 from maglev_haptics.hardware.kernels import INDEX_VECTOR, kernel
+from maglev_haptics.hardware.realtime_priority import (
+    RT_POLL_US, add_follower, is_realtime, set_thread_priority)
 from maglev_haptics.systems.lattice_dynamics import (
     TICK_ARGUMENTS, LatticeModel, implicit_workspace, tick_from)
 
 FAST_POLLS = 20000  # looks by yielding (~5-10 ms idle) before the worker sleeps between them
 IDLE_POLL_US = 1000  # (us)
 IDLE_EXIT_POLLS = 500  # and after this many slow looks (~0.5 s) it ends
-_STOP, _REQUESTED, _DONE = 0, 1, 2
+_STOP, _REQUESTED, _DONE, _POLL_BY_SLEEPING = 0, 1, 2, 3
 
 _libc = ctypes.CDLL(None)
 _usleep = _libc.usleep
@@ -61,10 +66,12 @@ def _serve(control, arguments):
             idle += 1
             if idle > FAST_POLLS + IDLE_EXIT_POLLS:
                 return
-            if idle <= FAST_POLLS:
-                _sched_yield()
-            else:
+            if idle > FAST_POLLS:
                 _usleep(IDLE_POLL_US)
+            elif control[_POLL_BY_SLEEPING]:
+                _usleep(RT_POLL_US)
+            else:
+                _sched_yield()
             continue
         idle = 0
         tick_from(*arguments)
@@ -83,7 +90,7 @@ class LatticeWorker:
     def __init__(self, model: LatticeModel, num_masses: int, constants, *, implicit: bool,
                  substeps: int, cg_max_iterations: int):
         """``constants``: as ``tick_from`` takes them (8)."""
-        self._control = np.zeros(3, dtype=np.int64)
+        self._control = np.zeros(4, dtype=np.int64)
         # The request's state, [x; v] (6 n) and the tool's (13), and the step's result.
         self._masses_in = np.zeros(6 * num_masses)
         self._tool_in = np.zeros(13)
@@ -99,6 +106,13 @@ class LatticeWorker:
             np.zeros((num_masses, 3)), node_work, u, link_work)
         self._thread = None
         weakref.finalize(self, _stop, self._control)
+        add_follower(self._follow_loop)
+
+    def _follow_loop(self, realtime: bool) -> None:
+        """The paced loop entered (True) or left real-time priority: so does the worker."""
+        self._control[_POLL_BY_SLEEPING] = realtime
+        if self._thread is not None and self._thread.is_alive():
+            set_thread_priority(self._thread.native_id, realtime)
 
     def idle(self) -> bool:
         return self._control[_REQUESTED] == self._control[_DONE]
@@ -108,6 +122,8 @@ class LatticeWorker:
             return
         # A worker that ended idle may have left a request unserved: drop it.
         self._control[_DONE] = self._control[_REQUESTED]
+        # Started by a loop at real-time priority, it has that priority: it must sleep.
+        self._control[_POLL_BY_SLEEPING] = is_realtime()
         self._thread = threading.Thread(target=_serve, args=(self._control, self._arguments),
                                         daemon=True, name="lattice-worker")
         self._thread.start()

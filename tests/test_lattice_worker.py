@@ -8,6 +8,8 @@ from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import ConstantVectorSource
 
+from maglev_haptics.hardware.realtime_priority import (
+    fifo_permitted, is_realtime, realtime_priority)
 from maglev_haptics.systems.deformable_surface import DeformableSurface
 from maglev_haptics.systems.lattice_construction import build_lattice
 from maglev_haptics.systems.lattice_dynamics import ProbeContact, lattice_model
@@ -70,3 +72,22 @@ def test_a_state_changed_from_outside_is_stepped_in_the_update():
     ahead, _ = simulate(True, poke_at_s=0.150)
     inline, _ = simulate(False, poke_at_s=0.150)
     np.testing.assert_array_equal(ahead, inline)
+
+
+@pytest.mark.skipif(not fifo_permitted(), reason="this process may not use SCHED_FIFO")
+def test_the_worker_thread_takes_up_the_loops_real_time_priority():
+    """Told as the loop enters real-time priority, the worker thread runs at it and
+    polls by sleeping; back to normal after. Still bit for bit."""
+    diagram, surface = pressing_diagram(worker_thread=True)
+    simulator = Simulator(diagram)
+    simulator.Initialize()
+    simulator.AdvanceTo(0.01)
+    worker = surface._worker
+    thread_id = worker._thread.native_id
+    assert not is_realtime(thread_id)
+    with realtime_priority():
+        assert is_realtime(thread_id) and worker._control[3] == 1
+        simulator.AdvanceTo(0.3)
+    assert not is_realtime(thread_id) and worker._control[3] == 0
+    state = surface.GetMyContextFromRoot(simulator.get_context()).get_discrete_state(0)
+    assert np.array_equal(state.get_value(), simulate(worker_thread=False)[0])
