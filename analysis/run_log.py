@@ -48,7 +48,9 @@ class RunLogWriter:
     def __init__(self, out_dir: Path, logger, log_layout: Dict[str, slice], thermal: CoilThermal):
         self._logger = logger
         self._folder = Path(out_dir) / CHUNK_DIR
-        shutil.rmtree(self._folder, ignore_errors=True)  # an earlier run's, in the same folder
+        # An earlier run's, in the same folder: its log.npz would be read for this run's.
+        shutil.rmtree(self._folder, ignore_errors=True)
+        (Path(out_dir) / LOG_FILE).unlink(missing_ok=True)
         self._folder.mkdir(parents=True)
         layout = {"rows": {name: [int(rows.start), int(rows.stop)]
                            for name, rows in log_layout.items()},

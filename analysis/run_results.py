@@ -58,6 +58,8 @@ def run_scenario(scenario: Scenario, *, label: str, out_dir: Optional[Path] = No
     if record:
         viewer.StartRecording()
     thermal = coil_thermal(scenario.device)
+    if out_dir is not None:  # an earlier run's, which a run that fails would leave as its own
+        (Path(out_dir) / "summary.json").unlink(missing_ok=True)
     # The log goes to disk as the run goes: a run that is killed leaves it readable.
     log_writer = (RunLogWriter(Path(out_dir), built.logger, built.log_layout, thermal)
                   if out_dir is not None else None)

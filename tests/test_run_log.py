@@ -35,6 +35,17 @@ def test_chunked_log_is_the_in_memory_log(tmp_path, monkeypatch):
     assert len(loaded["t"]) == 1300
 
 
+def test_a_run_into_an_earlier_runs_folder_writes_its_own_results(tmp_path):
+    """Not the earlier run's log.npz or summary.json, whatever their scenario."""
+    run_scenario(load_scenario("levitate"), label="first", duration_s=0.6, progress=False,
+                 out_dir=tmp_path)
+    second = run_scenario(load_scenario("peg_in_hole"), label="second", duration_s=0.3,
+                          progress=False, out_dir=tmp_path)
+    assert len(second.log["t"]) == 300 and "haptic_mode" in second.log
+    assert len(load_run_log(tmp_path)["t"]) == 300
+    assert json.loads((tmp_path / "summary.json").read_text())["scenario"] == "second"
+
+
 def test_a_folder_without_a_log_is_named(tmp_path):
     with pytest.raises(FileNotFoundError, match=re.escape(str(tmp_path))):
         load_run_log(tmp_path)
