@@ -299,5 +299,6 @@ def format_report(results: Dict) -> str:
         for name, r in results["paced"].items():
             lines.append(f"  {name:<32}{r['deadline_misses']:>6} of {r['ticks']:<7}"
                          f"({100 * r['miss_fraction']:.3f}%)  {r['tick_compute_us_p50']:.0f} / "
-                         f"{r['tick_compute_us_p99']:.0f} / {r['tick_compute_us_max']:.0f}")
+                         f"{r['tick_compute_us_p99']:.0f} / {r['tick_compute_us_max']:.0f}"
+                         f"  at {r['priority']}")
     return "\n".join(lines)

@@ -29,6 +29,7 @@ from typing import Dict
 import numpy as np
 
 from maglev_haptics.analysis.run_metrics import log_arrays_from
+from maglev_haptics.hardware.realtime_priority import add_follower, set_thread_priority
 from maglev_haptics.hardware.thermal import CoilThermal
 
 LOG_FILE = "log.npz"
@@ -65,6 +66,12 @@ class RunLogWriter:
         # A daemon: a run that dies does not wait for it.
         self._writer = threading.Thread(target=self._write_chunks, name="run log", daemon=True)
         self._writer.start()
+        add_follower(self._follow_loop)
+
+    def _follow_loop(self, realtime: bool) -> None:
+        # The writer holds the GIL while it joins a chunk: at normal priority, preempted
+        # there by any other process, it would hold a real-time loop waiting for it.
+        set_thread_priority(self._writer.native_id, realtime)
 
     def drain(self, context, force: bool = False) -> None:
         """Move what the logger holds out of it, and hand what was moved since the last

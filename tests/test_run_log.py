@@ -17,7 +17,11 @@ import pytest
 from maglev_haptics.analysis import load_run_log
 from maglev_haptics.analysis import run_log
 from maglev_haptics.analysis.run_results import run_scenario
+from maglev_haptics.diagrams.application import BuildDiagram
 from maglev_haptics.diagrams.scenario import load_scenario
+from maglev_haptics.hardware.realtime_priority import (
+    fifo_permitted, is_realtime, realtime_priority)
+from maglev_haptics.hardware.thermal import coil_thermal
 
 
 def test_chunked_log_is_the_in_memory_log(tmp_path, monkeypatch):
@@ -123,3 +127,16 @@ def test_a_stopped_run_writes_its_results_and_says_so_in_one_line(tmp_path, stop
     assert (tmp_path / "levitation.png").exists()
     assert np.all(log["wrench_commanded_W"][-10:] == 0.0)
     assert np.all(np.abs(log["coil_currents"][-10:]) < 1e-9)
+
+
+@pytest.mark.skipif(not fifo_permitted(), reason="this process may not use SCHED_FIFO")
+def test_the_writer_thread_takes_up_the_loops_real_time_priority(tmp_path):
+    """It holds the GIL while it joins a chunk: at normal priority, preempted there, it
+    would hold the loop."""
+    built = BuildDiagram(load_scenario("levitate"))
+    writer = run_log.RunLogWriter(tmp_path, built.logger, built.log_layout,
+                                  coil_thermal(load_scenario("levitate").device))
+    thread_id = writer._writer.native_id
+    with realtime_priority():
+        assert is_realtime(thread_id)
+    assert not is_realtime(thread_id)
