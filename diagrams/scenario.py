@@ -24,7 +24,8 @@ from maglev_haptics.diagrams.lcm_station import LcmStation, SimStation
 from maglev_haptics.diagrams.scenario_files import (  # noqa: F401  (the light half, re-exported)
     LONGEST_S, SCENARIO_DIR, ScenarioError, resolve_scenario_file, scenario_names,
     shipped_scenario_files, yaml_error)
-from maglev_haptics.diagrams.scene import HangingBall, PaddleBall, PegInHole
+from maglev_haptics.diagrams.scene import HangingBall, ModelScene, PaddleBall, PegInHole
+from maglev_haptics.diagrams.scene_models import check_model_scene, resolve_here
 from maglev_haptics.diagrams.stereo_display import StereoConfig
 from maglev_haptics.diagrams.waypoints import Waypoint
 from maglev_haptics.hardware.config_checks import nonnegative, positive, require, vector
@@ -97,7 +98,7 @@ class Haptics:
     gripped; it is requested until ``disable_at_s`` (null: to the end).
     """
 
-    scene: Union[PegInHole, HangingBall, PaddleBall, DeformableSurface] = field(
+    scene: Union[PegInHole, HangingBall, PaddleBall, ModelScene, DeformableSurface] = field(
         default_factory=PegInHole)
     coupling: CouplingConfig = field(default_factory=CouplingConfig)
     supervisor: SupervisorConfig = field(default_factory=SupervisorConfig)
@@ -110,6 +111,8 @@ class Haptics:
     def validate(self, path: str = "haptics") -> None:
         """Range checks; a ValueError names ``path.field``, its value and what is allowed."""
         self.scene.validate(f"{path}.scene")
+        if isinstance(self.scene, ModelScene):
+            check_model_scene(self.scene, f"{path}.scene")
         require(self.scene_stepping in ("worker", "in_place"), f"{path}.scene_stepping",
                 self.scene_stepping, "one of worker, in_place")
         nonnegative(f"{path}.enable_at_s", self.enable_at_s)
@@ -473,6 +476,9 @@ def load_scenario(name_or_path: str, name: Optional[str] = None,
         lambda cut: yaml_load_typed(schema=Scenario, data=yaml_dump(cut), defaults=Scenario()))
     for layer in (scenario_text, *more_text):
         scenario = _layer(scenario, layer, label)
+    if scenario.haptics is not None and isinstance(scenario.haptics.scene, ModelScene):
+        scenario = dataclasses.replace(scenario, haptics=dataclasses.replace(
+            scenario.haptics, scene=resolve_here(scenario.haptics.scene, path.parent)))
     validate_scenario(scenario, label)
     return scenario
 
