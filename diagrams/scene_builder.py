@@ -66,6 +66,7 @@ bottom lands exactly on the table, which takes round numbers in a noiseless test
 (the tracker's noise keeps the haptic runs off it).
 """
 
+import time
 from dataclasses import dataclass
 from typing import Optional
 
@@ -347,6 +348,7 @@ class SceneStepper:
         self._contact_ports = [(port, port.get_system().GetMyContextFromRoot(context))
                                for port in (parts.contact_wrench_output, parts.in_contact_output)]
         self.n = parts.plant.num_positions() + parts.plant.num_velocities()
+        self.x0 = parts.plant.GetPositionsAndVelocities(self._plant_context)  # at the start
         self._at = np.full(self.n + 6, np.nan)  # the (x, u) the context holds
 
     def __call__(self, kind: int, request: np.ndarray, result: np.ndarray) -> None:
@@ -364,3 +366,27 @@ class SceneStepper:
             (wrench, wrench_context), (flag, flag_context) = self._contact_ports
             result[n:n + 6] = wrench.Eval(wrench_context)
             result[n + 6] = flag.Eval(flag_context)[0]
+
+
+COST_STEPS = 300  # steps timed at load (0.3 s of scene time at 1 kHz)
+
+
+def measure_step_cost_s(scene: SceneConfig, time_step_s: float,
+                        X_WI_start: RigidTransform) -> float:
+    """What one tick of the scene's plant costs here (s): the median time of a step
+    with its contact sample, over COST_STEPS steps from the start, the tool left
+    where it starts (free bodies fall onto what holds them). Contact the tool makes
+    later costs more (``maglev bench`` measures the shipped scenes in contact)."""
+    stepper = SceneStepper(scene, time_step_s, X_WI_start)
+    request = np.concatenate([stepper.x0, np.zeros(6)])
+    result = np.zeros(stepper.n + 7)
+    costs = np.empty(COST_STEPS)
+    for k in range(COST_STEPS):
+        # A 1 uN push on the tool, alternating in sign, so that every step is computed
+        # (the stepper keeps its result for the same state and input) and none moves it.
+        request[stepper.n + 2] = 1e-6 * (-1) ** k
+        start = time.perf_counter()
+        stepper(STEP | CONTACT, request, result)
+        costs[k] = time.perf_counter() - start
+        request[:stepper.n] = result[:stepper.n]
+    return float(np.median(costs))

@@ -174,9 +174,11 @@ def add_scene_models(plant: MultibodyPlant, scene_graph: SceneGraph, scene: Scen
         for name, text in models.generated.items():
             (Path(folder) / f"{name}.sdf").write_text(text)
         tool = _add_tool(plant, parser, models, scene, path)
-        for directive in models.directives:
+        for i, directive in enumerate(models.directives):
             if directive.add_model is not None and GENERATED in directive.add_model.file:
                 directive.add_model.file = directive.add_model.file.replace(GENERATED, folder)
+            if directive.add_model is not None and directive.add_model.file.endswith(".obj"):
+                _check_obj_model(parser, directive.add_model, f"{path}.directives[{i}]")
         try:
             infos = ProcessModelDirectives(ModelDirectives(directives=models.directives), parser)
         except Exception as error:  # Drake's parser: RuntimeError, its YAML's ValueError
@@ -226,19 +228,31 @@ def _check_tool_body(plant: MultibodyPlant, body, tool: SceneTool, path: str) ->
     the explicit coupling (see scene_builder's docstring)."""
     joints = [joint.name() for joint in map(plant.get_joint, plant.GetJointIndices(
         body.model_instance())) if body in (joint.child_body(), joint.parent_body())]
-    require_free = not joints
-    if not require_free:
+    if joints:
         raise ValueError(f"{path}.tool.body = {tool.body!r}: has joints ({', '.join(joints)}); "
                          "the tool must be a free body, moved only by the coupling")
-    inertia = body.default_spatial_inertia()
-    moments = np.linalg.eigvalsh(inertia.CalcRotationalInertia().ShiftToCenterOfMass(
-        inertia.get_mass()).CopyToFullMatrix3())
+    M_BBo = body.default_spatial_inertia()
+    moments = np.linalg.eigvalsh(  # principal moments about the centre of mass (kg*m^2)
+        M_BBo.Shift(M_BBo.get_com()).CalcRotationalInertia().CopyToFullMatrix3())
     if moments.min() < tool.min_inertia_kg_m2:
         raise ValueError(
             f"{path}.tool.body = {tool.body!r}: its smallest principal moment of inertia, "
             f"{moments.min():.3g} kg*m^2, is below min_inertia_kg_m2 = "
             f"{tool.min_inertia_kg_m2:g}, which the explicit coupling needs at 1 kHz: "
             "raise the body's <inertia> in its file")
+
+
+def _check_obj_model(parser: Parser, model: AddModel, path: str) -> None:
+    """An OBJ added as a model is one body whose inertia Drake computes from its
+    volume: a ValueError naming the model if its file is missing or encloses none."""
+    try:
+        volume = CalcVolume(Mesh(parser.package_map().ResolveUrl(model.file)))
+    except Exception as error:
+        raise ValueError(f"{path}: model {model.name!r}: {_drake_reason(error)}") from None
+    if not volume > SMALLEST_VOLUME_M3:
+        raise ValueError(f"{path}: model {model.name!r} ({model.file}): its mesh encloses "
+                         f"{volume:.3g} m^3 (an open or flat surface, or faces wound inwards); "
+                         "hydroelastic contact needs a closed mesh with outward normals")
 
 
 def _is_obj(shape) -> bool:
@@ -263,7 +277,7 @@ def _default_contact(plant: MultibodyPlant, scene_graph: SceneGraph, contact, pa
             if not volume > SMALLEST_VOLUME_M3:
                 raise ValueError(
                     f"{path}: model {_model_name(plant, inspector, geometry)!r}, geometry "
-                    f"{inspector.GetName(geometry)!r} ({shape.filename()}): {reason}; "
+                    f"{inspector.GetName(geometry)!r} ({shape.source().description()}): {reason}; "
                     "hydroelastic contact needs a closed mesh")
         properties = ProximityProperties(inspector.GetProximityProperties(geometry))
         if not properties.HasProperty("hydroelastic", "compliance_type"):
@@ -289,20 +303,22 @@ def _model_name(plant: MultibodyPlant, inspector, geometry) -> str:
     return plant.GetModelInstanceName(body.model_instance())
 
 
-def compliant_obj_warnings(plant: MultibodyPlant, scene_graph: SceneGraph) -> List[str]:
+def model_scene_warnings(scene: ModelScene) -> List[str]:
     """A line for each OBJ mesh declared compliant: Drake replaces it by its convex
     hull, which fills any hollow (a bowl, a hole)."""
+    plant, scene_graph = _scratch_plant(scene, "scene")
     inspector = scene_graph.model_inspector()
     lines = []
     for geometry in inspector.GetAllGeometryIds(Role.kProximity):
         shape = inspector.GetShape(geometry)
         properties = inspector.GetProximityProperties(geometry)
-        if _is_obj(shape) and properties.HasProperty("hydroelastic", "compliance_type") and \
-                properties.GetProperty("hydroelastic", "compliance_type") == "compliant":
+        # Compliant ones carry a modulus (the compliance type's value is not bound in
+        # Python).
+        if _is_obj(shape) and properties.HasProperty("hydroelastic", "hydroelastic_modulus"):
             lines.append(
                 f"model {_model_name(plant, inspector, geometry)!r}, geometry "
                 f"{inspector.GetName(geometry)!r}: an OBJ mesh declared compliant; Drake "
-                f"uses its convex hull ({shape.filename()}), which fills any hollow: declare "
+                f"uses its convex hull ({shape.source().description()}), which fills any hollow: declare "
                 "it <drake:rigid_hydroelastic/> or give a tetrahedral .vtk")
     return lines
 
@@ -318,6 +334,11 @@ def check_model_scene(scene: ModelScene, path: str) -> None:
         if HERE in url:
             raise ValueError(f"{path}: {url!r} holds {HERE}, the scenario file's folder: load "
                              "the scene from a scenario file or resolve_here(scene, folder)")
+    _scratch_plant(scene, path)
+
+
+def _scratch_plant(scene: ModelScene, path: str):
+    """(plant, scene graph) holding ``scene``'s models, finalized, outside any diagram."""
     plant = MultibodyPlant(1e-3)
     scene_graph = SceneGraph()
     plant.RegisterAsSourceForSceneGraph(scene_graph)
@@ -326,3 +347,4 @@ def check_model_scene(scene: ModelScene, path: str) -> None:
         plant.Finalize()
     except Exception as error:
         raise ValueError(f"{path}: {_drake_reason(error)}") from None
+    return plant, scene_graph
