@@ -29,6 +29,7 @@ from pathlib import Path
 from typing import Dict, List, NamedTuple, Optional
 
 import numpy as np
+from pydrake.common.yaml import yaml_dump_typed, yaml_load_typed
 from pydrake.geometry import (
     AddCompliantHydroelasticProperties, AddCompliantHydroelasticPropertiesForHalfSpace,
     AddContactMaterial, AddRigidHydroelasticProperties, CalcVolume, Convex, HalfSpace, Mesh,
@@ -38,13 +39,13 @@ from pydrake.multibody.parsing import (
 from pydrake.multibody.plant import CoulombFriction, MultibodyPlant
 
 from maglev_haptics.diagrams.scene import (
-    HERE, HangingBall, ModelScene, PaddleBall, PegInHole, SceneConfig, SceneTool)
+    HERE, HangingBall, ModelScene, PegInHole, SceneConfig, SceneTool)
 from maglev_haptics.plant_models import PACKAGE_XML
-from maglev_haptics.plant_models.scene_geometry import box_inertia, sphere_inertia
+from maglev_haptics.plant_models.scene_geometry import (
+    box_inertia, hole_block_boxes, sphere_inertia)
 from maglev_haptics.plant_models.scene_sdf import (
     ANCHOR_RGBA, BALL_RGBA, BLOCK_RGBA, PADDLE_RGBA, PEG_RGBA, TABLE_SLAB_M, Part, box_geometry,
     model_sdf, sphere_geometry)
-from maglev_haptics.plant_models.scene_geometry import hole_block_boxes
 
 SMALLEST_VOLUME_M3 = 1e-12  # a collision mesh enclosing less has no inside to press (m^3)
 TOOL_MODEL = "tool"  # a generated tool's model instance; its link is "body"
@@ -134,15 +135,13 @@ def resolve_here(scene: ModelScene, folder: Path) -> ModelScene:
     def resolved(url: str) -> str:
         return url.replace(HERE, here)
 
-    directives = []
-    for directive in scene.directives:
-        directive = ModelDirective(**{f.name: getattr(directive, f.name)
-                                      for f in ModelDirective.__fields__})
-        for kind in ("add_model", "add_directives"):
-            item = getattr(directive, kind)
+    # A copy (through YAML: Drake's config types do not copy), its URLs then replaced.
+    directives = yaml_load_typed(schema=ModelDirectives, data=yaml_dump_typed(
+        ModelDirectives(directives=scene.directives))).directives
+    for directive in directives:
+        for item in (directive.add_model, directive.add_directives):
             if item is not None:
-                setattr(item, "file", resolved(item.file))
-        directives.append(directive)
+                item.file = resolved(item.file)
     return dataclasses.replace(scene, directives=directives, tool=dataclasses.replace(
         scene.tool, file=resolved(scene.tool.file)))
 
@@ -184,10 +183,10 @@ def add_scene_models(plant: MultibodyPlant, scene_graph: SceneGraph, scene: Scen
         except Exception as error:  # Drake's parser: RuntimeError, its YAML's ValueError
             raise ValueError(f"{path}.directives: {_drake_reason(error)}") from None
     # Each model named by the add_model that added it (nested directive files: theirs).
-    index = {d.add_model.name: i for i, d in enumerate(models.directives) if d.add_model}
-    added = [(index.get(info.model_name), info.model_name, info.model_instance)
+    add_model_index = {d.add_model.name: i for i, d in enumerate(models.directives)
+                       if d.add_model}
+    added = [(add_model_index.get(info.model_name), info.model_name, info.model_instance)
              for info in infos]
-    contact = scene.contact
     for i, name, instance in added:
         if not any(plant.GetCollisionGeometriesForBody(plant.get_body(index))
                    for index in plant.GetBodyIndices(instance)):
@@ -198,7 +197,7 @@ def add_scene_models(plant: MultibodyPlant, scene_graph: SceneGraph, scene: Scen
     if not plant.GetCollisionGeometriesForBody(tool):
         raise ValueError(f"{path}.tool: body {tool.scoped_name()} has no collision geometry: "
                          "it would touch nothing")
-    _default_contact(plant, scene_graph, contact, path)
+    _default_contact(plant, scene_graph, scene.contact, path)
     return AddedModels(tool, added)
 
 
@@ -224,8 +223,8 @@ def _add_tool(plant: MultibodyPlant, parser: Parser, models: SceneModels, scene,
 
 
 def _check_tool_body(plant: MultibodyPlant, body, tool: SceneTool, path: str) -> None:
-    """A file's tool body must be free (the coupling moves it) and heavy enough for
-    the explicit coupling (see scene_builder's docstring)."""
+    """A file's tool body must be free (the coupling moves it) and its inertia high
+    enough for the explicit coupling (see scene_builder's docstring)."""
     joints = [joint.name() for joint in map(plant.get_joint, plant.GetJointIndices(
         body.model_instance())) if body in (joint.child_body(), joint.parent_body())]
     if joints:
@@ -318,8 +317,8 @@ def model_scene_warnings(scene: ModelScene) -> List[str]:
             lines.append(
                 f"model {_model_name(plant, inspector, geometry)!r}, geometry "
                 f"{inspector.GetName(geometry)!r}: an OBJ mesh declared compliant; Drake "
-                f"uses its convex hull ({shape.source().description()}), which fills any hollow: declare "
-                "it <drake:rigid_hydroelastic/> or give a tetrahedral .vtk")
+                f"uses its convex hull ({shape.source().description()}), which fills any "
+                "hollow: declare it <drake:rigid_hydroelastic/> or give a tetrahedral .vtk")
     return lines
 
 

@@ -30,7 +30,7 @@ def gear_obj() -> str:
     n = len(profile)
     # Vertices (1-based in OBJ): bottom ring 1..n, top ring n+1..2n, then the caps' centres.
     lines = [f"v {x:.6f} {y:.6f} {z:.6f}" for z in (0.0, THICKNESS_M) for x, y in profile]
-    lines += [f"v 0 0 0", f"v 0 0 {THICKNESS_M:.6f}"]
+    lines += ["v 0 0 0", f"v 0 0 {THICKNESS_M:.6f}"]
     bottom_centre, top_centre = 2 * n + 1, 2 * n + 2
     for i in range(n):
         b0, b1 = i + 1, (i + 1) % n + 1
