@@ -340,8 +340,8 @@ def _check_structure(raw, hint, keys=()) -> None:
 
 
 # What Drake's YAML loader raises on data that does not fit the schema (its Python
-# half asserts, converts with float() and iterates).
-LOAD_ERRORS = (RuntimeError, ValueError, TypeError, AssertionError)
+# half asserts, converts with float(), iterates, and reads a dict field's items).
+LOAD_ERRORS = (RuntimeError, ValueError, TypeError, AssertionError, AttributeError)
 
 
 def _with_only(node, keys):
@@ -451,6 +451,8 @@ def _phrase(hint, name: str = "") -> str:
             items = (f"{item.__name__} mappings" if dataclasses.is_dataclass(item)
                      else "mappings, each " + _phrase(item))
         return f"a list of {items}" + null
+    if typing.get_origin(schema) is dict:
+        return "a mapping" + null
     if _fields(schema) is not None:
         return (f"a mapping of {schema.__name__}'s fields (" + ", ".join(_fields(schema))
                 + ")" + null)

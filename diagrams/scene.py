@@ -163,6 +163,8 @@ class PaddleBall:
 # z) and the hanging ball's anchor (sphere radius) (m).
 TOOL_SHAPES = {"peg": [0.025, 0.025, 0.040], "paddle": [0.08, 0.05, 0.006], "sphere": [0.008]}
 HERE = "{here}"  # in a model URL: the folder of the scenario file that names it
+URL_SCHEMES = ("file://", "package://")  # what Drake's model directives read
+LARGEST_TOOL_M = 1.0  # a built-in tool's size at most (m)
 
 
 @dataclass
@@ -197,6 +199,8 @@ class SceneTool:
         size = self.size()
         vector(f"{path}.size_m", size, len(TOOL_SHAPES[self.shape]), positive=True,
                meaning=f" for a {self.shape}")
+        require(max(size) <= LARGEST_TOOL_M, f"{path}.size_m", size,
+                f"a tool is at most {LARGEST_TOOL_M:g} m across")
         positive(f"{path}.mass_kg", self.mass_kg)
 
     def size(self) -> List[float]:
@@ -227,6 +231,8 @@ class ModelScene:
         The models themselves are checked by ``scene_models.check_model_scene``."""
         require(len(self.directives) > 0, f"{path}.directives", [],
                 "must add at least one model (add_model: {name: ..., file: ...})")
+        for i, directive in enumerate(self.directives):
+            _validate_directive(directive, f"{path}.directives[{i}]")
         self.tool.validate(f"{path}.tool")
         self.contact.validate(f"{path}.contact")
 
@@ -260,6 +266,25 @@ def hanging_drop_m(scene: HangingBall) -> float:
     """Static distance (m) of the ball's centre below the anchor's: rest length + m g / k."""
     return (scene.spring_rest_length_m
             + scene.ball_mass_kg * GRAVITY_M_S2 / scene.spring_stiffness_n_per_m)
+
+
+def _validate_directive(directive: ModelDirective, path: str) -> None:
+    """What Drake's directives need before they are processed: one kind each, and
+    its names and URLs given (Drake reads a directive of no kind as garbage)."""
+    kinds = [f.name for f in ModelDirective.__fields__ if getattr(directive, f.name) is not None]
+    require(len(kinds) == 1, path, "{" + ", ".join(kinds) + "}", "must hold exactly one of "
+            + ", ".join(f.name for f in ModelDirective.__fields__))
+    kind = kinds[0]
+    item = getattr(directive, kind)
+    names = {"add_model": ("name",), "add_model_instance": ("name",), "add_frame": ("name",),
+             "add_weld": ("parent", "child"), "add_collision_filter_group": ("name",)}
+    for name in names.get(kind, ()):
+        require(bool(getattr(item, name)), f"{path}.{kind}.{name}", getattr(item, name),
+                "must name it (a model, or a frame as model::frame)")
+    if kind in ("add_model", "add_directives"):
+        require(item.file.startswith(URL_SCHEMES), f"{path}.{kind}.file", item.file,
+                "must be a file:// or package:// URL (file://{here}/... is beside the "
+                "scenario file)")
 
 
 def _validate_tool(scene: SceneConfig, path: str) -> None:

@@ -24,6 +24,7 @@ rigid mesh; friction and dissipation wherever the model gives none. A half-space
 """
 
 import dataclasses
+import re
 import tempfile
 from pathlib import Path
 from typing import Dict, List, NamedTuple, Optional
@@ -152,6 +153,24 @@ def _drake_reason(error: Exception) -> str:
     return line.strip().removeprefix("error: ").removeprefix("ERROR: ")
 
 
+def _frame_field(directives: List[ModelDirective], reason: str) -> str:
+    """The field (``[i].add_weld.child = 'name'``) that names the frame Drake did not
+    find in ``reason``, or "" if none does."""
+    match = re.search(r"no Frame named '([^']*)'", reason)
+    if match is None:
+        return ""
+    for i, directive in enumerate(directives):
+        weld = directive.add_weld
+        fields = [] if weld is None else [("add_weld.parent", weld.parent),
+                                          ("add_weld.child", weld.child)]
+        if directive.add_frame is not None:
+            fields.append(("add_frame.X_PF.base_frame", directive.add_frame.X_PF.base_frame))
+        for field, value in fields:
+            if value is not None and (value == match[1] or value.endswith(f"::{match[1]}")):
+                return f"[{i}].{field} = {value!r}"
+    return ""
+
+
 class AddedModels(NamedTuple):
     """What ``add_scene_models`` added: the tool's body, and the directives' models
     [(index of the add_model that added it or None, model name, model instance)]."""
@@ -181,7 +200,9 @@ def add_scene_models(plant: MultibodyPlant, scene_graph: SceneGraph, scene: Scen
         try:
             infos = ProcessModelDirectives(ModelDirectives(directives=models.directives), parser)
         except Exception as error:  # Drake's parser: RuntimeError, its YAML's ValueError
-            raise ValueError(f"{path}.directives: {_drake_reason(error)}") from None
+            reason = _drake_reason(error)
+            raise ValueError(f"{path}.directives{_frame_field(models.directives, reason)}: "
+                             f"{reason}") from None
     # Each model named by the add_model that added it (nested directive files: theirs).
     add_model_index = {d.add_model.name: i for i, d in enumerate(models.directives)
                        if d.add_model}

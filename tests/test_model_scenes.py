@@ -272,7 +272,18 @@ WELD = "- add_weld: {parent: world, child: gear::gear}\n"
     ("!ModelScene\ndirectives:\n- add_model: {name: d, file: \"file://{here}/models/no.sdf\"}",
      "haptics.scene.directives: URI 'file://"),
     ("!ModelScene\ndirectives:\n" + GEAR + "- add_weld: {parent: world, child: gear::cog}",
-     "There is no Frame named 'cog'"),
+     "haptics.scene.directives[1].add_weld.child = 'gear::cog': GetFrameByName(): There is "
+     "no Frame named 'cog'"),
+    ("!ModelScene\ndirectives:\n" + GEAR + "- {}",
+     "haptics.scene.directives[1] = '{}': must hold exactly one of add_model,"),
+    ("!ModelScene\ndirectives:\n- add_model: {file: \"file://{here}/models/gear.obj\"}",
+     "haptics.scene.directives[0].add_model.name = '': must name it"),
+    ("!ModelScene\ndirectives:\n- add_model: {name: gear, file: models/gear.obj}",
+     "haptics.scene.directives[0].add_model.file = 'models/gear.obj': must be a file:// or "
+     "package:// URL"),
+    ("!ModelScene\ndirectives:\n- add_model: {name: b, file: \"file://{here}/models/block.sdf\","
+     " default_free_body_pose: 7}",
+     "haptics.scene.directives[0].add_model.default_free_body_pose = 7: must be a mapping"),
     ("!ModelScene\ndirectives:\n" + GEAR + WELD + "tool: {file: \"file://{here}/models/"
      "block.sdf\", body: tip}", "haptics.scene.tool.body = 'tip': no such body in file://"),
     ("!ModelScene\ndirectives:\n" + GEAR + WELD + "tool: {file: \"file://{here}/models/"
@@ -301,7 +312,8 @@ WELD = "- add_weld: {parent: world, child: gear::gear}\n"
     ("!ModelScene\ndirectives: []", "haptics.scene.directives = []: must add at least one"),
     ("!ModelScene\ndirectives:\n" + GEAR + WELD + "friction: 0.3",
      "haptics.scene.friction: unknown field; ModelScene has directives, tool, contact"),
-], ids=["missing obj", "missing sdf", "unknown frame", "unknown tool body", "tool with joints",
+], ids=["missing obj", "missing sdf", "unknown frame", "no kind", "no name", "not a url",
+        "pose not a mapping", "unknown tool body", "tool with joints",
         "light tool", "unknown shape", "wrong size", "no collision", "flat obj", "flat mesh",
         "malformed sdf", "unknown directive", "not a list", "no models", "unknown field"])
 def test_bad_model_scene_is_refused_in_one_line(tmp_path, scene_yaml, message):
