@@ -5,6 +5,12 @@ the instrument, and rigid objects it touches.
 SceneGraph ("scene_graph"): the physical world (instrument, display glass) lives
 in the station's plant, so virtual and real bodies never collide.
 
+Its models come from ``diagrams/scene_models.py`` (the tool first, then the
+scene's model directives, a ``ModelScene``'s or those the paper scenes
+generate); the paper scenes' table and spring are added here. What follows on
+contact is the paper scenes'; a ``ModelScene`` takes what its models declare,
+else its ``contact`` defaults (scene_models.py).
+
 The tool is a free body driven only by an explicit external wrench (the virtual
 coupling's ``wrench_on_tool_W``, [fx, fy, fz, tx, ty, tz] in W, N and N*m about
 the tool's origin); its gravity is off, because the user should not feel the
