@@ -251,6 +251,11 @@ def _check_tool_body(plant: MultibodyPlant, body, tool: SceneTool, path: str) ->
     if joints:
         raise ValueError(f"{path}.tool.body = {tool.body!r}: has joints ({', '.join(joints)}); "
                          "the tool must be a free body, moved only by the coupling")
+    others = [plant.get_body(index).name() for index in plant.GetBodyIndices(
+        body.model_instance()) if index != body.index()]
+    if others:
+        raise ValueError(f"{path}.tool.file = {tool.file!r}: holds other bodies besides "
+                         f"{tool.body!r} ({', '.join(others)}); a tool's model is its one body")
     M_BBo = body.default_spatial_inertia()
     moments = np.linalg.eigvalsh(  # principal moments about the centre of mass (kg*m^2)
         M_BBo.Shift(M_BBo.get_com()).CalcRotationalInertia().CopyToFullMatrix3())

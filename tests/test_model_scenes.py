@@ -254,6 +254,11 @@ def _scenario_file(tmp_path, scene_yaml: str):
         '<?xml version="1.0"?><sdf version="1.9"><model name="sheet"><static>true</static>'
         '<link name="sheet"><collision name="c"><geometry><mesh><uri>flat.obj</uri></mesh>'
         "</geometry></collision></link></model></sdf>")
+    (tmp_path / "models" / "two.sdf").write_text(
+        '<?xml version="1.0"?><sdf version="1.9"><model name="two">'
+        + "".join(f'<link name="{name}"><collision name="c"><geometry><sphere><radius>0.005'
+                  "</radius></sphere></geometry></collision></link>" for name in "ab")
+        + "</model></sdf>")
     (tmp_path / "models" / "broken.sdf").write_text('<?xml version="1.0"?><sdf version="1.9">'
                                                      "<model name='x'><link")
     path = tmp_path / "scene.yaml"
@@ -289,6 +294,8 @@ WELD = "- add_weld: {parent: world, child: gear::gear}\n"
     ("!ModelScene\ndirectives:\n" + GEAR + WELD + "tool: {file: \"file://{here}/models/"
      "door.urdf\", body: panel}", "haptics.scene.tool.body = 'panel': has joints (hinge)"),
     ("!ModelScene\ndirectives:\n" + GEAR + WELD + "tool: {file: \"file://{here}/models/"
+     "two.sdf\", body: a}", "haptics.scene.tool.file = 'file://"),
+    ("!ModelScene\ndirectives:\n" + GEAR + WELD + "tool: {file: \"file://{here}/models/"
      "block.sdf\", body: block, min_inertia_kg_m2: 1e-5}",
      "haptics.scene.tool.body = 'block': its smallest principal moment of inertia"),
     ("!ModelScene\ndirectives:\n" + GEAR + WELD + "tool: {shape: cube}",
@@ -313,7 +320,7 @@ WELD = "- add_weld: {parent: world, child: gear::gear}\n"
     ("!ModelScene\ndirectives:\n" + GEAR + WELD + "friction: 0.3",
      "haptics.scene.friction: unknown field; ModelScene has directives, tool, contact"),
 ], ids=["missing obj", "missing sdf", "unknown frame", "no kind", "no name", "not a url",
-        "pose not a mapping", "unknown tool body", "tool with joints",
+        "pose not a mapping", "unknown tool body", "tool with joints", "tool among others",
         "light tool", "unknown shape", "wrong size", "no collision", "flat obj", "flat mesh",
         "malformed sdf", "unknown directive", "not a list", "no models", "unknown field"])
 def test_bad_model_scene_is_refused_in_one_line(tmp_path, scene_yaml, message):
