@@ -171,9 +171,9 @@ LARGEST_TOOL_M = 1.0  # a built-in tool's size at most (m)
 class SceneTool:
     """A model scene's tool: a built-in shape, or (with ``file``) a body of a model
     file. Its frame T is at the grip (I's origin when relaxed). A built-in shape is
-    centred at ``tool_offset_m`` in T; a file's body frame is T itself, its shape
-    and inertia as the file says (each principal moment raised to
-    ``min_inertia_kg_m2``)."""
+    centred at ``tool_offset_m`` in T, its principal moments raised to
+    ``min_inertia_kg_m2``; a file's body frame is T itself, its shape and inertia
+    as the file says (a body whose moments fall short is refused)."""
 
     shape: str = "sphere"  # peg or paddle (boxes), sphere; unused with file
     # peg, paddle: x, y, z; sphere: [radius] (m); null: the shape's TOOL_SHAPES size
