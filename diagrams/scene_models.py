@@ -331,7 +331,7 @@ def _model_name(plant: MultibodyPlant, inspector, geometry) -> str:
 def model_scene_warnings(scene: ModelScene) -> List[str]:
     """A line for each OBJ mesh declared compliant: Drake replaces it by its convex
     hull, which fills any hollow (a bowl, a hole)."""
-    plant, scene_graph = _scratch_plant(scene, "scene")
+    plant, scene_graph, _ = _scratch_plant(scene, "scene")
     inspector = scene_graph.model_inspector()
     lines = []
     for geometry in inspector.GetAllGeometryIds(Role.kProximity):
@@ -363,13 +363,31 @@ def check_model_scene(scene: ModelScene, path: str) -> None:
 
 
 def _scratch_plant(scene: ModelScene, path: str):
-    """(plant, scene graph) holding ``scene``'s models, finalized, outside any diagram."""
+    """(plant, scene graph, tool body) of ``scene``'s models, finalized, outside any
+    diagram."""
     plant = MultibodyPlant(1e-3)
     scene_graph = SceneGraph()
     plant.RegisterAsSourceForSceneGraph(scene_graph)
-    add_scene_models(plant, scene_graph, scene, path)
+    tool_body = add_scene_models(plant, scene_graph, scene, path).tool_body
     try:
         plant.Finalize()
     except Exception as error:
         raise ValueError(f"{path}: {_drake_reason(error)}") from None
-    return plant, scene_graph
+    return plant, scene_graph, tool_body
+
+
+def grip_inverse_mass_per_kg(M_BBo) -> float:
+    """The largest inverse mass (1/kg) a free body presents to a force at its origin
+    Bo, whatever the force's direction: 1/m + the largest eigenvalue of
+    S I_Bcm^-1 S^T, S the cross-product matrix of p_BoBcm, since a force off the
+    centre of mass also turns the body. ``M_BBo`` is its SpatialInertia about Bo."""
+    p = M_BBo.get_com()
+    S = np.array([[0.0, -p[2], p[1]], [p[2], 0.0, -p[0]], [-p[1], p[0], 0.0]])
+    I_Bcm = M_BBo.Shift(p).CalcRotationalInertia().CopyToFullMatrix3()
+    return 1.0 / M_BBo.get_mass() + float(np.linalg.eigvalsh(S @ np.linalg.solve(I_Bcm, S.T))[-1])
+
+
+def tool_grip_inverse_mass_per_kg(scene: ModelScene) -> float:
+    """grip_inverse_mass_per_kg of the scene's tool, at its frame T (1/kg)."""
+    _, _, tool_body = _scratch_plant(scene, "scene")
+    return grip_inverse_mass_per_kg(tool_body.default_spatial_inertia())

@@ -365,6 +365,12 @@ def test_warnings_at_load_name_a_compliant_obj_and_a_costly_step(tmp_path):
                                                control_rate_hz=1e5), "push_block")
     assert len(lines) == 1 and "a step of its plant costs" in lines[0]
     assert scene_warnings(load_scenario("gear_trace"), "gear_trace") == []  # ~20 us a step
+    # A tool 50 mm below the grip turns under a push there: 1.8 g against the damper.
+    far = load_scenario("door", scenario_text="{haptics: {scene: !ModelScene {tool: "
+                        "{tool_offset_m: [0, 0, -0.05]}}}}")
+    lines = scene_warnings(far, "door")
+    assert len(lines) == 1 and "a force at the grip meets as little as 1.8 g" in lines[0]
+    assert "b h / m = 2.7" in lines[0]  # 5 N s/m x 1 ms x (1 / 20 g + (50 mm)^2 / 5e-6)
     assert scene_warnings(load_scenario("peg_in_hole"), "peg_in_hole") == []
 
 
