@@ -1,5 +1,6 @@
 """Every rigid scene as Drake models in the scene's plant, by one path: the tool's
-model first (its body then leads the plant's state), the scene's models by Drake
+model first (its body then leads the free bodies in the plant's state, after any
+joints'), the scene's models by Drake
 model directives (``ProcessModelDirectives``), then hydroelastic properties for
 every collision geometry that declares none.
 
@@ -67,9 +68,8 @@ class SceneModels(NamedTuple):
 GENERATED = "{generated}"  # in a generated directive's URL: the folder of its text
 
 
-def _add_generated(name: str, **pose) -> ModelDirective:
-    return ModelDirective(add_model=AddModel(name=name, file=f"file://{GENERATED}/{name}.sdf",
-                                             **pose))
+def _add_generated(name: str) -> ModelDirective:
+    return ModelDirective(add_model=AddModel(name=name, file=f"file://{GENERATED}/{name}.sdf"))
 
 
 def tool_sdf(scene: SceneConfig) -> str:
