@@ -139,7 +139,7 @@ def _load(args):
 
 
 def _cmd_run(args) -> int:
-    from maglev_haptics.diagrams.haptics import interactive_variant
+    from maglev_haptics.diagrams.haptics import interactive_variant, scene_warnings
     from maglev_haptics.analysis.run_metrics import for_people
     from maglev_haptics.analysis.run_results import run_scenario
     from maglev_haptics.diagrams.meshcat_lifetime import close_meshcat
@@ -167,7 +167,8 @@ def _cmd_run(args) -> int:
         duration = scenario.duration_s
     validate_scenario(scenario, label)
     out = _writable_folder(Path(args.out) if args.out else Path("out") / label.replace(":", "-"))
-    for line in thermal_outlook(scenario, label) + stability_warnings(scenario, label):
+    for line in (thermal_outlook(scenario, label) + stability_warnings(scenario, label)
+                 + scene_warnings(scenario, label)):
         print(line)
     if args.interactive:
         print("interactive: move the hand with the sliders in Meshcat's Controls panel; "

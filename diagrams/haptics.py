@@ -18,7 +18,7 @@ or from Meshcat's controls.
 import dataclasses
 import math
 from dataclasses import dataclass
-from typing import Optional
+from typing import List, Optional
 
 import numpy as np
 from pydrake.geometry import Meshcat
@@ -29,7 +29,10 @@ from pydrake.trajectories import PiecewisePolynomial
 from maglev_haptics.diagrams.deformable_scene import AddDeformableScene, DeformableSurface
 from maglev_haptics.diagrams.hand_script import MeshcatHand, hand_plan
 from maglev_haptics.diagrams.scenario import Scenario
-from maglev_haptics.diagrams.scene_builder import AddScene
+from maglev_haptics.diagrams.scene import ModelScene
+from maglev_haptics.diagrams.scene_builder import AddScene, measure_step_cost_s
+from maglev_haptics.diagrams.scene_models import (
+    model_scene_warnings, tool_grip_inverse_mass_per_kg)
 from maglev_haptics.diagrams.station import (
     hand_start_pose, hand_start_transform, rest_transform)
 from maglev_haptics.hardware.limits import device_limits
@@ -167,6 +170,46 @@ def AddHaptics(builder, *, scenario: Scenario, magnetics, station, estimator, co
                     controller.GetInputPort("wrench_feedforward_W"))
     return HapticParts(scene=scene, coupling=coupling, supervisor=supervisor,
                        coupling_config=config)
+
+
+# A scene plant whose step costs more than this share of the tick gets a warning
+# at load: with the rest of the loop (~0.3 ms a tick) it would fall behind.
+STEP_COST_WARNING_FRACTION = 0.5
+
+
+def scene_warnings(scenario: Scenario, label: str) -> List[str]:
+    """A line for each thing about a model scene that runs but not as a user may
+    expect: an OBJ declared compliant (its convex hull is used), a tool too light
+    at the grip for the explicit coupling, a plant step too costly for the tick
+    (measured here); none for the shipped kinds of scene."""
+    if scenario.haptics is None or not isinstance(scenario.haptics.scene, ModelScene):
+        return []
+    scene = scenario.haptics.scene
+    lines = [f"warning: {label}: haptics.scene: {line}" for line in model_scene_warnings(scene)]
+    period_s = 1.0 / scenario.control_rate_hz
+    # The explicit coupling holds a tool if k h^2 / m < 1 and b h / m < 2 (see
+    # scene_builder), m the least mass the tool shows a force at its grip.
+    inverse_mass = tool_grip_inverse_mass_per_kg(scene)
+    coupling = scenario.haptics.coupling
+    ratios = (max(coupling.translational_stiffness) * period_s**2 * inverse_mass,
+              max(coupling.translational_damping) * period_s * inverse_mass / 2)
+    if max(ratios) >= 1.0:
+        lines.append(
+            f"warning: {label}: haptics.scene.tool: a force at the grip meets as little as "
+            f"{1e3 / inverse_mass:.2g} g (a centre of mass off the grip turns the tool), too "
+            f"light for the coupling's {max(coupling.translational_stiffness):g} N/m and "
+            f"{max(coupling.translational_damping):g} N s/m at {1e3 * period_s:g} ms "
+            f"(k h^2 / m = {ratios[0]:.2g}, b h / m = {2 * ratios[1]:.2g}; stable needs < 1 "
+            "and < 2): the tool will oscillate; bring its centre of mass nearer the grip "
+            "(tool_offset_m) or raise min_inertia_kg_m2")
+    cost_s = measure_step_cost_s(scene, period_s, hand_start_transform(scenario))
+    if cost_s > STEP_COST_WARNING_FRACTION * period_s:
+        lines.append(
+            f"warning: {label}: haptics.scene: a step of its plant costs {1e6 * cost_s:.0f} us "
+            f"here, more than {STEP_COST_WARNING_FRACTION:.0%} of the {1e6 * period_s:.0f} us "
+            "tick, before the tool touches anything: the run will fall behind real time; "
+            "simplify its collision geometry (fewer, coarser meshes; primitives)")
+    return lines
 
 
 INTERACTIVE_DURATION_S = 600.0  # an interactive run lasts this long unless told (s)

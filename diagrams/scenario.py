@@ -25,7 +25,8 @@ from maglev_haptics.diagrams.lcm_station import LcmStation, SimStation
 from maglev_haptics.diagrams.scenario_files import (  # noqa: F401  (the light half, re-exported)
     LONGEST_S, SCENARIO_DIR, ScenarioError, resolve_scenario_file, scenario_names,
     shipped_scenario_files, yaml_error)
-from maglev_haptics.diagrams.scene import HangingBall, PaddleBall, PegInHole
+from maglev_haptics.diagrams.scene import HERE, HangingBall, ModelScene, PaddleBall, PegInHole
+from maglev_haptics.diagrams.scene_models import check_model_scene, resolve_here
 from maglev_haptics.diagrams.stereo_display import StereoConfig
 from maglev_haptics.diagrams.waypoints import Waypoint
 from maglev_haptics.hardware.config_checks import nonnegative, positive, require, vector
@@ -99,7 +100,7 @@ class Haptics:
     gripped; it is requested until ``disable_at_s`` (null: to the end).
     """
 
-    scene: Union[PegInHole, HangingBall, PaddleBall, DeformableSurface] = field(
+    scene: Union[PegInHole, HangingBall, PaddleBall, ModelScene, DeformableSurface] = field(
         default_factory=PegInHole)
     coupling: CouplingConfig = field(default_factory=CouplingConfig)
     supervisor: SupervisorConfig = field(default_factory=SupervisorConfig)
@@ -112,6 +113,8 @@ class Haptics:
     def validate(self, path: str = "haptics") -> None:
         """Range checks; a ValueError names ``path.field``, its value and what is allowed."""
         self.scene.validate(f"{path}.scene")
+        if isinstance(self.scene, ModelScene):
+            check_model_scene(self.scene, f"{path}.scene")
         require(self.scene_stepping in ("worker", "in_place"), f"{path}.scene_stepping",
                 self.scene_stepping, "one of worker, in_place")
         nonnegative(f"{path}.enable_at_s", self.enable_at_s)
@@ -339,8 +342,8 @@ def _check_structure(raw, hint, keys=()) -> None:
 
 
 # What Drake's YAML loader raises on data that does not fit the schema (its Python
-# half asserts, converts with float() and iterates).
-LOAD_ERRORS = (RuntimeError, ValueError, TypeError, AssertionError)
+# half asserts, converts with float(), iterates, and reads a dict field's items).
+LOAD_ERRORS = (RuntimeError, ValueError, TypeError, AssertionError, AttributeError)
 
 
 def _with_only(node, keys):
@@ -450,6 +453,8 @@ def _phrase(hint, name: str = "") -> str:
             items = (f"{item.__name__} mappings" if dataclasses.is_dataclass(item)
                      else "mappings, each " + _phrase(item))
         return f"a list of {items}" + null
+    if typing.get_origin(schema) is dict:
+        return "a mapping" + null
     if _fields(schema) is not None:
         return (f"a mapping of {schema.__name__}'s fields (" + ", ".join(_fields(schema))
                 + ")" + null)
@@ -473,22 +478,27 @@ def load_scenario(name_or_path: str, name: Optional[str] = None,
     scenario = _load_typed(label, raw[name] or {}, lambda: yaml_load_typed(
         schema=Scenario, data=text, child_name=name, defaults=Scenario()),
         lambda cut: yaml_load_typed(schema=Scenario, data=yaml_dump(cut), defaults=Scenario()))
-    _resolve_relative_files(scenario, path.absolute().parent)
+    _resolve_relative_files(scenario, path.absolute().parent, path.parent)
     for layer in (scenario_text, *more_text):
         scenario = _layer(scenario, layer, label)
-        _resolve_relative_files(scenario, Path.cwd())
+        _resolve_relative_files(scenario, Path.cwd(), path.parent)
+    if scenario.haptics is not None and isinstance(scenario.haptics.scene, ModelScene):
+        scenario = dataclasses.replace(scenario, haptics=dataclasses.replace(
+            scenario.haptics, scene=resolve_here(scenario.haptics.scene, path.parent)))
     validate_scenario(scenario, label)
     return scenario
 
 
-def _resolve_relative_files(scenario: Scenario, folder: Path) -> None:
-    """Make a relative image heightmap ``file`` absolute against ``folder``: the
-    scenario file's folder for what that file names, the working directory for
-    --scenario-text (a path already absolute, from an earlier text, stays)."""
+def _resolve_relative_files(scenario: Scenario, folder: Path, here: Path) -> None:
+    """Make an image heightmap's ``file`` absolute: ``{here}`` is the scenario file's
+    folder ``here`` (as in a model scene's URLs); a relative path is against
+    ``folder``: the scenario file's for what that file names, the working directory
+    for --scenario-text (a path already absolute, from an earlier text, stays)."""
     scene = scenario.haptics.scene if scenario.haptics is not None else None
     heightmap = scene.heightmap if isinstance(scene, DeformableSurface) else None
     if isinstance(heightmap, ImageHeightmap) and heightmap.file:
-        heightmap.file = str(folder / Path(heightmap.file).expanduser())
+        file = heightmap.file.replace(HERE, str(here.resolve()))
+        heightmap.file = str(folder / Path(file).expanduser())
 
 
 def _layer(scenario: Scenario, text: str, label: str) -> Scenario:

@@ -6,11 +6,17 @@ checks. ``diagrams/scene_builder.py`` adds them to a diagram.
   with a rectangular hole through it, so the hole's floor is the table;
 - ``HangingBall``: a small anchor sphere (the tool) with a ball hung from it by a
   ``LinearSpringDamper``, over a table;
-- ``PaddleBall``: a paddle (the tool) and a ball dropped onto it, over a table.
+- ``PaddleBall``: a paddle (the tool) and a ball dropped onto it, over a table;
+- ``ModelScene``: the user's own models (SDFormat, URDF, MJCF, OBJ) placed by
+  Drake model directives, and a tool that is a built-in shape or a body of a
+  model file (``diagrams/scene_models.py`` turns every kind into Drake models).
 """
 
 from dataclasses import dataclass, field
 from typing import List, Optional, Union
+
+from pydrake.common.yaml import yaml_dump_typed, yaml_load_typed
+from pydrake.multibody.parsing import ModelDirective, ModelDirectives
 
 from maglev_haptics.hardware.config_checks import finite, nonnegative, positive, require, vector
 from maglev_haptics.hardware.constants import GRAVITY_M_S2
@@ -153,12 +159,104 @@ class PaddleBall:
         vector(f"{path}.ball_start_m", self.ball_start_m)
 
 
-SceneConfig = Union[PegInHole, HangingBall, PaddleBall]
+# A built-in tool shape's default size_m: the paper scenes' peg and paddle (box x, y,
+# z) and the hanging ball's anchor (sphere radius) (m).
+TOOL_SHAPES = {"peg": [0.025, 0.025, 0.040], "paddle": [0.08, 0.05, 0.006], "sphere": [0.008]}
+HERE = "{here}"  # in a model URL: the folder of the scenario file that names it
+URL_SCHEMES = ("file://", "package://")  # what Drake's model directives read
+LARGEST_TOOL_M = 1.0  # a built-in tool's size at most (m)
+
+
+@dataclass
+class SceneTool:
+    """A model scene's tool: a built-in shape, or (with ``file``) a body of a model
+    file. Its frame T is at the grip (I's origin when relaxed). A built-in shape is
+    centred at ``tool_offset_m`` in T, its principal moments raised to
+    ``min_inertia_kg_m2``; a file's body frame is T itself, its shape and inertia
+    as the file says (a body whose moments fall short is refused)."""
+
+    shape: str = "sphere"  # peg or paddle (boxes), sphere; unused with file
+    # peg, paddle: x, y, z; sphere: [radius] (m); null: the shape's TOOL_SHAPES size
+    size_m: Optional[List[float]] = None
+    mass_kg: float = 0.020  # a built-in shape's (kg); >= 10 g for the explicit coupling
+    min_inertia_kg_m2: float = 5e-6  # floor of the tool's principal moments (kg*m^2)
+    tool_offset_m: List[float] = field(default_factory=lambda: [0.0, 0.0, -0.025])  # (m)
+    file: str = ""  # a model URL (file://, package://; {here} as in directives); "": shape
+    body: str = ""  # the tool's body in that file's model
+
+    def validate(self, path: str) -> None:
+        nonnegative(f"{path}.min_inertia_kg_m2", self.min_inertia_kg_m2)
+        vector(f"{path}.tool_offset_m", self.tool_offset_m)
+        if self.file:
+            require(bool(self.body), f"{path}.body", self.body,
+                    f"must name the tool's body in {self.file}")
+            return
+        require(not self.body, f"{path}.body", self.body,
+                "needs file: the model file that holds the body (or leave body out for a "
+                "built-in shape)")
+        require(self.shape in TOOL_SHAPES, f"{path}.shape", self.shape,
+                f"must be one of {', '.join(TOOL_SHAPES)}")
+        size = self.size()
+        vector(f"{path}.size_m", size, len(TOOL_SHAPES[self.shape]), positive=True,
+               meaning=f" for a {self.shape}")
+        require(max(size) <= LARGEST_TOOL_M, f"{path}.size_m", size,
+                f"a tool is at most {LARGEST_TOOL_M:g} m across")
+        positive(f"{path}.mass_kg", self.mass_kg)
+
+    def size(self) -> List[float]:
+        """size_m, or the shape's default (m)."""
+        return TOOL_SHAPES.get(self.shape, []) if self.size_m is None else self.size_m
+
+
+@dataclass
+class ModelScene:
+    """The user's own models as the scene: Drake model directives (``add_model`` with
+    a ``file://`` or ``package://`` URL, ``add_weld``, ``add_frame``; Drake's
+    ModelDirective type, processed by ProcessModelDirectives). ``{here}`` in a URL
+    is the scenario file's folder; ``package://maglev_haptics/`` is
+    ``plant_models/``. Welded models are static; free bodies move, with gravity;
+    the tool has none. An OBJ added directly is one body named after its model
+    (``part::part``).
+
+    Collision geometries that declare no hydroelastic properties get ``contact``'s:
+    compliant, except OBJ meshes (rigid: Drake's compliant meshes are tetrahedral
+    ``.vtk`` files; an OBJ declared compliant becomes its convex hull)."""
+
+    directives: List[ModelDirective] = field(default_factory=list)
+    tool: SceneTool = field(default_factory=SceneTool)
+    contact: ContactProperties = field(default_factory=ContactProperties)
+
+    def validate(self, path: str = "scene") -> None:
+        """Range checks; a ValueError names ``path.field``, its value and what is allowed.
+        The models themselves are checked by ``scene_models.check_model_scene``."""
+        require(len(self.directives) > 0, f"{path}.directives", [],
+                "must add at least one model (add_model: {name: ..., file: ...})")
+        for i, directive in enumerate(self.directives):
+            _validate_directive(directive, f"{path}.directives[{i}]")
+        self.tool.validate(f"{path}.tool")
+        self.contact.validate(f"{path}.contact")
+
+    # Drake's config types do not pickle; a scene worker gets its directives as YAML.
+    def __getstate__(self):
+        state = dict(self.__dict__)
+        state["directives"] = yaml_dump_typed(ModelDirectives(directives=self.directives))
+        return state
+
+    def __setstate__(self, state):
+        state = dict(state)
+        state["directives"] = yaml_load_typed(schema=ModelDirectives,
+                                              data=state["directives"]).directives
+        self.__dict__.update(state)
+
+
+SceneConfig = Union[PegInHole, HangingBall, PaddleBall, ModelScene]
 
 
 def table_top_z(scene: SceneConfig) -> Optional[float]:
     """z of the table's top in W (m), None without a table. Under the peg's plate it
-    is the hole's floor."""
+    is the hole's floor. A model scene's table, if any, is one of its models."""
+    if isinstance(scene, ModelScene):
+        return None
     if isinstance(scene, PegInHole):
         return scene.hole_center_m[2] - scene.hole_size_m[2]
     return scene.table_z_m
@@ -168,6 +266,25 @@ def hanging_drop_m(scene: HangingBall) -> float:
     """Static distance (m) of the ball's centre below the anchor's: rest length + m g / k."""
     return (scene.spring_rest_length_m
             + scene.ball_mass_kg * GRAVITY_M_S2 / scene.spring_stiffness_n_per_m)
+
+
+def _validate_directive(directive: ModelDirective, path: str) -> None:
+    """What Drake's directives need before they are processed: one kind each, and
+    its names and URLs given (Drake reads a directive of no kind as garbage)."""
+    kinds = [f.name for f in ModelDirective.__fields__ if getattr(directive, f.name) is not None]
+    require(len(kinds) == 1, path, "{" + ", ".join(kinds) + "}", "must hold exactly one of "
+            + ", ".join(f.name for f in ModelDirective.__fields__))
+    kind = kinds[0]
+    item = getattr(directive, kind)
+    names = {"add_model": ("name",), "add_model_instance": ("name",), "add_frame": ("name",),
+             "add_weld": ("parent", "child"), "add_collision_filter_group": ("name",)}
+    for name in names.get(kind, ()):
+        require(bool(getattr(item, name)), f"{path}.{kind}.{name}", getattr(item, name),
+                "must name it (a model, or a frame as model::frame)")
+    if kind in ("add_model", "add_directives"):
+        require(item.file.startswith(URL_SCHEMES), f"{path}.{kind}.file", item.file,
+                "must be a file:// or package:// URL (file://{here}/... is beside the "
+                "scenario file)")
 
 
 def _validate_tool(scene: SceneConfig, path: str) -> None:

@@ -5,6 +5,12 @@ the instrument, and rigid objects it touches.
 SceneGraph ("scene_graph"): the physical world (instrument, display glass) lives
 in the station's plant, so virtual and real bodies never collide.
 
+Its models come from ``diagrams/scene_models.py`` (the tool first, then the
+scene's model directives, a ``ModelScene``'s or those the paper scenes
+generate); the paper scenes' table and spring are added here. What follows on
+contact is the paper scenes'; a ``ModelScene`` takes what its models declare,
+else its ``contact`` defaults (scene_models.py).
+
 The tool is a free body driven only by an explicit external wrench (the virtual
 coupling's ``wrench_on_tool_W``, [fx, fy, fz, tx, ty, tz] in W, N and N*m about
 the tool's origin); its gravity is off, because the user should not feel the
@@ -66,13 +72,13 @@ bottom lands exactly on the table, which takes round numbers in a noiseless test
 (the tracker's noise keeps the haptic runs off it).
 """
 
+import time
 from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
 from pydrake.geometry import DefaultProximityProperties, SceneGraph, SceneGraphConfig
 from pydrake.math import RigidTransform
-from pydrake.multibody.parsing import Parser
 from pydrake.multibody.plant import (
     AddMultibodyPlant, ApplyMultibodyPlantConfig, MultibodyPlant, MultibodyPlantConfig)
 from pydrake.multibody.tree import LinearSpringDamper, RigidBody
@@ -81,14 +87,12 @@ from pydrake.systems.primitives import Demultiplexer, MatrixGain, ZeroOrderHold
 from pydrake.systems.rendering import MultibodyPositionToGeometryPose
 
 from maglev_haptics.diagrams.scene import (
-    ContactProperties, HangingBall, PaddleBall, PegInHole, SceneConfig, hanging_drop_m,
-    table_top_z)
+    HangingBall, ModelScene, PaddleBall, PegInHole, SceneConfig, hanging_drop_m, table_top_z)
+from maglev_haptics.diagrams.scene_models import add_scene_models
 from maglev_haptics.hardware.config_checks import positive
 from maglev_haptics.plant_models.scene_geometry import (
-    Solid, box_inertia, hole_block_boxes, solid_bottom_z, solid_overlaps_box, sphere_inertia)
-from maglev_haptics.plant_models.scene_sdf import (
-    ANCHOR_RGBA, BALL_RGBA, BLOCK_RGBA, PADDLE_RGBA, PEG_RGBA, Part, box_geometry, model_sdf,
-    register_table, sphere_geometry)
+    Solid, hole_block_boxes, solid_bottom_z, solid_overlaps_box)
+from maglev_haptics.plant_models.scene_sdf import register_table
 from maglev_haptics.systems.remote_scene import RemoteScene
 from maglev_haptics.systems.scene_worker import CONTACT, STEP, SceneWorker
 from maglev_haptics.systems.tool_contact import ToolContactSensor
@@ -159,40 +163,6 @@ def wrench_to_generalized_force(velocity_start: int, num_velocities: int) -> np.
 
 
 
-def tool_sdf(scene: SceneConfig) -> str:
-    """The tool's model "tool": its link's frame is T (at the grip, I's origin when
-    relaxed); the tool's shape and centre of mass are at ``tool_offset_m`` in T."""
-    p_TA = tuple(float(v) for v in scene.tool_offset_m)
-    if isinstance(scene, PegInHole):
-        mass, solid = scene.peg_mass_kg, box_inertia(scene.peg_mass_kg, scene.peg_size_m)
-        part = Part("peg", box_geometry(scene.peg_size_m), p_TA, PEG_RGBA)
-    elif isinstance(scene, HangingBall):
-        mass = scene.anchor_mass_kg
-        solid = sphere_inertia(mass, scene.anchor_radius_m)
-        part = Part("anchor", sphere_geometry(scene.anchor_radius_m), p_TA, ANCHOR_RGBA)
-    else:
-        mass, solid = scene.paddle_mass_kg, box_inertia(scene.paddle_mass_kg, scene.paddle_size_m)
-        part = Part("paddle", box_geometry(scene.paddle_size_m), p_TA, PADDLE_RGBA)
-    inertia = np.maximum(solid, scene.min_inertia_kg_m2)
-    return model_sdf("tool", [part], scene.contact, compliant=False, mass_kg=mass,
-                     inertia_kg_m2=inertia, p_LCm=p_TA)
-
-
-def ball_sdf(radius_m: float, mass_kg: float, contact: ContactProperties) -> str:
-    part = Part("ball", sphere_geometry(radius_m), (0, 0, 0), BALL_RGBA)
-    return model_sdf("ball", [part], contact, mass_kg=mass_kg,
-                     inertia_kg_m2=sphere_inertia(mass_kg, radius_m))
-
-
-def block_sdf(scene: PegInHole) -> str:
-    """The static plate "block": its four walls on one body, placed in W."""
-    parts = [Part(name, box_geometry(size), centre, BLOCK_RGBA)
-             for name, centre, size in hole_block_boxes(scene.block_size_m, scene.hole_size_m,
-                                                        scene.hole_center_m)]
-    return model_sdf("block", parts, scene.contact)
-
-
-
 SCENE_STEPPING = ("worker", "in_place")
 
 
@@ -201,29 +171,23 @@ def _add_models(plant: MultibodyPlant, scene_graph: SceneGraph, scene: SceneConf
     """The scene's models in ``plant`` (registered with ``scene_graph``), which is
     then finalized, the tool at X_WT and the balls at their starts. Returns
     (tool body, ball body or None)."""
-    parser = Parser(plant)
-    tool = parser.AddModelsFromString(tool_sdf(scene), "sdf")[0]
-    plant.set_gravity_enabled(tool, False)
-    ball = None
-    if isinstance(scene, PegInHole):
-        parser.AddModelsFromString(block_sdf(scene), "sdf")
-    else:
-        ball = parser.AddModelsFromString(
-            ball_sdf(scene.ball_radius_m, scene.ball_mass_kg, scene.contact), "sdf")[0]
+    tool_body = add_scene_models(plant, scene_graph, scene).tool_body
+    ball_body = None
+    if isinstance(scene, (HangingBall, PaddleBall)):
+        ball_body = plant.GetBodyByName("body", plant.GetModelInstanceByName("ball"))
     table_z = table_top_z(scene)
     if table_z is not None:
         # The soft side against the table: the table itself under the rigid peg, the
         # compliant balls over a rigid table (Drake has no hydroelastic contact of a
         # compliant body with a compliant half-space).
         register_table(plant, table_z, scene.contact, compliant=isinstance(scene, PegInHole))
+    if table_z is not None or isinstance(scene, ModelScene):
         # SceneGraph back-fills a resolution hint (0.02 m) into every geometry without
-        # one, which enrols the table's half-space for deformable contact, where Drake
-        # warns it cannot take part. Every other scene geometry states its own hint.
+        # one, which enrols a half-space for deformable contact, where Drake warns it
+        # cannot take part. Every other scene geometry states its own hint.
         scene_graph.set_config(SceneGraphConfig(
             default_proximity_properties=DefaultProximityProperties(resolution_hint=None)))
-    tool_body = plant.GetBodyByName("body", tool)
-    ball_body = None if ball is None else plant.GetBodyByName("body", ball)
-    p_TA = np.asarray(scene.tool_offset_m, dtype=float)  # the tool's centre in T (m)
+    p_TA = np.asarray(getattr(scene, "tool_offset_m", [0.0, 0.0, 0.0]), dtype=float)  # in T (m)
     if isinstance(scene, HangingBall):
         plant.AddForceElement(LinearSpringDamper(
             tool_body, p_TA, ball_body, np.zeros(3), scene.spring_rest_length_m,
@@ -267,7 +231,8 @@ def AddScene(builder: DiagramBuilder, *, scene: SceneConfig, time_step_s: float,
         raise ValueError(f"stepping = {stepping!r}: one of {', '.join(SCENE_STEPPING)}")
     X_IT = RigidTransform()
     X_WT = X_WI_start @ X_IT
-    overlap = start_overlap(scene, X_WT @ RigidTransform(np.asarray(scene.tool_offset_m, float)))
+    overlap = None if isinstance(scene, ModelScene) else start_overlap(
+        scene, X_WT @ RigidTransform(np.asarray(scene.tool_offset_m, float)))
     if overlap is not None:
         raise ValueError(
             f"X_WI_start (p_WI = {np.round(X_WI_start.translation(), 6).tolist()} m): {overlap}; "
@@ -313,13 +278,15 @@ def AddScene(builder: DiagramBuilder, *, scene: SceneConfig, time_step_s: float,
         contact_wrench_output=contact_wrench, in_contact_output=in_contact)
 
 
-def _first(builder: DiagramBuilder, name: str, port: OutputPort, size: int) -> OutputPort:
-    """The first ``size`` elements of ``port``."""
-    if port.size() == size:
+def _part(builder: DiagramBuilder, name: str, port: OutputPort, start: int,
+          size: int) -> OutputPort:
+    """Elements ``start`` to ``start + size`` of ``port``."""
+    if start == 0 and port.size() == size:
         return port
-    split = builder.AddNamedSystem(name, Demultiplexer([size, port.size() - size]))
+    sizes = [n for n in (start, size, port.size() - start - size) if n > 0]
+    split = builder.AddNamedSystem(name, Demultiplexer(sizes))
     builder.Connect(port, split.get_input_port())
-    return split.get_output_port(0)
+    return split.get_output_port(1 if start > 0 else 0)
 
 
 def _add_worker_scene(builder: DiagramBuilder, *, scene: SceneConfig,
@@ -334,9 +301,6 @@ def _add_worker_scene(builder: DiagramBuilder, *, scene: SceneConfig,
     ApplyMultibodyPlantConfig(config, plant)
     plant.RegisterAsSourceForSceneGraph(scene_graph)
     tool_body, ball_body = _add_models(plant, scene_graph, scene, X_WI_start @ X_IT)
-    # The tool comes first: its pose and velocity lead q and v.
-    assert tool_body.floating_positions_start() == 0
-    assert tool_body.floating_velocities_start_in_v() == 0
     nq, nv = plant.num_positions(), plant.num_velocities()
     worker = SceneWorker("maglev_haptics.diagrams.scene_process",
                          (scene, config.time_step, X_WI_start.GetAsMatrix4()), nq + nv)
@@ -353,8 +317,12 @@ def _add_worker_scene(builder: DiagramBuilder, *, scene: SceneConfig,
     return SceneParts(
         plant=plant, scene_graph=scene_graph, tool_body=tool_body, X_IT=X_IT, ball_body=ball_body,
         wrench_on_tool_input=remote.GetInputPort("wrench_on_tool_W"),
-        X_WT_output=_first(builder, "scene_tool_pose", state.get_output_port(0), 7),
-        V_WT_output=_first(builder, "scene_tool_velocity", state.get_output_port(1), 6),
+        # The tool's pose and velocity in q and v: first, but after any joints'
+        # (Drake numbers the free bodies' joints last).
+        X_WT_output=_part(builder, "scene_tool_pose", state.get_output_port(0),
+                          tool_body.floating_positions_start(), 7),
+        V_WT_output=_part(builder, "scene_tool_velocity", state.get_output_port(1),
+                          tool_body.floating_velocities_start_in_v(), 6),
         contact_wrench_output=remote.GetOutputPort("contact_wrench_on_tool_W"),
         in_contact_output=remote.GetOutputPort("in_contact"), worker=remote)
 
@@ -386,6 +354,7 @@ class SceneStepper:
         self._contact_ports = [(port, port.get_system().GetMyContextFromRoot(context))
                                for port in (parts.contact_wrench_output, parts.in_contact_output)]
         self.n = parts.plant.num_positions() + parts.plant.num_velocities()
+        self.x0 = parts.plant.GetPositionsAndVelocities(self._plant_context)  # at the start
         self._at = np.full(self.n + 6, np.nan)  # the (x, u) the context holds
 
     def __call__(self, kind: int, request: np.ndarray, result: np.ndarray) -> None:
@@ -403,3 +372,27 @@ class SceneStepper:
             (wrench, wrench_context), (flag, flag_context) = self._contact_ports
             result[n:n + 6] = wrench.Eval(wrench_context)
             result[n + 6] = flag.Eval(flag_context)[0]
+
+
+COST_STEPS = 300  # steps timed at load (0.3 s of scene time at 1 kHz)
+
+
+def measure_step_cost_s(scene: SceneConfig, time_step_s: float,
+                        X_WI_start: RigidTransform) -> float:
+    """What one tick of the scene's plant costs here (s): the median time of a step
+    with its contact sample, over COST_STEPS steps from the start, the tool left
+    where it starts (free bodies fall onto what holds them). Contact the tool makes
+    later costs more (``maglev bench`` measures the shipped scenes in contact)."""
+    stepper = SceneStepper(scene, time_step_s, X_WI_start)
+    request = np.concatenate([stepper.x0, np.zeros(6)])
+    result = np.zeros(stepper.n + 7)
+    costs = np.empty(COST_STEPS)
+    for k in range(COST_STEPS):
+        # A 1 uN push on the tool, alternating in sign, so that every step is computed
+        # (the stepper keeps its result for the same state and input) and none moves it.
+        request[stepper.n + 2] = 1e-6 * (-1) ** k
+        start = time.perf_counter()
+        stepper(STEP | CONTACT, request, result)
+        costs[k] = time.perf_counter() - start
+        request[:stepper.n] = result[:stepper.n]
+    return float(np.median(costs))

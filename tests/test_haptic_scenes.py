@@ -152,7 +152,7 @@ def test_scene_kind_is_chosen_by_its_tag():
         load_scenario("hanging_ball", scenario_text="{haptics: {scene: !HangingBall {pegg: 1}}}")
     with pytest.raises(ScenarioError, match=r"haptics.scene: !Teapot is not one of !PegInHole "
                                             r"\{...\}, !HangingBall \{...\}, !PaddleBall \{...\}, "
-                                            r"!DeformableSurface \{...\}$"):
+                                            r"!ModelScene \{...\}, !DeformableSurface \{...\}$"):
         load_scenario("peg_in_hole", scenario_text="{haptics: {scene: !Teapot {}}}")
 
 

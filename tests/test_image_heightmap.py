@@ -89,6 +89,10 @@ def test_a_relative_file_is_found_beside_the_scenario_file(tmp_path, monkeypatch
     layered = load_scenario("terrains/s.yaml", "a", "{haptics: {scene: !DeformableSurface "
                             "{heightmap: !ImageHeightmap {file: other.png}}}}")
     assert layered.haptics.scene.heightmap.file == other
+    # {here}: the scenario file's folder, in its own text and in --scenario-text.
+    here = load_scenario("terrains/s.yaml", "a", "{haptics: {scene: !DeformableSurface "
+                         "{heightmap: !ImageHeightmap {file: '{here}/bump.png'}}}}")
+    assert here.haptics.scene.heightmap.file == bump
 
 
 BLACK_2X2 = np.zeros((2, 2), dtype=np.uint8)
