@@ -38,7 +38,7 @@ from maglev_haptics.diagrams.application import BuildDiagram
 from maglev_haptics.diagrams.runner import simulate
 from maglev_haptics.diagrams.scenario import SCENARIO_DIR, load_scenario, scenario_names
 from maglev_haptics.diagrams.deformable_scene import DeformableSurface
-from maglev_haptics.diagrams.scene import PegInHole
+from maglev_haptics.diagrams.scene import ModelScene, PegInHole
 from maglev_haptics.diagrams.scene_builder import AddScene
 from maglev_haptics.diagrams.station import (
     add_station_models, generalized_force_placement, hand_start_transform, rest_transform)
@@ -52,9 +52,9 @@ from maglev_haptics.systems.current_allocator import (
 from maglev_haptics.systems.levitation_controller import ControllerConfig
 
 LEVITATE_FILE = SCENARIO_DIR / "levitate.yaml"
-HAPTIC_FILES = [SCENARIO_DIR / f"{name}.yaml" for name in ("hanging_ball", "paddle_ball",
-                                                            "peg_in_hole", "deformable_surface",
-                                                            "stereo_display")]
+HAPTIC_FILES = [SCENARIO_DIR / f"{name}.yaml" for name in (
+    "hanging_ball", "paddle_ball", "peg_in_hole", "gear_trace", "push_block", "door",
+    "deformable_surface", "stereo_display")]
 HOVER_TIME_S = 1.5  # operating point for the per-system costs (s into takeoff_hover_land)
 FLOOR_TOOL_PUSH_N = 1.0  # the peg is pushed down this hard onto the block (N)
 # --paced: the scenarios paced at 1x (the four kinds of loop: levitation, rigid contact
@@ -105,12 +105,14 @@ def plant_step_cost_us(scenario, *, hovering: bool, n_steps: int = 1000) -> floa
 def scene_step_cost_us(scenario, n_steps: int = 1000) -> float:
     """Wall microseconds per tick of a rigid scene's plant and SceneGraph alone, held
     in the contact the scene is for: the ball bouncing on the paddle or hanging from
-    the tool, the peg pushed down by FLOOR_TOOL_PUSH_N onto the block."""
+    the tool, the peg (or a model scene's tool) pushed down by FLOOR_TOOL_PUSH_N onto
+    what lies under it."""
     builder = DiagramBuilder()
     period_s = 1.0 / scenario.control_rate_hz
     scene = AddScene(builder, scene=scenario.haptics.scene, time_step_s=period_s,
                      use_sampled_output_ports=False, X_WI_start=hand_start_transform(scenario))
-    push_n = FLOOR_TOOL_PUSH_N if isinstance(scenario.haptics.scene, PegInHole) else 0.0
+    pushed = isinstance(scenario.haptics.scene, (PegInHole, ModelScene))
+    push_n = FLOOR_TOOL_PUSH_N if pushed else 0.0
     push = builder.AddSystem(ConstantVectorSource([0, 0, -push_n, 0, 0, 0]))
     builder.Connect(push.get_output_port(), scene.wrench_on_tool_input)
     return _step_cost_us(builder, n_steps, period_s)
