@@ -71,7 +71,8 @@ class RunLogWriter:
     def _follow_loop(self, realtime: bool) -> None:
         # The writer holds the GIL while it joins a chunk: at normal priority, preempted
         # there by any other process, it would hold a real-time loop waiting for it.
-        set_thread_priority(self._writer.native_id, realtime)
+        if self._writer.is_alive():  # an ended thread's id may be another's by now
+            set_thread_priority(self._writer.native_id, realtime)
 
     def drain(self, context, force: bool = False) -> None:
         """Move what the logger holds out of it, and hand what was moved since the last
