@@ -546,7 +546,8 @@ def _add_device_sim_parser(commands) -> None:
                             "at the same --realtime")
     device_sim.add_argument("--normal-priority", action="store_true",
                             help="run the paced loop at normal priority (default: real-time "
-                            "priority, SCHED_FIFO, where the OS grants it; summary.json says which)")
+                            "priority, SCHED_FIFO, where the OS grants it; summary.json says "
+                            "which)")
     device_sim.set_defaults(func=_cmd_device_sim)
 
 

@@ -4,8 +4,8 @@ The device's end of ``diagrams/lcm_station.py``: the same instrument, coils,
 amplifiers, tracker and (scripted) hand as the all-in-one run, publishing the
 markers, the currents that flow and the device's status, and taking its coil
 currents from the application's commands. The hand's script waits for the
-application's first command and then runs on the application's clock. Run paced to the wall clock, as the
-real device is.
+application's first command and then runs on the application's clock. Run paced
+to the wall clock, as the real device is.
 
 Every command is checked before it reaches the coils (``hardware/link_checks.py``):
 one that does not decode, commands another coil count, holds a non-finite current

@@ -254,14 +254,14 @@ class PacedTicks:
 def advance_paced(simulator, duration_s: float, tick_s: float, ticks: PacedTicks, bar,
                   stop=None, spin_s: float = math.inf, on_progress=None,
                   frame_publishers=(), frame_period_s: float = MESHCAT_PERIOD_S,
-                  show_rate=None, priority: bool = True) -> BetweenTicks:
+                  show_rate=None, raise_priority: bool = True) -> BetweenTicks:
     """Tick by tick to ``duration_s``, each released at its wall-clock slot; ``stop(context)``,
     asked every PROGRESS_CHUNK_S, ends the run early when it returns True. Between
     ticks, where they fit (``BetweenTicks``): the progress bar every PROGRESS_CHUNK_S,
     ``on_progress(context)`` every ON_PROGRESS_PERIOD_S, each of ``frame_publishers`` every
     ``frame_period_s`` (s), and ``show_rate(rate)`` told the real-time rate over each
     progress interval (Meshcat's panel, which stayed empty in Chromium with only the
-    visualizers, published from here, to fill it). With ``priority`` the loop runs
+    visualizers, published from here, to fill it). With ``raise_priority`` the loop runs
     at real-time priority where granted (``realtime_priority``: then it spins at most
     RT_SPIN_S). The wait for a slot spins for its last ``spin_s`` (s) and sleeps
     before that. Returns the gaps' jobs, with what they cost and how late they ran."""
@@ -288,7 +288,7 @@ def advance_paced(simulator, duration_s: float, tick_s: float, ticks: PacedTicks
     between = BetweenTicks(jobs + frame_jobs(frame_publishers, context, frame_period_s))
     between.measure()
     try:
-        with realtime_priority(priority) as ticks.priority:
+        with realtime_priority(raise_priority) as ticks.priority:
             if is_realtime():
                 spin_s = min(spin_s, RT_SPIN_S)
             clock_zero = time.perf_counter()

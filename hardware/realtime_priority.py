@@ -11,9 +11,10 @@ normal priority, 36 and 37 at SCHED_FIFO.
 A SCHED_FIFO thread that never blocks owns its core, and Linux's throttle
 (``/proc/sys/kernel/sched_rt_runtime_us``: 950 ms of each second) then stops it
 for 50 ms: so at real-time priority the loop sleeps until RT_SPIN_S before each
-slot, the scene worker (a process that follows its parent's priority) sleeps
-between requests, and the lattice's worker thread (told as a follower) polls by
-sleeping RT_POLL_US.
+slot; its helpers (the scene worker process, the lattice's worker thread, the
+log's writer thread), told as followers, take up the same priority, and the
+scene worker sleeps between requests and the lattice's worker polls by sleeping
+RT_POLL_US.
 
 Granted to root, to a process with CAP_SYS_NICE, or up to ``ulimit -r``
 (RLIMIT_RTPRIO, e.g. ``@realtime - rtprio 20`` in /etc/security/limits.conf).
@@ -71,17 +72,6 @@ def set_thread_priority(thread_id: int, realtime: bool) -> None:
 def is_realtime(pid: int = 0) -> bool:
     """Whether thread ``pid`` (0: the calling thread) runs at SCHED_FIFO."""
     return os.sched_getscheduler(pid) == os.SCHED_FIFO
-
-
-def follow_scheduling(pid: int) -> None:
-    """Run the calling thread at the policy and priority of thread ``pid`` (a worker
-    following its parent's loop); no change where that is refused."""
-    policy, priority = os.sched_getscheduler(pid), os.sched_getparam(pid).sched_priority
-    if (os.sched_getscheduler(0), os.sched_getparam(0).sched_priority) != (policy, priority):
-        try:
-            os.sched_setscheduler(0, policy, os.sched_param(priority))
-        except PermissionError:
-            pass
 
 
 @contextmanager

@@ -27,12 +27,12 @@ placed on its parent's core and preempted it: 250-400 us a tick lost on a
 loaded two-core machine, measured.) A wake-up lost to the race between the two
 (each stores a flag and then loads the other's) costs at most SLEEP_S, during
 which ``RemoteScene`` steps the plant itself. The parent, whose wait is short,
-spins on [2], yielding its core. After each request the worker takes up its
-parent's scheduling (``hardware/realtime_priority.py``) if that changed: at normal
-priority under load, a worker preempted inside a step held the real-time loop
-for 45-124 ms. At real-time priority it sleeps between requests at once (a
-SCHED_FIFO process that spins is stopped by the kernel's throttle for 50 ms a
-second), and the parent signals each.
+spins on [2], yielding its core. The worker takes up the loop's real-time
+priority with it (``hardware/realtime_priority.py``: the handle is told as the
+loop enters and leaves it; at normal priority under load, a worker preempted
+inside a step held the loop for 45-124 ms). At real-time priority the worker
+sleeps between requests at once (a SCHED_FIFO process that spins is stopped by
+the kernel's throttle for 50 ms a second), and the parent signals each.
 
 The worker ends on the stop flag, when its parent is gone (it checks its
 parent's id after every SLEEP_S asleep), or after IDLE_EXIT_S without a request:
@@ -54,7 +54,8 @@ import weakref
 
 import numpy as np
 
-from maglev_haptics.hardware.realtime_priority import follow_scheduling
+from maglev_haptics.hardware.realtime_priority import (
+    add_follower, is_realtime, set_thread_priority)
 
 STEP, CONTACT = 1, 2  # request kinds: x_{k+1} from (x_k, u_k); the contact sample at (x_k, u_k)
 CONTACT_SIZE = 7  # [the contact wrench on the tool (6), in contact (1)]
@@ -130,6 +131,13 @@ class SceneWorker:
         weakref.finalize(self, _stop, self._block.control, self._wake, self._memory_fd,
                          self._processes)
         self._start()
+        add_follower(self._follow_loop)
+
+    def _follow_loop(self, realtime: bool) -> None:
+        """The paced loop entered (True) or left real-time priority: so does the worker
+        (one started meanwhile inherits it from the loop's thread)."""
+        if self._processes and self._process.poll() is None:  # else its pid may be reused
+            set_thread_priority(self._process.pid, realtime)
 
     def _start(self) -> None:
         self._processes.clear()
@@ -244,7 +252,6 @@ def serve(block: SharedBlock, wake: int, handle) -> None:
     done = int(control[_DONE])
     last = time.perf_counter()  # when the last request was served
     spin_s = SPIN_S
-    policy = os.sched_getscheduler(0)
     while control[_STOP] == 0:
         sequence = int(control[_REQUESTED])
         if sequence == done:
@@ -271,7 +278,4 @@ def serve(block: SharedBlock, wake: int, handle) -> None:
         control[_DONE] = sequence
         done = sequence
         last = time.perf_counter()
-        if os.sched_getscheduler(parent) != policy:
-            follow_scheduling(parent)
-            policy = os.sched_getscheduler(0)
-            spin_s = 0.0 if policy == os.SCHED_FIFO else SPIN_S
+        spin_s = 0.0 if is_realtime() else SPIN_S

@@ -7,7 +7,8 @@ import threading
 import pytest
 
 from maglev_haptics.hardware.realtime_priority import (
-    LOOP_PRIORITY, follow_scheduling, fifo_permitted, is_realtime, realtime_priority)
+    LOOP_PRIORITY, add_follower, fifo_permitted, is_realtime, realtime_priority,
+    set_thread_priority)
 
 
 needs_fifo = pytest.mark.skipif(not fifo_permitted(),
@@ -42,27 +43,27 @@ def test_refused_or_not_wanted_runs_at_normal_priority(monkeypatch):
 
 
 @needs_fifo
-def test_a_thread_follows_the_scheduling_of_another():
-    main_thread = threading.get_native_id()
-    policies = []
-    ready, go = threading.Event(), threading.Event()
+def test_followers_are_told_and_their_threads_take_it_up():
+    """A follower (a helper the loop waits on) is told on entry and exit; one that is
+    collected is dropped, not called."""
+    class Helper:
+        def __init__(self):
+            self.told = []
+            self.stopped = threading.Event()
+            self.thread = threading.Thread(target=self.stopped.wait)
 
-    def follower():
-        ready.set()
-        go.wait()
-        follow_scheduling(main_thread)
-        policies.append(os.sched_getscheduler(0))
-        follow_scheduling(main_thread)  # the main thread is back to normal by now
-        policies.append(os.sched_getscheduler(0))
+        def follow(self, realtime):
+            self.told.append(realtime)
+            set_thread_priority(self.thread.native_id, realtime)
 
-    thread = threading.Thread(target=follower)
-    thread.start()  # made at normal priority
-    ready.wait()
+    helper, gone = Helper(), Helper()
+    helper.thread.start()  # made at normal priority
+    add_follower(helper.follow)
+    add_follower(gone.follow)
+    del gone
     with realtime_priority():
-        go.set()
-        while not policies:
-            pass
-    thread.join()
-    # The second look may still have seen the main thread at SCHED_FIFO: then it kept it.
-    assert policies[0] == os.SCHED_FIFO
-    assert policies[1] in (os.SCHED_OTHER, os.SCHED_FIFO)
+        assert is_realtime(helper.thread.native_id)
+    assert helper.told == [True, False]
+    assert not is_realtime(helper.thread.native_id)
+    helper.stopped.set()
+    helper.thread.join()

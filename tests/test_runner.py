@@ -280,7 +280,7 @@ def test_paced_loop_runs_at_real_time_priority_and_sleeps_its_waits(monkeypatch)
         policies.clear()
         ticks = PacedTicks(20, slot_s=TICK_S)
         advance_paced(simulator, simulator.get_time() + 20 * TICK_S, TICK_S, ticks, Bar(),
-                      priority=priority)
+                      raise_priority=priority)
         assert ticks.priority == (f"SCHED_FIFO {LOOP_PRIORITY}" if priority
                                   else "normal: not asked for")
         expected = os.SCHED_FIFO if priority else os.SCHED_OTHER

@@ -106,27 +106,27 @@ def test_a_second_context_gets_its_own_state_not_the_first_ones_result():
 
 @pytest.mark.skipif(not fifo_permitted(), reason="this process may not use SCHED_FIFO")
 def test_the_worker_runs_at_its_parents_priority():
-    """At real-time priority (a paced loop) the worker follows after its next request,
-    and sleeps between them; and back to normal after. Still bit for bit."""
+    """As a paced loop enters real-time priority the worker takes it up, and steps
+    (sleeping between requests); back to normal after. Still bit for bit."""
     scene, reference = Scene("worker"), Scene("in_place")
     simulator, truth = scene.simulator(), reference.simulator()
     tick = 0
 
-    def tick_until(done) -> bool:
-        """Ticks until ``done()``, each with a pause for the worker to step (as a paced
-        loop's wait gives it)."""
+    def ticks(n: int) -> None:
+        """``n`` ticks, each with a pause for the worker to step (as a paced loop's
+        wait gives it)."""
         nonlocal tick
-        for _ in range(100):
-            if done():
-                return True
+        for _ in range(n):
             tick += 1
             simulator.AdvanceTo(tick * 0.001)
             time.sleep(0.0005)
-        return False
 
     with realtime_priority():
-        assert tick_until(lambda: is_realtime(scene.pid))
-    assert tick_until(lambda: not is_realtime(scene.pid))
+        assert is_realtime(scene.pid)
+        ticks(100)
+        assert is_realtime(scene.pid)
+    assert not is_realtime(scene.pid)
+    ticks(50)
     truth.AdvanceTo(tick * 0.001)
     assert np.array_equal(scene.outputs(simulator), reference.outputs(truth))
 
