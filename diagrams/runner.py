@@ -329,17 +329,19 @@ def simulate(built, duration_s: float, *, realtime_rate: float = 0.0,
     # Nothing compiles inside the loop: every kernel is ready before the clock starts.
     compile_kernels(progress=progress)
     simulator = Simulator(built.diagram)
-    simulator.Initialize()
     # The collector took a tenth of a run's time and paused the loop for milliseconds;
-    # the loop makes no reference cycles, so it is off until the run ends.
+    # the loop makes no reference cycles, so it is off until the run ends. It collects
+    # before Initialize, which reads the station's inputs: a collection after it (60 ms
+    # or more) left the station's messages waiting for the first tick.
     gc.collect()
     gc.disable()
-    paced = None
-    if realtime_rate > 0:
-        n_ticks = int(round(duration_s / built.tick_s))
-        paced = PacedTicks(n_ticks, built.tick_s / realtime_rate)
-    start = time.perf_counter()
     try:
+        simulator.Initialize()
+        paced = None
+        if realtime_rate > 0:
+            n_ticks = int(round(duration_s / built.tick_s))
+            paced = PacedTicks(n_ticks, built.tick_s / realtime_rate)
+        start = time.perf_counter()
         with tqdm(total=float(duration_s), unit="sim s", disable=not progress, desc=label,
                   bar_format="{l_bar}{bar}| {n:.2f}/{total:.2f} sim s [{elapsed}{postfix}]"
                   ) as bar:
