@@ -6,11 +6,13 @@ A run with an output folder moves its logger's samples to disk every
 SIGKILL) leaves only whole chunks, and the logger never holds more than a chunk
 (an interactive run of an hour stays as small as one of a minute). The loop only
 copies the samples out, between ticks and often (a paced run every 50 ms: each copy
-short, and about as long as the last, so the gap it is given holds it); a thread
-joins and writes them, since
-writing a chunk takes a tick's whole slot or more (1.4-1.9 ms for half a second of
-levitate's log on the test VM). The finished run writes ``log.npz`` and removes
-the chunks. ``load_run_log(out_dir)`` reads either: ``log.npz``, or what the
+short, and about as long as the last, so the gap it is given holds it), each piece
+already laid out as it goes on disk; a thread writes them, since writing a chunk
+takes a tick's whole slot or more (1.4-1.9 ms for half a second of levitate's log on
+the test VM). The thread holds Python's GIL only between its ``write`` calls (a
+join of the pieces there held it, and the loop, 100-230 us) and runs below the
+loop's priority (``BACKGROUND_PRIORITY``). The finished run writes ``log.npz`` and
+removes the chunks. ``load_run_log(out_dir)`` reads either: ``log.npz``, or what the
 chunks of a killed run hold.
 """
 
@@ -29,7 +31,8 @@ from typing import Dict
 import numpy as np
 
 from maglev_haptics.analysis.run_metrics import log_arrays_from
-from maglev_haptics.hardware.realtime_priority import add_follower, set_thread_priority
+from maglev_haptics.hardware.realtime_priority import (
+    BACKGROUND_PRIORITY, add_follower, set_thread_priority)
 from maglev_haptics.hardware.thermal import CoilThermal
 
 LOG_FILE = "log.npz"
@@ -59,7 +62,9 @@ class RunLogWriter:
         _write_atomically(self._folder / LAYOUT_FILE,
                           lambda file: file.write(json.dumps(layout).encode()))
         self._chunks = 0
-        self._pieces = []  # (sample times, data) moved out of the logger since the last chunk
+        # Moved out of the logger since the last chunk: each (1 + rows, samples),
+        # column-major, row 0 the sample times (s): the chunk's file is their bytes in turn.
+        self._pieces = []
         self._last_wall_s = time.perf_counter()
         self._pending = queue.Queue()
         self._failure = None
@@ -69,10 +74,10 @@ class RunLogWriter:
         add_follower(self._follow_loop)
 
     def _follow_loop(self, realtime: bool) -> None:
-        # The writer holds the GIL while it joins a chunk: at normal priority, preempted
-        # there by any other process, it would hold a real-time loop waiting for it.
+        # Above normal threads: preempted by one of them between two writes, the writer
+        # would hold the GIL, and the loop, for a time slice.
         if self._writer.is_alive():  # an ended thread's id may be another's by now
-            set_thread_priority(self._writer.native_id, realtime)
+            set_thread_priority(self._writer.native_id, realtime, BACKGROUND_PRIORITY)
 
     def drain(self, context, force: bool = False) -> None:
         """Move what the logger holds out of it, and hand what was moved since the last
@@ -81,8 +86,12 @@ class RunLogWriter:
         of what was logged since the last call (the writer thread joins them)."""
         log = self._logger.FindMutableLog(context)
         if log.num_samples() > 0:
-            # Copies: the logger's arrays are views that its next samples overwrite.
-            self._pieces.append((log.sample_times().copy(), log.data().copy()))
+            # A copy: the logger's arrays are views that its next samples overwrite.
+            data = log.data()
+            piece = np.empty((1 + data.shape[0], data.shape[1]), order="F")
+            piece[0] = log.sample_times()
+            piece[1:] = data
+            self._pieces.append(piece)
             log.Clear()
         now = time.perf_counter()
         if not self._pieces or (not force and now - self._last_wall_s < CHUNK_WALL_S):
@@ -109,10 +118,8 @@ class RunLogWriter:
     def _write_chunks(self) -> None:
         while (item := self._pending.get()) is not None:
             path, pieces = item
-            # Row 0 the sample times (s), then the logger's rows.
-            chunk = np.hstack([np.vstack((times, data)) for times, data in pieces])
             try:
-                _write_atomically(path, lambda file: _write_npy(file, chunk))
+                _write_atomically(path, lambda file: _write_columns_npy(file, pieces))
             except OSError as error:  # reported by finish(); the run goes on
                 self._failure = self._failure or error
 
@@ -138,13 +145,15 @@ def load_run_log(out_dir) -> Dict[str, np.ndarray]:
     return log_arrays_from(samples[0], samples[1:], rows, CoilThermal(**layout["thermal"]))
 
 
-def _write_npy(file, array: np.ndarray) -> None:
-    """``array`` in ``.npy`` format (C order); unlike ``np.save`` the data goes in
-    one ``write`` that lets go of the GIL (np.save held it up to 2.9 ms: the loop's
-    thread waited)."""
-    array = np.ascontiguousarray(array)
-    np.lib.format.write_array_header_1_0(file, np.lib.format.header_data_from_array_1_0(array))
-    file.write(memoryview(array).cast("B"))
+def _write_columns_npy(file, pieces) -> None:
+    """The column-major arrays ``pieces`` (equal rows), side by side, in ``.npy``
+    format, one ``write`` a piece: no joined copy, and each write lets go of the GIL
+    (np.save held it up to 2.9 ms: the loop's thread waited)."""
+    header = {"descr": np.lib.format.dtype_to_descr(pieces[0].dtype), "fortran_order": True,
+              "shape": (pieces[0].shape[0], sum(piece.shape[1] for piece in pieces))}
+    np.lib.format.write_array_header_1_0(file, header)
+    for piece in pieces:
+        file.write(memoryview(piece.T).cast("B"))  # .T of column-major: C-contiguous
 
 
 def _write_atomically(path: Path, write) -> None:

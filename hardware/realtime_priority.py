@@ -11,10 +11,15 @@ normal priority, 36 and 37 at SCHED_FIFO.
 A SCHED_FIFO thread that never blocks owns its core, and Linux's throttle
 (``/proc/sys/kernel/sched_rt_runtime_us``: 950 ms of each second) then stops it
 for 50 ms: so at real-time priority the loop sleeps until RT_SPIN_S before each
-slot; its helpers (the scene worker process, the lattice's worker thread, the
-log's writer thread), told as followers, take up the same priority, and the
-scene worker sleeps between requests and the lattice's worker polls by sleeping
-RT_POLL_US.
+slot; the helpers it waits on (the scene worker process, the lattice's worker
+thread), told as followers, take up the same priority, and the scene worker sleeps
+between requests and the lattice's worker polls by sleeping RT_POLL_US. Work the
+loop does not wait on (the log's writer thread) runs at BACKGROUND_PRIORITY, just
+below: above every normal thread, preempted at once by the loop and its helpers.
+Measured, deformable_surface paced for 30 s: with the writer at the loop's priority,
+each half-second chunk it wrote held the other core for ~1 ms, the lattice's worker
+waited for it and the loop for the lattice (92 of 30,000 ticks missed, one every
+half second).
 
 Granted to root, to a process with CAP_SYS_NICE, or up to ``ulimit -r``
 (RLIMIT_RTPRIO, e.g. ``@realtime - rtprio 20`` in /etc/security/limits.conf).
@@ -30,6 +35,10 @@ from typing import Callable, Iterator
 # SCHED_FIFO priority (1-99) of the loop: above every normal thread, below the
 # interrupt threads of a PREEMPT_RT kernel (50), which the loop's I/O needs.
 LOOP_PRIORITY = 10
+# SCHED_FIFO priority of the loop's background work (the log's writer): a woken
+# thread of the loop's priority takes the core from it at once, where one of equal
+# priority would wait until it blocked.
+BACKGROUND_PRIORITY = LOOP_PRIORITY - 1
 # At real-time priority the wait for a slot sleeps until this long before it, then
 # spins (s): a woken SCHED_FIFO thread runs within tens of microseconds.
 RT_SPIN_S = 150e-6
@@ -57,12 +66,13 @@ def _tell_followers(realtime: bool) -> None:
             method(realtime)
 
 
-def set_thread_priority(thread_id: int, realtime: bool) -> None:
-    """Thread ``thread_id`` (a native id) at SCHED_FIFO LOOP_PRIORITY or back to normal;
+def set_thread_priority(thread_id: int, realtime: bool,
+                        priority: int = LOOP_PRIORITY) -> None:
+    """Thread ``thread_id`` (a native id) at SCHED_FIFO ``priority`` or back to normal;
     no change where that is refused or the thread has ended."""
     try:
         if realtime:
-            os.sched_setscheduler(thread_id, os.SCHED_FIFO, os.sched_param(LOOP_PRIORITY))
+            os.sched_setscheduler(thread_id, os.SCHED_FIFO, os.sched_param(priority))
         else:
             os.sched_setscheduler(thread_id, os.SCHED_OTHER, os.sched_param(0))
     except (PermissionError, ProcessLookupError):

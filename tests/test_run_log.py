@@ -20,7 +20,7 @@ from maglev_haptics.analysis.run_results import run_scenario
 from maglev_haptics.diagrams.application import BuildDiagram
 from maglev_haptics.diagrams.scenario import load_scenario
 from maglev_haptics.hardware.realtime_priority import (
-    fifo_permitted, is_realtime, realtime_priority)
+    BACKGROUND_PRIORITY, LOOP_PRIORITY, fifo_permitted, is_realtime, realtime_priority)
 from maglev_haptics.hardware.thermal import coil_thermal
 
 
@@ -130,13 +130,15 @@ def test_a_stopped_run_writes_its_results_and_says_so_in_one_line(tmp_path, stop
 
 
 @pytest.mark.skipif(not fifo_permitted(), reason="this process may not use SCHED_FIFO")
-def test_the_writer_thread_takes_up_the_loops_real_time_priority(tmp_path):
-    """It holds the GIL while it joins a chunk: at normal priority, preempted there, it
-    would hold the loop."""
+def test_the_writer_thread_runs_just_below_the_loops_real_time_priority(tmp_path):
+    """Above normal threads (one preempting it between writes would hold the GIL, and
+    the loop); below the loop's helpers, which must take the other core from it at once."""
     built = BuildDiagram(load_scenario("levitate"))
     writer = run_log.RunLogWriter(tmp_path, built.logger, built.log_layout,
                                   coil_thermal(load_scenario("levitate").device))
     thread_id = writer._writer.native_id
     with realtime_priority():
         assert is_realtime(thread_id)
+        assert os.sched_getparam(thread_id).sched_priority == BACKGROUND_PRIORITY
+        assert BACKGROUND_PRIORITY < LOOP_PRIORITY
     assert not is_realtime(thread_id)
