@@ -22,16 +22,20 @@ through the same system.
 
 import math
 from dataclasses import dataclass, field
-from functools import lru_cache
-from typing import Callable, List, Optional
+from functools import cached_property, lru_cache
+from typing import Callable, List, Optional, Tuple
 
+import numba
 import numpy as np
 from pydrake.common.value import AbstractValue
-from pydrake.systems.framework import BasicVector, LeafSystem
+from pydrake.systems.framework import BasicVector, Diagram, LeafSystem
 from pydrake.trajectories import PiecewisePolynomial
 
 from maglev_haptics.hardware.config_checks import positive, require, vector
+from maglev_haptics.hardware.kernels import (
+    FLAG, INDEX, INDEX_VECTOR, MATRIX, SCALAR, VECTOR, kernel)
 from maglev_haptics.hardware.lcm_messages import device_status_t
+from maglev_haptics.systems.stacked_ports import BuildStacked, stacked_size, stacked_slices
 
 FAULT_SENSOR_OUT_OF_RANGE = device_status_t.FAULT_SENSOR_OUT_OF_RANGE
 FAULT_COIL_OVER_TEMPERATURE = device_status_t.FAULT_COIL_OVER_TEMPERATURE
@@ -57,24 +61,6 @@ STUCK_PERSIST_S = 0.01
 STUCK_SHORTFALL_OF_WEIGHT = 0.1
 
 
-def mismatched_coils(measured_a, commanded_a, current_limit_a: float) -> np.ndarray:
-    """Mask of the coils whose measured current (A) is more than STUCK_MISMATCH_A from
-    their command (A) clamped to the amplifiers' limit (A)."""
-    commanded = np.clip(commanded_a, -current_limit_a, current_limit_a)
-    return np.abs(np.asarray(measured_a) - commanded) > STUCK_MISMATCH_A
-
-
-def cut_coil_power(*, coils_stuck: bool, carrying: bool, force_shortfall_n: float,
-                   weight_n: float) -> bool:
-    """Whether to cut the coils' power: a coil is stuck and either the instrument is
-    not carried (resting on the glass, where the stuck coil would push it along) or
-    the allocation falls short of the wanted force (N) by more than
-    STUCK_SHORTFALL_OF_WEIGHT of its weight (N). A lost instrument's coils are off
-    already (their amplifiers follow the controller's zero)."""
-    return coils_stuck and (not carrying
-                            or force_shortfall_n > STUCK_SHORTFALL_OF_WEIGHT * weight_n)
-
-
 @dataclass(frozen=True, eq=False)
 class Motion:
     """A setpoint and force-ramp profile sampled at the control ticks (a row a tick:
@@ -88,6 +74,10 @@ class Motion:
     period_s: float  # the tick (s)
     start_s: float  # commanded from (s)
     landing: bool = False
+
+    def __post_init__(self):
+        # C-ordered floats: the argument type the supervisor's kernel is compiled for.
+        object.__setattr__(self, "commands", np.ascontiguousarray(self.commands, dtype=float))
 
     # Immutable: a cloned context (the analyses clone thousands) shares it.
     def __copy__(self):
@@ -175,7 +165,22 @@ class WatchLimits:
     boundary_center_m: Optional[tuple] = None  # the sphere it must stay in, in W (m)
     boundary_radius_m: Optional[float] = None  # (m); None: no boundary
 
+    @cached_property
+    def as_vector(self) -> np.ndarray:
+        """What the kernels take: [current_limit_a, temperature_limit_c, max_speed_m_s,
+        boundary_center_m (3), boundary_radius_m (NaN: none)]."""
+        if self.boundary_radius_m is None:
+            return np.array([self.current_limit_a, self.temperature_limit_c,
+                             self.max_speed_m_s, math.nan, math.nan, math.nan, math.nan])
+        require(self.boundary_center_m is not None, "boundary_center_m", None,
+                "must be given with a boundary_radius_m")
+        return np.array([self.current_limit_a, self.temperature_limit_c, self.max_speed_m_s,
+                         *self.boundary_center_m, self.boundary_radius_m], dtype=float)
 
+
+# --- the numeric core, compiled into the tick's one call (``supervisor_update``) ----
+
+@numba.njit(cache=True)
 def tracking_lost_after(lost_s: float, tracking_ok: float, lost_grace_s: float,
                         period_s: float) -> float:
     """How long tracking has been lost (s) a tick of ``period_s`` (s) after ``lost_s``,
@@ -185,6 +190,129 @@ def tracking_lost_after(lost_s: float, tracking_ok: float, lost_grace_s: float,
     if tracking_ok > 0.5 and lost_s <= lost_grace_s:
         return 0.0
     return lost_s + period_s
+
+
+@numba.njit(cache=True)
+def mismatched_coils(measured_a, commanded_a, current_limit_a: float) -> np.ndarray:
+    """Mask of the coils whose measured current (A) is more than STUCK_MISMATCH_A from
+    their command (A) clamped to the amplifiers' limit (A)."""
+    mismatched = np.empty(len(measured_a), dtype=np.bool_)
+    for i in range(len(measured_a)):
+        commanded = commanded_a[i]  # clamped as np.clip does: a NaN stays NaN
+        if commanded < -current_limit_a:
+            commanded = -current_limit_a
+        if commanded > current_limit_a:
+            commanded = current_limit_a
+        mismatched[i] = abs(measured_a[i] - commanded) > STUCK_MISMATCH_A
+    return mismatched
+
+
+@numba.njit(cache=True)
+def cut_coil_power(coils_stuck: bool, carrying: bool, force_shortfall_n: float,
+                   weight_n: float) -> bool:
+    """Whether to cut the coils' power: a coil is stuck and either the instrument is
+    not carried (resting on the glass, where the stuck coil would push it along) or
+    the allocation falls short of the wanted force (N) by more than
+    STUCK_SHORTFALL_OF_WEIGHT of its weight (N). A lost instrument's coils are off
+    already (their amplifiers follow the controller's zero)."""
+    return coils_stuck and (not carrying
+                            or force_shortfall_n > STUCK_SHORTFALL_OF_WEIGHT * weight_n)
+
+
+@numba.njit(cache=True)
+def euclidean_norm(values) -> float:
+    """``np.linalg.norm(values)``, bit for bit: the square root of the sum of squares,
+    summed in order."""
+    total = 0.0
+    for value in values:
+        total += value * value
+    return math.sqrt(total)
+
+
+@numba.njit(cache=True)
+def exact_square(x):
+    """(square, error): x * x == square + error exactly (Veltkamp's split: numba has
+    no fma)."""
+    square = x * x
+    t = 134217729.0 * x  # 2**27 + 1
+    high = t - (t - x)
+    low = x - high
+    return square, ((high * high - square) + 2.0 * high * low) + low * low
+
+
+@numba.njit(cache=True)
+def exact_sum(a, b):
+    """(total, error): a + b == total + error exactly (Knuth's two-sum)."""
+    total = a + b
+    b_part = total - a
+    return total, (a - (total - b_part)) + (b - b_part)
+
+
+@numba.njit(cache=True)
+def hypot(values) -> float:
+    """``math.hypot(*values)`` as Python computes it (``math.dist``: of the
+    differences): infinite if a value is, else NaN if one is, else the square root
+    correctly rounded, from the sum of squares kept exactly and one Newton step. So a
+    limit is passed exactly where the Python watchdogs said it was (the two agreed on
+    2.3 million random and edge vectors; a plain sum of squares differs in the last
+    bit for one vector in five)."""
+    largest, found_nan = 0.0, False
+    for value in values:
+        found_nan |= math.isnan(value)
+        if abs(value) > largest:
+            largest = abs(value)
+    if math.isinf(largest):
+        return largest
+    if found_nan:
+        return math.nan
+    if largest == 0.0:
+        return 0.0
+    exponent = math.frexp(largest)[1]  # scaled by a power of two, exactly: no overflow
+    total, error = 0.0, 0.0
+    for value in values:
+        square, square_error = exact_square(math.ldexp(value, -exponent))
+        total, sum_error = exact_sum(total, square)
+        error += square_error + sum_error
+    root = math.sqrt(total + error)
+    square, square_error = exact_square(root)
+    difference, sum_error = exact_sum(total, -square)
+    root += ((difference - square_error) + (sum_error + error)) / (2.0 * root)
+    return math.ldexp(root, exponent)
+
+
+@numba.njit(cache=True)
+def largest(values) -> float:
+    """The largest of ``values``, NaN if any is (as NumPy's ``max``: no limit is
+    passed by a NaN measurement)."""
+    result = -math.inf
+    for value in values:
+        if math.isnan(value):
+            return value
+        if value > result:
+            result = value
+    return result
+
+
+@numba.njit(cache=True)
+def raised_fault_bits(position_m, velocity_m_s, tracking_lost: bool, coil_currents_a,
+                      coil_temperature_c, thermally_limited: bool, carrying: bool,
+                      coils_stuck: bool, limits) -> int:
+    """``detect_faults`` with its limits as ``WatchLimits.as_vector``."""
+    bits = 0
+    if carrying:
+        if thermally_limited:
+            bits |= FAULT_COIL_OVER_TEMPERATURE
+        # A NaN radius (no boundary) is never passed.
+        outside = hypot(position_m - limits[3:6]) > limits[6]
+        if tracking_lost or outside:
+            bits |= FAULT_SENSOR_OUT_OF_RANGE
+        if hypot(velocity_m_s) > limits[2]:
+            bits |= FAULT_OVER_SPEED
+    if largest(coil_temperature_c) > limits[1]:
+        bits |= FAULT_COIL_OVER_TEMPERATURE
+    if coils_stuck or largest(np.abs(coil_currents_a)) > limits[0] * (1 + CURRENT_TOLERANCE):
+        bits |= FAULT_COIL_OVER_CURRENT
+    return bits
 
 
 def detect_faults(*, position_m, velocity_m_s, tracking_lost: bool, coil_currents_a,
@@ -197,30 +325,246 @@ def detect_faults(*, position_m, velocity_m_s, tracking_lost: bool, coil_current
     ``mismatched_coils``). The instrument's faults (lost,
     outside the boundary, too fast, the coils too warm to carry it) count only while
     the coils are ``carrying`` it: resting with the coils off it is in no danger."""
-    bits = 0
-    if carrying:
-        if thermally_limited:
-            bits |= FAULT_COIL_OVER_TEMPERATURE
-        # Plain floats: math on numpy scalars costs several us a call.
-        outside = (limits.boundary_radius_m is not None and math.dist(
-            np.asarray(position_m).tolist(), limits.boundary_center_m)
-            > limits.boundary_radius_m)
-        if tracking_lost or outside:
-            bits |= FAULT_SENSOR_OUT_OF_RANGE
-        if math.hypot(*np.asarray(velocity_m_s).tolist()) > limits.max_speed_m_s:
-            bits |= FAULT_OVER_SPEED
-    # Array methods: np.max's dispatch costs ~4 us more a call.
-    coil_temperature_c = np.asarray(coil_temperature_c)
-    coil_currents_a = np.asarray(coil_currents_a)
-    if coil_temperature_c.max() > limits.temperature_limit_c:
-        bits |= FAULT_COIL_OVER_TEMPERATURE
-    if coils_stuck or max(coil_currents_a.max(), -coil_currents_a.min()) > \
-            limits.current_limit_a * (1 + CURRENT_TOLERANCE):
-        bits |= FAULT_COIL_OVER_CURRENT
-    return bits
+    return raised_fault_bits(
+        np.asarray(position_m, dtype=float), np.asarray(velocity_m_s, dtype=float),
+        tracking_lost, np.asarray(coil_currents_a, dtype=float),
+        np.asarray(coil_temperature_c, dtype=float), thermally_limited, carrying,
+        coils_stuck, limits.as_vector)
 
 
-class DeviceSupervisor(LeafSystem):
+# The supervisor's input ports (name, size), in the order of its logic's one input.
+def supervisor_inputs(n_coils: int) -> Tuple[Tuple[str, int], ...]:
+    return (("X_WI_measured", 7), ("V_WI_measured", 6), ("tracking_ok", 1),
+            ("coil_currents", n_coils), ("coil_temperature_c", n_coils),
+            ("thermally_limited", 1), ("coil_currents_commanded", n_coils),
+            ("allocation_shortfall_W", 6))
+
+
+def supervisor_outputs(n_coils: int) -> Tuple[Tuple[str, int], ...]:
+    """Its output ports (name, size): the first rows of its logic's state, in order."""
+    return (("setpoint", 12), ("enable", 1), ("fault_bits", 1), ("tracking_lost_s", 1),
+            ("coils_stuck", n_coils), ("coil_power", 1))
+
+
+def supervisor_state(n_coils: int) -> Tuple[Tuple[str, int], ...]:
+    """Its logic's state (name, size): the outputs, then what only the watchdogs read."""
+    return supervisor_outputs(n_coils) + (
+        ("landing_start_s", 1), ("thermally_limited_s", 1), ("mismatch_s", n_coils),
+        ("sent_a", n_coils))
+
+
+# Each entry's place in the lists above: the kernels find its first row at starts[place].
+(POSE, VELOCITY, TRACKING_OK, CURRENTS, TEMPERATURES, THERMALLY_LIMITED, COMMANDED,
+ SHORTFALL) = range(8)
+(SETPOINT, ENABLE, FAULT_BITS, LOST_S, STUCK, POWER, LANDING_START_S, LIMITED_S,
+ MISMATCH_S, SENT_A) = range(10)
+
+
+@numba.njit(cache=True)
+def watchdog_check(inputs, at, state, next_state, rows, limits, lost_grace_s: float,
+                   watch_period_s: float, weight_n: float) -> int:
+    """The watchdogs' check, every ``watch_period_s`` (s): their timers, the stuck
+    coils and the coils' power into ``next_state``; returns the fault bits raised that
+    are not latched yet (``supervisor_update`` names the arguments)."""
+    n = at[TEMPERATURES] - at[CURRENTS]
+    currents = inputs[at[CURRENTS]:at[CURRENTS] + n]
+    limited_s = 0.0
+    if inputs[at[THERMALLY_LIMITED]] > 0.5:
+        limited_s = state[rows[LIMITED_S]] + watch_period_s
+    next_state[rows[LIMITED_S]] = limited_s
+    stuck = state[rows[STUCK]:rows[STUCK] + n].copy()
+    carrying = state[rows[ENABLE]] > 0.0
+    if state[rows[POWER]] > 0.5:  # unpowered, no coil follows its command
+        mismatched = mismatched_coils(currents, state[rows[SENT_A]:rows[SENT_A] + n],
+                                      limits[0])
+        for i in range(n):
+            mismatch_s = state[rows[MISMATCH_S] + i] + watch_period_s if mismatched[i] else 0.0
+            next_state[rows[MISMATCH_S] + i] = mismatch_s
+            if mismatch_s >= STUCK_PERSIST_S - 1e-9:
+                stuck[i] = 1.0
+        next_state[rows[STUCK]:rows[STUCK] + n] = stuck
+        # The shortfall is read only with a coil stuck: nothing else cuts the power.
+        if np.any(stuck != 0.0) and cut_coil_power(
+                True, carrying, euclidean_norm(inputs[at[SHORTFALL]:at[SHORTFALL] + 3]),
+                weight_n):
+            next_state[rows[POWER]] = 0.0
+    raised = raised_fault_bits(
+        inputs[at[POSE] + 4:at[POSE] + 7], inputs[at[VELOCITY] + 3:at[VELOCITY] + 6],
+        state[rows[LOST_S]] > lost_grace_s, currents,
+        inputs[at[TEMPERATURES]:at[TEMPERATURES] + n], limited_s >= THERMAL_LIMIT_PERSIST_S,
+        carrying, np.any(stuck != 0.0), limits)
+    return raised & ~int(state[rows[FAULT_BITS]])
+
+
+@kernel((VECTOR, INDEX_VECTOR, VECTOR, VECTOR, INDEX_VECTOR, MATRIX, INDEX, INDEX, FLAG,
+         VECTOR, SCALAR, SCALAR, INDEX, SCALAR))
+def supervisor_update(inputs, at, state, next_state, rows, commands, first_tick, tick,
+                      landing, limits, lost_grace_s, period_s, watchdog_ticks,
+                      weight_n) -> bool:
+    """One tick (number ``tick``) of the supervisor: ``inputs`` (``supervisor_inputs``
+    stacked, each port's first row at its entry of ``at``) and ``state`` (the
+    context's, ``supervisor_state`` stacked, each at its entry of ``rows``) into
+    ``next_state`` (a copy of ``state`` on entry): the tracking-lost timer; every
+    ``watchdog_ticks`` ticks the watchdogs (``watchdog_check``, with ``limits`` as
+    ``WatchLimits.as_vector``), which latch a new fault; the next tick's command from
+    the active motion (its ``commands`` from ``first_tick``; ``landing``: it is a
+    landing). True when a new fault must start a landing: the caller plans it and
+    writes its command (Python, once a fault)."""
+    next_state[rows[LOST_S]] = tracking_lost_after(
+        state[rows[LOST_S]], inputs[at[TRACKING_OK]], lost_grace_s, period_s)
+    n = at[TEMPERATURES] - at[CURRENTS]
+    if (tick + 1) % watchdog_ticks == 0:  # what the next check's currents follow
+        next_state[rows[SENT_A]:rows[SENT_A] + n] = inputs[at[COMMANDED]:at[COMMANDED] + n]
+    if tick % watchdog_ticks == 0:
+        new = watchdog_check(inputs, at, state, next_state, rows, limits, lost_grace_s,
+                             watchdog_ticks * period_s, weight_n)
+        if new:
+            next_state[rows[FAULT_BITS]] = int(state[rows[FAULT_BITS]]) | new
+            if not landing:
+                return True
+    # The state holds this tick's command; past the motion's end (or before its
+    # start) the next one is the same.
+    if first_tick <= tick < first_tick + len(commands) - 1:
+        next_state[rows[SETPOINT]:rows[SETPOINT] + 13] = commands[tick + 1 - first_tick]
+    return False
+
+
+class SupervisorLogic(LeafSystem):
+    """The supervisor's state and its tick, one compiled call (``supervisor_update``):
+    one input, ``inputs`` (``supervisor_inputs`` stacked), and one output, ``state``
+    (``supervisor_state`` stacked: the outputs first). ``DeviceSupervisor`` wraps it
+    with named ports and says what it does.
+
+    .. pydrake_system::
+
+        name: SupervisorLogic
+        input_ports:
+        - inputs
+        output_ports:
+        - state
+
+    State: the commanded motion (abstract: ``initial_motion`` until set); one vector
+    (``supervisor_state``): the outputs, each tick's update writing the next tick's
+    command (so the loop reads them from C++: one Python call a tick), then the time a
+    fault's landing started (s; NaN: none), how long, at the watchdog checks, the
+    controller has been thermally limited (s: the fault once it reaches
+    THERMAL_LIMIT_PERSIST_S), how long each coil's current has been mismatched (s) and
+    the command the amplifiers were given the tick before a check (A: what the
+    check's measured currents follow, a tick late). The limits are an abstract
+    parameter (``WatchLimits``).
+    """
+
+    def __init__(self, *, initial_motion: Motion, limits: WatchLimits, lost_grace_s: float,
+                 plan_landing: Callable, n_coils: int, watchdog_period_s: float,
+                 weight_n: float):
+        super().__init__()
+        self._weight_n = float(weight_n)
+        self._plan_landing = plan_landing
+        self._lost_grace_s = float(lost_grace_s)
+        self._period_s = initial_motion.period_s
+        # Every whole number of ticks nearest watchdog_period_s, at least every tick.
+        self._watchdog_ticks = max(1, round(watchdog_period_s / self._period_s))
+        inputs = supervisor_inputs(n_coils)
+        self._at = np.array([rows.start for rows in stacked_slices(inputs).values()])
+        self._rows = stacked_slices(supervisor_state(n_coils))
+        self._starts = np.array([rows.start for rows in self._rows.values()])
+        # The command rows: the setpoint, then the enable.
+        self._command = slice(self._rows["setpoint"].start, self._rows["enable"].stop)
+        self._landing_start = self._rows["landing_start_s"].start
+        self._inputs = self.DeclareVectorInputPort("inputs", stacked_size(inputs))
+        self._motion = self.DeclareAbstractState(AbstractValue.Make(initial_motion))
+        initial = np.zeros(stacked_size(supervisor_state(n_coils)))
+        initial[self._command] = initial_motion.at_tick(0)
+        initial[self._landing_start] = math.nan
+        initial[self._rows["coil_power"]] = 1.0
+        state = self.DeclareDiscreteState(BasicVector(initial))
+        # Plain ints: pybind takes them faster than the typed indices, every tick.
+        self._state, self._motion = int(state), int(self._motion)
+        self._limits = int(self.DeclareAbstractParameter(AbstractValue.Make(limits)))
+        self.DeclareStateOutputPort("state", state)
+        # A context may start at any time: its command is that tick's from the start.
+        self.DeclareInitializationDiscreteUpdateEvent(self._initialize)
+        self.DeclarePeriodicDiscreteUpdateEvent(self._period_s, 0.0, self._update)
+        # A landing is planned once per (motion, start), not each time it is asked for.
+        self._landing = lru_cache(maxsize=4)(self._landing_from)
+
+    # --- what the device API sets between ticks (``DeviceSupervisor``'s) ---
+
+    def set_motion(self, context, motion: Motion) -> None:
+        context.SetAbstractState(self._motion, motion)
+        state = context.get_mutable_discrete_state(self._state).get_mutable_value()
+        state[self._landing_start] = math.nan
+        state[self._command] = motion.at_tick(self._tick(context))
+
+    def land(self, context) -> Motion:
+        landing = self._landing(self.active_motion(context), context.get_time())
+        self.set_motion(context, landing)
+        return landing
+
+    def reset_faults(self, context, tracking_ok: bool) -> None:
+        self.set_motion(context, self.active_motion(context))
+        state = context.get_mutable_discrete_state(self._state).get_mutable_value()
+        state[self._rows["fault_bits"]] = 0.0
+        state[self._rows["coils_stuck"]] = 0.0
+        state[self._rows["coil_power"]] = 1.0
+        if tracking_ok:
+            state[self._rows["tracking_lost_s"]] = 0.0
+
+    def set_limits(self, context, limits: WatchLimits) -> None:
+        context.get_mutable_abstract_parameter(self._limits).set_value(limits)
+
+    def limits(self, context) -> WatchLimits:
+        return context.get_abstract_parameter(self._limits).get_value()
+
+    def active_motion(self, context) -> Motion:
+        return self._active(context.get_abstract_state(self._motion).get_value(),
+                            context.get_discrete_state(self._state).value())
+
+    def state_entry(self, context, name: str) -> float:
+        """The first row of state entry ``name`` (``supervisor_state``)."""
+        return context.get_discrete_state(self._state).GetAtIndex(self._rows[name].start)
+
+    # --- the tick ----------------------------------------------------------
+
+    def _tick(self, context) -> int:
+        return round(context.get_time() / self._period_s)
+
+    def _active(self, motion: Motion, state) -> Motion:
+        """The commanded ``motion``, or the landing a fault started (``state``'s)."""
+        landing_start_s = state[self._landing_start]
+        return motion if math.isnan(landing_start_s) else self._landing(motion, landing_start_s)
+
+    def _landing_from(self, motion: Motion, start_s: float) -> Motion:
+        setpoint, enable = motion.at(start_s)
+        return Motion(commands=self._plan_landing(setpoint[0:6], enable, self._period_s),
+                      first_tick=round(start_s / self._period_s), period_s=self._period_s,
+                      start_s=start_s, landing=True)
+
+    def _initialize(self, context, discrete_state):
+        discrete_state.get_mutable_value(self._state)[self._command] = \
+            self.active_motion(context).at_tick(self._tick(context))
+
+    def _update(self, context, discrete_state):
+        # Inlined (_tick, _active, limits): a Python call costs a tenth of a us here.
+        tick = round(context.get_time() / self._period_s)
+        state = context.get_discrete_state(self._state).value()
+        motion = context.get_abstract_state(self._motion).get_value()
+        landing_start_s = state[self._landing_start]
+        if not math.isnan(landing_start_s):
+            motion = self._landing(motion, landing_start_s)
+        next_state = discrete_state.get_mutable_value(self._state)
+        if supervisor_update(
+                self._inputs.EvalBasicVector(context).value(), self._at, state, next_state,
+                self._starts, motion.commands, motion.first_tick, tick, motion.landing,
+                context.get_abstract_parameter(self._limits).get_value().as_vector,
+                self._lost_grace_s, self._period_s, self._watchdog_ticks, self._weight_n):
+            # A new fault: land from the commanded motion's setpoint, now.
+            now_s = context.get_time()
+            next_state[self._landing_start] = now_s
+            next_state[self._command] = self._landing(motion, now_s).at_tick(tick + 1)
+
+
+class DeviceSupervisor(Diagram):
     """The commanded motion, the watchdogs and the landing on a fault (module docstring).
 
     .. pydrake_system::
@@ -259,18 +603,15 @@ class DeviceSupervisor(LeafSystem):
       N*m, against ``weight_n``, N), latched until ``reset_faults``; while it is
       off the stuck-amplifier watchdog rests (no coil follows its command then).
 
-    State: the commanded motion (abstract: ``initial_motion`` until set); the
-    outputs as discrete state, each tick's update writing the next tick's command
-    (so the loop reads them from C++: one Python call a tick, which past a motion's
-    end only reads); the time a fault's landing started (NaN: none); how long
-    tracking has been lost (s, the ``tracking_lost_s`` output); how long, at the
-    watchdog checks, the controller has been thermally limited (s: the fault once it
-    reaches THERMAL_LIMIT_PERSIST_S). The watchdogs check every
-    ``watchdog_period_s`` (s, to the nearest whole tick): reading the
-    measurements and checking them costs several times a plain tick's work (``maglev
-    bench``), and no fault needs a faster answer (the amplifiers
-    clamp the current themselves, the coils heat over a minute, the controller lands
-    a lost instrument on its own).
+    A diagram of three blocks (``systems/stacked_ports.py``), so that a tick pays for
+    one Python call: the ports stacked for ``SupervisorLogic`` ("logic"), whose
+    update is one compiled call (``supervisor_update``; Python plans a fault's
+    landing, once), and its state split into the named outputs. The outputs are
+    state, each tick's update writing the next tick's command; past a motion's end
+    the update only counts. The watchdogs check every ``watchdog_period_s`` (s, to
+    the nearest whole tick): no fault needs a faster answer (the amplifiers clamp
+    the current themselves, the coils heat over a minute, the controller lands a
+    lost instrument on its own).
     ``plan_landing(pose, enable, period_s) -> commands`` (a Motion's, from the
     landing's start) bring the instrument from ``pose`` onto the glass and ramp its
     force gain from ``enable`` to zero.
@@ -279,176 +620,51 @@ class DeviceSupervisor(LeafSystem):
     def __init__(self, *, initial_motion: Motion, limits: WatchLimits, lost_grace_s: float,
                  plan_landing: Callable, n_coils: int, watchdog_period_s: float,
                  weight_n: float):
-        super().__init__()
-        self._weight_n = float(weight_n)
-        self._plan_landing = plan_landing
-        self._lost_grace_s = float(lost_grace_s)
-        self._period_s = initial_motion.period_s
-        # Every whole number of ticks nearest watchdog_period_s, at least every tick.
-        self._watchdog_ticks = max(1, round(watchdog_period_s / self._period_s))
-        self._pose = self.DeclareVectorInputPort("X_WI_measured", 7)
-        self._velocity = self.DeclareVectorInputPort("V_WI_measured", 6)
-        self._tracking_ok = self.DeclareVectorInputPort("tracking_ok", 1)
-        self._currents = self.DeclareVectorInputPort("coil_currents", n_coils)
-        self._temperatures = self.DeclareVectorInputPort("coil_temperature_c", n_coils)
-        self._thermally_limited = self.DeclareVectorInputPort("thermally_limited", 1)
-        self._commanded = self.DeclareVectorInputPort("coil_currents_commanded", n_coils)
-        self._shortfall = self.DeclareVectorInputPort("allocation_shortfall_W", 6)
-        self._motion = self.DeclareAbstractState(AbstractValue.Make(initial_motion))
-        command = initial_motion.at_tick(0)
-        self._setpoint = self.DeclareDiscreteState(BasicVector(command[0:12]))
-        self._enable = self.DeclareDiscreteState(BasicVector(command[12:13]))
-        self._fault_bits = self.DeclareDiscreteState(BasicVector([0.0]))
-        self._landing_start = self.DeclareDiscreteState(BasicVector([math.nan]))
-        self._lost_s = self.DeclareDiscreteState(BasicVector([0.0]))
-        self._thermally_limited_s = self.DeclareDiscreteState(BasicVector([0.0]))
-        self._mismatch_s = self.DeclareDiscreteState(n_coils)
-        # The command the amplifiers were given the tick before a check (A): what the
-        # measured currents of the check follow, a tick late.
-        self._sent = self.DeclareDiscreteState(n_coils)
-        self._stuck = self.DeclareDiscreteState(n_coils)
-        self._power = self.DeclareDiscreteState(BasicVector([1.0]))
-        self._limits = self.DeclareAbstractParameter(AbstractValue.Make(limits))
-        self.DeclareStateOutputPort("setpoint", self._setpoint)
-        self.DeclareStateOutputPort("enable", self._enable)
-        self.DeclareStateOutputPort("fault_bits", self._fault_bits)
-        self.DeclareStateOutputPort("tracking_lost_s", self._lost_s)
-        self.DeclareStateOutputPort("coils_stuck", self._stuck)
-        self.DeclareStateOutputPort("coil_power", self._power)
-        # A context may start at any time: its command is that tick's from the start.
-        self.DeclareInitializationDiscreteUpdateEvent(self._initialize)
-        self.DeclarePeriodicDiscreteUpdateEvent(self._period_s, 0.0, self._update)
-        # A landing is planned once per (motion, start), not each time it is asked for.
-        self._landing = lru_cache(maxsize=4)(self._landing_from)
+        Diagram.__init__(self)
+        self._logic = SupervisorLogic(
+            initial_motion=initial_motion, limits=limits, lost_grace_s=lost_grace_s,
+            plan_landing=plan_landing, n_coils=n_coils, watchdog_period_s=watchdog_period_s,
+            weight_n=weight_n)
+        BuildStacked(self, leaf=self._logic, leaf_name="logic",
+                     inputs=supervisor_inputs(n_coils), outputs=supervisor_outputs(n_coils),
+                     unexported_rows=stacked_size(supervisor_state(n_coils))
+                     - stacked_size(supervisor_outputs(n_coils)))
 
     # --- what the device API sets between ticks ---------------------------
 
     def set_motion(self, context, motion: Motion) -> None:
         """Fly ``motion`` from now on (ends a fault's landing: the caller chose)."""
-        context.SetAbstractState(self._motion, motion)
-        context.SetDiscreteState(self._landing_start, [math.nan])
-        self._write_command(context.get_mutable_discrete_state(), motion,
-                            self._tick(context))
+        self._logic.set_motion(self._mutable(context), motion)
 
     def land(self, context) -> Motion:
         """Start a landing from the active setpoint now; returns it."""
-        landing = self._landing(self.active_motion(context), context.get_time())
-        self.set_motion(context, landing)
-        return landing
+        return self._logic.land(self._mutable(context))
 
     def reset_faults(self, context) -> None:
         """Clear the latched bits and stuck coils, power the coils again, and clear a
         latched tracking loss if tracking is good again (the controller then flies); a
         fault's landing stays the commanded motion."""
-        self.set_motion(context, self.active_motion(context))
-        context.SetDiscreteState(self._fault_bits, [0.0])
-        context.SetDiscreteState(self._stuck, np.zeros(context.get_discrete_state(
-            self._stuck).size()))
-        context.SetDiscreteState(self._power, [1.0])
-        if self._tracking_ok.Eval(context)[0] > 0.5:
-            context.SetDiscreteState(self._lost_s, [0.0])
+        # The estimator's port alone: the stacked input would evaluate the controller too.
+        tracking_ok = self.GetInputPort("tracking_ok").Eval(context)[0] > 0.5
+        self._logic.reset_faults(self._mutable(context), tracking_ok=tracking_ok)
 
     def set_limits(self, context, limits: WatchLimits) -> None:
-        context.get_mutable_abstract_parameter(self._limits).set_value(limits)
+        self._logic.set_limits(self._mutable(context), limits)
 
     def limits(self, context) -> WatchLimits:
-        return context.get_abstract_parameter(self._limits).get_value()
+        return self._logic.limits(self.GetSubsystemContext(self._logic, context))
 
     def active_motion(self, context) -> Motion:
         """The commanded motion, or the landing a fault started."""
-        motion = context.get_abstract_state(self._motion).get_value()
-        landing_start_s = context.get_discrete_state(self._landing_start).GetAtIndex(0)
-        return motion if math.isnan(landing_start_s) else self._landing(motion, landing_start_s)
+        return self._logic.active_motion(self.GetSubsystemContext(self._logic, context))
 
     def coils_powered(self, context) -> bool:
-        return context.get_discrete_state(self._power).GetAtIndex(0) > 0.5
+        return self._logic.state_entry(self.GetSubsystemContext(self._logic, context),
+                                       "coil_power") > 0.5
 
     def faults(self, context) -> int:
-        return int(context.get_discrete_state(self._fault_bits).GetAtIndex(0))
+        return int(self._logic.state_entry(self.GetSubsystemContext(self._logic, context),
+                                           "fault_bits"))
 
-    # --- the tick ----------------------------------------------------------
-
-    def _tick(self, context) -> int:
-        return round(context.get_time() / self._period_s)
-
-    def _landing_from(self, motion: Motion, start_s: float) -> Motion:
-        setpoint, enable = motion.at(start_s)
-        return Motion(commands=self._plan_landing(setpoint[0:6], enable, self._period_s),
-                      first_tick=round(start_s / self._period_s), period_s=self._period_s,
-                      start_s=start_s, landing=True)
-
-    def _write_command(self, discrete_state, motion: Motion, tick: int) -> None:
-        command = motion.at_tick(tick)
-        discrete_state.get_mutable_vector(self._setpoint).SetFromVector(command[0:12])
-        discrete_state.get_mutable_vector(self._enable).SetAtIndex(0, command[12])
-
-    def _initialize(self, context, discrete_state):
-        self._write_command(discrete_state, self.active_motion(context), self._tick(context))
-
-    def _update(self, context, discrete_state):
-        lost_s = context.get_discrete_state(self._lost_s).GetAtIndex(0)
-        lost_after_s = tracking_lost_after(
-            lost_s, self._tracking_ok.EvalBasicVector(context).GetAtIndex(0),
-            self._lost_grace_s, self._period_s)
-        if lost_after_s != lost_s:
-            discrete_state.get_mutable_vector(self._lost_s).SetAtIndex(0, lost_after_s)
-        tick = self._tick(context)
-        if (tick + 1) % self._watchdog_ticks == 0:
-            discrete_state.get_mutable_vector(self._sent).SetFromVector(
-                self._commanded.EvalBasicVector(context).get_value())
-        motion = self.active_motion(context)
-        started_landing = tick % self._watchdog_ticks == 0 and self._watch(
-            context, discrete_state, motion)
-        if started_landing:  # from the commanded motion, now
-            motion = self._landing(motion, context.get_time())
-        # The state holds this tick's command; past the motion's end (or before its
-        # start) the next one is the same.
-        if started_landing or motion.first_tick <= tick < motion.last_tick:
-            self._write_command(discrete_state, motion, tick + 1)
-
-    def _watch(self, context, discrete_state, motion: Motion) -> bool:
-        """Check the watchdogs; latch new faults; True if that started a landing."""
-        latched = self.faults(context)
-        limited_s = 0.0
-        if self._thermally_limited.EvalBasicVector(context).GetAtIndex(0) > 0.5:
-            limited_s = (context.get_discrete_state(self._thermally_limited_s).GetAtIndex(0)
-                         + self._watchdog_ticks * self._period_s)
-        discrete_state.get_mutable_vector(self._thermally_limited_s).SetAtIndex(0, limited_s)
-        currents = self._currents.EvalBasicVector(context).get_value()
-        limits = self.limits(context)
-        stuck = context.get_discrete_state(self._stuck).get_value()
-        carrying = context.get_discrete_state(self._enable).GetAtIndex(0) > 0.0
-        if self.coils_powered(context):
-            mismatch_s = np.where(
-                mismatched_coils(currents, context.get_discrete_state(self._sent).get_value(),
-                                 limits.current_limit_a),
-                context.get_discrete_state(self._mismatch_s).get_value()
-                + self._watchdog_ticks * self._period_s, 0.0)
-            discrete_state.get_mutable_vector(self._mismatch_s).SetFromVector(mismatch_s)
-            stuck = np.maximum(stuck, mismatch_s >= STUCK_PERSIST_S - 1e-9)
-            discrete_state.get_mutable_vector(self._stuck).SetFromVector(stuck)
-            # The shortfall is read only with a coil stuck: nothing else cuts the power.
-            if stuck.any() and cut_coil_power(
-                    coils_stuck=True, carrying=carrying,
-                    force_shortfall_n=float(np.linalg.norm(
-                        self._shortfall.EvalBasicVector(context).get_value()[0:3])),
-                    weight_n=self._weight_n):
-                discrete_state.get_mutable_vector(self._power).SetAtIndex(0, 0.0)
-        raised = detect_faults(
-            position_m=self._pose.EvalBasicVector(context).get_value()[4:7],
-            velocity_m_s=self._velocity.EvalBasicVector(context).get_value()[3:6],
-            tracking_lost=context.get_discrete_state(self._lost_s).GetAtIndex(0)
-            > self._lost_grace_s,
-            coil_currents_a=currents, coils_stuck=bool(stuck.any()),
-            coil_temperature_c=self._temperatures.EvalBasicVector(context).get_value(),
-            thermally_limited=limited_s >= THERMAL_LIMIT_PERSIST_S,
-            carrying=carrying, limits=limits)
-        new = raised & ~latched
-        if not new:
-            return False
-        discrete_state.get_mutable_vector(self._fault_bits).SetAtIndex(0, latched | new)
-        if motion.landing:
-            return False
-        # Land from where the setpoint is now.
-        discrete_state.get_mutable_vector(self._landing_start).SetAtIndex(0, context.get_time())
-        return True
+    def _mutable(self, context):
+        return self.GetMutableSubsystemContext(self._logic, context)

@@ -31,13 +31,14 @@ def stacked_slices(ports: Ports) -> Dict[str, slice]:
 
 def BuildStacked(diagram: Diagram, *, leaf: LeafSystem, leaf_name: str, inputs: Ports,
                  outputs: Ports, leaf_inputs: Sequence[str] = (),
-                 leaf_outputs: Sequence[str] = ()) -> None:
+                 leaf_outputs: Sequence[str] = (), unexported_rows: int = 0) -> None:
     """Build into ``diagram``: ``leaf`` (its first input port takes ``inputs`` stacked in
-    order, its first output port gives ``outputs`` stacked in order) between an
-    "inputs" Multiplexer and an "outputs" Demultiplexer whose ports are exported by
-    name; then the leaf's own ports named in ``leaf_inputs`` and ``leaf_outputs``, as
-    they are (an input that must not feed the stacked outputs through, an output of
-    state)."""
+    order, its first output port gives ``outputs`` stacked in order, then
+    ``unexported_rows`` more that stay inside: the rest of a state vector the port
+    outputs whole) between an "inputs" Multiplexer and an "outputs" Demultiplexer
+    whose ports are exported by name; then the leaf's own ports named in
+    ``leaf_inputs`` and ``leaf_outputs``, as they are (an input that must not feed the
+    stacked outputs through, an output of state)."""
     builder = DiagramBuilder()
     builder.AddNamedSystem(leaf_name, leaf)
     stack = builder.AddNamedSystem("inputs", Multiplexer([size for _, size in inputs]))
@@ -46,7 +47,8 @@ def BuildStacked(diagram: Diagram, *, leaf: LeafSystem, leaf_name: str, inputs: 
     builder.Connect(stack.get_output_port(), leaf.get_input_port(0))
     for name in leaf_inputs:
         builder.ExportInput(leaf.GetInputPort(name), name)
-    split = builder.AddNamedSystem("outputs", Demultiplexer([size for _, size in outputs]))
+    split = builder.AddNamedSystem("outputs", Demultiplexer(
+        [size for _, size in outputs] + ([unexported_rows] if unexported_rows else [])))
     builder.Connect(leaf.get_output_port(0), split.get_input_port())
     for i, (name, _) in enumerate(outputs):
         builder.ExportOutput(split.get_output_port(i), name)
