@@ -51,7 +51,7 @@ RECORDING_ONLY = ("log_sample", "station/head", "head_pose_predictor", "stereo_v
 HELD_STATES = ("coil_temperatures", "device_supervisor")
 # Discrete modes, compared exactly (a nudge would switch the mode): held, as the
 # linearization is about a fixed mode.
-MODE_COORDINATES = ("haptic_supervisor/d0[0]",)
+MODE_COORDINATES = ("haptic_supervisor/law[0]",)
 SETTLE_S = 0.3  # after haptics is fully on, before the operating point (s)
 MODES_SHOWN = 12
 HELD_TOLERANCE = 1e-6  # a row of the map this close to a unit vector is a held state

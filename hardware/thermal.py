@@ -25,6 +25,7 @@ from dataclasses import dataclass
 
 import numba
 import numpy as np
+from numba.extending import register_jitable
 
 from maglev_haptics.hardware.device import CoilSpec, DeviceConfig, ThermalSpec
 from maglev_haptics.hardware.kernels import SCALAR, VECTOR, kernel
@@ -139,18 +140,23 @@ def temperature_after_c(model: CoilThermal, temperature_c, current_a, duration_s
     it is the exact discrete update T[k+1] = f(T[k], I[k]) for currents held
     over each period. Arrays broadcast (e.g. 27 coils at once).
     """
-    return _temperature_after_c(
-        temperature_c, current_a, duration_s, model.ambient_c, model.heat_capacity_j_per_k,
-        model.thermal_resistance_k_per_w, model.resistance_ref_ohm, model.alpha_per_k,
-        float(winding_resistance_ohm(model, model.ambient_c)))
+    return _temperature_after_c(temperature_c, current_a, duration_s, *winding_numbers(model))
 
 
-# A compiled ufunc: the 100 Hz thermal update took ~110 us in numpy's dispatch.
-@numba.vectorize(["float64(float64, float64, float64, float64, float64, float64, float64, "
-                  "float64, float64)"], cache=True)
-def _temperature_after_c(temperature_c, current_a, duration_s, ambient_c, heat_capacity_j_per_k,
-                         thermal_resistance_k_per_w, resistance_ref_ohm, alpha_per_k,
-                         ambient_resistance_ohm):
+def winding_numbers(model: CoilThermal) -> tuple:
+    """The numbers ``winding_temperature_after_c`` takes after the duration: T_amb
+    [deg C], C [J/K], R_th [K/W], R_ref [ohm], alpha [1/K], R(T_amb) [ohm]."""
+    return (model.ambient_c, model.heat_capacity_j_per_k, model.thermal_resistance_k_per_w,
+            model.resistance_ref_ohm, model.alpha_per_k,
+            float(winding_resistance_ohm(model, model.ambient_c)))
+
+
+@register_jitable
+def winding_temperature_after_c(temperature_c, current_a, duration_s, ambient_c,
+                                heat_capacity_j_per_k, thermal_resistance_k_per_w,
+                                resistance_ref_ohm, alpha_per_k, ambient_resistance_ohm):
+    """``temperature_after_c`` of one winding, the model's numbers as ``winding_numbers``
+    gives them."""
     squared = current_a * current_a
     rate = (1 / thermal_resistance_k_per_w - squared * resistance_ref_ohm * alpha_per_k) \
         / heat_capacity_j_per_k  # lambda [1/s]
@@ -159,6 +165,24 @@ def _temperature_after_c(temperature_c, current_a, duration_s, ambient_c, heat_c
     x = -rate * duration_s
     phi = 1 + x / 2 if abs(x) < 1e-8 else math.expm1(x) / x  # expm1(x) / x
     return ambient_c + (temperature_c - ambient_c) * math.exp(x) + drive * duration_s * phi
+
+
+# A compiled ufunc for Python's arrays: in numpy, the 27 coils' update took ~110 us.
+_temperature_after_c = numba.vectorize(
+    ["float64(float64, float64, float64, float64, float64, float64, float64, float64, float64)"],
+    cache=True)(winding_temperature_after_c)
+
+
+@kernel((VECTOR, VECTOR, SCALAR, SCALAR, SCALAR, SCALAR, SCALAR, SCALAR, SCALAR))
+def step_temperatures_c(temperature_c, current_a, duration_s, ambient_c, heat_capacity_j_per_k,
+                        thermal_resistance_k_per_w, resistance_ref_ohm, alpha_per_k,
+                        ambient_resistance_ohm):
+    """Each winding's temperature [deg C] in ``temperature_c``, in place, after
+    ``duration_s`` [s] at its held current [A] (``winding_temperature_after_c``)."""
+    for j in range(temperature_c.size):
+        temperature_c[j] = winding_temperature_after_c(
+            temperature_c[j], current_a[j], duration_s, ambient_c, heat_capacity_j_per_k,
+            thermal_resistance_k_per_w, resistance_ref_ohm, alpha_per_k, ambient_resistance_ohm)
 
 
 def time_to_temperature_s(model: CoilThermal, temperature_c, current_a, target_c=None):

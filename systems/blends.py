@@ -2,8 +2,12 @@
 
 import math
 
+import numba
 import numpy as np
+from numba.extending import register_jitable
 from pydrake.trajectories import PiecewisePolynomial
+
+from maglev_haptics.hardware.kernels import libm_pow
 
 LANDING_PRESS_M = 0.001  # a landing setpoint ends this far below the rest height (m)
 # Hermite samples per second of a minimum-jerk move: the cubic Hermite fit of
@@ -11,9 +15,16 @@ LANDING_PRESS_M = 0.001  # a landing setpoint ends this far below the rest heigh
 SAMPLES_PER_S = 200
 
 
+# Python (numpy's powers, of arrays or floats) and the kernels (the C library's) share it.
+@register_jitable
+def minimum_jerk_of_powers(s2, s3, s4, s5):
+    """``minimum_jerk`` from s^2, s^3, s^4 and s^5."""
+    return 10 * s3 - 15 * s4 + 6 * s5, 30 * s2 - 60 * s3 + 30 * s4
+
+
 def minimum_jerk(s):
     """Blend 0 -> 1 and its derivative for s in [0, 1] (zero rate and acceleration at both ends)."""
-    return 10 * s**3 - 15 * s**4 + 6 * s**5, 30 * s**2 - 60 * s**3 + 30 * s**4
+    return minimum_jerk_of_powers(s**2, s**3, s**4, s**5)
 
 
 def minimum_jerk_samples(pose_from, pose_to, t_from_s: float, duration_s: float):
@@ -75,11 +86,14 @@ def minimum_jerk_moves(start, goals, move_s: float, times_s):
     return values, rates
 
 
+@numba.njit(cache=True)
 def clipped_minimum_jerk(elapsed_s: float, duration_s: float):
     """(blend, d blend / dt in 1/s) ``elapsed_s`` into a move of ``duration_s`` (s);
     1 and 0 once it is over, 0 and 0 before it starts."""
     if duration_s <= 0.0 or elapsed_s >= duration_s:
         return 1.0, 0.0
     s = max(elapsed_s, 0.0) / duration_s
-    blend, rate = minimum_jerk(s)
+    # The C library's pow, as numpy's power of a float calls it.
+    blend, rate = minimum_jerk_of_powers(libm_pow(s, 2.0), libm_pow(s, 3.0), libm_pow(s, 4.0),
+                                         libm_pow(s, 5.0))
     return blend, rate / duration_s

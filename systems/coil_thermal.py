@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from pydrake.systems.framework import BasicVector, LeafSystem
 
-from maglev_haptics.hardware.thermal import CoilThermal, temperature_after_c
+from maglev_haptics.hardware.thermal import CoilThermal, step_temperatures_c, winding_numbers
 
 
 class CoilTemperatures(LeafSystem):
@@ -27,7 +27,7 @@ class CoilTemperatures(LeafSystem):
 
     def __init__(self, *, model: CoilThermal, n_coils: int, period_s: float):
         super().__init__()
-        self._model = model
+        self._numbers = winding_numbers(model)
         self._period_s = float(period_s)
         self._currents = self.DeclareVectorInputPort("coil_currents", n_coils)
         self._temperature = self.DeclareDiscreteState(
@@ -36,6 +36,6 @@ class CoilTemperatures(LeafSystem):
         self.DeclareStateOutputPort("coil_temperature_c", self._temperature)
 
     def _update(self, context, discrete_state):
-        discrete_state.set_value(self._temperature, temperature_after_c(
-            self._model, context.get_discrete_state(self._temperature).get_value(),
-            self._currents.Eval(context), self._period_s))
+        # The update's state starts as a copy of the context's: stepped in place.
+        step_temperatures_c(discrete_state.get_mutable_value(self._temperature),
+                            self._currents.Eval(context), self._period_s, *self._numbers)

@@ -41,11 +41,11 @@ from pydrake.systems.framework import Diagram, LeafSystem
 
 from maglev_haptics.hardware.config_checks import finite, positive, require
 from maglev_haptics.hardware.constants import GRAVITY_M_S2
-from maglev_haptics.hardware.kernels import SCALAR, VECTOR, kernel
+from maglev_haptics.hardware.kernels import READONLY_VECTOR, SCALAR, VECTOR, kernel
 from maglev_haptics.systems.haptic_coupling import coupling_wrenches
 from maglev_haptics.systems.rotations import (
-    angular_velocity_from_rpy_rates, pose_vector, quaternion_from_rotation_matrix,
-    rigid_transform, rotation_from_quaternion, rotation_from_rpy)
+    angular_velocity_from_rpy_rates, drake_relative_pose, quaternion_from_rotation_matrix,
+    rotation_from_quaternion, rotation_from_rpy)
 from maglev_haptics.systems.stacked_ports import BuildStacked, stacked_size, stacked_slices
 
 HAND_MODEL_URL = "package://maglev_haptics/hand.sdf"
@@ -151,7 +151,7 @@ def grip_wrenches(X_WH, V_WH, X_WI, V_WI, X_HI, k, b):
     return on_hand, on_instrument
 
 
-@kernel((VECTOR, VECTOR, VECTOR, SCALAR, VECTOR, VECTOR, VECTOR, VECTOR, VECTOR, SCALAR))
+@numba.njit(cache=True)
 def hand_wrenches(hand_state, instrument_state, target, gripped, X_HI, k_arm, b_arm, k_grip,
                   b_grip, mass_kg):
     """(total wrench on the hand, wrench on the instrument), each [f; tau] in W about the
@@ -165,18 +165,20 @@ def hand_wrenches(hand_state, instrument_state, target, gripped, X_HI, k_arm, b_
     return on_hand + grip_on_hand, grip_on_instrument
 
 
+@numba.njit(cache=True)
 def latch_X_HI(X_WH, X_WI) -> np.ndarray:
     """X_HI = X_WH^-1 X_WI as a pose vector [qw, qx, qy, qz, x, y, z] (m)."""
-    return pose_vector(rigid_transform(X_WH).InvertAndCompose(rigid_transform(X_WI)))
+    return drake_relative_pose(X_WH, X_WI)
 
 
+@numba.njit(cache=True)
 def grip_update(gripped: float, X_HI, grip_command: float, X_WH, X_WI):
     """(gripped 0/1, X_HI) after one grip-sensor sample: a rising edge of the command
     (> 0.5 grips) latches the current relative pose, a falling edge releases."""
     if grip_command <= 0.5:
-        return 0.0, np.asarray(X_HI, float)
+        return 0.0, X_HI.copy()
     if gripped >= 0.5:
-        return 1.0, np.asarray(X_HI, float)
+        return 1.0, X_HI.copy()
     return 1.0, latch_X_HI(X_WH, X_WI)
 
 
@@ -220,8 +222,36 @@ def explicit_step_spectral_radius(config: HandImpedanceConfig, instrument_mass_k
 # command is the law's own port: it acts only through the grip's update, so the
 # wrenches do not depend on it.
 HAND_INPUTS = (("hand_state", 13), ("instrument_state", 13), ("hand_target", 12))
+_HAND_STATE, _INSTRUMENT_STATE, _HAND_TARGET = (
+    rows.start for rows in stacked_slices(HAND_INPUTS).values())
 # Its output ports that the law computes (name, size), in the order of the law's one output.
 HAND_OUTPUTS = (("generalized_forces", 12), ("wrench_on_instrument_W", 6))
+
+
+@kernel((VECTOR, SCALAR, VECTOR, VECTOR))
+def grip_step(inputs, grip_command, gripped, X_HI):
+    """One grip-sensor sample (``grip_update``) in place: ``gripped`` (1) and ``X_HI``
+    (7) are the update's copies of the state; ``inputs`` HAND_INPUTS stacked."""
+    now_gripped, now_X_HI = grip_update(
+        gripped[0], X_HI, grip_command, inputs[_HAND_STATE:_HAND_STATE + 7],
+        inputs[_INSTRUMENT_STATE:_INSTRUMENT_STATE + 7])
+    gripped[0] = now_gripped
+    X_HI[:] = now_X_HI
+
+
+@kernel((VECTOR, READONLY_VECTOR, READONLY_VECTOR, VECTOR, VECTOR, VECTOR, VECTOR, SCALAR,
+         VECTOR))
+def hand_outputs(inputs, gripped, X_HI, k_arm, b_arm, k_grip, b_grip, mass_kg, out):
+    """HAND_OUTPUTS stacked into ``out`` from ``inputs`` (HAND_INPUTS stacked): the
+    wrench on the hand, then on the instrument, as generalized forces [tau; f] each;
+    then the instrument's as [f; tau]."""
+    on_hand, on_instrument = hand_wrenches(
+        inputs[_HAND_STATE:_HAND_STATE + 13], inputs[_INSTRUMENT_STATE:_INSTRUMENT_STATE + 13],
+        inputs[_HAND_TARGET:_HAND_TARGET + 12], gripped[0], X_HI, k_arm, b_arm, k_grip, b_grip,
+        mass_kg)
+    out[0:3], out[3:6] = on_hand[3:6], on_hand[0:3]
+    out[6:9], out[9:12] = on_instrument[3:6], on_instrument[0:3]
+    out[12:18] = on_instrument
 
 
 class HandLaw(LeafSystem):
@@ -242,10 +272,9 @@ class HandLaw(LeafSystem):
 
     def __init__(self, *, config: HandImpedanceConfig, period_s: float):
         LeafSystem.__init__(self)
-        self._config = config
+        self._mass_kg = float(config.mass_kg)
         self._k_arm, self._b_arm, self._k_grip, self._b_grip = impedance_gains(config)
         self._inputs = self.DeclareVectorInputPort("inputs", stacked_size(HAND_INPUTS))
-        self._rows = stacked_slices(HAND_INPUTS)
         self._grip = self.DeclareVectorInputPort("grip", 1)
         # The grip flag is a group of its own: its port is a plain state output.
         self._gripped = self.DeclareDiscreteState(1)
@@ -257,29 +286,18 @@ class HandLaw(LeafSystem):
         self.DeclareStateOutputPort("handle_gripped", self._gripped)
 
     def _update_grip(self, context, discrete_state):
-        inputs, rows = self._inputs.EvalBasicVector(context).value(), self._rows
-        gripped, X_HI = grip_update(
-            context.get_discrete_state(self._gripped).GetAtIndex(0),
-            context.get_discrete_state(self._X_HI).CopyToVector(),
-            self._grip.EvalBasicVector(context).GetAtIndex(0),
-            inputs[rows["hand_state"]][0:7].copy(), inputs[rows["instrument_state"]][0:7].copy())
-        discrete_state.get_mutable_vector(self._gripped).SetFromVector([gripped])
-        discrete_state.get_mutable_vector(self._X_HI).SetFromVector(X_HI)
+        # The update's state starts as a copy of the context's: stepped in place.
+        grip_step(self._inputs.EvalBasicVector(context).value(),
+                  self._grip.EvalBasicVector(context).GetAtIndex(0),
+                  discrete_state.get_mutable_value(self._gripped),
+                  discrete_state.get_mutable_value(self._X_HI))
 
     def _calc_wrenches(self, context, output):
-        """The wrench on the hand, then on the instrument, as generalized forces
-        [tau; f] each; then the instrument's as [f; tau]."""
-        inputs, rows = self._inputs.EvalBasicVector(context).value(), self._rows
-        on_hand, on_instrument = hand_wrenches(
-            inputs[rows["hand_state"]], inputs[rows["instrument_state"]],
-            inputs[rows["hand_target"]],
-            context.get_discrete_state(self._gripped).GetAtIndex(0),
-            context.get_discrete_state(self._X_HI).CopyToVector(), self._k_arm, self._b_arm,
-            self._k_grip, self._b_grip, self._config.mass_kg)
-        out = output.get_mutable_value()
-        out[0:3], out[3:6] = on_hand[3:6], on_hand[0:3]
-        out[6:9], out[9:12] = on_instrument[3:6], on_instrument[0:3]
-        out[12:18] = on_instrument
+        hand_outputs(self._inputs.EvalBasicVector(context).value(),
+                     context.get_discrete_state(self._gripped).get_value(),
+                     context.get_discrete_state(self._X_HI).get_value(), self._k_arm,
+                     self._b_arm, self._k_grip, self._b_grip, self._mass_kg,
+                     output.get_mutable_value())
 
 
 class SimulatedHand(Diagram):

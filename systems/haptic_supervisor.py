@@ -30,19 +30,22 @@ m/s, rad/s), as the controller's input.
 import dataclasses
 from dataclasses import dataclass
 
+import numba
 import numpy as np
-from pydrake.common.eigen_geometry import Quaternion
-from pydrake.math import RollPitchYaw
-from pydrake.systems.framework import LeafSystem
+from pydrake.systems.framework import Diagram, LeafSystem
 
 from maglev_haptics.hardware.config_checks import nonnegative
+from maglev_haptics.hardware.kernels import READONLY_VECTOR, SCALAR, VECTOR, kernel
 from maglev_haptics.systems.blends import LANDING_PRESS_M, clipped_minimum_jerk
+from maglev_haptics.systems.rotations import drake_roll_pitch_yaw
+from maglev_haptics.systems.stacked_ports import BuildStacked, stacked_size, stacked_slices
 
 LEVITATE, HAPTIC, LANDING = 0, 1, 2
 
-# The discrete state vector's layout.
+# The discrete state vector's layout: single entries, then where the measured pose
+# and the offset (6 each) start.
 _MODE, _SINCE, _POSE, _OFFSET, _PD, _ENABLE, _RELEASED, _SINCE_CONTACT = (
-    0, 1, slice(2, 8), slice(8, 14), 14, 15, 16, 17)
+    0, 1, 2, 8, 14, 15, 16, 17)
 STATE_SIZE = 18
 
 
@@ -63,6 +66,16 @@ class SupervisorConfig:
             nonnegative(f"{path}.{f.name}", getattr(self, f.name))
 
 
+# ``SupervisorConfig``'s times (s) as the kernels take them: an array, by these indices.
+_HANDOVER_S, _RELEASE_DEBOUNCE_S, _CONTACT_MEMORY_S, _LANDING_S, _SETTLE_S, _FORCE_RAMP_S = range(6)
+
+
+def supervisor_timing(config: SupervisorConfig) -> np.ndarray:
+    """``config``'s times (s) in the kernels' order."""
+    return np.array([config.handover_s, config.release_debounce_s, config.contact_memory_s,
+                     config.landing_s, config.settle_s, config.force_ramp_s], dtype=float)
+
+
 def initial_supervisor_state() -> np.ndarray:
     state = np.zeros(STATE_SIZE)
     state[_MODE] = LEVITATE
@@ -72,41 +85,48 @@ def initial_supervisor_state() -> np.ndarray:
     return state
 
 
+@numba.njit(cache=True)
 def measured_pose6(X_WI, reference_yaw: float) -> np.ndarray:
     """[x, y, z, roll, pitch, yaw] of a [q; p] pose, yaw unwrapped to within pi of
     ``reference_yaw`` (rad) so a blend from it to the script turns the short way."""
-    q_WI = np.asarray(X_WI[0:4], float)
-    rpy = RollPitchYaw(Quaternion(q_WI / np.linalg.norm(q_WI))).vector()
+    rpy = drake_roll_pitch_yaw(X_WI[0:4])
     rpy[2] = reference_yaw + (rpy[2] - reference_yaw + np.pi) % (2 * np.pi) - np.pi
-    return np.concatenate((np.asarray(X_WI[4:7], float), rpy))
+    return np.concatenate((X_WI[4:7], rpy))
 
 
-def supervisor_step(state: np.ndarray, t: float, period_s: float, scripted_pose6: np.ndarray,
-                    X_WI, tracking_ok: bool, request: bool, gripped: bool, in_contact: bool,
-                    config: SupervisorConfig) -> np.ndarray:
-    """The supervisor's state one period (s) after ``state`` at time ``t`` (s)."""
+@numba.njit(cache=True)
+def _enter(new, next_mode: int, t: float, scripted_pose6, X_WI) -> None:
+    """``new`` switched to ``next_mode`` at time ``t`` (s), at the measured pose."""
+    new[_MODE] = next_mode
+    new[_SINCE] = t
+    new[_POSE:_POSE + 6] = measured_pose6(X_WI, scripted_pose6[5])
+    if next_mode == LEVITATE:
+        new[_OFFSET:_OFFSET + 6] = new[_POSE:_POSE + 6] - scripted_pose6
+    else:
+        new[_OFFSET:_OFFSET + 6] = 0.0
+    new[_RELEASED] = 0.0
+
+
+@numba.njit(cache=True)
+def supervisor_step(state, t: float, period_s: float, scripted_pose6, X_WI, tracking_ok: bool,
+                    request: bool, gripped: bool, in_contact: bool, timing) -> np.ndarray:
+    """The supervisor's state one period (s) after ``state`` at time ``t`` (s); ``timing``
+    is ``supervisor_timing(config)``."""
     new = state.copy()
     mode = int(state[_MODE])
     new[_SINCE_CONTACT] = 0.0 if in_contact else state[_SINCE_CONTACT] + period_s
     new[_RELEASED] = state[_RELEASED] + period_s if (mode == HAPTIC and not gripped) else 0.0
 
-    def enter(next_mode):
-        new[_MODE] = next_mode
-        new[_SINCE] = t
-        new[_POSE] = measured_pose6(X_WI, scripted_pose6[5])
-        new[_OFFSET] = new[_POSE] - scripted_pose6 if next_mode == LEVITATE else 0.0
-        new[_RELEASED] = 0.0
-
     if mode != HAPTIC and request and gripped and tracking_ok:
-        enter(HAPTIC)
+        _enter(new, HAPTIC, t, scripted_pose6, X_WI)
     elif mode == HAPTIC and not request:
-        enter(LEVITATE)
-    elif (mode == HAPTIC and new[_RELEASED] > config.release_debounce_s
-          and state[_RELEASED] <= config.release_debounce_s
-          and new[_SINCE_CONTACT] > config.contact_memory_s):
-        enter(LANDING)
+        _enter(new, LEVITATE, t, scripted_pose6, X_WI)
+    elif (mode == HAPTIC and new[_RELEASED] > timing[_RELEASE_DEBOUNCE_S]
+          and state[_RELEASED] <= timing[_RELEASE_DEBOUNCE_S]
+          and new[_SINCE_CONTACT] > timing[_CONTACT_MEMORY_S]):
+        _enter(new, LANDING, t, scripted_pose6, X_WI)
 
-    step = period_s / config.handover_s if config.handover_s > 0 else 1.0
+    step = period_s / timing[_HANDOVER_S] if timing[_HANDOVER_S] > 0 else 1.0
     mode = int(new[_MODE])
     if mode == HAPTIC:
         new[_PD] = max(0.0, state[_PD] - step)
@@ -114,63 +134,137 @@ def supervisor_step(state: np.ndarray, t: float, period_s: float, scripted_pose6
         new[_PD] = 1.0
     else:
         new[_PD] = min(1.0, state[_PD] + step)
-    landed = mode == LANDING and t - new[_SINCE] > config.landing_s + config.settle_s
-    ramp = period_s / config.force_ramp_s if config.force_ramp_s > 0 else 1.0
+    landed = mode == LANDING and t - new[_SINCE] > timing[_LANDING_S] + timing[_SETTLE_S]
+    ramp = period_s / timing[_FORCE_RAMP_S] if timing[_FORCE_RAMP_S] > 0 else 1.0
     new[_ENABLE] = (max(0.0, state[_ENABLE] - ramp) if landed
                     else min(1.0, state[_ENABLE] + ramp))
     return new
 
 
-# The state-output ports, in the order supervisor_gains returns them.
-_GAIN_OUTPUTS = ("pd_gain", "brake_gain", "haptics_enable", "mode")
-
-
-def supervisor_gains(state: np.ndarray, config: SupervisorConfig):
+@numba.njit(cache=True)
+def supervisor_gains(state, timing):
     """(pd_gain, brake_gain, haptics_enable, mode) in ``state``: the PD's share
     0..1, the brake 0/1 (haptic, let go for longer than the debounce: the scene
     holds the instrument), the coupling's enable 0/1 and the mode number."""
     haptic = state[_MODE] == HAPTIC
-    held_by_scene = haptic and state[_RELEASED] > config.release_debounce_s
+    held_by_scene = haptic and state[_RELEASED] > timing[_RELEASE_DEBOUNCE_S]
     return (state[_PD], 1.0 if held_by_scene else 0.0, 1.0 if haptic else 0.0,
             float(state[_MODE]))
 
 
-def supervisor_setpoint(state: np.ndarray, t: float, scripted, rest_height_m: float,
-                        config: SupervisorConfig):
+@numba.njit(cache=True)
+def supervisor_setpoint(state, t: float, scripted, rest_height_m: float, timing):
     """The controller's setpoint (12,) in ``state`` at time ``t`` (s), given the
     scripted setpoint (12,); blends are float, the script passes through as it is."""
     mode = int(state[_MODE])
     elapsed = t - state[_SINCE]
     if mode == LANDING:
-        start = state[_POSE]
+        start = state[_POSE:_POSE + 6]
         target = np.array([start[0], start[1], rest_height_m - LANDING_PRESS_M,
                            0.0, 0.0, start[5]])
-        blend, rate = clipped_minimum_jerk(elapsed, config.landing_s)
+        blend, rate = clipped_minimum_jerk(elapsed, timing[_LANDING_S])
         return np.concatenate((start + blend * (target - start), rate * (target - start)))
-    if mode == LEVITATE and elapsed < config.handover_s:
+    if mode == LEVITATE and elapsed < timing[_HANDOVER_S]:
         # The offset at entry fades out, so the setpoint meets the script smoothly.
-        blend, rate = clipped_minimum_jerk(elapsed, config.handover_s)
-        offset = state[_OFFSET]
+        blend, rate = clipped_minimum_jerk(elapsed, timing[_HANDOVER_S])
+        offset = state[_OFFSET:_OFFSET + 6]
         return np.concatenate((scripted[0:6] + (1.0 - blend) * offset,
                                scripted[6:12] - rate * offset))
     return scripted
 
 
-class HapticSupervisor(LeafSystem):
+# The supervisor's input ports that only its update reads (name, size), in the order
+# of the law's one input. The script is the law's own ports: the outputs read it, and
+# must not feed the measurements through (the loop through the scene would be
+# algebraic).
+SUPERVISOR_INPUTS = (("X_WI_measured", 7), ("tracking_ok", 1), ("haptics_request", 1),
+                     ("handle_gripped", 1), ("tool_in_contact", 1), ("fault_bits", 1))
+_X_WI, _TRACKING_OK, _REQUEST, _GRIPPED, _IN_CONTACT, _FAULT_BITS = (
+    rows.start for rows in stacked_slices(SUPERVISOR_INPUTS).values())
+# Its output ports (name, size), in the order of the law's one output.
+SUPERVISOR_OUTPUTS = (("setpoint", 12), ("enable", 1), ("pd_gain", 1), ("brake_gain", 1),
+                      ("haptics_enable", 1), ("mode", 1))
+
+
+@kernel((VECTOR, VECTOR, SCALAR, SCALAR, VECTOR, VECTOR))
+def supervisor_update(inputs, scripted, t, period_s, timing, state):
+    """One update of ``state`` in place, at time ``t`` (s), from ``inputs``
+    (SUPERVISOR_INPUTS stacked) and the scripted setpoint (12)."""
+    state[:] = supervisor_step(
+        state, t, period_s, scripted[0:6], inputs[_X_WI:_X_WI + 7], inputs[_TRACKING_OK] > 0.5,
+        inputs[_REQUEST] > 0.5 and inputs[_FAULT_BITS] == 0, inputs[_GRIPPED] > 0.5,
+        inputs[_IN_CONTACT] > 0.5, timing)
+
+
+@kernel((READONLY_VECTOR, SCALAR, VECTOR, SCALAR, SCALAR, VECTOR, VECTOR))
+def supervisor_outputs(state, t, scripted, scripted_enable, rest_height_m, timing, out):
+    """SUPERVISOR_OUTPUTS stacked into ``out``, in ``state`` at time ``t`` (s)."""
+    out[0:12] = supervisor_setpoint(state, t, scripted, rest_height_m, timing)
+    out[12] = state[_ENABLE] * scripted_enable
+    out[13], out[14], out[15], out[16] = supervisor_gains(state, timing)
+
+
+class SupervisorLaw(LeafSystem):
+    """``HapticSupervisor``'s arithmetic and state, one compiled call an update and one a
+    tick: inputs ``inputs`` (SUPERVISOR_INPUTS stacked), ``scripted_setpoint`` and
+    ``scripted_enable``; one output, ``outputs`` (SUPERVISOR_OUTPUTS stacked).
+
+    .. pydrake_system::
+
+        name: SupervisorLaw
+        input_ports:
+        - inputs
+        - scripted_setpoint
+        - scripted_enable
+        output_ports:
+        - outputs
+    """
+
+    def __init__(self, *, config: SupervisorConfig, period_s: float, rest_height_m: float):
+        LeafSystem.__init__(self)
+        self._timing = supervisor_timing(config)
+        self._period_s = float(period_s)
+        self._rest_height_m = float(rest_height_m)
+        self._inputs = self.DeclareVectorInputPort("inputs", stacked_size(SUPERVISOR_INPUTS))
+        self._scripted = self.DeclareVectorInputPort("scripted_setpoint", 12)
+        self._scripted_enable = self.DeclareVectorInputPort("scripted_enable", 1)
+        self._state = self.DeclareDiscreteState(initial_supervisor_state())
+        self.DeclarePeriodicDiscreteUpdateEvent(period_s, 0.0, self._update)
+        # The outputs read the state, the time and the script: none feeds the
+        # measurements through, so the loop through the scene has no algebraic loop.
+        self.DeclareVectorOutputPort(
+            "outputs", stacked_size(SUPERVISOR_OUTPUTS), self._calc_outputs,
+            {self.discrete_state_ticket(self._state), self.time_ticket(),
+             self._scripted.ticket(), self._scripted_enable.ticket()})
+
+    def _update(self, context, discrete_state):
+        # The update's state starts as a copy of the context's: stepped in place.
+        supervisor_update(self._inputs.Eval(context), self._scripted.Eval(context),
+                          context.get_time(), self._period_s, self._timing,
+                          discrete_state.get_mutable_value(self._state))
+
+    def _calc_outputs(self, context, output):
+        supervisor_outputs(context.get_discrete_state(self._state).get_value(),
+                           context.get_time(), self._scripted.Eval(context),
+                           self._scripted_enable.Eval(context)[0], self._rest_height_m,
+                           self._timing, output.get_mutable_value())
+
+
+class HapticSupervisor(Diagram):
     """The device's mode logic (see the module docstring).
 
     .. pydrake_system::
 
         name: HapticSupervisor
         input_ports:
-        - scripted_setpoint
-        - scripted_enable
         - X_WI_measured
         - tracking_ok
         - haptics_request
         - handle_gripped
         - tool_in_contact
         - fault_bits
+        - scripted_setpoint
+        - scripted_enable
         output_ports:
         - setpoint
         - enable
@@ -180,63 +274,20 @@ class HapticSupervisor(LeafSystem):
         - mode
 
     The discrete state (updated every ``period_s``) holds the mode, the
-    time and measured pose of the last mode change, the PD and force
-    gains and the release and contact timers, and, in groups of their
-    own, what ``pd_gain``, ``brake_gain``, ``haptics_enable`` and ``mode``
-    output (``supervisor_gains``).
+    time and measured pose of the last mode change, the offset from the script
+    there, the PD and force gains and the release and contact timers;
+    ``pd_gain``, ``brake_gain``, ``haptics_enable`` and ``mode`` are read from
+    it (``supervisor_gains``).
+
+    A diagram of three blocks (``systems/stacked_ports.py``): the measurements
+    stacked for ``SupervisorLaw`` ("law"), whose compiled calls step the state and
+    compute every output, and its result split into the named outputs; the
+    discrete state is the law's.
     """
 
     def __init__(self, *, config: SupervisorConfig, period_s: float, rest_height_m: float):
-        LeafSystem.__init__(self)
-        self._config = config
-        self._period_s = float(period_s)
-        self._rest_height_m = float(rest_height_m)
-        self._scripted = self.DeclareVectorInputPort("scripted_setpoint", 12)
-        self._scripted_enable = self.DeclareVectorInputPort("scripted_enable", 1)
-        self._X_WI = self.DeclareVectorInputPort("X_WI_measured", 7)
-        self._tracking_ok = self.DeclareVectorInputPort("tracking_ok", 1)
-        self._request = self.DeclareVectorInputPort("haptics_request", 1)
-        self._gripped = self.DeclareVectorInputPort("handle_gripped", 1)
-        self._in_contact = self.DeclareVectorInputPort("tool_in_contact", 1)
-        self._fault_bits = self.DeclareVectorInputPort("fault_bits", 1)
-        self._state = self.DeclareDiscreteState(initial_supervisor_state())
-        self.DeclarePeriodicDiscreteUpdateEvent(period_s, 0.0, self._update)
-        # Outputs read the state and at most the script: none feeds through the
-        # measurements, so the loop through the scene has no algebraic loop.
-        state = {self.xd_ticket()}
-        self.DeclareVectorOutputPort(
-            "setpoint", 12, self._calc_setpoint,
-            state | {self.time_ticket(), self._scripted.ticket()})
-        self.DeclareVectorOutputPort("enable", 1, self._calc_enable,
-                                     state | {self._scripted_enable.ticket()})
-        # The gains and the mode are kept as state groups of their own, so their
-        # ports are plain state outputs read every tick without calling Python.
-        initial = supervisor_gains(initial_supervisor_state(), config)
-        self._gains = {name: self.DeclareDiscreteState([value])
-                       for name, value in zip(_GAIN_OUTPUTS, initial)}
-        for name, group in self._gains.items():
-            self.DeclareStateOutputPort(name, group)
-
-    def _values(self, context) -> np.ndarray:
-        return context.get_discrete_state(self._state).CopyToVector()
-
-    def _update(self, context, discrete_state):
-        new = supervisor_step(
-            self._values(context), context.get_time(), self._period_s,
-            self._scripted.Eval(context)[0:6], self._X_WI.Eval(context),
-            self._tracking_ok.Eval(context)[0] > 0.5,
-            self._request.Eval(context)[0] > 0.5 and self._fault_bits.Eval(context)[0] == 0,
-            self._gripped.Eval(context)[0] > 0.5, self._in_contact.Eval(context)[0] > 0.5,
-            self._config)
-        discrete_state.get_mutable_vector(self._state).SetFromVector(new)
-        for name, value in zip(_GAIN_OUTPUTS, supervisor_gains(new, self._config)):
-            discrete_state.get_mutable_vector(self._gains[name]).SetAtIndex(0, value)
-
-    def _calc_setpoint(self, context, output):
-        output.SetFromVector(supervisor_setpoint(
-            self._values(context), context.get_time(), self._scripted.Eval(context),
-            self._rest_height_m, self._config))
-
-    def _calc_enable(self, context, output):
-        gain = self._values(context)[_ENABLE]
-        output.SetFromVector(gain * self._scripted_enable.Eval(context))
+        Diagram.__init__(self)
+        BuildStacked(self, leaf=SupervisorLaw(config=config, period_s=period_s,
+                                              rest_height_m=rest_height_m),
+                     leaf_name="law", inputs=SUPERVISOR_INPUTS, outputs=SUPERVISOR_OUTPUTS,
+                     leaf_inputs=("scripted_setpoint", "scripted_enable"))

@@ -9,6 +9,12 @@ vectors to and from Drake's RigidTransform, and quaternion logs to scipy's Rotat
 Conventions: quaternions [w, x, y, z] (Hamilton, Drake's order), as 4-tuples of
 floats (no allocation inside a kernel); roll-pitch-yaw is Drake's extrinsic X-Y-Z,
 R = Rz(yaw) Ry(pitch) Rx(roll); rotation vectors are axis * angle (rad).
+
+The ``drake_`` kernels are Drake's arithmetic, operation for operation, for the
+kernels that stand in for a call to Drake whose result the loop keeps (the
+supervisor's pose at a mode change, the hand's latched grip): the other helpers
+round differently (``rotation_from_quaternion`` normalizes first and sums
+2 (y^2 + z^2) at once), so a run's log would no longer be the same to the bit.
 """
 
 import math
@@ -19,7 +25,7 @@ from pydrake.common.eigen_geometry import Quaternion
 from pydrake.math import RigidTransform, RotationMatrix
 from scipy.spatial.transform import Rotation
 
-from maglev_haptics.hardware.kernels import VECTOR, kernel
+from maglev_haptics.hardware.kernels import VECTOR, fused_multiply_add, kernel
 
 
 @kernel((VECTOR,))
@@ -125,6 +131,98 @@ def quaternion_log(w, x, y, z):
     # angle / sin(angle / 2), with its limit 2 / w as s -> 0.
     scale = 2.0 * math.atan2(s, w) / s if s > 1e-12 else 2.0 / w
     return (scale * x, scale * y, scale * z)
+
+
+# --- Drake's arithmetic, to the last bit (see the module docstring) ---------
+
+@numba.njit(cache=True)
+def _numpy_unit_quaternion(q):
+    """q / np.linalg.norm(q) of a quaternion array, as numpy rounds it (its norm sums the
+    squares in order), as a 4-tuple."""
+    norm = math.sqrt(((q[0] * q[0] + q[1] * q[1]) + q[2] * q[2]) + q[3] * q[3])
+    return q[0] / norm, q[1] / norm, q[2] / norm, q[3] / norm
+
+
+@numba.njit(cache=True)
+def _drake_rotation(w, x, y, z):
+    """Drake's RotationMatrix(Quaternion(w, x, y, z)).matrix(): scaled by 2 / |q|^2,
+    Eigen summing the squares pairwise (x with z, y with w)."""
+    two_over_norm_squared = 2.0 / ((x * x + z * z) + (y * y + w * w))
+    sx, sy, sz = two_over_norm_squared * x, two_over_norm_squared * y, two_over_norm_squared * z
+    swx, swy, swz = sx * w, sy * w, sz * w
+    sxx, sxy, sxz = sx * x, sy * x, sz * x
+    syy, syz, szz = sy * y, sz * y, sz * z
+    return np.array([[1.0 - syy - szz, sxy - swz, sxz + swy],
+                     [sxy + swz, 1.0 - sxx - szz, syz - swx],
+                     [sxz - swy, syz + swx, 1.0 - sxx - syy]])
+
+
+@numba.njit(cache=True)
+def drake_roll_pitch_yaw(q):
+    """[roll, pitch, yaw] (rad) as ``RollPitchYaw(Quaternion(q / np.linalg.norm(q)))``
+    gives it, of a quaternion array [w, x, y, z]."""
+    w, x, y, z = _numpy_unit_quaternion(q)
+    R = _drake_rotation(w, x, y, z)
+    # Pitch from the matrix, roll and yaw from the quaternion (Drake's roll_pitch_yaw.cc).
+    abs_cos_pitch = math.sqrt((R[2, 2] * R[2, 2] + R[2, 1] * R[2, 1] + R[1, 0] * R[1, 0]
+                               + R[0, 0] * R[0, 0]) / 2)
+    pitch = math.atan2(-R[2, 0], abs_cos_pitch)
+    y_a, x_a, y_b, x_b = x + z, w - y, z - x, w + y
+    epsilon = 2.220446049250313e-16  # Eigen's epsilon of a double
+    sum_angle = 0.0 if abs(y_a) <= epsilon and abs(x_a) <= epsilon else math.atan2(y_a, x_a)
+    difference_angle = 0.0 if abs(y_b) <= epsilon and abs(x_b) <= epsilon \
+        else math.atan2(y_b, x_b)
+    roll = sum_angle - difference_angle
+    yaw = sum_angle + difference_angle
+    if roll > math.pi:
+        roll = roll - 2 * math.pi
+    if roll < -math.pi:
+        roll = roll + 2 * math.pi
+    if yaw > math.pi:
+        yaw = yaw - 2 * math.pi
+    if yaw < -math.pi:
+        yaw = yaw + 2 * math.pi
+    return np.array([roll, pitch, yaw])
+
+
+@numba.njit(cache=True)
+def _drake_quaternion(R):
+    """Drake's RotationMatrix(R).ToQuaternion() as an array [w, x, y, z] (w >= 0); its
+    norm sums the squares as Eigen does, x with z and y with w."""
+    trace = R[0, 0] + (R[1, 1] + R[2, 2])  # Eigen's order
+    if trace >= R[0, 0] and trace >= R[1, 1] and trace >= R[2, 2]:
+        w, x, y, z = 1.0 + trace, R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]
+    elif R[0, 0] >= R[1, 1] and R[0, 0] >= R[2, 2]:
+        w, x, y, z = (R[2, 1] - R[1, 2], 1.0 - (trace - 2 * R[0, 0]), R[0, 1] + R[1, 0],
+                      R[0, 2] + R[2, 0])
+    elif R[1, 1] >= R[2, 2]:
+        w, x, y, z = (R[0, 2] - R[2, 0], R[0, 1] + R[1, 0], 1.0 - (trace - 2 * R[1, 1]),
+                      R[1, 2] + R[2, 1])
+    else:
+        w, x, y, z = (R[1, 0] - R[0, 1], R[0, 2] + R[2, 0], R[1, 2] + R[2, 1],
+                      1.0 - (trace - 2 * R[2, 2]))
+    scale = (-1.0 if w < 0 else 1.0) / math.sqrt((x * x + z * z) + (y * y + w * w))
+    return np.array([w * scale, x * scale, y * scale, z * scale])
+
+
+@numba.njit(cache=True)
+def drake_relative_pose(X_WA, X_WB):
+    """X_AB = X_WA^-1 X_WB as a pose vector, of two pose vectors [qw, qx, qy, qz, x, y, z]
+    (m), as ``pose_vector(rigid_transform(X_WA).InvertAndCompose(rigid_transform(X_WB)))``
+    computes it where Drake composes with AVX2 (a fused multiply-add for each term after
+    the first; Drake's portable code, on a CPU without AVX2, rounds each product)."""
+    R_WA = _drake_rotation(*_numpy_unit_quaternion(X_WA[0:4]))
+    R_WB = _drake_rotation(*_numpy_unit_quaternion(X_WB[0:4]))
+    p_AB_W = X_WB[4:7] - X_WA[4:7]
+    R_AB = np.empty((3, 3))
+    p_AB = np.empty(3)
+    for i in range(3):
+        for j in range(3):
+            R_AB[i, j] = fused_multiply_add(R_WA[2, i], R_WB[2, j], fused_multiply_add(
+                R_WA[1, i], R_WB[1, j], R_WA[0, i] * R_WB[0, j]))
+        p_AB[i] = fused_multiply_add(R_WA[2, i], p_AB_W[2], fused_multiply_add(
+            R_WA[1, i], p_AB_W[1], R_WA[0, i] * p_AB_W[0]))
+    return np.concatenate((_drake_quaternion(R_AB), p_AB))
 
 
 # --- off the kernels: Drake for single poses, scipy for whole logs ----------

@@ -8,6 +8,7 @@ from typing import Union
 
 import numpy as np
 import pytest
+from llvmlite import binding
 from pydrake.common.yaml import yaml_load_typed
 from pydrake.math import RigidTransform, RollPitchYaw
 from pydrake.multibody.math import SpatialVelocity
@@ -28,6 +29,7 @@ from maglev_haptics.systems.hand import (
     HAND_BODY_NAME, HAND_MODEL_URL, HandImpedanceConfig, SimulatedHand, arm_wrench,
     explicit_step_spectral_radius, grip_update, grip_wrenches, hand_spatial_inertia,
     hand_wrenches, impedance_gains, latch_X_HI)
+from maglev_haptics.systems.rotations import rigid_transform
 
 CONFIG = HandImpedanceConfig()
 # Distinct per-axis gains so a mixed-up axis shows.
@@ -136,6 +138,24 @@ def test_latching_makes_the_grip_relaxed_even_in_rigid_motion():
             np.concatenate((w, v_WI)), X_HI, k, b)
         np.testing.assert_allclose(on_hand, 0.0, atol=1e-9)
         np.testing.assert_allclose(on_instrument, 0.0, atol=1e-9)
+
+
+# Drake composes poses with fused multiply-adds where the CPU has AVX2 (and FMA), as
+# the compiled latch does; elsewhere its products round one by one.
+FUSED_COMPOSITION = all(binding.get_host_cpu_features().get(name, False)
+                        for name in ("avx2", "fma"))
+
+
+def test_latch_is_drakes_relative_pose():
+    rng = np.random.default_rng(5)
+    for _ in range(500):
+        X_WH = np.concatenate((rng.normal(size=4), rng.normal(0, 0.05, 3)))
+        X_WI = np.concatenate((rng.normal(size=4), rng.normal(0, 0.05, 3)))
+        expected = pose_vector(rigid_transform(X_WH).InvertAndCompose(rigid_transform(X_WI)))
+        if FUSED_COMPOSITION:
+            np.testing.assert_array_equal(latch_X_HI(X_WH, X_WI), expected)
+        else:
+            np.testing.assert_allclose(latch_X_HI(X_WH, X_WI), expected, atol=1e-15)
 
 
 def test_grip_update_latches_on_the_rising_edge_and_releases_on_the_falling_edge():

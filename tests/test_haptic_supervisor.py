@@ -2,15 +2,19 @@
 
 import numpy as np
 import pytest
+from pydrake.common.eigen_geometry import Quaternion
 from pydrake.math import RollPitchYaw
 
+from maglev_haptics.systems.blends import clipped_minimum_jerk, minimum_jerk
 from maglev_haptics.systems.haptic_supervisor import (
     HAPTIC, LANDING, LANDING_PRESS_M, LEVITATE, HapticSupervisor, SupervisorConfig,
-    initial_supervisor_state, measured_pose6, supervisor_setpoint, supervisor_step)
+    initial_supervisor_state, measured_pose6, supervisor_setpoint, supervisor_step,
+    supervisor_timing)
 
 PERIOD_S = 1e-3
 REST_M = 0.007
 CONFIG = SupervisorConfig()
+TIMING = supervisor_timing(CONFIG)
 HOVER = np.array([0.01, -0.02, 0.025, 0.0, 0.0, 0.3])
 
 
@@ -22,13 +26,36 @@ def pose_vector(xyz, rpy):
 def run(state, t0, n, *, X_WI, request, gripped, in_contact, tracking_ok=True):
     for k in range(n):
         state = supervisor_step(state, t0 + k * PERIOD_S, PERIOD_S, HOVER, X_WI, tracking_ok,
-                                request, gripped, in_contact, CONFIG)
+                                request, gripped, in_contact, TIMING)
     return state, t0 + n * PERIOD_S
 
 
 def test_measured_pose_unwraps_yaw_near_the_reference():
     pose = measured_pose6(pose_vector([0.01, 0.02, 0.03], [0.1, -0.2, 3.0]), 2 * np.pi + 3.0)
     np.testing.assert_allclose(pose, [0.01, 0.02, 0.03, 0.1, -0.2, 2 * np.pi + 3.0], atol=1e-12)
+
+
+def test_compiled_pose_and_blend_round_as_drake_and_numpy_do():
+    """The kernels stand in for Drake's RollPitchYaw and numpy's powers of a float: the
+    same bits, so a run's log is what it was."""
+    rng = np.random.default_rng(0)
+    for k in range(2000):
+        q = rng.normal(size=4) * rng.uniform(0.5, 2.0)
+        if k % 4 == 0:  # near gimbal lock
+            q = pose_vector([0, 0, 0], [rng.uniform(-3, 3), np.pi / 2 - 1e-9 * k, 0.0])[0:4]
+        elif k % 4 == 1:  # near the identity
+            q = np.array([1.0, 0.0, 0.0, 0.0]) + rng.normal(0, 1e-10, 4)
+        X_WI = np.concatenate((q, rng.normal(0, 0.02, 3)))
+        rpy = RollPitchYaw(Quaternion(q / np.linalg.norm(q))).vector()
+        reference_yaw = rng.uniform(-10.0, 10.0)
+        rpy[2] = reference_yaw + (rpy[2] - reference_yaw + np.pi) % (2 * np.pi) - np.pi
+        np.testing.assert_array_equal(measured_pose6(X_WI, reference_yaw),
+                                      np.concatenate((X_WI[4:7], rpy)))
+    for elapsed in rng.uniform(-0.1, 0.6, 2000):
+        s = np.float64(max(elapsed, 0.0) / 0.5)
+        blend, rate = minimum_jerk(s)
+        expected = (1.0, 0.0) if elapsed >= 0.5 else (blend, rate / 0.5)
+        assert clipped_minimum_jerk(elapsed, 0.5) == expected
 
 
 def test_engages_only_when_requested_and_gripped_and_hands_over_smoothly():
@@ -49,7 +76,7 @@ def test_engages_only_when_requested_and_gripped_and_hands_over_smoothly():
     assert state[14] == 0.0
     # In haptic mode the script passes through untouched.
     scripted = np.arange(12.0)
-    assert supervisor_setpoint(state, t, scripted, REST_M, CONFIG) is scripted
+    assert supervisor_setpoint(state, t, scripted, REST_M, TIMING) is scripted
 
 
 def test_disable_blends_back_from_where_haptics_ended():
@@ -60,12 +87,12 @@ def test_disable_blends_back_from_where_haptics_ended():
     assert state[0] == LEVITATE
     scripted = np.concatenate((HOVER, np.zeros(6)))
     t = state[1]  # the switch
-    start = supervisor_setpoint(state, t, scripted, REST_M, CONFIG)
+    start = supervisor_setpoint(state, t, scripted, REST_M, TIMING)
     np.testing.assert_allclose(start[0:6], [0.03, 0.0, 0.02, 0.0, 0.1, 0.3], atol=1e-8)
     np.testing.assert_allclose(start[6:12], 0.0, atol=1e-9)
-    end = supervisor_setpoint(state, t + CONFIG.handover_s, scripted, REST_M, CONFIG)
+    end = supervisor_setpoint(state, t + CONFIG.handover_s, scripted, REST_M, TIMING)
     np.testing.assert_allclose(end, scripted, atol=1e-12)
-    middle = supervisor_setpoint(state, t + CONFIG.handover_s / 2, scripted, REST_M, CONFIG)
+    middle = supervisor_setpoint(state, t + CONFIG.handover_s / 2, scripted, REST_M, TIMING)
     assert middle[0] == pytest.approx((0.03 + HOVER[0]) / 2)
     assert middle[6] < 0.0  # moving back toward the script's x
 
@@ -85,7 +112,7 @@ def test_free_let_go_lands_level_and_then_ramps_the_force_down():
     assert state[14] == 1.0
     landing_start = state[1]
     scripted = np.concatenate((HOVER, np.zeros(6)))
-    done = supervisor_setpoint(state, landing_start + CONFIG.landing_s, scripted, REST_M, CONFIG)
+    done = supervisor_setpoint(state, landing_start + CONFIG.landing_s, scripted, REST_M, TIMING)
     np.testing.assert_allclose(done[0:6], [0.02, 0.01, REST_M - LANDING_PRESS_M, 0, 0, 0.3],
                                atol=1e-9)
     state, t = run(state, t, int((CONFIG.landing_s + CONFIG.settle_s + CONFIG.force_ramp_s)

@@ -12,7 +12,8 @@ from maglev_haptics.hardware.device import ThermalSpec
 from maglev_haptics.hardware.thermal import (
     COPPER_DENSITY_KG_M3, COPPER_SPECIFIC_HEAT_J_PER_KG_K, coil_thermal,
     continuous_current_limit_a, current_bounds_a, thermal_budget, steady_state_temperature_c, temperature_after_c,
-    time_to_temperature_s, winding_resistance_ohm, winding_volume_m3)
+    step_temperatures_c, time_to_temperature_s, winding_numbers, winding_resistance_ohm,
+    winding_volume_m3)
 
 MODEL = coil_thermal(DeviceConfig())
 
@@ -102,6 +103,16 @@ def test_sampled_update_matches_the_continuous_solution():
         solution = solve_ivp(f, (0, len(held) * period), [60.0], rtol=1e-12, atol=1e-12,
                              t_eval=np.arange(len(held) + 1) * period, max_step=period / 4)
         assert np.allclose(history[:, coil], solution.y[0], atol=1e-9)
+
+
+def test_station_step_in_place_is_the_sampled_update():
+    rng = np.random.default_rng(4)
+    temperatures = rng.uniform(0.0, 150.0, 27)
+    currents = rng.uniform(-4.0, 4.0, 27)
+    currents[0] = 0.0  # no heat: the rate's small-x branch
+    expected = temperature_after_c(MODEL, temperatures, currents, 0.01)
+    step_temperatures_c(temperatures, currents, 0.01, *winding_numbers(MODEL))
+    np.testing.assert_array_equal(temperatures, expected)
 
 
 def test_bad_thermal_spec_names_the_field():
