@@ -33,7 +33,7 @@ from pydrake.trajectories import PiecewisePolynomial
 
 from maglev_haptics.hardware.config_checks import positive, require, vector
 from maglev_haptics.hardware.kernels import (
-    FLAG, INDEX, INDEX_VECTOR, MATRIX, SCALAR, VECTOR, kernel)
+    FLAG, INDEX, INDEX_VECTOR, MATRIX, SCALAR, VECTOR, fused_multiply_add, kernel)
 from maglev_haptics.hardware.lcm_messages import device_status_t
 from maglev_haptics.systems.stacked_ports import BuildStacked, stacked_size, stacked_slices
 
@@ -231,13 +231,9 @@ def euclidean_norm(values) -> float:
 
 @numba.njit(cache=True)
 def exact_square(x):
-    """(square, error): x * x == square + error exactly (Veltkamp's split: numba has
-    no fma)."""
+    """(square, error): x * x == square + error exactly."""
     square = x * x
-    t = 134217729.0 * x  # 2**27 + 1
-    high = t - (t - x)
-    low = x - high
-    return square, ((high * high - square) + 2.0 * high * low) + low * low
+    return square, fused_multiply_add(x, x, -square)
 
 
 @numba.njit(cache=True)
