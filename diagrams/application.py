@@ -118,8 +118,8 @@ def AddApplication(builder: DiagramBuilder, *, scenario: Scenario, station, magn
         weight_n=spec.mass_kg * GRAVITY_M_S2))
     for name in ("X_WI_measured", "V_WI_measured", "tracking_ok"):
         builder.Connect(estimator.GetOutputPort(name), supervisor.GetInputPort(name))
-    builder.Connect(station.GetOutputPort("coil_currents"),
-                    supervisor.GetInputPort("coil_currents"))
+    for name in ("coil_currents", "coil_currents_age_s"):
+        builder.Connect(station.GetOutputPort(name), supervisor.GetInputPort(name))
     builder.Connect(temperatures.get_output_port(), supervisor.GetInputPort("coil_temperature_c"))
     controller = builder.AddNamedSystem("levitation_controller", LevitationController(
         config=scenario.controller, mass_kg=spec.mass_kg,

@@ -161,7 +161,8 @@ def station_channels(scenario, lease: LeaseClient) -> list:
                 wait_s=station.wait_for_station_s),
         inbound(COIL_CURRENTS, coil_currents_t, n_coils,
                 lambda message, _: np.array(message.current_a, dtype=float),
-                check_measured_currents, initial_value=np.zeros(n_coils))]
+                check_measured_currents, initial_value=np.zeros(n_coils),
+                age_port="coil_currents_age_s")]
     if scenario.hand is not None:
         channels.append(inbound(DEVICE_STATUS, device_status_t, 1,
                                 lambda message, _: np.array([float(message.handle_gripped)]),
@@ -176,7 +177,8 @@ def station_channels(scenario, lease: LeaseClient) -> list:
 def MakeLcmStation(scenario) -> Diagram:
     """The application's station for ``scenario.station`` (an LcmStation), named
     ``station``: inputs ``coil_currents_commanded`` and ``coil_power``; outputs ``markers_measured``,
-    ``coil_currents``, with a hand in the scenario ``handle_gripped``, with the
+    ``coil_currents``, ``coil_currents_age_s`` (how old the newest measured currents
+    are, s), with a hand in the scenario ``handle_gripped``, with the
     stereo display ``glasses_measured``. Its ``receiver`` checks and counts the
     messages it read, refused and lost on each channel; building it waits up to
     ``wait_for_station_s`` for the station's markers. Its first tick asks for the

@@ -7,7 +7,8 @@
 - inputs ``coil_currents_commanded`` (n_coils, A) and ``coil_power`` (1: the
   amplifiers' supply, the device's enable line; 0 cuts every coil's current);
 - outputs ``markers_measured`` (3 * n_markers, m, NaN when hidden),
-  ``coil_currents`` (n_coils, A, what flows), ``instrument_state`` (13, the
+  ``coil_currents`` (n_coils, A, what flows), ``coil_currents_age_s`` (1: how old
+  they are, s; 0 simulated, the link's age over LCM), ``instrument_state`` (13, the
   true free-body state, simulation only), ``query_object`` (for visualizers).
 
 With a hand in the scenario (the simulated user), also:
@@ -33,7 +34,8 @@ from pydrake.multibody.parsing import Parser
 from pydrake.multibody.plant import AddMultibodyPlant
 from pydrake.systems.framework import Diagram, DiagramBuilder
 from pydrake.systems.primitives import (
-    Adder, AffineSystem, LinearSystem, MatrixGain, Multiplexer, Saturation, TrajectorySource)
+    Adder, AffineSystem, ConstantVectorSource, LinearSystem, MatrixGain, Multiplexer, Saturation,
+    TrajectorySource)
 
 from maglev_haptics.diagrams.head_script import head_plan
 from maglev_haptics.diagrams.lcm_station import LcmStation, MakeLcmStation
@@ -203,6 +205,9 @@ def MakeStation(scenario: Scenario, *, magnetics, station=None) -> Diagram:
         builder.Connect(shoves.get_output_port(), plant.get_applied_spatial_force_input_port())
     builder.ExportOutput(sensor.GetOutputPort("markers_measured"), "markers_measured")
     builder.ExportOutput(amplifiers.get_output_port(), "coil_currents")
+    # Measured in the tick that reads them (the LCM station's are as old as its link).
+    currents_age = builder.AddNamedSystem("coil_currents_age", ConstantVectorSource([0.0]))
+    builder.ExportOutput(currents_age.get_output_port(), "coil_currents_age_s")
     builder.ExportOutput(state_port, "instrument_state")
     builder.ExportOutput(scene_graph.get_query_output_port(), "query_object")
     if hand is not None:

@@ -55,6 +55,10 @@ THERMAL_LIMIT_PERSIST_S = 0.1
 # would look like one.
 STUCK_MISMATCH_A = 1.0
 STUCK_PERSIST_S = 0.01
+# Measured currents older than this (s; the station's ``coil_currents_age_s``: 0 in the
+# tick that read them) are not compared: over LCM a device that stalls 9-14 ms left
+# them stale while the commands moved, and a healthy coil latched as stuck.
+STUCK_MAX_CURRENTS_AGE_S = 0.0015
 # With a coil stuck, a force the others cannot produce past this fraction of the
 # instrument's weight means they cannot carry it against the stuck one: the power is
 # cut and it falls level rather than be pulled or pushed off its landing.
@@ -333,7 +337,7 @@ def supervisor_inputs(n_coils: int) -> Tuple[Tuple[str, int], ...]:
     return (("X_WI_measured", 7), ("V_WI_measured", 6), ("tracking_ok", 1),
             ("coil_currents", n_coils), ("coil_temperature_c", n_coils),
             ("thermally_limited", 1), ("coil_currents_commanded", n_coils),
-            ("allocation_shortfall_W", 6))
+            ("allocation_shortfall_W", 6), ("coil_currents_age_s", 1))
 
 
 def supervisor_outputs(n_coils: int) -> Tuple[Tuple[str, int], ...]:
@@ -351,7 +355,7 @@ def supervisor_state(n_coils: int) -> Tuple[Tuple[str, int], ...]:
 
 # Each entry's place in the lists above: the kernels find its first row at starts[place].
 (POSE, VELOCITY, TRACKING_OK, CURRENTS, TEMPERATURES, THERMALLY_LIMITED, COMMANDED,
- SHORTFALL) = range(8)
+ SHORTFALL, CURRENTS_AGE_S) = range(9)
 (SETPOINT, ENABLE, FAULT_BITS, LOST_S, STUCK, POWER, LANDING_START_S, LIMITED_S,
  MISMATCH_S, SENT_A) = range(10)
 
@@ -371,13 +375,17 @@ def watchdog_check(inputs, at, state, next_state, rows, limits, lost_grace_s: fl
     stuck = state[rows[STUCK]:rows[STUCK] + n].copy()
     carrying = state[rows[ENABLE]] > 0.0
     if state[rows[POWER]] > 0.5:  # unpowered, no coil follows its command
-        mismatched = mismatched_coils(currents, state[rows[SENT_A]:rows[SENT_A] + n],
-                                      limits[0])
-        for i in range(n):
-            mismatch_s = state[rows[MISMATCH_S] + i] + watch_period_s if mismatched[i] else 0.0
-            next_state[rows[MISMATCH_S] + i] = mismatch_s
-            if mismatch_s >= STUCK_PERSIST_S - 1e-9:
-                stuck[i] = 1.0
+        # Stale currents follow an older command: compared, a stalled link would read
+        # as a stuck coil. Their timers hold until fresh ones come.
+        if inputs[at[CURRENTS_AGE_S]] <= STUCK_MAX_CURRENTS_AGE_S:
+            mismatched = mismatched_coils(currents, state[rows[SENT_A]:rows[SENT_A] + n],
+                                          limits[0])
+            for i in range(n):
+                mismatch_s = (state[rows[MISMATCH_S] + i] + watch_period_s if mismatched[i]
+                              else 0.0)
+                next_state[rows[MISMATCH_S] + i] = mismatch_s
+                if mismatch_s >= STUCK_PERSIST_S - 1e-9:
+                    stuck[i] = 1.0
         next_state[rows[STUCK]:rows[STUCK] + n] = stuck
         # The shortfall is read only with a coil stuck: nothing else cuts the power.
         if np.any(stuck != 0.0) and cut_coil_power(
@@ -575,6 +583,7 @@ class DeviceSupervisor(Diagram):
         - thermally_limited
         - coil_currents_commanded
         - allocation_shortfall_W
+        - coil_currents_age_s
         output_ports:
         - setpoint
         - enable
@@ -589,8 +598,10 @@ class DeviceSupervisor(Diagram):
     - ``fault_bits`` (1): the latched FAULT_* bits.
     - ``coils_stuck`` (n_coils): 1 for a coil whose amplifier no longer follows its
       command (its measured current off by more than STUCK_MISMATCH_A at every check
-      for STUCK_PERSIST_S), latched until ``reset_faults``: the controller allocates
-      without it and takes its measured current as a given.
+      for STUCK_PERSIST_S, counting only checks whose currents, ``coil_currents_age_s``
+      old, are no older than STUCK_MAX_CURRENTS_AGE_S), latched until
+      ``reset_faults``: the controller allocates without it and takes its measured
+      current as a given.
     - ``tracking_lost_s`` (1): how long tracking has been lost (s), counted every
       tick and latched past ``lost_grace_s`` (``tracking_lost_after``): the
       controller carries the weight alone through the grace, then cuts the coils.

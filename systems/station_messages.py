@@ -186,7 +186,10 @@ class ReceivedChannel:
     which a paced run keeps on the wall clock); ``initial_value`` (default the
     stale value) is held before the first message; with ``wait_s`` > 0,
     initialization waits that long (wall-clock seconds) for a first message and
-    raises a TimeoutError naming the channel if none comes.
+    raises a TimeoutError naming the channel if none comes. ``age_port``: an output
+    port of that name (1) gives the newest accepted message's age (s, on the
+    diagram's clock: 0 in the tick that read it; infinite before the first), for a
+    reader that must not take a stale value for a fresh one.
 
     The gate (``hardware/link_checks.py``): ``check(message)`` raises Refused for a
     message outside what the scenario allows; ``session_of(message)`` keys the
@@ -206,6 +209,7 @@ class ReceivedChannel:
     session_of: Optional[Callable] = None
     admit: Optional[Callable] = None
     on_accept: Optional[Callable] = None
+    age_port: Optional[str] = None
 
 
 class MessageReceiver(LeafSystem):
@@ -252,6 +256,12 @@ class MessageReceiver(LeafSystem):
             # tick late by tens of ms must still read every message.
             subscription.set_queue_capacity(MESSAGE_QUEUE_CAPACITY)
             self._counters[spec.port] = self.DeclareDiscreteState(_NEVER)
+            if spec.age_port is not None:
+                self.DeclareVectorOutputPort(
+                    spec.age_port, 1,
+                    lambda context, output, spec=spec: output.SetAtIndex(
+                        0, context.get_time() - self._arrival_s(spec, context)),
+                    {self.xd_ticket(), self.time_ticket()})
             if spec.size == 0:
                 continue
             initial = spec.stale_value if spec.initial_value is None else spec.initial_value
@@ -314,16 +324,21 @@ class MessageReceiver(LeafSystem):
         if self._on_tick is not None:
             self._on_tick(t_s)
 
+    def _arrival_s(self, spec, context) -> float:
+        """When the newest accepted message of ``spec``'s channel was read (s; -inf: none)."""
+        return context.get_discrete_state(self._counters[spec.port]).GetAtIndex(1)
+
     def _calc_value(self, spec, context, output):
-        arrival = context.get_discrete_state(self._counters[spec.port]).GetAtIndex(1)
+        arrival = self._arrival_s(spec, context)
         if spec.stale_value is not None and context.get_time() - arrival > spec.stale_after_s:
             output.SetFromVector(spec.stale_value)
         else:
             output.SetFromVector(context.get_discrete_state(self._held[spec.port]).get_value())
 
     def ports(self) -> list:
-        """The output ports' names, one a channel that feeds one."""
-        return [port for port, spec in self._channels.items() if spec.size]
+        """The output ports' names: one a channel that feeds one, and the age ports."""
+        return ([port for port, spec in self._channels.items() if spec.size]
+                + [spec.age_port for spec in self._channels.values() if spec.age_port])
 
     def channels(self) -> list:
         """The names its channels are counted under (``counts``), ports or not."""

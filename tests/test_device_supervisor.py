@@ -15,7 +15,7 @@ from maglev_haptics.systems.blends import (
 from maglev_haptics.systems.device_supervisor import (
     FAULT_COIL_OVER_CURRENT, FAULT_COIL_OVER_TEMPERATURE, FAULT_OVER_SPEED,
     FAULT_SENSOR_OUT_OF_RANGE, DeviceSupervisor, WatchLimits, detect_faults, make_motion,
-    tracking_lost_after)
+    STUCK_PERSIST_S, tracking_lost_after)
 
 N_COILS = 27
 TICK_S = 1e-3
@@ -65,7 +65,8 @@ def build(scenario):
                         ("coil_temperature_c", np.full(N_COILS, 25.0)),
                         ("thermally_limited", [0.0]),
                         ("coil_currents_commanded", np.zeros(N_COILS)),
-                        ("allocation_shortfall_W", np.zeros(6))):
+                        ("allocation_shortfall_W", np.zeros(6)),
+                        ("coil_currents_age_s", [0.0])):
         supervisor.GetInputPort(port).FixValue(context, value)
     return supervisor, context, plan, spec
 
@@ -191,3 +192,23 @@ def test_a_bad_watchdog_names_its_field():
         load_scenario("levitate", scenario_text="{watchdog: {boundary_radius_m: -0.01}}")
     with pytest.raises(ScenarioError, match=r"watchdog.max_speed_m_s = 0.0"):
         load_scenario("levitate", scenario_text="{watchdog: {max_speed_m_s: 0.0}}")
+
+
+def test_stale_currents_are_not_taken_for_a_stuck_coil():
+    """Over LCM a stalled device leaves the measured currents stale while the commands
+    move: no coil latches as stuck then; fresh currents that do not follow still do."""
+    supervisor, context, _, _ = build(load_scenario("levitate"))
+    simulator = Simulator(supervisor, context)
+    simulator.AdvanceTo(2.0)  # hovering, coils on
+    commanded = np.zeros(N_COILS)
+    commanded[3] = 2.0  # coil 3 asked for 2 A, still measured at 0 A
+    supervisor.GetInputPort("coil_currents_commanded").FixValue(context, commanded)
+    supervisor.GetInputPort("coil_currents_age_s").FixValue(context, [0.009])
+    simulator.AdvanceTo(2.0 + 4 * STUCK_PERSIST_S)
+    assert not np.any(supervisor.GetOutputPort("coils_stuck").Eval(context))
+    assert supervisor.faults(context) == 0
+    supervisor.GetInputPort("coil_currents_age_s").FixValue(context, [0.0])
+    simulator.AdvanceTo(2.0 + 8 * STUCK_PERSIST_S)
+    stuck = supervisor.GetOutputPort("coils_stuck").Eval(context)
+    assert stuck[3] == 1.0 and stuck.sum() == 1.0
+    assert supervisor.faults(context) & FAULT_COIL_OVER_CURRENT

@@ -329,6 +329,25 @@ def tick(receiver, context, t_s):
     context.SetDiscreteState(receiver.EvalUniquePeriodicDiscreteUpdate(context))
 
 
+def test_an_age_port_says_how_old_the_newest_message_is():
+    """What the supervisor's stuck-amplifier watchdog reads before it compares the
+    measured currents with the commands (a stale one follows an older command)."""
+    bus = lcm.LCM("memq://")
+    receiver = MessageReceiver(lcm=bus, period_s=0.001, channels=[ReceivedChannel(
+        port="currents", channel="C", message_type=coil_currents_t, size=3,
+        decode=lambda message, _: np.array(message.current_a[:3]), initial_value=np.zeros(3),
+        age_port="currents_age")])
+    assert receiver.ports() == ["currents", "currents_age"]
+    context = receiver.CreateDefaultContext()
+    age = receiver.GetOutputPort("currents_age")
+    assert age.Eval(context)[0] == np.inf  # nothing read yet
+    publish(bus, "C", currents_message(1, 0.0, np.r_[np.ones(27), 1.0], 0))
+    tick(receiver, context, 0.002)
+    assert age.Eval(context)[0] == 0.0
+    tick(receiver, context, 0.011)  # nothing came since
+    assert age.Eval(context)[0] == pytest.approx(0.009)
+
+
 def a_command(sequence, session, currents, n_coils=None):
     message = currents_message(sequence, 0.0, np.r_[currents, 1.0], session)
     if n_coils is not None:  # a size field that does not match the scenario
