@@ -57,7 +57,7 @@ STUCK_MISMATCH_A = 1.0
 STUCK_PERSIST_S = 0.01
 # Measured currents older than this (s; the station's ``coil_currents_age_s``: 0 in the
 # tick that read them) are not compared: over LCM a device that stalls 9-14 ms left
-# them stale while the commands moved, and a healthy coil latched as stuck.
+# them stale while the commands moved: compared, a healthy coil would latch as stuck.
 STUCK_MAX_CURRENTS_AGE_S = 0.0015
 # With a coil stuck, a force the others cannot produce past this fraction of the
 # instrument's weight means they cannot carry it against the stuck one: the power is
