@@ -58,7 +58,10 @@ STUCK_PERSIST_S = 0.01
 # Measured currents older than this (s; the station's ``coil_currents_age_s``: 0 in the
 # tick that read them) are not compared: over LCM a device that stalls 9-14 ms left
 # them stale while the commands moved: compared, a healthy coil would latch as stuck.
-STUCK_MAX_CURRENTS_AGE_S = 0.0015
+# Under the watchdogs' 5 ms period, so a stall is compared at one check at most (half
+# of STUCK_PERSIST_S); a station must publish its measured currents at 250 Hz or more
+# for the check to run.
+STUCK_MAX_CURRENTS_AGE_S = 0.004
 # With a coil stuck, a force the others cannot produce past this fraction of the
 # instrument's weight means they cannot carry it against the stuck one: the power is
 # cut and it falls level rather than be pulled or pushed off its landing.
