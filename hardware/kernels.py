@@ -13,10 +13,7 @@ from __future__ import annotations
 from typing import Callable, List, Optional, Tuple
 
 import numba
-from llvmlite import ir
 from numba import types
-from numba.core import cgutils
-from numba.extending import intrinsic
 from tqdm import tqdm
 
 VECTOR = types.Array(types.float64, 1, "C")
@@ -64,25 +61,3 @@ def compile_kernels(progress: bool = True, label: Optional[str] = None) -> int:
             dispatcher.compile(signature)
             bar.update(1)
     return len(pending)
-
-
-@intrinsic
-def fused_multiply_add(typing_context, a, b, c):
-    """a * b + c with one rounding (the FMA instruction where the CPU has it)."""
-    def codegen(context, builder, signature, args):
-        return builder.fma(*args)
-    return SCALAR(SCALAR, SCALAR, SCALAR), codegen
-
-
-@intrinsic
-def libm_pow(typing_context, base, exponent):
-    """The C library's pow(base, exponent). ``x ** 2.0`` in a kernel is x * x: LLVM
-    rewrites pow so, but the C library's pow(x, 2) differs from x * x in the last bit
-    for about one x in a thousand, and numpy's ``x ** 2`` of a float calls it."""
-    def codegen(context, builder, signature, args):
-        double = ir.DoubleType()
-        pow_function = cgutils.get_or_insert_function(
-            builder.module, ir.FunctionType(double, [double, double]), "pow")
-        pow_function.attributes.add("nobuiltin")  # a call as written, never rewritten
-        return builder.call(pow_function, args)
-    return SCALAR(SCALAR, SCALAR), codegen

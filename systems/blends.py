@@ -7,7 +7,7 @@ import numpy as np
 from numba.extending import register_jitable
 from pydrake.trajectories import PiecewisePolynomial
 
-from maglev_haptics.hardware.kernels import libm_pow
+from maglev_haptics.hardware.exact_arithmetic import libm_pow
 
 LANDING_PRESS_M = 0.001  # a landing setpoint ends this far below the rest height (m)
 # Hermite samples per second of a minimum-jerk move: the cubic Hermite fit of

@@ -33,7 +33,8 @@ from pydrake.trajectories import PiecewisePolynomial
 
 from maglev_haptics.hardware.config_checks import positive, require, vector
 from maglev_haptics.hardware.kernels import (
-    FLAG, INDEX, INDEX_VECTOR, MATRIX, SCALAR, VECTOR, fused_multiply_add, kernel)
+    FLAG, INDEX, INDEX_VECTOR, MATRIX, SCALAR, VECTOR, kernel)
+from maglev_haptics.hardware.exact_arithmetic import euclidean_norm, hypot, largest
 from maglev_haptics.hardware.lcm_messages import device_status_t
 from maglev_haptics.systems.stacked_ports import BuildStacked, stacked_size, stacked_slices
 
@@ -224,76 +225,6 @@ def cut_coil_power(coils_stuck: bool, carrying: bool, force_shortfall_n: float,
     already (their amplifiers follow the controller's zero)."""
     return coils_stuck and (not carrying
                             or force_shortfall_n > STUCK_SHORTFALL_OF_WEIGHT * weight_n)
-
-
-@numba.njit(cache=True)
-def euclidean_norm(values) -> float:
-    """``np.linalg.norm(values)``, bit for bit: the square root of the sum of squares,
-    summed in order."""
-    total = 0.0
-    for value in values:
-        total += value * value
-    return math.sqrt(total)
-
-
-@numba.njit(cache=True)
-def exact_square(x):
-    """(square, error): x * x == square + error exactly."""
-    square = x * x
-    return square, fused_multiply_add(x, x, -square)
-
-
-@numba.njit(cache=True)
-def exact_sum(a, b):
-    """(total, error): a + b == total + error exactly (Knuth's two-sum)."""
-    total = a + b
-    b_part = total - a
-    return total, (a - (total - b_part)) + (b - b_part)
-
-
-@numba.njit(cache=True)
-def hypot(values) -> float:
-    """``math.hypot(*values)`` as Python computes it (``math.dist``: of the
-    differences): infinite if a value is, else NaN if one is, else the square root
-    correctly rounded, from the sum of squares kept exactly and one Newton step. So a
-    limit is passed exactly where the Python watchdogs said it was (the two agreed on
-    2.3 million random and edge vectors; a plain sum of squares differs in the last
-    bit for one vector in five)."""
-    largest, found_nan = 0.0, False
-    for value in values:
-        found_nan |= math.isnan(value)
-        if abs(value) > largest:
-            largest = abs(value)
-    if math.isinf(largest):
-        return largest
-    if found_nan:
-        return math.nan
-    if largest == 0.0:
-        return 0.0
-    exponent = math.frexp(largest)[1]  # scaled by a power of two, exactly: no overflow
-    total, error = 0.0, 0.0
-    for value in values:
-        square, square_error = exact_square(math.ldexp(value, -exponent))
-        total, sum_error = exact_sum(total, square)
-        error += square_error + sum_error
-    root = math.sqrt(total + error)
-    square, square_error = exact_square(root)
-    difference, sum_error = exact_sum(total, -square)
-    root += ((difference - square_error) + (sum_error + error)) / (2.0 * root)
-    return math.ldexp(root, exponent)
-
-
-@numba.njit(cache=True)
-def largest(values) -> float:
-    """The largest of ``values``, NaN if any is (as NumPy's ``max``: no limit is
-    passed by a NaN measurement)."""
-    result = -math.inf
-    for value in values:
-        if math.isnan(value):
-            return value
-        if value > result:
-            result = value
-    return result
 
 
 @numba.njit(cache=True)

@@ -25,7 +25,8 @@ from pydrake.common.eigen_geometry import Quaternion
 from pydrake.math import RigidTransform, RotationMatrix
 from scipy.spatial.transform import Rotation
 
-from maglev_haptics.hardware.kernels import VECTOR, fused_multiply_add, kernel
+from maglev_haptics.hardware.exact_arithmetic import euclidean_norm, fused_multiply_add
+from maglev_haptics.hardware.kernels import VECTOR, kernel
 
 
 @kernel((VECTOR,))
@@ -137,9 +138,8 @@ def quaternion_log(w, x, y, z):
 
 @numba.njit(cache=True)
 def _numpy_unit_quaternion(q):
-    """q / np.linalg.norm(q) of a quaternion array, as numpy rounds it (its norm sums the
-    squares in order), as a 4-tuple."""
-    norm = math.sqrt(((q[0] * q[0] + q[1] * q[1]) + q[2] * q[2]) + q[3] * q[3])
+    """q / np.linalg.norm(q) of a quaternion array, as numpy rounds it, as a 4-tuple."""
+    norm = euclidean_norm(q)
     return q[0] / norm, q[1] / norm, q[2] / norm, q[3] / norm
 
 
