@@ -15,9 +15,13 @@
   - the handle is let go (for longer than ``release_debounce_s``) while the
     tool touches the scene (within ``contact_memory_s``): the scene holds it
     (a peg let go in its hole stays up between the virtual walls). Nobody
-    holds the instrument now, so the device brakes it (the PD's damping,
-    ``brake`` output) until the hand grips again: a weightless instrument let
-    go would otherwise keep whatever momentum the let-go gave it;
+    holds the instrument now, so the device brakes it (a share of the PD's
+    damping, ``brake_gain`` output) until the hand grips again: a weightless
+    instrument let go would otherwise keep whatever momentum the let-go gave
+    it. The share is small (``let_go_brake``) because the coupling's damper
+    already acts on it: the free instrument's damping loop crosses over at its
+    total damping over its inertia, and the loop's delay eats that loop's
+    phase margin (docs/haptic_loop.md, "Let go");
   - let go with the tool free: **landing**. Haptics is disabled and the PD lands
     the instrument level on the glass below where it was let go. Once it has
     settled, the force ramps to zero. Gravity compensation alone would leave a
@@ -34,7 +38,7 @@ import numba
 import numpy as np
 from pydrake.systems.framework import Diagram, LeafSystem
 
-from maglev_haptics.hardware.config_checks import nonnegative
+from maglev_haptics.hardware.config_checks import nonnegative, require
 from maglev_haptics.hardware.kernels import READONLY_VECTOR, SCALAR, VECTOR, kernel
 from maglev_haptics.systems.blends import LANDING_PRESS_M, clipped_minimum_jerk
 from maglev_haptics.systems.rotations import drake_roll_pitch_yaw
@@ -51,7 +55,7 @@ STATE_SIZE = 18
 
 @dataclass
 class SupervisorConfig:
-    """Timing of the mode changes."""
+    """Timing of the mode changes, and the brake on an instrument the scene holds."""
 
     handover_s: float = 0.5  # PD fade-out at haptics start, and the blend back to the script (s)
     release_debounce_s: float = 0.05  # a let-go shorter than this is ignored (s)
@@ -59,21 +63,32 @@ class SupervisorConfig:
     landing_s: float = 1.5  # minimum-jerk descent to the glass after a free let-go (s)
     settle_s: float = 0.3  # held on the glass after landing, before the force ramps down (s)
     force_ramp_s: float = 0.2  # the ramp-down of the force after landing (s)
+    # The brake on an instrument let go that the scene holds: this share of the PD's
+    # damping (0..1). With the coupling's damper (b / m = 40 /s on every axis) the
+    # free instrument's damping loop then crosses over at 58 /s, not 128 /s at the
+    # full PD's: it stays stable with 2 ms more loop delay than in this diagram (the
+    # LCM link adds about that), where the full share rang up within 0.7 s.
+    let_go_brake: float = 0.2
 
     def validate(self, path: str = "supervisor") -> None:
-        """Every time >= 0; a ValueError names ``path.field`` and its value."""
+        """Every time >= 0, the brake within 0..1; a ValueError names ``path.field``,
+        its value and what is allowed."""
         for f in dataclasses.fields(self):
             nonnegative(f"{path}.{f.name}", getattr(self, f.name))
+        require(self.let_go_brake <= 1.0, f"{path}.let_go_brake", self.let_go_brake,
+                "must be within 0..1 (a share of the PD's damping)")
 
 
-# ``SupervisorConfig``'s times (s) as the kernels take them: an array, by these indices.
-_HANDOVER_S, _RELEASE_DEBOUNCE_S, _CONTACT_MEMORY_S, _LANDING_S, _SETTLE_S, _FORCE_RAMP_S = range(6)
+# ``SupervisorConfig`` as the kernels take it: an array, by these indices.
+(_HANDOVER_S, _RELEASE_DEBOUNCE_S, _CONTACT_MEMORY_S, _LANDING_S, _SETTLE_S, _FORCE_RAMP_S,
+ _LET_GO_BRAKE) = range(7)
 
 
-def supervisor_timing(config: SupervisorConfig) -> np.ndarray:
-    """``config``'s times (s) in the kernels' order."""
+def supervisor_parameters(config: SupervisorConfig) -> np.ndarray:
+    """``config``'s times (s) and brake share in the kernels' order."""
     return np.array([config.handover_s, config.release_debounce_s, config.contact_memory_s,
-                     config.landing_s, config.settle_s, config.force_ramp_s], dtype=float)
+                     config.landing_s, config.settle_s, config.force_ramp_s,
+                     config.let_go_brake], dtype=float)
 
 
 def initial_supervisor_state() -> np.ndarray:
@@ -109,9 +124,9 @@ def _enter(new, next_mode: int, t: float, scripted_pose6, X_WI) -> None:
 
 @numba.njit(cache=True)
 def supervisor_step(state, t: float, period_s: float, scripted_pose6, X_WI, tracking_ok: bool,
-                    request: bool, gripped: bool, in_contact: bool, timing) -> np.ndarray:
-    """The supervisor's state one period (s) after ``state`` at time ``t`` (s); ``timing``
-    is ``supervisor_timing(config)``."""
+                    request: bool, gripped: bool, in_contact: bool, parameters) -> np.ndarray:
+    """The supervisor's state one period (s) after ``state`` at time ``t`` (s); ``parameters``
+    is ``supervisor_parameters(config)``."""
     new = state.copy()
     mode = int(state[_MODE])
     new[_SINCE_CONTACT] = 0.0 if in_contact else state[_SINCE_CONTACT] + period_s
@@ -121,12 +136,12 @@ def supervisor_step(state, t: float, period_s: float, scripted_pose6, X_WI, trac
         _enter(new, HAPTIC, t, scripted_pose6, X_WI)
     elif mode == HAPTIC and not request:
         _enter(new, LEVITATE, t, scripted_pose6, X_WI)
-    elif (mode == HAPTIC and new[_RELEASED] > timing[_RELEASE_DEBOUNCE_S]
-          and state[_RELEASED] <= timing[_RELEASE_DEBOUNCE_S]
-          and new[_SINCE_CONTACT] > timing[_CONTACT_MEMORY_S]):
+    elif (mode == HAPTIC and new[_RELEASED] > parameters[_RELEASE_DEBOUNCE_S]
+          and state[_RELEASED] <= parameters[_RELEASE_DEBOUNCE_S]
+          and new[_SINCE_CONTACT] > parameters[_CONTACT_MEMORY_S]):
         _enter(new, LANDING, t, scripted_pose6, X_WI)
 
-    step = period_s / timing[_HANDOVER_S] if timing[_HANDOVER_S] > 0 else 1.0
+    step = period_s / parameters[_HANDOVER_S] if parameters[_HANDOVER_S] > 0 else 1.0
     mode = int(new[_MODE])
     if mode == HAPTIC:
         new[_PD] = max(0.0, state[_PD] - step)
@@ -134,26 +149,27 @@ def supervisor_step(state, t: float, period_s: float, scripted_pose6, X_WI, trac
         new[_PD] = 1.0
     else:
         new[_PD] = min(1.0, state[_PD] + step)
-    landed = mode == LANDING and t - new[_SINCE] > timing[_LANDING_S] + timing[_SETTLE_S]
-    ramp = period_s / timing[_FORCE_RAMP_S] if timing[_FORCE_RAMP_S] > 0 else 1.0
+    landed = mode == LANDING and t - new[_SINCE] > parameters[_LANDING_S] + parameters[_SETTLE_S]
+    ramp = period_s / parameters[_FORCE_RAMP_S] if parameters[_FORCE_RAMP_S] > 0 else 1.0
     new[_ENABLE] = (max(0.0, state[_ENABLE] - ramp) if landed
                     else min(1.0, state[_ENABLE] + ramp))
     return new
 
 
 @numba.njit(cache=True)
-def supervisor_gains(state, timing):
+def supervisor_gains(state, parameters):
     """(pd_gain, brake_gain, haptics_enable, mode) in ``state``: the PD's share
-    0..1, the brake 0/1 (haptic, let go for longer than the debounce: the scene
-    holds the instrument), the coupling's enable 0/1 and the mode number."""
+    0..1, the brake's share of the PD's damping (``let_go_brake`` once haptic and let
+    go for longer than the debounce: the scene holds the instrument; else 0), the
+    coupling's enable 0/1 and the mode number."""
     haptic = state[_MODE] == HAPTIC
-    held_by_scene = haptic and state[_RELEASED] > timing[_RELEASE_DEBOUNCE_S]
-    return (state[_PD], 1.0 if held_by_scene else 0.0, 1.0 if haptic else 0.0,
-            float(state[_MODE]))
+    held_by_scene = haptic and state[_RELEASED] > parameters[_RELEASE_DEBOUNCE_S]
+    return (state[_PD], parameters[_LET_GO_BRAKE] if held_by_scene else 0.0,
+            1.0 if haptic else 0.0, float(state[_MODE]))
 
 
 @numba.njit(cache=True)
-def supervisor_setpoint(state, t: float, scripted, rest_height_m: float, timing):
+def supervisor_setpoint(state, t: float, scripted, rest_height_m: float, parameters):
     """The controller's setpoint (12,) in ``state`` at time ``t`` (s), given the
     scripted setpoint (12,); blends are float, the script passes through as it is."""
     mode = int(state[_MODE])
@@ -162,11 +178,11 @@ def supervisor_setpoint(state, t: float, scripted, rest_height_m: float, timing)
         start = state[_POSE:_POSE + 6]
         target = np.array([start[0], start[1], rest_height_m - LANDING_PRESS_M,
                            0.0, 0.0, start[5]])
-        blend, rate = clipped_minimum_jerk(elapsed, timing[_LANDING_S])
+        blend, rate = clipped_minimum_jerk(elapsed, parameters[_LANDING_S])
         return np.concatenate((start + blend * (target - start), rate * (target - start)))
-    if mode == LEVITATE and elapsed < timing[_HANDOVER_S]:
+    if mode == LEVITATE and elapsed < parameters[_HANDOVER_S]:
         # The offset at entry fades out, so the setpoint meets the script smoothly.
-        blend, rate = clipped_minimum_jerk(elapsed, timing[_HANDOVER_S])
+        blend, rate = clipped_minimum_jerk(elapsed, parameters[_HANDOVER_S])
         offset = state[_OFFSET:_OFFSET + 6]
         return np.concatenate((scripted[0:6] + (1.0 - blend) * offset,
                                scripted[6:12] - rate * offset))
@@ -187,21 +203,21 @@ SUPERVISOR_OUTPUTS = (("setpoint", 12), ("enable", 1), ("pd_gain", 1), ("brake_g
 
 
 @kernel((VECTOR, VECTOR, SCALAR, SCALAR, VECTOR, VECTOR))
-def supervisor_update(inputs, scripted, t, period_s, timing, state):
+def supervisor_update(inputs, scripted, t, period_s, parameters, state):
     """One update of ``state`` in place, at time ``t`` (s), from ``inputs``
     (SUPERVISOR_INPUTS stacked) and the scripted setpoint (12)."""
     state[:] = supervisor_step(
         state, t, period_s, scripted[0:6], inputs[_X_WI:_X_WI + 7], inputs[_TRACKING_OK] > 0.5,
         inputs[_REQUEST] > 0.5 and inputs[_FAULT_BITS] == 0, inputs[_GRIPPED] > 0.5,
-        inputs[_IN_CONTACT] > 0.5, timing)
+        inputs[_IN_CONTACT] > 0.5, parameters)
 
 
 @kernel((READONLY_VECTOR, SCALAR, VECTOR, SCALAR, SCALAR, VECTOR, VECTOR))
-def supervisor_outputs(state, t, scripted, scripted_enable, rest_height_m, timing, out):
+def supervisor_outputs(state, t, scripted, scripted_enable, rest_height_m, parameters, out):
     """SUPERVISOR_OUTPUTS stacked into ``out``, in ``state`` at time ``t`` (s)."""
-    out[0:12] = supervisor_setpoint(state, t, scripted, rest_height_m, timing)
+    out[0:12] = supervisor_setpoint(state, t, scripted, rest_height_m, parameters)
     out[12] = state[_ENABLE] * scripted_enable
-    out[13], out[14], out[15], out[16] = supervisor_gains(state, timing)
+    out[13], out[14], out[15], out[16] = supervisor_gains(state, parameters)
 
 
 class SupervisorLaw(LeafSystem):
@@ -222,7 +238,7 @@ class SupervisorLaw(LeafSystem):
 
     def __init__(self, *, config: SupervisorConfig, period_s: float, rest_height_m: float):
         LeafSystem.__init__(self)
-        self._timing = supervisor_timing(config)
+        self._parameters = supervisor_parameters(config)
         self._period_s = float(period_s)
         self._rest_height_m = float(rest_height_m)
         self._inputs = self.DeclareVectorInputPort("inputs", stacked_size(SUPERVISOR_INPUTS))
@@ -240,14 +256,14 @@ class SupervisorLaw(LeafSystem):
     def _update(self, context, discrete_state):
         # The update's state starts as a copy of the context's: stepped in place.
         supervisor_update(self._inputs.Eval(context), self._scripted.Eval(context),
-                          context.get_time(), self._period_s, self._timing,
+                          context.get_time(), self._period_s, self._parameters,
                           discrete_state.get_mutable_value(self._state))
 
     def _calc_outputs(self, context, output):
         supervisor_outputs(context.get_discrete_state(self._state).get_value(),
                            context.get_time(), self._scripted.Eval(context),
                            self._scripted_enable.Eval(context)[0], self._rest_height_m,
-                           self._timing, output.get_mutable_value())
+                           self._parameters, output.get_mutable_value())
 
 
 class HapticSupervisor(Diagram):

@@ -8,13 +8,13 @@ from pydrake.math import RollPitchYaw
 from maglev_haptics.systems.blends import clipped_minimum_jerk, minimum_jerk
 from maglev_haptics.systems.haptic_supervisor import (
     HAPTIC, LANDING, LANDING_PRESS_M, LEVITATE, HapticSupervisor, SupervisorConfig,
-    initial_supervisor_state, measured_pose6, supervisor_setpoint, supervisor_step,
-    supervisor_timing)
+    initial_supervisor_state, measured_pose6, supervisor_gains, supervisor_parameters,
+    supervisor_setpoint, supervisor_step)
 
 PERIOD_S = 1e-3
 REST_M = 0.007
 CONFIG = SupervisorConfig()
-TIMING = supervisor_timing(CONFIG)
+PARAMETERS = supervisor_parameters(CONFIG)
 HOVER = np.array([0.01, -0.02, 0.025, 0.0, 0.0, 0.3])
 
 
@@ -26,7 +26,7 @@ def pose_vector(xyz, rpy):
 def run(state, t0, n, *, X_WI, request, gripped, in_contact, tracking_ok=True):
     for k in range(n):
         state = supervisor_step(state, t0 + k * PERIOD_S, PERIOD_S, HOVER, X_WI, tracking_ok,
-                                request, gripped, in_contact, TIMING)
+                                request, gripped, in_contact, PARAMETERS)
     return state, t0 + n * PERIOD_S
 
 
@@ -76,7 +76,7 @@ def test_engages_only_when_requested_and_gripped_and_hands_over_smoothly():
     assert state[14] == 0.0
     # In haptic mode the script passes through untouched.
     scripted = np.arange(12.0)
-    assert supervisor_setpoint(state, t, scripted, REST_M, TIMING) is scripted
+    assert supervisor_setpoint(state, t, scripted, REST_M, PARAMETERS) is scripted
 
 
 def test_disable_blends_back_from_where_haptics_ended():
@@ -87,12 +87,12 @@ def test_disable_blends_back_from_where_haptics_ended():
     assert state[0] == LEVITATE
     scripted = np.concatenate((HOVER, np.zeros(6)))
     t = state[1]  # the switch
-    start = supervisor_setpoint(state, t, scripted, REST_M, TIMING)
+    start = supervisor_setpoint(state, t, scripted, REST_M, PARAMETERS)
     np.testing.assert_allclose(start[0:6], [0.03, 0.0, 0.02, 0.0, 0.1, 0.3], atol=1e-8)
     np.testing.assert_allclose(start[6:12], 0.0, atol=1e-9)
-    end = supervisor_setpoint(state, t + CONFIG.handover_s, scripted, REST_M, TIMING)
+    end = supervisor_setpoint(state, t + CONFIG.handover_s, scripted, REST_M, PARAMETERS)
     np.testing.assert_allclose(end, scripted, atol=1e-12)
-    middle = supervisor_setpoint(state, t + CONFIG.handover_s / 2, scripted, REST_M, TIMING)
+    middle = supervisor_setpoint(state, t + CONFIG.handover_s / 2, scripted, REST_M, PARAMETERS)
     assert middle[0] == pytest.approx((0.03 + HOVER[0]) / 2)
     assert middle[6] < 0.0  # moving back toward the script's x
 
@@ -112,7 +112,8 @@ def test_free_let_go_lands_level_and_then_ramps_the_force_down():
     assert state[14] == 1.0
     landing_start = state[1]
     scripted = np.concatenate((HOVER, np.zeros(6)))
-    done = supervisor_setpoint(state, landing_start + CONFIG.landing_s, scripted, REST_M, TIMING)
+    done = supervisor_setpoint(state, landing_start + CONFIG.landing_s, scripted, REST_M,
+                               PARAMETERS)
     np.testing.assert_allclose(done[0:6], [0.02, 0.01, REST_M - LANDING_PRESS_M, 0, 0, 0.3],
                                atol=1e-9)
     state, t = run(state, t, int((CONFIG.landing_s + CONFIG.settle_s + CONFIG.force_ramp_s)
@@ -129,6 +130,27 @@ def test_let_go_while_touching_the_scene_stays_haptic():
     state, t = run(state, t, 20, X_WI=X_WI, request=True, gripped=False, in_contact=True)
     state, t = run(state, t, 2000, X_WI=X_WI, request=True, gripped=False, in_contact=False)
     assert state[0] == HAPTIC
+
+
+@pytest.mark.parametrize("share", [0.2, 0.7])
+def test_the_scene_holds_a_let_go_instrument_braked_by_the_configured_share(share):
+    parameters = supervisor_parameters(SupervisorConfig(let_go_brake=share))
+    X_WI = pose_vector(HOVER[0:3], HOVER[3:6])
+    state = initial_supervisor_state()
+    state, t = run(state, 0.0, 10, X_WI=X_WI, request=True, gripped=True, in_contact=True)
+    assert supervisor_gains(state, parameters)[1] == 0.0  # in the hand: no brake
+    debounce = round(CONFIG.release_debounce_s / PERIOD_S) - 1
+    state, t = run(state, t, debounce, X_WI=X_WI, request=True, gripped=False, in_contact=True)
+    assert supervisor_gains(state, parameters)[1] == 0.0  # a let-go shorter than the debounce
+    state, t = run(state, t, 2, X_WI=X_WI, request=True, gripped=False, in_contact=True)
+    assert supervisor_gains(state, parameters)[1] == share
+    state, t = run(state, t, 1, X_WI=X_WI, request=True, gripped=True, in_contact=True)
+    assert supervisor_gains(state, parameters)[1] == 0.0
+
+
+def test_a_brake_share_outside_0_to_1_is_refused():
+    with pytest.raises(ValueError, match=r"supervisor\.let_go_brake.*1\.5.*0\.\.1"):
+        SupervisorConfig(let_go_brake=1.5).validate()
 
 
 def gripped_and_requested(scripted_enable: float):
