@@ -43,6 +43,7 @@ from maglev_haptics.diagrams.application import BuildDiagram  # noqa: E402
 from maglev_haptics.diagrams.hand_script import ScriptedHand, hand_plan  # noqa: E402
 from maglev_haptics.diagrams.haptics import stepped_in_place  # noqa: E402
 from maglev_haptics.diagrams.station import hand_start_pose  # noqa: E402
+from maglev_haptics.systems.pose_estimator import CLOCK_ROWS  # noqa: E402
 
 # Systems whose states feed nothing back into the loop (name prefixes).
 RECORDING_ONLY = ("log_sample", "station/head", "head_pose_predictor", "stereo_view")
@@ -52,6 +53,9 @@ HELD_STATES = ("coil_temperatures", "device_supervisor")
 # Discrete modes, compared exactly (a nudge would switch the mode): held, as the
 # linearization is about a fixed mode.
 MODE_COORDINATES = ("haptic_supervisor/law[0]",)
+# The tracker's and the estimator's sample clocks (which sample is the newest, which
+# the estimator has processed): held, as a nudge would take or skip a sample.
+SENSOR_PATH, ESTIMATOR_PATH = "station/marker_sensor", "pose_estimator"
 SETTLE_S = 0.3  # after haptics is fully on, before the operating point (s)
 MODES_SHOWN = 12
 HELD_TOLERANCE = 1e-6  # a row of the map this close to a unit vector is a held state
@@ -105,6 +109,13 @@ def _update_timings(diagram) -> Dict[str, tuple]:
         timings[path] = tuple(Fraction(value).limit_denominator(MAX_DENOMINATOR) for value
                               in (attribute.period_sec(), attribute.offset_sec()))
     return timings
+
+
+def sample_clocks(diagram) -> tuple:
+    """The state names of the tracker's and the estimator's sample clocks."""
+    sensor = diagram.GetSubsystemByName("station").GetSubsystemByName("marker_sensor")
+    return (tuple(f"{SENSOR_PATH}/hold[{row}]" for row in sensor.clock_rows)
+            + tuple(f"{ESTIMATOR_PATH}/hold[{row}]" for row in CLOCK_ROWS))
 
 
 def _periods(timings, kept_names) -> List[float]:
@@ -199,12 +210,13 @@ def loop_map(scenario, *, progress: Optional[Callable[[int, int], None]] = None,
     with_hand = isinstance(scenario.hand, ScriptedHand)
     built = BuildDiagram(stepped_in_place(scenario), hand_target_offset_input=with_hand)
     names = state_names(built.diagram)
+    held = MODE_COORDINATES + sample_clocks(built.diagram)
     kept = [i for i, name in enumerate(names)
-            if not name.startswith(RECORDING_ONLY + HELD_STATES)
-            and name not in MODE_COORDINATES]
+            if not name.startswith(RECORDING_ONLY + HELD_STATES) and name not in held]
     kept_names = [names[i] for i in kept]
     timings = _update_timings(built.diagram)
-    period = hyperperiod_s(_periods(timings, kept_names))
+    sensor = built.diagram.GetSubsystemByName("station").GetSubsystemByName("marker_sensor")
+    period = hyperperiod_s(_periods(timings, kept_names) + [sensor.sample_period_s])
     t0 = map_start_s(timings, t0, period)
     if operating_point_from is None:
         context = _operating_context(built.diagram, t0)

@@ -96,9 +96,9 @@ def AddApplication(builder: DiagramBuilder, *, scenario: Scenario, station, magn
     commands) and the levitation controller, wired to ``station`` and each other."""
     device = scenario.device
     spec = device.instrument_spec()
-    estimator = builder.AddNamedSystem("pose_estimator", PoseEstimator(
-        instrument=spec, tracker=device.tracker, config=scenario.estimator))
     tick_s = 1.0 / scenario.control_rate_hz
+    estimator = builder.AddNamedSystem("pose_estimator", PoseEstimator(
+        instrument=spec, tracker=device.tracker, tick_s=tick_s, config=scenario.estimator))
     if device_api:  # resting on the glass, coils off, until the API commands
         if scenario.haptics is not None:
             raise ValueError(f"{label}: the device API flies levitation scenarios only "
@@ -133,8 +133,8 @@ def AddApplication(builder: DiagramBuilder, *, scenario: Scenario, station, magn
     builder.Connect(supervisor.GetOutputPort("coil_power"), station.GetInputPort("coil_power"))
     builder.Connect(station.GetOutputPort("coil_currents"),
                     controller.GetInputPort("coil_currents"))
-    builder.Connect(station.GetOutputPort("markers_measured"),
-                    estimator.GetInputPort("markers_measured"))
+    for name in ("markers_measured", "markers_sample_time_s"):
+        builder.Connect(station.GetOutputPort(name), estimator.GetInputPort(name))
     for name in ("X_WI_measured", "V_WI_measured", "tracking_ok"):
         builder.Connect(estimator.GetOutputPort(name), controller.GetInputPort(name))
     builder.Connect(supervisor.GetOutputPort("tracking_lost_s"),

@@ -36,6 +36,7 @@ from maglev_haptics.hardware.link_checks import LinkLimits, check_command, check
 from maglev_haptics.hardware.magnetics import load_magnetics
 from maglev_haptics.hardware.thermal import coil_thermal
 from maglev_haptics.systems.coil_thermal import CoilTemperatures
+from maglev_haptics.systems.marker_sensor import newest_sample_before
 from maglev_haptics.systems.station_messages import (
     US_PER_S, MessageReceiver, MessageSender, ReceivedChannel, currents_and_power_from_message,
     currents_message, glasses_measurement_message, markers_message, status_message)
@@ -124,7 +125,7 @@ def BuildDeviceSim(scenario) -> DeviceSim:
     n_coils = device.n_coils
     limits = LinkLimits.from_device(device)
     period_s = 1.0 / scenario.control_rate_hz
-    tracker_period_s = 1.0 / device.tracker.rate_hz
+    n_markers = len(device.instrument_spec().p_IK_m)
     builder = DiagramBuilder()
     station = builder.AddSystem(MakeStation(scenario, magnetics=load_magnetics(device),
                                             station=SimStation()))
@@ -156,13 +157,23 @@ def BuildDeviceSim(scenario) -> DeviceSim:
             encode=encode, period_s=send_period_s))
         builder.Connect(value_port, sender.GetInputPort("value"))
 
-    # A publish at t reads the sensor before its update at t: the sample it carries
-    # was published one tracker period earlier (an extra period of latency, ~1.2 ms,
-    # on top of the tracker's own; see the issue 14 note).
-    sample_age_s = tracker_period_s + device.tracker.latency_s
-    send(MARKERS, station.GetOutputPort("markers_measured"),
-         lambda sequence, t, value: markers_message(sequence, t - sample_age_s, t, value),
-         tracker_period_s)
+    # Each tracker sample leaves at the first tick after it was published (within a
+    # tick), numbered by the tracker's count so a receiver counts a gap as a loss.
+    sample = builder.AddNamedSystem("marker_sample", Multiplexer([3 * n_markers, 1]))
+    builder.Connect(station.GetOutputPort("markers_measured"), sample.get_input_port(0))
+    builder.Connect(station.GetOutputPort("markers_sample_time_s"), sample.get_input_port(1))
+
+    rate_hz = device.tracker.rate_hz
+
+    def marker_message(_, t, value):
+        if value[-1] == -np.inf:
+            return None  # none published yet
+        number = round(value[-1] * rate_hz)
+        if number <= newest_sample_before(t - period_s, rate_hz):
+            return None  # sent at an earlier tick
+        return markers_message(number + 1, value[-1] - device.tracker.latency_s, t, value[:-1])
+
+    send(MARKERS, sample.get_output_port(), marker_message, period_s)
     measured = builder.AddNamedSystem("measured", Multiplexer([n_coils, 1]))
     builder.Connect(station.GetOutputPort("coil_currents"), measured.get_input_port(0))
     builder.Connect(command.get_output_port(1), measured.get_input_port(1))

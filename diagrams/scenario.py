@@ -181,7 +181,6 @@ class Scenario:
                 f"must be at most {LONGEST_PLANT_STEP_S:g} s")
         self.motion.validate(f"{label}: motion")
         self.watchdog.validate(f"{label}: watchdog")
-        self.estimator.validate(f"{label}: estimator", self.device.tracker.rate_hz)
         n_markers = len(self.device.instrument_spec().p_IK_m)
         for i, o in enumerate(self.occlusions):
             require(o.marker is None or 0 <= o.marker < n_markers,
@@ -203,6 +202,14 @@ class Scenario:
         positive(f"{label}: control_rate_hz", self.control_rate_hz)
         positive(f"{label}: log_rate_hz", self.log_rate_hz)
         positive(f"{label}: plant_config.time_step", self.plant_config.time_step)
+        tracker_hz = self.device.tracker.rate_hz
+        for name, tick_s in (("control_rate_hz", 1.0 / self.control_rate_hz),
+                             ("plant_config.time_step", self.plant_config.time_step)):
+            # The loop and the plant take each tracker sample at their next tick.
+            require(tracker_hz * tick_s <= 1 + 1e-9, f"{label}: device.tracker.rate_hz",
+                    tracker_hz, f"must be at most one sample a tick: 1 / {name} "
+                    f"({1.0 / tick_s:g} Hz)")
+        self.estimator.validate(f"{label}: estimator", tracker_hz, 1.0 / self.control_rate_hz)
         if self.duration_s is not None:
             positive(f"{label}: duration_s", self.duration_s)
             require(self.duration_s <= LONGEST_S, f"{label}: duration_s", self.duration_s,

@@ -6,8 +6,9 @@
 
 - inputs ``coil_currents_commanded`` (n_coils, A) and ``coil_power`` (1: the
   amplifiers' supply, the device's enable line; 0 cuts every coil's current);
-- outputs ``markers_measured`` (3 * n_markers, m, NaN when hidden),
-  ``coil_currents`` (n_coils, A, what flows), ``coil_currents_age_s`` (1: how old
+- outputs ``markers_measured`` (3 * n_markers, m, NaN when hidden: the newest
+  tracker sample), ``markers_sample_time_s`` (1: when it was published, s; over LCM
+  when it was read), ``coil_currents`` (n_coils, A, what flows), ``coil_currents_age_s`` (1: how old
   they are, s; 0 simulated, the link's age over LCM), ``instrument_state`` (13, the
   true free-body state, simulation only), ``query_object`` (for visualizers).
 
@@ -175,7 +176,8 @@ def MakeStation(scenario: Scenario, *, magnetics, station=None) -> Diagram:
     faults = {kind: [f for f in scenario.faults if isinstance(f, kind)]
               for kind in (LatencySpike, CorruptSample, StuckAmplifier, Shove)}
     sensor = builder.AddNamedSystem("marker_sensor", MarkerSensor(
-        instrument=spec, tracker=device.tracker, occlusions=scenario.occlusions,
+        instrument=spec, tracker=device.tracker, tick_s=scenario.plant_config.time_step,
+        occlusions=scenario.occlusions,
         seed=scenario.random_seed, dropout_probability=scenario.marker_dropout_probability,
         latency_spikes=faults[LatencySpike], corruptions=faults[CorruptSample]))
     state_port = plant.get_state_output_port(instrument)
@@ -203,7 +205,8 @@ def MakeStation(scenario: Scenario, *, magnetics, station=None) -> Diagram:
         shoves = builder.AddNamedSystem("shoves", Shoves(faults[Shove], body.index(),
                                                          body.default_com()))
         builder.Connect(shoves.get_output_port(), plant.get_applied_spatial_force_input_port())
-    builder.ExportOutput(sensor.GetOutputPort("markers_measured"), "markers_measured")
+    for name in ("markers_measured", "markers_sample_time_s"):
+        builder.ExportOutput(sensor.GetOutputPort(name), name)
     builder.ExportOutput(amplifiers.get_output_port(), "coil_currents")
     # Measured in the tick that reads them (the LCM station's are as old as its link).
     currents_age = builder.AddNamedSystem("coil_currents_age", ConstantVectorSource([0.0]))

@@ -26,7 +26,7 @@ from typing import Optional, Sequence
 
 import numba
 import numpy as np
-from pydrake.systems.framework import BasicVector, LeafSystem
+from pydrake.systems.framework import Diagram, LeafSystem
 
 from maglev_haptics.hardware.device import InstrumentSpec, TrackerSpec
 from maglev_haptics.hardware.kernels import MASK_MATRIX, MATRIX, SCALAR, VECTOR, kernel
@@ -34,6 +34,7 @@ from maglev_haptics.systems.fault_injection import (
     CorruptSample, LatencySpike, corrupt, stalled)
 from maglev_haptics.systems.rotations import (
     quaternion_exp, quaternion_multiply, rotation_from_quaternion)
+from maglev_haptics.systems.stacked_ports import BuildHeld
 
 # Samples per block of pre-drawn random numbers (one generator per block).
 NOISE_BLOCK = 1024
@@ -159,42 +160,37 @@ def _check_nonnegative(name: str, value: float, unit: str) -> float:
     return float(value)
 
 
-class MarkerSensor(LeafSystem):
-    """Simulated optical tracker of the instrument's markers.
+# A sample at n / rate_hz counts as at a tick's time t within this many samples: a
+# tick's time is a sum of periods, a few ulps off the exact n / rate_hz.
+SAMPLE_TOLERANCE = 1e-6
+# The sensor's record (its output, held by a ZeroOrderHold between ticks): the
+# markers (3 n), then the newest sample's time and number + 1 (0: none taken yet).
+_TIME, _TAKEN = 0, 1  # rows after the markers
+
+
+def newest_sample_before(t: float, rate_hz: float) -> int:
+    """The number of the newest sample taken before ``t`` (s) at ``rate_hz`` (Hz), from
+    sample 0 at t = 0 (-1: none)."""
+    return math.ceil(t * rate_hz - SAMPLE_TOLERANCE) - 1
+
+
+class MarkerSensorLaw(LeafSystem):
+    """``MarkerSensor``'s arithmetic: inputs ``instrument_state`` and ``held`` (its own
+    record at the last tick), one output ``record`` (see ``MarkerSensor``).
 
     .. pydrake_system::
 
-        name: MarkerSensor
+        name: MarkerSensorLaw
         input_ports:
         - instrument_state
+        - held
         output_ports:
-        - markers_measured
-
-    - ``instrument_state`` (13): the plant's free-body state
-      [qw qx qy qz x y z wx wy wz vx vy vz] (m, rad/s, m/s; velocities in W).
-    - ``markers_measured`` (3 n): p_WK [m] of the n markers, NaN where not seen.
-
-    Updates periodically at ``tracker.rate_hz`` (offset 0) and once at
-    initialization, as a tracker that was already running would; the output is
-    the discrete state, so it holds between samples (NaN before the first).
-
-    Args:
-        instrument: supplies the marker model p_IK [m].
-        tracker: rate_hz [Hz], noise_m (std per coordinate) [m], latency_s [s].
-        occlusions: scripted occlusion intervals: Occlusion objects or
-            (marker, start_s, end_s) tuples.
-        seed: non-negative integer; the only source of randomness.
-        dropout_probability: chance that a marker is missing from a sample,
-            independently per marker and sample, in [0, 1].
-        quantization_m: coordinate resolution [m]; 0 for none.
-        latency_spikes, corruptions: injected faults (``systems/fault_injection.py``).
+        - record
     """
 
-    def __init__(self, instrument: InstrumentSpec, tracker: TrackerSpec,
-                 occlusions: Sequence = (), seed: int = 0, *,
-                 dropout_probability: float = 0.0, quantization_m: float = 0.0,
-                 latency_spikes: Sequence[LatencySpike] = (),
-                 corruptions: Sequence[CorruptSample] = ()):
+    def __init__(self, instrument: InstrumentSpec, tracker: TrackerSpec, occlusions: Sequence,
+                 seed: int, dropout_probability: float, quantization_m: float,
+                 latency_spikes: Sequence[LatencySpike], corruptions: Sequence[CorruptSample]):
         super().__init__()
         p_IK = instrument.p_IK
         if p_IK.ndim != 2 or p_IK.shape[1] != 3 or len(p_IK) < 1 \
@@ -211,7 +207,8 @@ class MarkerSensor(LeafSystem):
         if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
             raise ValueError(f"seed = {seed!r}: must be a non-negative integer")
         self._p_IK = np.ascontiguousarray(p_IK)
-        self._rate_hz = float(tracker.rate_hz)
+        self._n = 3 * len(p_IK)
+        self.rate_hz = float(tracker.rate_hz)
         self._noise_m = _check_nonnegative("tracker.noise_m", tracker.noise_m, "m")
         self._latency_s = _check_nonnegative("tracker.latency_s", tracker.latency_s, "s")
         self._quantization_m = _check_nonnegative("quantization_m", quantization_m, "m")
@@ -221,33 +218,121 @@ class MarkerSensor(LeafSystem):
         self._noise = SampleNoise(int(seed), len(p_IK))
         self._latency_spikes = list(latency_spikes)
         self._corruptions = list(corruptions)
-
         self._state = self.DeclareVectorInputPort("instrument_state", 13)
-        self._markers_index = self.DeclareDiscreteState(
-            BasicVector(np.full(3 * len(p_IK), np.nan)))
-        self.DeclarePeriodicDiscreteUpdateEvent(1.0 / self._rate_hz, 0.0, self._update)
-        self.DeclareInitializationDiscreteUpdateEvent(self._update)
-        self._markers_measured = self.DeclareStateOutputPort(
-            "markers_measured", self._markers_index)
+        self._held = self.DeclareVectorInputPort("held", self._n + 2)
+        self.DeclareVectorOutputPort("record", self._n + 2, self._calc_record)
 
     def measure(self, t: float, instrument_state: np.ndarray) -> np.ndarray:
         """The (3 n,) sample published at time t [s] for the current state (13,)."""
-        p_WK = np.empty(3 * len(self._p_IK))
+        p_WK = np.empty(self._n)
         self._measure_into(t, np.ascontiguousarray(instrument_state, dtype=float), p_WK)
         return p_WK
 
     def _measure_into(self, t, instrument_state, p_WK_out):
-        # Writes in place so the update fills the discrete state without a copy.
-        sample = round(t * self._rate_hz)
+        # Writes in place so the record is filled without a copy.
+        sample = round(t * self.rate_hz)
         normal, uniform = self._noise.draw(sample)
         _measure(t, instrument_state, self._p_IK, self._latency_s, self._noise_m,
                  self._quantization_m, self._dropout, normal, uniform,
                  self._occlusion_start, self._occlusion_end, self._occlusion_hides, p_WK_out)
         if self._corruptions:
-            corrupt(sample, p_WK_out, self._corruptions, self._rate_hz)
+            corrupt(sample, p_WK_out, self._corruptions, self.rate_hz)
 
-    def _update(self, context, discrete_state):
-        if self._latency_spikes and stalled(context.get_time(), self._latency_spikes):
-            return  # the last sample holds
-        self._measure_into(context.get_time(), self._state.Eval(context),
-                           discrete_state.get_mutable_value(self._markers_index))
+    def _calc_record(self, context, output):
+        held = self._held.EvalBasicVector(context).value()
+        sample = newest_sample_before(context.get_time(), self.rate_hz)
+        record = output.get_mutable_value()
+        if sample < 0:  # none published yet
+            record[:self._n] = np.nan
+            record[self._n + _TIME] = -np.inf
+            record[self._n + _TAKEN] = 0.0
+            return
+        if sample + 0.5 < held[self._n + _TAKEN]:  # taken: the count is a whole number
+            output.SetFromVector(held)
+            return
+        # A sample since the last tick: the plant's state, held from the last tick to
+        # this one, is the state it saw.
+        t_s = sample / self.rate_hz
+        if self._latency_spikes and stalled(t_s, self._latency_spikes):
+            # Nothing new: the last markers again (NaN before the first).
+            record[:self._n] = held[:self._n] if held[self._n + _TAKEN] > 0 else np.nan
+        else:
+            self._measure_into(t_s, self._state.EvalBasicVector(context).value(),
+                               record[:self._n])
+        record[self._n + _TIME] = t_s
+        record[self._n + _TAKEN] = sample + 1
+
+
+class MarkerSensor(Diagram):
+    """Simulated optical tracker of the instrument's markers.
+
+    .. pydrake_system::
+
+        name: MarkerSensor
+        input_ports:
+        - instrument_state
+        output_ports:
+        - markers_measured
+        - markers_sample_time_s
+
+    - ``instrument_state`` (13): the plant's free-body state
+      [qw qx qy qz x y z wx wy wz vx vy vz] (m, rad/s, m/s; velocities in W).
+    - ``markers_measured`` (3 n): p_WK [m] of the n markers, NaN where not seen:
+      the newest sample published before now (NaN before the first, at t = 0).
+    - ``markers_sample_time_s`` (1): when that sample was published (s); it shows
+      the instrument ``tracker.latency_s`` before.
+
+    Samples are published at ``tracker.rate_hz`` from t = 0. The plant is discrete
+    at ``tick_s`` (s): its state after the step at one tick holds until the next,
+    and a sample taken in that interval saw it. The sensor is read at the ticks;
+    each one's output computes the sample published since the tick before (one at
+    most), from the state the plant holds until this tick's step, and a
+    ZeroOrderHold keeps it for the ticks after. So a sample costs one compiled call
+    and the tracker adds no event between ticks: the Simulator takes one step a
+    tick. A sample due at a tick's very instant sees the state after that tick's
+    step, and is read at the next tick.
+
+    Args:
+        instrument: supplies the marker model p_IK [m].
+        tracker: rate_hz [Hz], noise_m (std per coordinate) [m], latency_s [s].
+        tick_s: the plant's time step (s); the tracker's period must be longer.
+        occlusions: scripted occlusion intervals: Occlusion objects or
+            (marker, start_s, end_s) tuples.
+        seed: non-negative integer; the only source of randomness.
+        dropout_probability: chance that a marker is missing from a sample,
+            independently per marker and sample, in [0, 1].
+        quantization_m: coordinate resolution [m]; 0 for none.
+        latency_spikes, corruptions: injected faults (``systems/fault_injection.py``).
+    """
+
+    def __init__(self, instrument: InstrumentSpec, tracker: TrackerSpec, tick_s: float,
+                 occlusions: Sequence = (), seed: int = 0, *,
+                 dropout_probability: float = 0.0, quantization_m: float = 0.0,
+                 latency_spikes: Sequence[LatencySpike] = (),
+                 corruptions: Sequence[CorruptSample] = ()):
+        super().__init__()
+        self._law = MarkerSensorLaw(instrument, tracker, occlusions, seed, dropout_probability,
+                                    quantization_m, latency_spikes, corruptions)
+        if not (math.isfinite(tick_s) and 0 < tick_s * tracker.rate_hz <= 1 + SAMPLE_TOLERANCE):
+            raise ValueError(
+                f"tick_s = {tick_s}: the plant's step must be > 0 and at most the tracker's "
+                f"period ({1.0 / tracker.rate_hz:g} s): one sample a step at most")
+        self._n = 3 * len(instrument.p_IK)
+        BuildHeld(self, leaf=self._law, leaf_name="law", period_s=tick_s,
+                  outputs=(("markers_measured", self._n), ("markers_sample_time_s", 1)),
+                  unexported_rows=1)
+
+    @property
+    def sample_period_s(self) -> float:
+        """The tracker's period (s): the loop's multirate model samples at it."""
+        return 1.0 / self._law.rate_hz
+
+    @property
+    def clock_rows(self) -> tuple:
+        """The rows of the held record that count samples, not state: the newest
+        sample's time and number (a linearization holds them)."""
+        return (self._n + _TIME, self._n + _TAKEN)
+
+    def measure(self, t: float, instrument_state: np.ndarray) -> np.ndarray:
+        """The (3 n,) sample published at time t [s] for the state (13,) it saw."""
+        return self._law.measure(t, instrument_state)

@@ -37,7 +37,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 import scipy.linalg
-from pydrake.systems.framework import BasicVector, LeafSystem
+from pydrake.systems.framework import Diagram, LeafSystem
 
 from maglev_haptics.hardware.config_checks import finite, positive, require
 from maglev_haptics.hardware.device import InstrumentSpec, TrackerSpec
@@ -45,6 +45,7 @@ from maglev_haptics.hardware.kernels import MATRIX, SCALAR, VECTOR, kernel
 from maglev_haptics.systems.rotations import (
     quaternion_conjugate, quaternion_exp, quaternion_from_rotation_matrix, quaternion_log,
     quaternion_multiply)
+from maglev_haptics.systems.stacked_ports import BuildHeld
 
 # A fit is refused when the visible markers' second principal spread is below
 # this fraction of the first (nearly collinear): the roll about their line is
@@ -55,6 +56,9 @@ MIN_SPREAD_RATIO = 1e-3
 # 10 nm is above that and far below any tracker's resolution.
 RESIDUAL_FLOOR_M = 1e-8
 _IDENTITY_POSE = np.array([1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+# A sample is released once its time plus the processing delay is this much before
+# the reading tick's time (s): both are sums of periods, a few ulps off exact.
+SAME_INSTANT_S = 1e-9
 
 
 @dataclass
@@ -66,9 +70,8 @@ class PoseEstimatorConfig:
     bandwidth_hz: float = 50.0  # velocity filter's natural frequency (damping 0.707) [Hz]
     max_residual_sigma: float = 20.0  # reject fits whose RMS marker residual exceeds this x noise_m
     # The PC's time from a tracker sample's arrival to its estimate (s): the fit and
-    # filter's compute time (tens of microseconds an update; ``maglev bench``).
-    # Each update reads the sensor's latched sample this long after it was
-    # published; 0 would read the one before it (a hand-off of one tracker period).
+    # filter's compute time (tens of microseconds an update; ``maglev bench``). A
+    # tick reads an estimate whose processing ended before it.
     processing_delay_s: float = 20e-6
     # A fit this far from the filter's prediction is implausible (a reflection taken
     # for a marker, markers swapped) and is read as unseen: 5 mm and 0.2 rad in one
@@ -80,9 +83,9 @@ class PoseEstimatorConfig:
     # instrument: the controller cuts the coils after its grace (20 ms), well before.
     jump_hold_s: float = 0.1
 
-    def validate(self, path: str, tracker_rate_hz: float) -> None:
-        """Range checks against the tracker's rate (Hz); a ValueError names
-        ``path.field``, its value and what is allowed."""
+    def validate(self, path: str, tracker_rate_hz: float, tick_s: float) -> None:
+        """Range checks against the tracker's rate (Hz) and the loop's tick (s); a
+        ValueError names ``path.field``, its value and what is allowed."""
         require(0 < self.bandwidth_hz < tracker_rate_hz / 2, f"{path}.bandwidth_hz",
                 self.bandwidth_hz, f"must be in (0, {tracker_rate_hz / 2}) Hz, below the "
                 "tracker's Nyquist frequency")
@@ -94,6 +97,13 @@ class PoseEstimatorConfig:
         require(finite(self.processing_delay_s) and 0 <= self.processing_delay_s < period_s,
                 f"{path}.processing_delay_s", self.processing_delay_s,
                 f"must be in [0, {period_s}) s (one tracker period)")
+        # A tick reads the newest sample only: each must be processed by the first tick
+        # after it unless the next is published first.
+        if abs(period_s - tick_s) > SAME_INSTANT_S:
+            require(self.processing_delay_s <= period_s - tick_s, f"{path}.processing_delay_s",
+                    self.processing_delay_s, f"must be at most {period_s - tick_s:.6g} s: the "
+                    "tracker's period less the loop's tick, so each sample is processed "
+                    "before the next is published")
 
 
 # --- rigid fit ---------------------------------------------------------------
@@ -369,7 +379,95 @@ def _check_rate(tracker: TrackerSpec) -> float:
     return 1.0 / rate
 
 
-class PoseEstimator(LeafSystem):
+# The estimator's record (its output, held by a ZeroOrderHold between ticks): the
+# outputs X (7), V (6), tracking_ok (1); then the filter's pose (7), the time since a
+# jump was refused (1, s; -1: none), the samples processed (1) and the newest one's
+# time (1, s). The zero record is the estimator before its first sample.
+RECORD_SIZE = 24
+_X, _V, _OK, _X_HAT, _JUMP, _PROCESSED, _LAST = 0, 7, 13, 14, 21, 22, 23
+# The rows that count samples, not state (a linearization holds them).
+CLOCK_ROWS = (_PROCESSED, _LAST)
+
+
+# The estimator's numbers as ``estimator_record`` takes them: an array, by these indices.
+(_RESIDUAL_LIMIT_M, _ALPHA, _BETA, _PERIOD_S, _PROCESSING_DELAY_S, _MAX_JUMP_M, _MAX_JUMP_RAD,
+ _JUMP_HOLD_S) = range(8)
+
+
+@kernel((VECTOR, SCALAR, SCALAR, VECTOR, MATRIX, VECTOR, VECTOR))
+def estimator_record(markers_W, sample_time_s, t, held, p_IK, parameters, record):
+    """The estimator's record at time ``t`` (s) into ``record``: ``held`` (the record at
+    the last tick) after the sample ``markers_W`` published at ``sample_time_s`` (s),
+    if the estimator has not processed it yet and its processing ended before ``t``.
+    ``parameters``: the residual limit (m), the filter's alpha and beta, the tracker's
+    period (s), the processing delay (s) and the jump limits (m, rad, s)."""
+    if held[_PROCESSED] == 0.0:
+        record[:] = 0.0
+        record[_X] = record[_X_HAT] = 1.0  # the identity pose
+        record[_JUMP] = -1.0
+    else:
+        record[:] = held
+    fresh = held[_PROCESSED] == 0.0 or sample_time_s > held[_LAST]
+    if not (fresh and sample_time_s + parameters[_PROCESSING_DELAY_S] < t - SAME_INSTANT_S):
+        return
+    _estimator_update(markers_W, p_IK, parameters[_RESIDUAL_LIMIT_M], parameters[_ALPHA],
+                      parameters[_BETA], parameters[_PERIOD_S], parameters[_MAX_JUMP_M],
+                      parameters[_MAX_JUMP_RAD], parameters[_JUMP_HOLD_S], record[_X:_X + 7],
+                      record[_V:_V + 6], record[_OK:_OK + 1], record[_X_HAT:_X_HAT + 7],
+                      record[_JUMP:_JUMP + 1])
+    record[_PROCESSED] += 1.0
+    record[_LAST] = sample_time_s
+
+
+class PoseEstimatorLaw(LeafSystem):
+    """``PoseEstimator``'s arithmetic: inputs ``markers_measured``,
+    ``markers_sample_time_s`` and ``held`` (its own record at the last tick), one
+    output ``record`` (``RECORD_SIZE``), one compiled call (``estimator_record``).
+
+    .. pydrake_system::
+
+        name: PoseEstimatorLaw
+        input_ports:
+        - markers_measured
+        - markers_sample_time_s
+        - held
+        output_ports:
+        - record
+    """
+
+    def __init__(self, instrument: InstrumentSpec, tracker: TrackerSpec, tick_s: float,
+                 config: PoseEstimatorConfig):
+        super().__init__()
+        self._model = MarkerModel(_check_model(instrument.p_IK))
+        period_s = _check_rate(tracker)
+        if not (math.isfinite(tick_s) and 0 < tick_s * tracker.rate_hz <= 1 + 1e-9):
+            raise ValueError(f"tick_s = {tick_s}: the loop's tick must be > 0 and at most the "
+                             f"tracker's period ({period_s:g} s): one sample a tick at most")
+        config.validate("estimator", tracker.rate_hz, tick_s)
+        if not (math.isfinite(tracker.noise_m) and tracker.noise_m >= 0):
+            raise ValueError(
+                f"tracker.noise_m = {tracker.noise_m}: must be a finite value >= 0 [m]")
+        self.residual_limit_m = \
+            config.max_residual_sigma * max(tracker.noise_m, RESIDUAL_FLOOR_M)
+        self.gains = alpha_beta_gains(config.bandwidth_hz, period_s)
+        self._parameters = np.array([self.residual_limit_m, *self.gains, period_s,
+                                     config.processing_delay_s, config.max_jump_m,
+                                     config.max_jump_rad, config.jump_hold_s])
+        self._markers = self.DeclareVectorInputPort("markers_measured", 3 * len(self._model))
+        self._sample_time = self.DeclareVectorInputPort("markers_sample_time_s", 1)
+        self._held = self.DeclareVectorInputPort("held", RECORD_SIZE)
+        self.DeclareVectorOutputPort("record", RECORD_SIZE, self._calc_record)
+
+    def _calc_record(self, context, output):
+        # Views, not copies: the kernel only reads them.
+        estimator_record(
+            self._markers.EvalBasicVector(context).value(),
+            self._sample_time.EvalBasicVector(context).GetAtIndex(0), context.get_time(),
+            self._held.EvalBasicVector(context).value(), self._model.p_IK, self._parameters,
+            output.get_mutable_value())
+
+
+class PoseEstimator(Diagram):
     """Instrument pose and spatial velocity from tracker markers.
 
     .. pydrake_system::
@@ -377,12 +475,14 @@ class PoseEstimator(LeafSystem):
         name: PoseEstimator
         input_ports:
         - markers_measured
+        - markers_sample_time_s
         output_ports:
         - X_WI_measured
         - V_WI_measured
         - tracking_ok
 
-    - ``markers_measured`` (3 n): p_WK [m], NaN for markers not seen.
+    - ``markers_measured`` (3 n): p_WK [m], NaN for markers not seen;
+      ``markers_sample_time_s`` (1): when they were published (s).
     - ``X_WI_measured`` (7): [qw qx qy qz x y z], the latest good fit; held
       while tracking is lost. The quaternion's sign follows the previous
       output, so it is continuous through any number of turns.
@@ -393,63 +493,33 @@ class PoseEstimator(LeafSystem):
       of an unseen marker, collinear markers, or an RMS marker residual above
       ``max_residual_sigma`` * tracker noise).
 
-    Updates periodically at ``tracker.rate_hz``, ``processing_delay_s`` after
-    each of the sensor's samples, whose latched value it reads (so the result
-    does not hang on the order of same-time events). The outputs are discrete state
-    (groups 0-2), so they hold between updates; group 3 is the filter's own
-    pose [q_hat; p_hat], group 4 the time since a jump was refused (s; -1:
-    none). After a loss, the first good sample resets the filter to it with zero
-    velocity. A fit that jumps from the filter's prediction by more than
-    ``max_jump_m`` or ``max_jump_rad`` reads as unseen (tracking_ok 0), and for
-    ``jump_hold_s`` after it only a fit near the last good pose is taken. Before
-    the first good sample the outputs are the identity pose, zero velocity,
-    tracking_ok 0.
+    Each sample is processed once, ``processing_delay_s`` after it was published:
+    the outputs at a time include every sample whose processing ended before it.
+    They are computed when read, at the loop's ticks (``tick_s``, s), from the
+    estimator's record at the tick before, which a ZeroOrderHold keeps: one
+    compiled call a tick and no event between ticks. After a loss, the first good
+    sample resets the filter to it with zero velocity. A fit that jumps from the
+    filter's prediction by more than ``max_jump_m`` or ``max_jump_rad`` reads as
+    unseen (tracking_ok 0), and for ``jump_hold_s`` after it only a fit near the
+    last good pose is taken. Before the first sample the outputs are the identity
+    pose, zero velocity, tracking_ok 0.
     """
 
-    def __init__(self, instrument: InstrumentSpec, tracker: TrackerSpec,
+    def __init__(self, instrument: InstrumentSpec, tracker: TrackerSpec, tick_s: float,
                  config: PoseEstimatorConfig | None = None):
         super().__init__()
         config = PoseEstimatorConfig() if config is None else config
-        self._model = MarkerModel(_check_model(instrument.p_IK))
-        self._period_s = _check_rate(tracker)
-        config.validate("estimator", tracker.rate_hz)
-        self._jump_limits = (config.max_jump_m, config.max_jump_rad, config.jump_hold_s)
-        if not (math.isfinite(tracker.noise_m) and tracker.noise_m >= 0):
-            raise ValueError(
-                f"tracker.noise_m = {tracker.noise_m}: must be a finite value >= 0 [m]")
-        self._residual_limit_m = \
-            config.max_residual_sigma * max(tracker.noise_m, RESIDUAL_FLOOR_M)
-        self._alpha, self._beta = alpha_beta_gains(config.bandwidth_hz, self._period_s)
-
-        self._markers = self.DeclareVectorInputPort("markers_measured", 3 * len(self._model))
-        self._X_index = self.DeclareDiscreteState(BasicVector(_IDENTITY_POSE))
-        self._V_index = self.DeclareDiscreteState(6)
-        self._ok_index = self.DeclareDiscreteState(1)
-        self._filter_index = self.DeclareDiscreteState(BasicVector(_IDENTITY_POSE))
-        self._jump_index = self.DeclareDiscreteState(BasicVector([-1.0]))
-        self.DeclarePeriodicDiscreteUpdateEvent(self._period_s, config.processing_delay_s,
-                                                self._update)
-        self._X_WI_measured = self.DeclareStateOutputPort("X_WI_measured", self._X_index)
-        self._V_WI_measured = self.DeclareStateOutputPort("V_WI_measured", self._V_index)
-        self._tracking_ok = self.DeclareStateOutputPort("tracking_ok", self._ok_index)
+        self._law = PoseEstimatorLaw(instrument, tracker, tick_s, config)
+        BuildHeld(self, leaf=self._law, leaf_name="law", period_s=tick_s,
+                  outputs=(("X_WI_measured", 7), ("V_WI_measured", 6), ("tracking_ok", 1)),
+                  unexported_rows=RECORD_SIZE - 14)
 
     @property
     def gains(self):
         """(alpha, beta) of the velocity filter."""
-        return self._alpha, self._beta
+        return self._law.gains
 
     @property
     def residual_limit_m(self) -> float:
         """RMS marker residual [m] above which a fit is rejected."""
-        return self._residual_limit_m
-
-    def _update(self, context, discrete_state):
-        # discrete_state starts as a copy of the current state: update it in place.
-        _estimator_update(
-            self._markers.Eval(context), self._model.p_IK, self._residual_limit_m,
-            self._alpha, self._beta, self._period_s, *self._jump_limits,
-            discrete_state.get_mutable_value(self._X_index),
-            discrete_state.get_mutable_value(self._V_index),
-            discrete_state.get_mutable_value(self._ok_index),
-            discrete_state.get_mutable_value(self._filter_index),
-            discrete_state.get_mutable_value(self._jump_index))
+        return self._law.residual_limit_m

@@ -189,7 +189,11 @@ class ReceivedChannel:
     raises a TimeoutError naming the channel if none comes. ``age_port``: an output
     port of that name (1) gives the newest accepted message's age (s, on the
     diagram's clock: 0 in the tick that read it; infinite before the first), for a
-    reader that must not take a stale value for a fresh one.
+    reader that must not take a stale value for a fresh one. ``sample_time_port``: an
+    output port of that name (1) gives when the value on ``port`` was read (s, on the
+    diagram's clock): the newest accepted message's arrival, or while the value is
+    stale the tick before now, so a reader that takes each reading once (the pose
+    estimator) takes a new stale one every tick.
 
     The gate (``hardware/link_checks.py``): ``check(message)`` raises Refused for a
     message outside what the scenario allows; ``session_of(message)`` keys the
@@ -210,6 +214,7 @@ class ReceivedChannel:
     admit: Optional[Callable] = None
     on_accept: Optional[Callable] = None
     age_port: Optional[str] = None
+    sample_time_port: Optional[str] = None
 
 
 class MessageReceiver(LeafSystem):
@@ -245,6 +250,7 @@ class MessageReceiver(LeafSystem):
         # stale_after_s: the gap to the next message is then longer than this (s).
         self._stale_gap_s = {spec.port: (spec.stale_after_s + period_s if spec.stale_value
                                          is not None else math.inf) for spec in channels}
+        self._period_s = float(period_s)
         # Raw messages that LCM handed over since the last update: I/O, not state.
         self._arrived = {spec.port: [] for spec in channels}
         self._counters, self._held = {}, {}
@@ -261,6 +267,12 @@ class MessageReceiver(LeafSystem):
                     spec.age_port, 1,
                     lambda context, output, spec=spec: output.SetAtIndex(
                         0, context.get_time() - self._arrival_s(spec, context)),
+                    {self.xd_ticket(), self.time_ticket()})
+            if spec.sample_time_port is not None:
+                self.DeclareVectorOutputPort(
+                    spec.sample_time_port, 1,
+                    lambda context, output, spec=spec: output.SetAtIndex(
+                        0, self._sample_time_s(spec, context)),
                     {self.xd_ticket(), self.time_ticket()})
             if spec.size == 0:
                 continue
@@ -328,17 +340,28 @@ class MessageReceiver(LeafSystem):
         """When the newest accepted message of ``spec``'s channel was read (s; -inf: none)."""
         return context.get_discrete_state(self._counters[spec.port]).GetAtIndex(1)
 
+    def _is_stale(self, spec, context) -> bool:
+        return (spec.stale_value is not None
+                and context.get_time() - self._arrival_s(spec, context) > spec.stale_after_s)
+
     def _calc_value(self, spec, context, output):
-        arrival = self._arrival_s(spec, context)
-        if spec.stale_value is not None and context.get_time() - arrival > spec.stale_after_s:
+        if self._is_stale(spec, context):
             output.SetFromVector(spec.stale_value)
         else:
             output.SetFromVector(context.get_discrete_state(self._held[spec.port]).get_value())
 
+    def _sample_time_s(self, spec, context) -> float:
+        if self._is_stale(spec, context):
+            return context.get_time() - self._period_s
+        return self._arrival_s(spec, context)
+
     def ports(self) -> list:
-        """The output ports' names: one a channel that feeds one, and the age ports."""
+        """The output ports' names: one a channel that feeds one, the age ports and the
+        sample time ports."""
         return ([port for port, spec in self._channels.items() if spec.size]
-                + [spec.age_port for spec in self._channels.values() if spec.age_port])
+                + [spec.age_port for spec in self._channels.values() if spec.age_port]
+                + [spec.sample_time_port for spec in self._channels.values()
+                   if spec.sample_time_port])
 
     def channels(self) -> list:
         """The names its channels are counted under (``counts``), ports or not."""
@@ -364,8 +387,9 @@ class MessageSender(LeafSystem):
         input_ports:
         - value
 
-    ``encode(sequence, t_s, value) -> message``; the sequence is the tick number
-    ``round(t / period_s) + 1``, so a receiver counts a gap as a lost message.
+    ``encode(sequence, t_s, value) -> message`` (None: nothing to send this tick);
+    the sequence is the tick number ``round(t / period_s) + 1``, so a receiver counts a
+    gap as a lost message.
     ``ready()``, if given, holds every message back while it is False (the
     application's commands, until the device's lease is granted).
     """
@@ -385,5 +409,6 @@ class MessageSender(LeafSystem):
         if self._ready is not None and not self._ready():
             return
         t = context.get_time()
-        publish(self._lcm, self._channel,
-                self._encode(round(t / self._period_s) + 1, t, self._value.Eval(context)))
+        message = self._encode(round(t / self._period_s) + 1, t, self._value.Eval(context))
+        if message is not None:
+            publish(self._lcm, self._channel, message)

@@ -3,6 +3,7 @@ refused naming its field, and the loop copes (rides through or lands safely)."""
 
 import numpy as np
 import pytest
+from pydrake.systems.analysis import Simulator
 
 from maglev_haptics.analysis.run_results import run_scenario
 from maglev_haptics.diagrams.scenario import ScenarioError, load_scenario
@@ -15,6 +16,7 @@ from maglev_haptics.systems.haptic_supervisor import HAPTIC, LEVITATE
 from maglev_haptics.systems.marker_sensor import MarkerSensor
 
 LIMIT_A = 4.0
+TICK_S = 1e-3  # the plant's step (s)
 
 
 def test_a_stuck_amplifier_delivers_its_stuck_current_from_its_time_on():
@@ -30,17 +32,19 @@ def test_a_stuck_amplifier_delivers_its_stuck_current_from_its_time_on():
 def test_a_stalled_tracker_holds_its_sample_and_a_corrupt_one_has_one_nan():
     spec = DeviceConfig().instrument_spec()
     tracker = DeviceConfig().tracker
-    sensor = MarkerSensor(spec, tracker, latency_spikes=[LatencySpike(0.01, 0.02)],
+    sensor = MarkerSensor(spec, tracker, TICK_S, latency_spikes=[LatencySpike(0.01, 0.02)],
                           corruptions=[CorruptSample(at_s=0.03, marker=1, coordinate=2)])
-    context = sensor.CreateDefaultContext()
+    simulator = Simulator(sensor)
+    context = simulator.get_mutable_context()
     state = np.r_[1.0, 0, 0, 0, 0, 0, 0.02, np.zeros(6)]
-    sensor.get_input_port().FixValue(context, state)
+    sensor.GetInputPort("instrument_state").FixValue(context, state)
     samples = {}
-    for k in range(int(0.04 * tracker.rate_hz)):
-        t = k / tracker.rate_hz
-        context.SetTime(t)
-        context.SetDiscreteState(sensor.EvalUniquePeriodicDiscreteUpdate(context))
-        samples[k] = sensor.get_output_port().Eval(context).copy()
+    for tick in range(1, 42):  # each sample is read at the tick after it
+        simulator.AdvanceTo(tick * TICK_S)
+        published_s = sensor.GetOutputPort("markers_sample_time_s").Eval(context)[0]
+        samples[round(published_s * tracker.rate_hz)] = \
+            sensor.GetOutputPort("markers_measured").Eval(context).copy()
+    assert sorted(samples) == list(range(len(samples)))
     stall = [k for k in samples if stalled(k / tracker.rate_hz, [LatencySpike(0.01, 0.02)])]
     assert len(stall) >= 8
     for k in stall:  # the sample before the stall, again and again

@@ -107,10 +107,13 @@ def lockstep_run(request):
     device = BuildDeviceSim(scenario)
     device_simulator = Simulator(device.diagram)
     device_simulator.Initialize()
-    device_simulator.AdvanceTo(0.001)  # its first tracker sample, for the application's start
+    tick_s = application.tick_s
+    # A tick ahead: its first tracker sample, for the application's start. Both sides
+    # advance to the very times their ticks fall at (k * tick_s): the device publishes
+    # at its ticks, and a target an ulp short would hold a message over to the next.
+    device_simulator.AdvanceTo(tick_s)
     simulator = Simulator(application.diagram)
     simulator.Initialize()
-    tick_s = application.tick_s
     # Each side's messages of a step are in the other side's hands before it steps: a
     # barrier message behind them on the sender's socket (delivery is in order),
     # awaited on the receiver's own LCM, which queues what comes before it for the
@@ -137,7 +140,7 @@ def lockstep_run(request):
     for k in range(int(round(duration_s / tick_s))):
         simulator.AdvanceTo((k + 1) * tick_s)
         handed_over(*links[0])
-        device_simulator.AdvanceTo(0.001 + (k + 1) * tick_s)
+        device_simulator.AdvanceTo((k + 2) * tick_s)
         handed_over(*links[1])
     log = log_arrays(application.logger, application.log_layout, simulator.get_context(),
                      scenario.device)

@@ -24,6 +24,7 @@ INSTRUMENT = default_instrument("two_magnet")
 P_IK = INSTRUMENT.p_IK
 RATE_HZ = 860.0
 T = 1 / RATE_HZ
+TICK_S = 1e-3  # the loop's tick and the plant's step (s)
 SIGMA_M = 1e-5
 LEVEL = Rotation.identity()
 TILTED = Rotation.from_euler("ZYX", [200, 45, 0], degrees=True)  # yaw 200 deg, tilt 45 deg
@@ -62,13 +63,18 @@ def theoretical_covariance(R_WI: Rotation, p_IK, sigma):
 
 
 def make_estimator(tracker=TrackerSpec(), config=None, instrument=INSTRUMENT):
-    estimator = PoseEstimator(instrument, tracker, config)
+    estimator = PoseEstimator(instrument, tracker, TICK_S, config)
     return estimator, estimator.CreateDefaultContext()
 
 
-def update(estimator, context, markers):
-    """Feed one tracker sample and apply the estimator's periodic update; outputs."""
-    estimator.get_input_port().FixValue(context, markers)
+def update(estimator, context, markers, published_s=None):
+    """Feed one tracker sample, published ``published_s`` (default: a tracker period
+    after the context's time), read the outputs half a period later, when it has been
+    processed, and hold them as a tick would."""
+    published_s = context.get_time() + T if published_s is None else published_s
+    estimator.GetInputPort("markers_measured").FixValue(context, markers)
+    estimator.GetInputPort("markers_sample_time_s").FixValue(context, [published_s])
+    context.SetTime(published_s + T / 2)
     context.SetDiscreteState(estimator.EvalUniquePeriodicDiscreteUpdate(context))
     return (estimator.GetOutputPort("X_WI_measured").Eval(context).copy(),
             estimator.GetOutputPort("V_WI_measured").Eval(context).copy(),
@@ -76,46 +82,62 @@ def update(estimator, context, markers):
 
 
 class ConstantVelocityBody(LeafSystem):
-    """Free-body state (13,) of a body with constant V_WI = [w; v] (W; rad/s, m/s)."""
+    """Free-body state (13,) of a body with constant V_WI = [w; v] (W; rad/s, m/s),
+    stepped as the plant is: its state at a tick holds until the next (``TICK_S``)."""
 
     def __init__(self, R0: Rotation, p0, w, v):
         super().__init__()
         self.R0, self.p0 = R0, np.asarray(p0, float)
         self.w, self.v = np.asarray(w, float), np.asarray(v, float)
-        self.DeclareVectorOutputPort("instrument_state", 13, self._calc_instrument_state)
+        self._stepped_at = self.DeclareDiscreteState(1)  # the last step's time (s)
+        self.DeclarePeriodicDiscreteUpdateEvent(
+            TICK_S, 0.0, lambda context, state: state.set_value(0, [context.get_time()]))
+        self.DeclareVectorOutputPort(
+            "instrument_state", 13,
+            lambda context, output: output.SetFromVector(
+                self.state(context.get_discrete_state(0).GetAtIndex(0))))
 
     def pose(self, t):
         return pose_vector(Rotation.from_rotvec(self.w * t) * self.R0, self.p0 + self.v * t)
 
-    def _calc_instrument_state(self, context, output):
-        output.SetFromVector(np.concatenate([self.pose(context.get_time()), self.w, self.v]))
+    def state(self, t):
+        return np.concatenate([self.pose(t), self.w, self.v])
 
 
-def simulate(body, n_samples, tracker=TrackerSpec(), occlusions=(), config=None, seed=0):
-    """body -> sensor -> estimator; outputs recorded half a period after each sample.
+def step_before(t):
+    """The plant's last step at or before t (s): the state a sample at t saw."""
+    return math.floor(t / TICK_S + 1e-9) * TICK_S
 
-    Returns times (N,), markers (N, 3 n), X (N, 7), V (N, 6), ok (N,).
-    """
-    builder = DiagramBuilder()
-    builder.AddSystem(body)
-    sensor = builder.AddSystem(MarkerSensor(INSTRUMENT, tracker, occlusions, seed))
-    estimator = builder.AddSystem(PoseEstimator(INSTRUMENT, tracker, config))
-    builder.Connect(body.get_output_port(), sensor.get_input_port())
-    builder.Connect(sensor.get_output_port(), estimator.get_input_port())
-    diagram = builder.Build()
-    simulator = Simulator(diagram)
-    context = simulator.get_context()
-    sensor_context = sensor.GetMyContextFromRoot(context)
-    estimator_context = estimator.GetMyContextFromRoot(context)
+
+def feed(body, n_samples, tracker=TrackerSpec(), occlusions=(), config=None, seed=0):
+    """The body's samples 0..n-1 (the sensor's, each of the body at its time) fed to the
+    estimator one by one: markers (N, 3 n), X (N, 7), V (N, 6), ok (N,)."""
+    sensor = MarkerSensor(INSTRUMENT, tracker, TICK_S, occlusions, seed)
+    estimator, context = make_estimator(tracker, config)
     records = []
     for k in range(n_samples):
-        t = (k + 0.5) * T
+        markers = sensor.measure(k * T, body.state(k * T))
+        records.append((markers, *update(estimator, context, markers, published_s=k * T)))
+    return [np.array(column) for column in zip(*records)]
+
+
+def simulate(body, times, tracker=TrackerSpec(), config=None):
+    """body -> sensor -> estimator in one diagram; X (N, 7) and ok (N,) read at ``times``."""
+    builder = DiagramBuilder()
+    builder.AddSystem(body)
+    sensor = builder.AddSystem(MarkerSensor(INSTRUMENT, tracker, TICK_S))
+    estimator = builder.AddSystem(PoseEstimator(INSTRUMENT, tracker, TICK_S, config))
+    builder.Connect(body.get_output_port(), sensor.get_input_port())
+    for name in ("markers_measured", "markers_sample_time_s"):
+        builder.Connect(sensor.GetOutputPort(name), estimator.GetInputPort(name))
+    diagram = builder.Build()
+    simulator = Simulator(diagram)
+    context = estimator.GetMyContextFromRoot(simulator.get_context())
+    records = []
+    for t in times:
         simulator.AdvanceTo(t)
-        records.append((
-            t, sensor.get_output_port().Eval(sensor_context).copy(),
-            estimator.GetOutputPort("X_WI_measured").Eval(estimator_context).copy(),
-            estimator.GetOutputPort("V_WI_measured").Eval(estimator_context).copy(),
-            estimator.GetOutputPort("tracking_ok").Eval(estimator_context)[0]))
+        records.append((estimator.GetOutputPort("X_WI_measured").Eval(context).copy(),
+                        estimator.GetOutputPort("tracking_ok").Eval(context)[0]))
     return [np.array(column) for column in zip(*records)]
 
 
@@ -210,14 +232,33 @@ def test_system_recovers_the_pose_exactly():
     assert [estimator.get_output_port(i).get_name() for i in range(3)] == [
         "X_WI_measured", "V_WI_measured", "tracking_ok"]
     assert [estimator.get_output_port(i).size() for i in range(3)] == [7, 6, 1]
-    assert estimator.get_input_port().get_name() == "markers_measured"
-    assert estimator.get_input_port().size() == 9
+    assert [estimator.get_input_port(i).get_name() for i in range(2)] == [
+        "markers_measured", "markers_sample_time_s"]
+    assert estimator.GetInputPort("markers_measured").size() == 9
+    estimator.GetInputPort("markers_measured").FixValue(context, np.full(9, np.nan))
+    estimator.GetInputPort("markers_sample_time_s").FixValue(context, [-np.inf])
     assert estimator.GetOutputPort("tracking_ok").Eval(context)[0] == 0.0  # nothing seen yet
+    np.testing.assert_array_equal(estimator.GetOutputPort("X_WI_measured").Eval(context),
+                                  [1, 0, 0, 0, 0, 0, 0])  # the identity before the first sample
     x = pose_vector(TILTED, [0.02, 0.01, 0.03])
     X, V, ok = update(estimator, context, marker_positions_W(x, P_IK).ravel())
     assert ok == 1.0
     assert_same_pose(X, x)
     np.testing.assert_array_equal(V, np.zeros(6))
+
+
+def test_each_sample_is_processed_once():
+    estimator, context = make_estimator()
+    x0 = pose_vector(TILTED, [0.02, 0.01, 0.03])
+    x1 = pose_vector(TILTED, [0.0201, 0.01, 0.03])
+    update(estimator, context, marker_positions_W(x0, P_IK).ravel())
+    X, V, _ = update(estimator, context, marker_positions_W(x1, P_IK).ravel())
+    # The same sample read at later ticks changes nothing.
+    for _ in range(3):
+        context.SetTime(context.get_time() + TICK_S)
+        context.SetDiscreteState(estimator.EvalUniquePeriodicDiscreteUpdate(context))
+        np.testing.assert_array_equal(estimator.GetOutputPort("X_WI_measured").Eval(context), X)
+        np.testing.assert_array_equal(estimator.GetOutputPort("V_WI_measured").Eval(context), V)
 
 
 def test_four_markers_fit_with_one_hidden():
@@ -240,7 +281,7 @@ def static_noise_run(rotation, n_samples, seed=5):
     """Noisy samples of a still body through the estimator: (x_true, X (N, 7), V (N, 6))."""
     x = pose_vector(rotation, [0.01, -0.02, 0.04])
     tracker = TrackerSpec(noise_m=SIGMA_M, latency_s=0.0)
-    sensor = MarkerSensor(INSTRUMENT, tracker, seed=seed)
+    sensor = MarkerSensor(INSTRUMENT, tracker, TICK_S, seed=seed)
     estimator, context = make_estimator(tracker)
     state = np.concatenate([x, np.zeros(6)])
     outputs = [update(estimator, context, sensor.measure(k * T, state)) for k in range(n_samples)]
@@ -283,10 +324,9 @@ def test_velocity_converges_and_yaw_turns_freely():
     latency = 1.5e-3
     tracker = TrackerSpec(noise_m=0.0, latency_s=latency)
     n = int(1.2 * RATE_HZ)  # more than one full turn of yaw
-    times, _, X, V, ok = simulate(body, n, tracker)
+    _, X, V, ok = feed(body, n, tracker)
     assert np.all(ok == 1.0)
-    # The estimator's update at t_k + processing delay fits the sample published at
-    # t_k, which shows the body at t_k - latency.
+    # Sample k, published at t_k, shows the body at t_k - latency.
     for k in range(0, n, 37):
         x_then = body.pose(k * T - latency)
         assert abs(X[k, :4] @ x_then[:4]) == pytest.approx(1.0, abs=1e-13)
@@ -297,24 +337,30 @@ def test_velocity_converges_and_yaw_turns_freely():
     assert np.all(np.sum(X[2:, :4] * X[1:-1, :4], axis=1) > 0.99)
 
 
-def test_without_processing_delay_the_hand_off_takes_one_tracker_period():
+def test_an_estimate_is_read_once_its_processing_delay_has_passed():
+    # Through the tracker in one diagram: sample k, published at t_k, saw the plant's
+    # state since its last step; its estimate is out at t_k + the processing delay.
     body = ConstantVelocityBody(**MOVING)
-    latency = 1.5e-3
+    latency, delay = 1.5e-3, 0.12 * T
     tracker = TrackerSpec(noise_m=0.0, latency_s=latency)
-    _, _, X, _, ok = simulate(body, 50, tracker,
-                              config=PoseEstimatorConfig(processing_delay_s=0.0))
-    assert np.all(ok == 1.0)  # the sensor's initialization event fed the first update
-    # Same-time updates are simultaneous: the update at t_k reads the sample latched
-    # at t_(k-1) (at t_0 the sensor's initialization sample, which equals sample 0).
-    for k in range(1, 50):
-        x_then = body.pose((k - 1) * T - latency)
-        assert abs(X[k, :4] @ x_then[:4]) == pytest.approx(1.0, abs=1e-13)
-        np.testing.assert_allclose(X[k, 4:], x_then[4:], atol=1e-13)
+    config = PoseEstimatorConfig(processing_delay_s=delay)
+    samples = range(1, 60)
+    before = [k * T + 0.5 * delay for k in samples]
+    after = [k * T + 1.5 * delay for k in samples]
+    times = sorted(before + after)
+    X, ok = simulate(body, times, tracker, config)
+    assert np.all(ok == 1.0)
+    read = dict(zip(times, X))
+    for k in samples:
+        for t, shown in ((before[k - 1], k - 1), (after[k - 1], k)):
+            x_then = body.pose(step_before(shown * T) - latency)
+            assert abs(read[t][:4] @ x_then[:4]) == pytest.approx(1.0, abs=1e-13)
+            np.testing.assert_allclose(read[t][4:], x_then[4:], atol=1e-13)
 
 
 def test_velocity_with_noise_is_unbiased():
     body = ConstantVelocityBody(**MOVING)
-    _, _, _, V, ok = simulate(body, 800, TrackerSpec(), seed=9)
+    _, _, V, ok = feed(body, 800, TrackerSpec(), seed=9)
     assert np.all(ok == 1.0)
     error = V[200:] - np.concatenate([body.w, body.v])
     # The tilted, turning body's noise differs from hover's but is of the same order.
@@ -329,10 +375,9 @@ def test_occlusion_holds_pose_zeroes_velocity_and_reacquires():
     body = ConstantVelocityBody(**MOVING)
     occlusions = [Occlusion(None, 0.20, 0.30), Occlusion(2, 0.50, 0.55)]
     n = int(0.8 * RATE_HZ)
-    _, markers, X, V, ok = simulate(body, n, TrackerSpec(), occlusions, seed=2)
+    markers, X, V, ok = feed(body, n, TrackerSpec(), occlusions, seed=2)
     sample_lost = np.isnan(markers).any(axis=1)  # 3 markers: one hidden is lost
     assert sample_lost.sum() > 120
-    # Each update reads the sample published a processing delay before it.
     np.testing.assert_array_equal(ok, np.where(sample_lost, 0.0, 1.0))
     assert np.all(np.isfinite(X)) and np.all(np.isfinite(V))
     V_true = np.concatenate([body.w, body.v])
@@ -404,10 +449,13 @@ def test_residual_limit_follows_the_noise():
      r"estimator.processing_delay_s = -1e-05"),
     (TrackerSpec(), PoseEstimatorConfig(processing_delay_s=0.01),
      r"estimator.processing_delay_s = 0.01"),
+    (TrackerSpec(), PoseEstimatorConfig(processing_delay_s=2e-4),
+     r"processing_delay_s = 0.0002: must be at most 0.000162791 s: the tracker's period less"),
+    (TrackerSpec(rate_hz=2000.0), None, r"tick_s = 0.001: .* at most the tracker's period"),
 ])
 def test_bad_config_is_named(tracker, config, match):
     with pytest.raises(ValueError, match=match):
-        PoseEstimator(INSTRUMENT, tracker, config)
+        PoseEstimator(INSTRUMENT, tracker, TICK_S, config)
 
 
 @pytest.mark.parametrize("p_IK, match", [
@@ -417,7 +465,7 @@ def test_bad_config_is_named(tracker, config, match):
 ])
 def test_bad_marker_model_is_named(p_IK, match):
     with pytest.raises(ValueError, match=match):
-        PoseEstimator(dataclasses.replace(INSTRUMENT, p_IK_m=p_IK), TrackerSpec())
+        PoseEstimator(dataclasses.replace(INSTRUMENT, p_IK_m=p_IK), TrackerSpec(), TICK_S)
 
 
 def test_a_jump_reads_as_unseen_and_only_a_fit_near_the_last_pose_is_taken_for_a_while():

@@ -167,6 +167,14 @@ def test_each_loader_refusal_is_one_line_built_from_the_schema(text, message):
      "device.tracker.rate_hz = 1e+300: must be at most 100000 Hz"),
     ("{device: {head_tracker: {rate_hz: 1.0e300}}}",
      "device.head_tracker.rate_hz = 1e+300: must be at most 100000 Hz"),
+    ("{device: {tracker: {rate_hz: 2000}}}", "device.tracker.rate_hz = 2000.0: must be at "
+     "most one sample a tick: 1 / control_rate_hz (1000 Hz)"),
+    ("{control_rate_hz: 2000, device: {tracker: {rate_hz: 2000}}}",
+     "device.tracker.rate_hz = 2000.0: must be at most one sample a tick: 1 / "
+     "plant_config.time_step (1000 Hz)"),
+    ("{estimator: {processing_delay_s: 0.0005}}", "estimator.processing_delay_s = 0.0005: "
+     "must be at most 0.000162791 s: the tracker's period less the loop's tick, so each "
+     "sample is processed before the next is published"),
     ("{plant_config: {time_step: 1.0e300}}", "plant_config.time_step = 1e+300: must be at "
      "most 0.1 s"),
     ("{controller: {natural_frequency_hz: [1.0e300, 10, 10, 10, 10, 10]}}",
