@@ -41,6 +41,7 @@ from maglev_haptics.systems.haptic_coupling import (
 from maglev_haptics.systems.haptic_supervisor import HapticSupervisor
 from maglev_haptics.systems.pose_estimator import velocity_lag_s
 from maglev_haptics.systems.meshcat_hand import MeshcatHandInput
+from maglev_haptics.systems.waiting_hand_script import WaitingHandScript
 
 
 # The tool's contact wrench and flag feed only the supervisor's let-go decision
@@ -236,32 +237,6 @@ def interactive_variant(scenario: Scenario, duration_s: Optional[float]) -> Scen
         duration_s=duration_s)
 
 
-class WaitingHandScript:
-    """A scripted hand that holds its start target and grip until ``start``: the
-    device's simulated hand picks the instrument up on the application's clock, not
-    on the device's, which ran before the application came (``maglev device-sim``)."""
-
-    def __init__(self, target_source: TrajectorySource, grip_source: TrajectorySource,
-                 target: PiecewisePolynomial, grip: PiecewisePolynomial):
-        self._sources = (target_source, grip_source)
-        self._script = (target, grip)
-        self.started_at_s: Optional[float] = None  # the device's time of the script's 0 (s)
-        for source, trajectory in zip(self._sources, self._script):
-            held = trajectory.value(trajectory.start_time())
-            source.UpdateTrajectory(PiecewisePolynomial.ZeroOrderHold(
-                [0.0, 1.0], np.hstack([held, held])))
-
-    def start(self, script_zero_s: float) -> None:
-        """Run the script from ``script_zero_s`` (s, this diagram's clock) on; only
-        the first call counts."""
-        if self.started_at_s is not None:
-            return
-        self.started_at_s = float(script_zero_s)
-        for source, trajectory in zip(self._sources, self._script):
-            trajectory.shiftRight(self.started_at_s)
-            source.UpdateTrajectory(trajectory)
-
-
 def AddHandCommands(builder, *, scenario: Scenario, station, meshcat: Optional[Meshcat],
                     target_offset_input: bool = False, wait_for_start: bool = False):
     """The hand's target and grip: from its script, or from Meshcat's controls.
@@ -286,15 +261,19 @@ def AddHandCommands(builder, *, scenario: Scenario, station, meshcat: Optional[M
         builder.Connect(commands.GetOutputPort("grip"), station.GetInputPort("hand_grip"))
         return commands
     target, grip = hand_plan(hand, start)
-    target_source = builder.AddNamedSystem(
-        "hand_target", TrajectorySource(target, output_derivative_order=1))
-    grip_source = builder.AddNamedSystem("hand_grip", TrajectorySource(grip))
-    target_port = target_source.get_output_port()
+    if wait_for_start:
+        script = builder.AddNamedSystem("hand_script", WaitingHandScript(target=target, grip=grip))
+        target_port, grip_port = script.GetOutputPort("hand_target"), script.GetOutputPort("grip")
+    else:
+        script = None
+        target_port = builder.AddNamedSystem("hand_target", TrajectorySource(
+            target, output_derivative_order=1)).get_output_port()
+        grip_port = builder.AddNamedSystem("hand_grip", TrajectorySource(grip)).get_output_port()
     if target_offset_input:
         offset = builder.AddNamedSystem("hand_target_offset", Adder(2, target_port.size()))
         builder.Connect(target_port, offset.get_input_port(0))
         builder.ExportInput(offset.get_input_port(1), "hand_target_offset")
         target_port = offset.get_output_port()
     builder.Connect(target_port, station.GetInputPort("hand_target"))
-    builder.Connect(grip_source.get_output_port(), station.GetInputPort("hand_grip"))
-    return WaitingHandScript(target_source, grip_source, target, grip) if wait_for_start else None
+    builder.Connect(grip_port, station.GetInputPort("hand_grip"))
+    return script

@@ -88,7 +88,8 @@ class LcmStation:
     command_url: str = DEFAULT_COMMAND_URL  # the application's commands to the device
     channel_prefix: str = "MAGLEV_"
     # A marker message older than the tracker's period plus its latency plus this
-    # is a sensor out of range: the markers read as unseen (s).
+    # is a sensor out of range: the markers read as unseen (s). Measured currents
+    # older than a control period plus this are not compared with their commands.
     stale_margin_s: float = 0.002
     # At start, how long to wait for the station's first marker message (s).
     wait_for_station_s: float = 10.0
@@ -135,6 +136,13 @@ def marker_stale_after_s(scenario, station: LcmStation) -> float:
     """How old the newest marker message may be before the markers read as unseen (s)."""
     tracker = scenario.device.tracker
     return 1.0 / tracker.rate_hz + tracker.latency_s + station.stale_margin_s
+
+
+def measured_currents_max_age_s(scenario, station: LcmStation) -> float:
+    """How old the measured currents may be for the stuck-amplifier watchdog to compare
+    them with their commands (s): the station publishes them every control tick, so a
+    control period plus ``stale_margin_s``, as the markers' bound."""
+    return 1.0 / scenario.control_rate_hz + station.stale_margin_s
 
 
 def station_channels(scenario, lease: LeaseClient) -> list:

@@ -56,13 +56,6 @@ THERMAL_LIMIT_PERSIST_S = 0.1
 # would look like one.
 STUCK_MISMATCH_A = 1.0
 STUCK_PERSIST_S = 0.01
-# Measured currents older than this (s; the station's ``coil_currents_age_s``: 0 in the
-# tick that read them) are not compared: over LCM a device that stalls 9-14 ms left
-# them stale while the commands moved: compared, a healthy coil would latch as stuck.
-# Under the watchdogs' 5 ms period, so a stall is compared at one check at most (half
-# of STUCK_PERSIST_S); a station must publish its measured currents at 250 Hz or more
-# for the check to run.
-STUCK_MAX_CURRENTS_AGE_S = 0.004
 # With a coil stuck, a force the others cannot produce past this fraction of the
 # instrument's weight means they cannot carry it against the stuck one: the power is
 # cut and it falls level rather than be pulled or pushed off its landing.
@@ -296,7 +289,7 @@ def supervisor_state(n_coils: int) -> Tuple[Tuple[str, int], ...]:
 
 @numba.njit(cache=True)
 def watchdog_check(inputs, at, state, next_state, rows, limits, lost_grace_s: float,
-                   watch_period_s: float, weight_n: float) -> int:
+                   watch_period_s: float, weight_n: float, max_currents_age_s: float) -> int:
     """The watchdogs' check, every ``watch_period_s`` (s): their timers, the stuck
     coils and the coils' power into ``next_state``; returns the fault bits raised that
     are not latched yet (``supervisor_update`` names the arguments)."""
@@ -311,7 +304,7 @@ def watchdog_check(inputs, at, state, next_state, rows, limits, lost_grace_s: fl
     if state[rows[POWER]] > 0.5:  # unpowered, no coil follows its command
         # Stale currents follow an older command: compared, a stalled link would read
         # as a stuck coil. Their timers hold until fresh ones come.
-        if inputs[at[CURRENTS_AGE_S]] <= STUCK_MAX_CURRENTS_AGE_S:
+        if inputs[at[CURRENTS_AGE_S]] <= max_currents_age_s:
             mismatched = mismatched_coils(currents, state[rows[SENT_A]:rows[SENT_A] + n],
                                           limits[0])
             for i in range(n):
@@ -335,16 +328,17 @@ def watchdog_check(inputs, at, state, next_state, rows, limits, lost_grace_s: fl
 
 
 @kernel((VECTOR, INDEX_VECTOR, VECTOR, VECTOR, INDEX_VECTOR, MATRIX, INDEX, INDEX, FLAG,
-         VECTOR, SCALAR, SCALAR, INDEX, SCALAR))
+         VECTOR, SCALAR, SCALAR, INDEX, SCALAR, SCALAR))
 def supervisor_update(inputs, at, state, next_state, rows, commands, first_tick, tick,
                       landing, limits, lost_grace_s, period_s, watchdog_ticks,
-                      weight_n) -> bool:
+                      weight_n, max_currents_age_s) -> bool:
     """One tick (number ``tick``) of the supervisor: ``inputs`` (``supervisor_inputs``
     stacked, each port's first row at its entry of ``at``) and ``state`` (the
     context's, ``supervisor_state`` stacked, each at its entry of ``rows``) into
     ``next_state`` (a copy of ``state`` on entry): the tracking-lost timer; every
     ``watchdog_ticks`` ticks the watchdogs (``watchdog_check``, with ``limits`` as
-    ``WatchLimits.as_vector``), which latch a new fault; the next tick's command from
+    ``WatchLimits.as_vector``; measured currents older than ``max_currents_age_s``, s,
+    not compared with their commands), which latch a new fault; the next tick's command from
     the active motion (its ``commands`` from ``first_tick``; ``landing``: it is a
     landing). True when a new fault must start a landing: the caller plans it and
     writes its command (Python, once a fault)."""
@@ -355,7 +349,7 @@ def supervisor_update(inputs, at, state, next_state, rows, commands, first_tick,
         next_state[rows[SENT_A]:rows[SENT_A] + n] = inputs[at[COMMANDED]:at[COMMANDED] + n]
     if tick % watchdog_ticks == 0:
         new = watchdog_check(inputs, at, state, next_state, rows, limits, lost_grace_s,
-                             watchdog_ticks * period_s, weight_n)
+                             watchdog_ticks * period_s, weight_n, max_currents_age_s)
         if new:
             next_state[rows[FAULT_BITS]] = int(state[rows[FAULT_BITS]]) | new
             if not landing:
@@ -394,7 +388,7 @@ class SupervisorLogic(LeafSystem):
 
     def __init__(self, *, initial_motion: Motion, limits: WatchLimits, lost_grace_s: float,
                  plan_landing: Callable, n_coils: int, watchdog_period_s: float,
-                 weight_n: float):
+                 weight_n: float, max_currents_age_s: float):
         super().__init__()
         self._weight_n = float(weight_n)
         self._plan_landing = plan_landing
@@ -402,6 +396,10 @@ class SupervisorLogic(LeafSystem):
         self._period_s = initial_motion.period_s
         # Every whole number of ticks nearest watchdog_period_s, at least every tick.
         self._watchdog_ticks = max(1, round(watchdog_period_s / self._period_s))
+        # Under the checks' period (a tick less), so the stale currents of a stalled
+        # link are compared at one check at most (half of STUCK_PERSIST_S).
+        self._max_currents_age_s = min(float(max_currents_age_s),
+                                       (self._watchdog_ticks - 1) * self._period_s)
         inputs = supervisor_inputs(n_coils)
         self._at = np.array([rows.start for rows in stacked_slices(inputs).values()])
         self._rows = stacked_slices(supervisor_state(n_coils))
@@ -495,7 +493,8 @@ class SupervisorLogic(LeafSystem):
                 self._inputs.EvalBasicVector(context).value(), self._at, state, next_state,
                 self._starts, motion.commands, motion.first_tick, tick, motion.landing,
                 context.get_abstract_parameter(self._limits).get_value().as_vector,
-                self._lost_grace_s, self._period_s, self._watchdog_ticks, self._weight_n):
+                self._lost_grace_s, self._period_s, self._watchdog_ticks, self._weight_n,
+                self._max_currents_age_s):
             # A new fault: land from the commanded motion's setpoint, now.
             now_s = context.get_time()
             next_state[self._landing_start] = now_s
@@ -533,7 +532,8 @@ class DeviceSupervisor(Diagram):
     - ``coils_stuck`` (n_coils): 1 for a coil whose amplifier no longer follows its
       command (its measured current off by more than STUCK_MISMATCH_A at every check
       for STUCK_PERSIST_S, counting only checks whose currents, ``coil_currents_age_s``
-      old, are no older than STUCK_MAX_CURRENTS_AGE_S), latched until
+      old, are no older than ``max_currents_age_s``, s, and than the checks' period
+      less a tick), latched until
       ``reset_faults``: the controller allocates without it and takes its measured
       current as a given.
     - ``tracking_lost_s`` (1): how long tracking has been lost (s), counted every
@@ -555,17 +555,20 @@ class DeviceSupervisor(Diagram):
     lost instrument on its own).
     ``plan_landing(pose, enable, period_s) -> commands`` (a Motion's, from the
     landing's start) bring the instrument from ``pose`` onto the glass and ramp its
-    force gain from ``enable`` to zero.
+    force gain from ``enable`` to zero. ``max_currents_age_s`` (s): how old the
+    station's measured currents may be and still be compared with their commands
+    (the station's own bound: over LCM a device that stalls 9-14 ms left them stale
+    while the commands moved, and compared, a healthy coil would latch as stuck).
     """
 
     def __init__(self, *, initial_motion: Motion, limits: WatchLimits, lost_grace_s: float,
                  plan_landing: Callable, n_coils: int, watchdog_period_s: float,
-                 weight_n: float):
+                 weight_n: float, max_currents_age_s: float):
         Diagram.__init__(self)
         self._logic = SupervisorLogic(
             initial_motion=initial_motion, limits=limits, lost_grace_s=lost_grace_s,
             plan_landing=plan_landing, n_coils=n_coils, watchdog_period_s=watchdog_period_s,
-            weight_n=weight_n)
+            weight_n=weight_n, max_currents_age_s=max_currents_age_s)
         BuildStacked(self, leaf=self._logic, leaf_name="logic",
                      inputs=supervisor_inputs(n_coils), outputs=supervisor_outputs(n_coils),
                      unexported_rows=stacked_size(supervisor_state(n_coils))

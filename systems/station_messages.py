@@ -13,7 +13,11 @@ what it accepted it counts ``received``, ``lost`` the
 gaps in their ``sequence`` numbers (messages that never arrived), and the latency
 the link added: from a message's ``sent_wall_utime`` to the tick that read it, on
 the wall clock (meaningful where sender and receiver share it: one host, or
-clocks kept in step by PTP). A receiver whose
+clocks kept in step by PTP), its mean, largest and percentiles (from a histogram).
+What a receiver reads as the run starts (at its initialization and its first tick)
+queued while the diagram was built and the run set up (up to a second with
+Meshcat, measured): it is received and counted, but its latency, the start's and
+not the link's, is left out of the latency figures. A receiver whose
 newest message is older than ``stale_after_s`` reports it the way the hardware
 would report a missing signal: markers all NaN (so the estimator loses
 tracking and the controller lands blind), currents and grip held.
@@ -39,8 +43,14 @@ US_PER_S = 1_000_000
 MESSAGE_QUEUE_CAPACITY = 1000  # messages a subscription holds between two reads
 # Receiver state: [newest sequence read, its arrival time (s), received, lost,
 # sum and largest of the latencies (s, wall clock), longest wait between two
-# messages (s, diagram clock), waits long enough that a tick read the stale value]
-_NEVER = np.array([-1.0, -math.inf, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+# messages (s, diagram clock), waits long enough that a tick read the stale value,
+# received as the run started (their latencies left out)]
+_NEVER = np.array([-1.0, -math.inf, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+# The latencies' histogram: bins log-spaced from LATENCY_LOW_S to 10 s, each 12% wide
+# (a percentile read from it is at most that much over), one below and one above.
+LATENCY_LOW_S = 1e-5
+LATENCY_BINS_PER_DECADE = 20
+LATENCY_BINS = 6 * LATENCY_BINS_PER_DECADE + 2
 
 
 def to_utime(t_s: float) -> int:
@@ -137,15 +147,18 @@ def status_message(sequence: int, t_s: float, handle_gripped: bool, fault_bits: 
 
 
 def receiver_step(state, sequence: int, t_s: float, latency_s: float = 0.0,
-                  stale_gap_s: float = math.inf) -> list:
+                  stale_gap_s: float = math.inf, at_start: bool = False) -> list:
     """The receiver's counters after reading a message numbered ``sequence`` at ``t_s``
     (s, the receiver's diagram clock), ``latency_s`` (s) after it was sent.
 
     ``state`` is [newest sequence, its arrival (s), received, lost, latency sum (s),
-    largest latency (s), longest gap (s), stale gaps]; a gap between two messages
-    longer than ``stale_gap_s`` (s) is a stale gap. A sequence it has already read
-    changes nothing; a lower one is the sender starting again, which loses nothing."""
-    newest, arrival, received, lost, latency_sum, latency_max, gap_max, stale_gaps = state
+    largest latency (s), longest gap (s), stale gaps, received at start]; a gap
+    between two messages longer than ``stale_gap_s`` (s) is a stale gap. A message
+    read ``at_start`` (queued before the run's first tick) counts as received, its
+    latency left out. A sequence it has already read changes nothing; a lower one is
+    the sender starting again, which loses nothing."""
+    (newest, arrival, received, lost, latency_sum, latency_max, gap_max, stale_gaps,
+     at_start_count) = state
     if received > 0 and sequence == newest:
         return list(state)
     if received > 0:
@@ -153,19 +166,59 @@ def receiver_step(state, sequence: int, t_s: float, latency_s: float = 0.0,
             lost += sequence - newest - 1
         gap_max = max(gap_max, t_s - arrival)
         stale_gaps += t_s - arrival > stale_gap_s
-    return [sequence, t_s, received + 1, lost, latency_sum + latency_s,
-            max(latency_max, latency_s), gap_max, stale_gaps]
+    if at_start:
+        at_start_count += 1
+    else:
+        latency_sum += latency_s
+        latency_max = max(latency_max, latency_s)
+    return [sequence, t_s, received + 1, lost, latency_sum, latency_max, gap_max, stale_gaps,
+            at_start_count]
 
 
-def receiver_counts(state) -> dict:
-    """{"messages_received", "messages_lost", "latency_ms_mean", "latency_ms_max",
-    "longest_gap_ms", "stale_gaps"} from a receiver's state (latencies None before the
-    first message). Gaps count once a message ends them: the silence after a sender
-    stops is not one."""
-    received = int(state[2])
+def latency_bin(latency_s: float) -> int:
+    """The histogram bin (0 to LATENCY_BINS - 1) of a latency (s): 0 up to
+    LATENCY_LOW_S (a receiver's clock behind the sender's included), the last past 10 s."""
+    if not latency_s > LATENCY_LOW_S:
+        return 0
+    return min(LATENCY_BINS - 1, math.ceil(
+        LATENCY_BINS_PER_DECADE * math.log10(latency_s / LATENCY_LOW_S)))
+
+
+def latency_percentile_s(histogram, percent: int, largest_s: float) -> Optional[float]:
+    """The latency (s) that ``percent`` % of the counted messages did not exceed (nearest
+    rank): the upper edge of its bin in ``histogram`` (``latency_bin``'s), never above
+    ``largest_s``, the largest counted; None before the first."""
+    counts = [int(count) for count in histogram]
+    total = sum(counts)
+    if total == 0:
+        return None
+    rank = max(1, -(-percent * total // 100))  # integers: 99 % of 100 is the 99th
+    seen = 0
+    for k, count in enumerate(counts):
+        seen += count
+        if seen >= rank:
+            upper_s = (math.inf if k == LATENCY_BINS - 1
+                       else LATENCY_LOW_S * 10.0 ** (k / LATENCY_BINS_PER_DECADE))
+            return min(upper_s, largest_s)
+
+
+def receiver_counts(state, latency_histogram) -> dict:
+    """{"messages_received", "messages_lost", "messages_at_start", "latency_ms_mean",
+    "latency_ms_p50", "latency_ms_p99", "latency_ms_max", "longest_gap_ms",
+    "stale_gaps"} from a receiver's state and its latencies' histogram
+    (``latency_bin``). The latencies leave out the messages received at the start
+    (``messages_at_start``); None before the first counted. Gaps count once a
+    message ends them: the silence after a sender stops is not one."""
+    received, at_start = int(state[2]), int(state[8])
+    counted = received - at_start
+    largest_s = state[5]
     return {"messages_received": received, "messages_lost": int(state[3]),
-            "latency_ms_mean": 1e3 * state[4] / received if received else None,
-            "latency_ms_max": 1e3 * state[5] if received else None,
+            "messages_at_start": at_start,
+            "latency_ms_mean": 1e3 * state[4] / counted if counted else None,
+            **{f"latency_ms_p{percent}":
+               1e3 * latency_percentile_s(latency_histogram, percent, largest_s)
+               if counted else None for percent in (50, 99)},
+            "latency_ms_max": 1e3 * largest_s if counted else None,
             "longest_gap_ms": 1e3 * state[6], "stale_gaps": int(state[7])}
 
 
@@ -253,7 +306,7 @@ class MessageReceiver(LeafSystem):
         self._period_s = float(period_s)
         # Raw messages that LCM handed over since the last update: I/O, not state.
         self._arrived = {spec.port: [] for spec in channels}
-        self._counters, self._held = {}, {}
+        self._counters, self._latencies, self._held = {}, {}, {}
         for spec in channels:
             subscription = lcm.subscribe(spec.channel,
                                          lambda _, data, arrived=self._arrived[spec.port]:
@@ -262,6 +315,7 @@ class MessageReceiver(LeafSystem):
             # tick late by tens of ms must still read every message.
             subscription.set_queue_capacity(MESSAGE_QUEUE_CAPACITY)
             self._counters[spec.port] = self.DeclareDiscreteState(_NEVER)
+            self._latencies[spec.port] = self.DeclareDiscreteState(np.zeros(LATENCY_BINS))
             if spec.age_port is not None:
                 self.DeclareVectorOutputPort(
                     spec.age_port, 1,
@@ -282,6 +336,9 @@ class MessageReceiver(LeafSystem):
                 spec.port, spec.size,
                 lambda context, output, spec=spec: self._calc_value(spec, context, output),
                 {self.xd_ticket(), self.time_ticket()})
+        # The run's start (s, diagram clock; -inf until initialized): what is read then
+        # queued before the run's first tick.
+        self._started_at = self.DeclareDiscreteState([-math.inf])
         self.DeclarePeriodicDiscreteUpdateEvent(period_s, 0.0, self._update)
         self.DeclareInitializationDiscreteUpdateEvent(self._initialize)
 
@@ -301,9 +358,15 @@ class MessageReceiver(LeafSystem):
             pass
         for arrived in self._arrived.values():
             del arrived[:-1]
-        self._update(context, discrete_state)
+        discrete_state.set_value(self._started_at, [context.get_time()])
+        self._read(context, discrete_state, at_start=True)
 
     def _update(self, context, discrete_state):
+        # The first tick, at the start's time, reads what queued while the run was set up.
+        self._read(context, discrete_state, at_start=context.get_time()
+                   <= context.get_discrete_state(self._started_at).GetAtIndex(0))
+
+    def _read(self, context, discrete_state, at_start: bool):
         while self._lcm.handle_timeout(0) > 0:  # one message a call: drain them all
             pass
         t_s = context.get_time()
@@ -314,6 +377,7 @@ class MessageReceiver(LeafSystem):
             spec, gate = self._channels[port], self._gates[port]
             counters = None
             newest = None
+            latency_bins = []
             for data in arrived:
                 message = gate.accept(data, t_s)
                 if message is None:
@@ -321,9 +385,12 @@ class MessageReceiver(LeafSystem):
                 if counters is None:
                     counters = context.get_discrete_state(self._counters[port]).get_value() \
                         .tolist()
-                counters = receiver_step(counters, message.sequence, t_s,
-                                         (now_utime - message.sent_wall_utime) / US_PER_S,
-                                         self._stale_gap_s[port])
+                received = counters[2]
+                latency_s = (now_utime - message.sent_wall_utime) / US_PER_S
+                counters = receiver_step(counters, message.sequence, t_s, latency_s,
+                                         self._stale_gap_s[port], at_start)
+                if counters[2] > received and not at_start:  # counted, and after the start
+                    latency_bins.append(latency_bin(latency_s))
                 if spec.on_accept is not None:
                     spec.on_accept(message, t_s)
                 newest = message
@@ -331,6 +398,9 @@ class MessageReceiver(LeafSystem):
             if newest is None:  # every one refused: what was held holds
                 continue
             discrete_state.set_value(self._counters[port], counters)
+            histogram = discrete_state.get_mutable_vector(self._latencies[port])
+            for k in latency_bins:  # a BasicVector's element: a third of a NumPy view's cost
+                histogram.SetAtIndex(k, histogram.GetAtIndex(k) + 1.0)
             if spec.size:
                 discrete_state.set_value(self._held[port], spec.decode(newest, t_s))
         if self._on_tick is not None:
@@ -374,7 +444,8 @@ class MessageReceiver(LeafSystem):
     def counts(self, context, port: str) -> dict:
         """What ``receiver_counts`` says so far for ``port``'s channel, and what its gate
         refused (``messages_refused``, ``refused`` by reason, ``first_refused``)."""
-        return {**receiver_counts(context.get_discrete_state(self._counters[port]).get_value()),
+        return {**receiver_counts(context.get_discrete_state(self._counters[port]).get_value(),
+                                  context.get_discrete_state(self._latencies[port]).get_value()),
                 **self._gates[port].counts()}
 
 

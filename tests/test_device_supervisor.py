@@ -8,6 +8,7 @@ import pytest
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.primitives import TrajectorySource
 
+from maglev_haptics.diagrams.lcm_station import LcmStation, measured_currents_max_age_s
 from maglev_haptics.diagrams.motion import flight_plan, landing_planner
 from maglev_haptics.diagrams.scenario import ScenarioError, load_scenario
 from maglev_haptics.systems.blends import (
@@ -50,14 +51,15 @@ def test_the_instruments_faults_count_only_while_the_coils_carry_it():
         FAULT_COIL_OVER_CURRENT
 
 
-def build(scenario):
+def build(scenario, max_currents_age_s=0.0):
     spec = scenario.device.instrument_spec()
     plan = flight_plan(scenario.motion, spec.rest_height_m)
     supervisor = DeviceSupervisor(
         initial_motion=make_motion(plan.setpoint, plan.enable, 0.0, TICK_S), limits=LIMITS,
         lost_grace_s=LOST_GRACE_S,
         plan_landing=landing_planner(scenario.motion, spec.rest_height_m), n_coils=N_COILS,
-        watchdog_period_s=WATCHDOG_PERIOD_S, weight_n=spec.mass_kg * 9.81)
+        watchdog_period_s=WATCHDOG_PERIOD_S, weight_n=spec.mass_kg * 9.81,
+        max_currents_age_s=max_currents_age_s)
     context = supervisor.CreateDefaultContext()
     pose = np.array([1.0, 0, 0, 0, 0.0, 0.0, 0.02])
     for port, value in (("X_WI_measured", pose), ("V_WI_measured", np.zeros(6)),
@@ -197,7 +199,7 @@ def test_a_bad_watchdog_names_its_field():
 def test_stale_currents_are_not_taken_for_a_stuck_coil():
     """Over LCM a stalled device leaves the measured currents stale while the commands
     move: no coil latches as stuck then; fresh currents that do not follow still do."""
-    supervisor, context, _, _ = build(load_scenario("levitate"))
+    supervisor, context, _, _ = build(load_scenario("levitate"), max_currents_age_s=0.003)
     simulator = Simulator(supervisor, context)
     simulator.AdvanceTo(2.0)  # hovering, coils on
     commanded = np.zeros(N_COILS)
@@ -212,3 +214,31 @@ def test_stale_currents_are_not_taken_for_a_stuck_coil():
     stuck = supervisor.GetOutputPort("coils_stuck").Eval(context)
     assert stuck[3] == 1.0 and stuck.sum() == 1.0
     assert supervisor.faults(context) & FAULT_COIL_OVER_CURRENT
+
+
+@pytest.mark.parametrize("max_currents_age_s, age_s, compared", [
+    (0.003, 0.0025, True), (0.003, 0.0035, False),  # the station's bound
+    (0.02, 0.0035, True), (0.02, 0.0045, False),  # capped a tick under the checks' 5 ms
+    (0.0, 0.0, True)])  # the simulated station's: measured in the tick that reads them
+def test_currents_are_compared_up_to_the_stations_age_under_the_checks_period(
+        max_currents_age_s, age_s, compared):
+    """A coil that does not follow latches as stuck while its currents are no older than
+    the station's bound, and than the checks' period less a tick: a stalled link's
+    stale currents are compared at one check at most."""
+    supervisor, context, _, _ = build(load_scenario("levitate"), max_currents_age_s)
+    simulator = Simulator(supervisor, context)
+    simulator.AdvanceTo(2.0)  # hovering, coils on
+    commanded = np.zeros(N_COILS)
+    commanded[3] = 2.0  # coil 3 asked for 2 A, still measured at 0 A
+    supervisor.GetInputPort("coil_currents_commanded").FixValue(context, commanded)
+    supervisor.GetInputPort("coil_currents_age_s").FixValue(context, [age_s])
+    simulator.AdvanceTo(2.0 + 4 * STUCK_PERSIST_S)
+    assert supervisor.GetOutputPort("coils_stuck").Eval(context)[3] == float(compared)
+
+
+def test_the_lcm_stations_currents_may_be_a_control_period_and_its_margin_old():
+    scenario = load_scenario("levitate")
+    assert scenario.control_rate_hz == 1000.0
+    assert measured_currents_max_age_s(scenario, LcmStation()) == pytest.approx(0.003)
+    assert measured_currents_max_age_s(scenario, LcmStation(stale_margin_s=0.01)) == \
+        pytest.approx(0.011)  # the supervisor caps it under its checks' period

@@ -17,10 +17,10 @@ from pydrake.multibody.plant import AddMultibodyPlant, MultibodyPlantConfig
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import Adder, ConstantVectorSource, MatrixGain, TrajectorySource
+from pydrake.trajectories import PiecewisePolynomial
 
 from maglev_haptics.diagrams.hand_script import (
     GripEvent, MeshcatHand, ScriptedHand, hand_plan)
-from maglev_haptics.diagrams.haptics import WaitingHandScript
 from maglev_haptics.diagrams.station import generalized_force_placement
 from maglev_haptics.diagrams.waypoints import Waypoint
 from maglev_haptics.hardware.constants import GRAVITY_M_S2
@@ -30,6 +30,7 @@ from maglev_haptics.systems.hand import (
     explicit_step_spectral_radius, grip_update, grip_wrenches, hand_spatial_inertia,
     hand_wrenches, impedance_gains, latch_X_HI)
 from maglev_haptics.systems.rotations import rigid_transform
+from maglev_haptics.systems.waiting_hand_script import WaitingHandScript
 
 CONFIG = HandImpedanceConfig()
 # Distinct per-axis gains so a mixed-up axis shows.
@@ -392,34 +393,60 @@ def test_hand_plan_grip_steps_at_the_events():
     assert grip.value(0.0)[0, 0] == 1.0 and grip.value(10.0)[0, 0] == 1.0
 
 
-def test_a_waiting_script_holds_its_start_then_runs_from_its_start_time():
+def test_a_waiting_script_holds_its_start_then_runs_the_script_at_its_own_time():
     """device-sim's hand: its start target (rates zero) and grip until ``start``, then
-    the plan shifted to that time; a second start changes nothing."""
+    exactly what a TrajectorySource of the script gives at t - the start time (rates
+    zero past the script's end); a second start changes nothing."""
     target, grip = hand_plan(moving_script([GripEvent(at_s=0.1, grip=True)]), START)
-    sources = (TrajectorySource(target, output_derivative_order=1), TrajectorySource(grip))
-    script = WaitingHandScript(*sources, *hand_plan(
-        moving_script([GripEvent(at_s=0.1, grip=True)]), START))
-    contexts = [source.CreateDefaultContext() for source in sources]
+    script = WaitingHandScript(target=target, grip=grip)
+    context = script.CreateDefaultContext()
+    references = (TrajectorySource(target, output_derivative_order=1), TrajectorySource(grip))
+    reference_contexts = [source.CreateDefaultContext() for source in references]
 
     def outputs(t):
-        for context in contexts:
-            context.SetTime(t)
-        return [source.get_output_port().Eval(context)
-                for source, context in zip(sources, contexts)]
+        context.SetTime(t)
+        return [script.GetOutputPort(name).Eval(context) for name in ("hand_target", "grip")]
+
+    def script_outputs(script_s):
+        for reference_context in reference_contexts:
+            reference_context.SetTime(script_s)
+        return [source.get_output_port().Eval(reference_context)
+                for source, reference_context in zip(references, reference_contexts)]
 
     for t in (0.0, 0.55, 5.0):
         held_target, held_grip = outputs(t)
-        np.testing.assert_allclose(held_target, np.r_[START, np.zeros(6)], atol=1e-12)
+        np.testing.assert_array_equal(held_target, np.r_[START, np.zeros(6)])
         assert held_grip[0] == 0.0
-    script.start(2.0)
+    started_at_s = 2.0173
+    script.start(started_at_s)
     script.start(3.0)
+    assert script.started_at_s == started_at_s
+    for script_s in (0.0, 0.1, 0.3, 0.4179, 0.55, 0.8, 1.7, 10.0):
+        t = started_at_s + script_s
+        for value, expected in zip(outputs(t), script_outputs(t - started_at_s)):
+            np.testing.assert_array_equal(value, expected)
+    assert np.any(outputs(started_at_s + 0.55)[0][6:] != 0.0)  # moving: rates shown
+    np.testing.assert_array_equal(outputs(started_at_s + 10.0)[0][6:], 0.0)
+
+
+def test_starting_a_waiting_script_builds_no_trajectory(monkeypatch):
+    """``start`` runs inside a device tick (the application's first command): it records
+    the time and leaves the script's trajectories as they were, neither shifted, copied
+    nor differentiated, and no source's trajectory replaced (~10 ms for peg_in_hole's)."""
+    target, grip = hand_plan(moving_script([GripEvent(at_s=0.1, grip=True)]), START)
+    script = WaitingHandScript(target=target, grip=grip)
+    times = [trajectory.get_segment_times() for trajectory in (target, grip)]
+
+    def built(*args):
+        raise AssertionError("start built or replaced a trajectory")
+
+    for name in ("shiftRight", "Clone", "derivative", "MakeDerivative"):
+        monkeypatch.setattr(PiecewisePolynomial, name, built)
+    monkeypatch.setattr(TrajectorySource, "UpdateTrajectory", built)
+    script.start(2.0)
+    monkeypatch.undo()
     assert script.started_at_s == 2.0
-    for t in (0.0, 0.1, 0.55, 1.0):
-        moved_target, moved_grip = outputs(2.0 + t)
-        np.testing.assert_allclose(moved_target[:6], target.value(t).ravel(), atol=1e-12)
-        np.testing.assert_allclose(moved_target[6:], target.derivative(1).value(t).ravel(),
-                                   atol=1e-9)
-        assert moved_grip[0] == grip.value(t)[0, 0]
+    assert [trajectory.get_segment_times() for trajectory in (target, grip)] == times
 
 
 # --- the schema ---------------------------------------------------------------
