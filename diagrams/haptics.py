@@ -28,6 +28,7 @@ from pydrake.trajectories import PiecewisePolynomial
 
 from maglev_haptics.diagrams.deformable_scene import AddDeformableScene, DeformableSurface
 from maglev_haptics.diagrams.hand_script import MeshcatHand, hand_plan
+from maglev_haptics.diagrams.motion import flight_plan
 from maglev_haptics.diagrams.scenario import Scenario
 from maglev_haptics.diagrams.scene import ModelScene
 from maglev_haptics.diagrams.scene_builder import AddScene, measure_step_cost_s
@@ -103,9 +104,17 @@ def stepped_in_place(scenario: Scenario) -> Scenario:
 
 
 def haptics_request(scenario: Scenario) -> PiecewisePolynomial:
-    """1 while haptics is requested, 0 otherwise (zero-order hold)."""
+    """1 while haptics is requested, 0 otherwise (zero-order hold): from
+    ``enable_at_s`` to ``disable_at_s``, or without one until the motion script's
+    landing begins. The script's force ramps down after its landing: haptics left
+    engaged would render the scene on an instrument the device no longer carries
+    (nor brakes, let go); ended, the supervisor hands it back to the script, which
+    lands it."""
     haptics = scenario.haptics
-    end = haptics.disable_at_s if haptics.disable_at_s is not None else np.inf
+    end = haptics.disable_at_s
+    if end is None:
+        plan = flight_plan(scenario.motion, scenario.device.instrument_spec().rest_height_m)
+        end = plan.holds[-1][1] if plan.holds else np.inf
     times, values = ([0.0, haptics.enable_at_s], [0.0, 1.0]) if haptics.enable_at_s > 0 \
         else ([0.0], [1.0])
     if np.isfinite(end):

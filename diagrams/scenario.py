@@ -97,7 +97,8 @@ class Haptics:
     """The virtual scene, the coupling that lets the user feel it, and when it is on.
 
     Haptics is requested from ``enable_at_s`` and engages once the handle is
-    gripped; it is requested until ``disable_at_s`` (null: to the end).
+    gripped; it is requested until ``disable_at_s`` (null: until the motion script's
+    landing begins, after its last hold).
     """
 
     scene: Union[PegInHole, HangingBall, PaddleBall, ModelScene, DeformableSurface] = field(

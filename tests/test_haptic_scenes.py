@@ -9,7 +9,7 @@ from maglev_haptics.diagrams.application import BuildDiagram
 from maglev_haptics.diagrams.haptics import interactive_variant
 from maglev_haptics.diagrams.scenario import ScenarioError, load_scenario
 from maglev_haptics.diagrams.scene import PegInHole
-from maglev_haptics.systems.haptic_supervisor import HAPTIC
+from maglev_haptics.systems.haptic_supervisor import HAPTIC, LEVITATE
 from maglev_haptics.systems.meshcat_hand import GRIP_BUTTON
 
 FREE_FORCE_LIMIT_N = 0.05
@@ -86,6 +86,29 @@ def test_peg_let_go_stays_still_with_the_links_delay_in_the_loop():
     assert not np.any(result.log["fault_bits"])
     last = result.log["t"] > result.log["t"][-1] - 1.0
     assert np.degrees(np.ptp(result.log["rpy_WI_true"][last], axis=0)).max() < 0.5
+
+
+def test_the_scripts_landing_ends_haptics_and_lands_the_instrument_let_go_in_the_hole():
+    # The script's last hold ends at 9.4 s, with the peg let go in its hole at 6.5 s:
+    # haptics ends there, and the script lands the instrument. Left engaged, the
+    # scene would hold an instrument the device no longer carries once the script's
+    # force ramps down.
+    text = """{duration_s: 14.0, motion: {waypoints: [{pose: [0.0, 0.0, 0.025, 0.0, 0.0, 0.0],
+                                           move_s: 1.0, hold_s: 8.0}]},
+     hand: !ScriptedHand {start_s: 3.0, events: [{at_s: 1.8, grip: true}, {at_s: 6.5, grip: false}],
+       waypoints: [{pose: [0.0, 0.0, 0.0175, 0.0, 0.0, 0.0], move_s: 1.5, hold_s: 0.5},
+                   {pose: [-0.010, 0.0, 0.0125, 0.0, 0.0, 0.0], move_s: 1.0, hold_s: 9.0}]}}"""
+    scenario = load_scenario("peg_in_hole", "peg_in_hole", text)
+    result = run_scenario(scenario, label="peg_script_lands", progress=False)
+    log = result.log
+    landing_starts_s = 9.4
+    assert np.all(log["haptic_mode"][(log["t"] > 6.6) & (log["t"] < landing_starts_s)] == HAPTIC)
+    assert np.all(log["haptic_mode"][log["t"] > landing_starts_s + 0.01] == LEVITATE)
+    touchdown = result.summary["touchdown"]
+    assert touchdown is not None
+    assert touchdown["speed_m_s"] < 0.05 and touchdown["tilt_deg"] < 2.0
+    assert not np.any(log["fault_bits"])
+    assert result.summary["max_coil_current_a"] <= scenario.device.amplifier.current_limit_a
 
 
 def test_peg_let_go_outside_lands_within_the_limits():
