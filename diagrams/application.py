@@ -136,7 +136,7 @@ def AddApplication(builder: DiagramBuilder, *, scenario: Scenario, station, magn
     builder.Connect(supervisor.GetOutputPort("coil_power"), station.GetInputPort("coil_power"))
     builder.Connect(station.GetOutputPort("coil_currents"),
                     controller.GetInputPort("coil_currents"))
-    for name in ("markers_measured", "markers_sample_time_s"):
+    for name in ("markers_measured", "markers_sample_time_s", "markers_sample_count"):
         builder.Connect(station.GetOutputPort(name), estimator.GetInputPort(name))
     for name in ("X_WI_measured", "V_WI_measured", "tracking_ok"):
         builder.Connect(estimator.GetOutputPort(name), controller.GetInputPort(name))

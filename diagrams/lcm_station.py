@@ -166,7 +166,8 @@ def station_channels(scenario, lease: LeaseClient) -> list:
                 lambda message, _: markers_from_message(message, n_markers), check_markers,
                 stale_value=np.full(3 * n_markers, np.nan),
                 stale_after_s=marker_stale_after_s(scenario, station),
-                wait_s=station.wait_for_station_s, sample_time_port="markers_sample_time_s"),
+                wait_s=station.wait_for_station_s, sample_time_port="markers_sample_time_s",
+                sequence_port="markers_sample_count"),
         inbound(COIL_CURRENTS, coil_currents_t, n_coils,
                 lambda message, _: np.array(message.current_a, dtype=float),
                 check_measured_currents, initial_value=np.zeros(n_coils),
@@ -186,6 +187,7 @@ def MakeLcmStation(scenario) -> Diagram:
     """The application's station for ``scenario.station`` (an LcmStation), named
     ``station``: inputs ``coil_currents_commanded`` and ``coil_power``; outputs
     ``markers_measured``, ``markers_sample_time_s`` (when they were read, s),
+    ``markers_sample_count`` (the tracker's frame number the message carried),
     ``coil_currents``, ``coil_currents_age_s`` (how old the newest measured currents
     are, s), with a hand in the scenario ``handle_gripped``, with the
     stereo display ``glasses_measured``. Its ``receiver`` checks and counts the

@@ -8,7 +8,8 @@
   amplifiers' supply, the device's enable line; 0 cuts every coil's current);
 - outputs ``markers_measured`` (3 * n_markers, m, NaN when hidden: the newest
   tracker sample), ``markers_sample_time_s`` (1: when it was published, s; over LCM
-  when it was read), ``coil_currents`` (n_coils, A, what flows), ``coil_currents_age_s`` (1: how old
+  when it was read), ``markers_sample_count`` (1: its frame number, from 1),
+  ``coil_currents`` (n_coils, A, what flows), ``coil_currents_age_s`` (1: how old
   they are, s; 0 simulated, the link's age over LCM), ``instrument_state`` (13, the
   true free-body state, simulation only), ``query_object`` (for visualizers).
 
@@ -205,7 +206,7 @@ def MakeStation(scenario: Scenario, *, magnetics, station=None) -> Diagram:
         shoves = builder.AddNamedSystem("shoves", Shoves(faults[Shove], body.index(),
                                                          body.default_com()))
         builder.Connect(shoves.get_output_port(), plant.get_applied_spatial_force_input_port())
-    for name in ("markers_measured", "markers_sample_time_s"):
+    for name in ("markers_measured", "markers_sample_time_s", "markers_sample_count"):
         builder.ExportOutput(sensor.GetOutputPort(name), name)
     builder.ExportOutput(amplifiers.get_output_port(), "coil_currents")
     # Measured in the tick that reads them (the LCM station's are as old as its link).

@@ -274,6 +274,7 @@ class MarkerSensor(Diagram):
         output_ports:
         - markers_measured
         - markers_sample_time_s
+        - markers_sample_count
 
     - ``instrument_state`` (13): the plant's free-body state
       [qw qx qy qz x y z wx wy wz vx vy vz] (m, rad/s, m/s; velocities in W).
@@ -281,6 +282,8 @@ class MarkerSensor(Diagram):
       the newest sample published before now (NaN before the first, at t = 0).
     - ``markers_sample_time_s`` (1): when that sample was published (s); it shows
       the instrument ``tracker.latency_s`` before.
+    - ``markers_sample_count`` (1): that sample's number, counted from 1 (0: none
+      yet), as a tracker numbers its frames: a gap is a frame missed.
 
     Samples are published at ``tracker.rate_hz`` from t = 0. The plant is discrete
     at ``tick_s`` (s): its state after the step at one tick holds until the next,
@@ -319,8 +322,8 @@ class MarkerSensor(Diagram):
                 f"period ({1.0 / tracker.rate_hz:g} s): one sample a step at most")
         self._n = 3 * len(instrument.p_IK)
         BuildHeld(self, leaf=self._law, leaf_name="law", period_s=tick_s,
-                  outputs=(("markers_measured", self._n), ("markers_sample_time_s", 1)),
-                  unexported_rows=1)
+                  outputs=(("markers_measured", self._n), ("markers_sample_time_s", 1),
+                           ("markers_sample_count", 1)))
 
     @property
     def sample_period_s(self) -> float:

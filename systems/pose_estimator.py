@@ -381,12 +381,13 @@ def _check_rate(tracker: TrackerSpec) -> float:
 
 # The estimator's record (its output, held by a ZeroOrderHold between ticks): the
 # outputs X (7), V (6), tracking_ok (1); then the filter's pose (7), the time since a
-# jump was refused (1, s; -1: none), the samples processed (1) and the newest one's
-# time (1, s). The zero record is the estimator before its first sample.
-RECORD_SIZE = 24
-_X, _V, _OK, _X_HAT, _JUMP, _PROCESSED, _LAST = 0, 7, 13, 14, 21, 22, 23
+# jump was refused (1, s; -1: none), the samples processed (1), the newest one's
+# time (1, s) and its frame number (1). The zero record is the estimator before its
+# first sample.
+RECORD_SIZE = 25
+_X, _V, _OK, _X_HAT, _JUMP, _PROCESSED, _LAST, _LAST_COUNT = 0, 7, 13, 14, 21, 22, 23, 24
 # The rows that count samples, not state (a linearization holds them).
-CLOCK_ROWS = (_PROCESSED, _LAST)
+CLOCK_ROWS = (_PROCESSED, _LAST, _LAST_COUNT)
 
 
 # The estimator's numbers as ``estimator_record`` takes them: an array, by these indices.
@@ -394,11 +395,14 @@ CLOCK_ROWS = (_PROCESSED, _LAST)
  _JUMP_HOLD_S) = range(8)
 
 
-@kernel((VECTOR, SCALAR, SCALAR, VECTOR, MATRIX, VECTOR, VECTOR))
-def estimator_record(markers_W, sample_time_s, t, held, p_IK, parameters, record):
+@kernel((VECTOR, SCALAR, SCALAR, SCALAR, VECTOR, MATRIX, VECTOR, VECTOR))
+def estimator_record(markers_W, sample_time_s, sample_count, t, held, p_IK, parameters,
+                     record):
     """The estimator's record at time ``t`` (s) into ``record``: ``held`` (the record at
     the last tick) after the sample ``markers_W`` published at ``sample_time_s`` (s),
-    if the estimator has not processed it yet and its processing ended before ``t``.
+    frame ``sample_count``, if the estimator has not processed it yet and its
+    processing ended before ``t``. The filter steps over the frames since the last
+    it processed (a frame missed on the link is two periods, not one).
     ``parameters``: the residual limit (m), the filter's alpha and beta, the tracker's
     period (s), the processing delay (s) and the jump limits (m, rad, s)."""
     if held[_PROCESSED] == 0.0:
@@ -410,19 +414,24 @@ def estimator_record(markers_W, sample_time_s, t, held, p_IK, parameters, record
     fresh = held[_PROCESSED] == 0.0 or sample_time_s > held[_LAST]
     if not (fresh and sample_time_s + parameters[_PROCESSING_DELAY_S] < t - SAME_INSTANT_S):
         return
+    frames = 1.0
+    if held[_PROCESSED] > 0.0 and sample_count - held[_LAST_COUNT] > 1.0:
+        frames = sample_count - held[_LAST_COUNT]
     _estimator_update(markers_W, p_IK, parameters[_RESIDUAL_LIMIT_M], parameters[_ALPHA],
-                      parameters[_BETA], parameters[_PERIOD_S], parameters[_MAX_JUMP_M],
+                      parameters[_BETA], frames * parameters[_PERIOD_S], parameters[_MAX_JUMP_M],
                       parameters[_MAX_JUMP_RAD], parameters[_JUMP_HOLD_S], record[_X:_X + 7],
                       record[_V:_V + 6], record[_OK:_OK + 1], record[_X_HAT:_X_HAT + 7],
                       record[_JUMP:_JUMP + 1])
     record[_PROCESSED] += 1.0
     record[_LAST] = sample_time_s
+    record[_LAST_COUNT] = sample_count
 
 
 class PoseEstimatorLaw(LeafSystem):
     """``PoseEstimator``'s arithmetic: inputs ``markers_measured``,
-    ``markers_sample_time_s`` and ``held`` (its own record at the last tick), one
-    output ``record`` (``RECORD_SIZE``), one compiled call (``estimator_record``).
+    ``markers_sample_time_s``, ``markers_sample_count`` and ``held`` (its own record at
+    the last tick), one output ``record`` (``RECORD_SIZE``), one compiled call
+    (``estimator_record``).
 
     .. pydrake_system::
 
@@ -430,6 +439,7 @@ class PoseEstimatorLaw(LeafSystem):
         input_ports:
         - markers_measured
         - markers_sample_time_s
+        - markers_sample_count
         - held
         output_ports:
         - record
@@ -455,6 +465,7 @@ class PoseEstimatorLaw(LeafSystem):
                                      config.max_jump_rad, config.jump_hold_s])
         self._markers = self.DeclareVectorInputPort("markers_measured", 3 * len(self._model))
         self._sample_time = self.DeclareVectorInputPort("markers_sample_time_s", 1)
+        self._sample_count = self.DeclareVectorInputPort("markers_sample_count", 1)
         self._held = self.DeclareVectorInputPort("held", RECORD_SIZE)
         self.DeclareVectorOutputPort("record", RECORD_SIZE, self._calc_record)
 
@@ -462,7 +473,8 @@ class PoseEstimatorLaw(LeafSystem):
         # Views, not copies: the kernel only reads them.
         estimator_record(
             self._markers.EvalBasicVector(context).value(),
-            self._sample_time.EvalBasicVector(context).GetAtIndex(0), context.get_time(),
+            self._sample_time.EvalBasicVector(context).GetAtIndex(0),
+            self._sample_count.EvalBasicVector(context).GetAtIndex(0), context.get_time(),
             self._held.EvalBasicVector(context).value(), self._model.p_IK, self._parameters,
             output.get_mutable_value())
 
@@ -476,13 +488,16 @@ class PoseEstimator(Diagram):
         input_ports:
         - markers_measured
         - markers_sample_time_s
+        - markers_sample_count
         output_ports:
         - X_WI_measured
         - V_WI_measured
         - tracking_ok
 
     - ``markers_measured`` (3 n): p_WK [m], NaN for markers not seen;
-      ``markers_sample_time_s`` (1): when they were published (s).
+      ``markers_sample_time_s`` (1): when they were published (s);
+      ``markers_sample_count`` (1): their frame number (the filter steps over the
+      frames since the last it processed: a missed frame is two periods).
     - ``X_WI_measured`` (7): [qw qx qy qz x y z], the latest good fit; held
       while tracking is lost. The quaternion's sign follows the previous
       output, so it is continuous through any number of turns.

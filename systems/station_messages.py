@@ -246,7 +246,9 @@ class ReceivedChannel:
     output port of that name (1) gives when the value on ``port`` was read (s, on the
     diagram's clock): the newest accepted message's arrival, or while the value is
     stale the tick before now, so a reader that takes each reading once (the pose
-    estimator) takes a new stale one every tick.
+    estimator) takes a new stale one every tick. ``sequence_port``: an output port of
+    that name (1) gives the newest accepted message's sequence number (0 before the
+    first): a tracker's frame number, whose gaps are frames missed.
 
     The gate (``hardware/link_checks.py``): ``check(message)`` raises Refused for a
     message outside what the scenario allows; ``session_of(message)`` keys the
@@ -268,6 +270,7 @@ class ReceivedChannel:
     on_accept: Optional[Callable] = None
     age_port: Optional[str] = None
     sample_time_port: Optional[str] = None
+    sequence_port: Optional[str] = None
 
 
 class MessageReceiver(LeafSystem):
@@ -328,6 +331,12 @@ class MessageReceiver(LeafSystem):
                     lambda context, output, spec=spec: output.SetAtIndex(
                         0, self._sample_time_s(spec, context)),
                     {self.xd_ticket(), self.time_ticket()})
+            if spec.sequence_port is not None:
+                self.DeclareVectorOutputPort(
+                    spec.sequence_port, 1,
+                    lambda context, output, spec=spec: output.SetAtIndex(
+                        0, max(0.0, self._newest_sequence(spec, context))),
+                    {self.xd_ticket()})
             if spec.size == 0:
                 continue
             initial = spec.stale_value if spec.initial_value is None else spec.initial_value
@@ -406,6 +415,10 @@ class MessageReceiver(LeafSystem):
         if self._on_tick is not None:
             self._on_tick(t_s)
 
+    def _newest_sequence(self, spec, context) -> float:
+        """The newest accepted message's sequence number (-1: none)."""
+        return context.get_discrete_state(self._counters[spec.port]).GetAtIndex(0)
+
     def _arrival_s(self, spec, context) -> float:
         """When the newest accepted message of ``spec``'s channel was read (s; -inf: none)."""
         return context.get_discrete_state(self._counters[spec.port]).GetAtIndex(1)
@@ -426,12 +439,13 @@ class MessageReceiver(LeafSystem):
         return self._arrival_s(spec, context)
 
     def ports(self) -> list:
-        """The output ports' names: one a channel that feeds one, the age ports and the
-        sample time ports."""
+        """The output ports' names: one a channel that feeds one, then the age, sample
+        time and sequence ports."""
         return ([port for port, spec in self._channels.items() if spec.size]
                 + [spec.age_port for spec in self._channels.values() if spec.age_port]
                 + [spec.sample_time_port for spec in self._channels.values()
-                   if spec.sample_time_port])
+                   if spec.sample_time_port]
+                + [spec.sequence_port for spec in self._channels.values() if spec.sequence_port])
 
     def channels(self) -> list:
         """The names its channels are counted under (``counts``), ports or not."""

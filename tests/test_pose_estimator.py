@@ -68,12 +68,16 @@ def make_estimator(tracker=TrackerSpec(), config=None, instrument=INSTRUMENT):
 
 
 def update(estimator, context, markers, published_s=None):
-    """Feed one tracker sample, published ``published_s`` (default: a tracker period
-    after the context's time), read the outputs half a period later, when it has been
-    processed, and hold them as a tick would."""
-    published_s = context.get_time() + T if published_s is None else published_s
+    """Feed one tracker sample, published ``published_s`` (default: the tracker's next
+    frame after the context's time; its frame number follows from it), read the
+    outputs half a period later, when it has been processed, and hold them as a tick
+    would."""
+    if published_s is None:
+        published_s = (math.floor(context.get_time() * RATE_HZ) + 1) * T
     estimator.GetInputPort("markers_measured").FixValue(context, markers)
     estimator.GetInputPort("markers_sample_time_s").FixValue(context, [published_s])
+    estimator.GetInputPort("markers_sample_count").FixValue(
+        context, [round(published_s * RATE_HZ) + 1])
     context.SetTime(published_s + T / 2)
     context.SetDiscreteState(estimator.EvalUniquePeriodicDiscreteUpdate(context))
     return (estimator.GetOutputPort("X_WI_measured").Eval(context).copy(),
@@ -128,7 +132,7 @@ def simulate(body, times, tracker=TrackerSpec(), config=None):
     sensor = builder.AddSystem(MarkerSensor(INSTRUMENT, tracker, TICK_S))
     estimator = builder.AddSystem(PoseEstimator(INSTRUMENT, tracker, TICK_S, config))
     builder.Connect(body.get_output_port(), sensor.get_input_port())
-    for name in ("markers_measured", "markers_sample_time_s"):
+    for name in ("markers_measured", "markers_sample_time_s", "markers_sample_count"):
         builder.Connect(sensor.GetOutputPort(name), estimator.GetInputPort(name))
     diagram = builder.Build()
     simulator = Simulator(diagram)
@@ -232,11 +236,12 @@ def test_system_recovers_the_pose_exactly():
     assert [estimator.get_output_port(i).get_name() for i in range(3)] == [
         "X_WI_measured", "V_WI_measured", "tracking_ok"]
     assert [estimator.get_output_port(i).size() for i in range(3)] == [7, 6, 1]
-    assert [estimator.get_input_port(i).get_name() for i in range(2)] == [
-        "markers_measured", "markers_sample_time_s"]
+    assert [estimator.get_input_port(i).get_name() for i in range(3)] == [
+        "markers_measured", "markers_sample_time_s", "markers_sample_count"]
     assert estimator.GetInputPort("markers_measured").size() == 9
     estimator.GetInputPort("markers_measured").FixValue(context, np.full(9, np.nan))
     estimator.GetInputPort("markers_sample_time_s").FixValue(context, [-np.inf])
+    estimator.GetInputPort("markers_sample_count").FixValue(context, [0.0])
     assert estimator.GetOutputPort("tracking_ok").Eval(context)[0] == 0.0  # nothing seen yet
     np.testing.assert_array_equal(estimator.GetOutputPort("X_WI_measured").Eval(context),
                                   [1, 0, 0, 0, 0, 0, 0])  # the identity before the first sample
@@ -335,6 +340,23 @@ def test_velocity_converges_and_yaw_turns_freely():
                                atol=1e-9)
     # The output quaternion never jumps to -q through the turns.
     assert np.all(np.sum(X[2:, :4] * X[1:-1, :4], axis=1) > 0.99)
+
+
+def test_a_missed_frame_is_two_periods_to_the_filter():
+    # Over a link a frame can be lost, or two arrive in one tick and the older is
+    # dropped: the frame numbers say how long the step was.
+    body = ConstantVelocityBody(**MOVING)
+    tracker = TrackerSpec(noise_m=0.0, latency_s=0.0)
+    sensor = MarkerSensor(INSTRUMENT, tracker, TICK_S)
+    estimator, context = make_estimator(tracker)
+    V_true = np.concatenate([body.w, body.v])
+    frames = [k for k in range(400) if k % 50 != 25]  # every 50th frame missed
+    for k in frames:
+        _, V, ok = update(estimator, context, sensor.measure(k * T, body.state(k * T)),
+                          published_s=k * T)
+        if k > 300:  # converged: a missed frame leaves the velocity as it was
+            assert ok == 1.0
+            np.testing.assert_allclose(V, V_true, atol=1e-9)
 
 
 def test_an_estimate_is_read_once_its_processing_delay_has_passed():
