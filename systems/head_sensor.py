@@ -25,6 +25,7 @@ import numpy as np
 from pydrake.math import RotationMatrix
 from pydrake.systems.framework import LeafSystem
 
+from maglev_haptics.hardware.constants import SAME_INSTANT_S
 from maglev_haptics.systems.pose_estimator import MarkerModel, fit_pose
 from maglev_haptics.systems.rotations import rotation_matrix
 
@@ -33,10 +34,6 @@ MEASUREMENT_SIZE = 9  # [t_capture, q (4), p (3), ok]
 # A tracked tool's fit is rejected above this RMS marker residual (m), as a
 # Polaris rejects a tool whose markers do not match its definition.
 RESIDUAL_LIMIT_M = 1.0e-3
-# A capture's release time (capture time + latency) is a float sum; a reader's tick at
-# the same instant can differ from it by ulps (0.3 + 0.03 > 0.33): times this close (s)
-# are one instant.
-SAME_INSTANT_S = 1e-9
 
 
 @dataclass

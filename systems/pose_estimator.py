@@ -40,6 +40,7 @@ import scipy.linalg
 from pydrake.systems.framework import Diagram, LeafSystem
 
 from maglev_haptics.hardware.config_checks import finite, positive, require
+from maglev_haptics.hardware.constants import SAME_INSTANT_S
 from maglev_haptics.hardware.device import InstrumentSpec, TrackerSpec
 from maglev_haptics.hardware.kernels import MATRIX, SCALAR, VECTOR, kernel
 from maglev_haptics.systems.rotations import (
@@ -56,9 +57,6 @@ MIN_SPREAD_RATIO = 1e-3
 # 10 nm is above that and far below any tracker's resolution.
 RESIDUAL_FLOOR_M = 1e-8
 _IDENTITY_POSE = np.array([1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])
-# A sample is released once its time plus the processing delay is this much before
-# the reading tick's time (s): both are sums of periods, a few ulps off exact.
-SAME_INSTANT_S = 1e-9
 
 
 @dataclass

@@ -34,6 +34,17 @@ def stacked_slices(ports: Ports) -> Dict[str, slice]:
     return slices
 
 
+def _export_split(builder: DiagramBuilder, leaf: LeafSystem, outputs: Ports,
+                  unexported_rows: int) -> None:
+    """An "outputs" Demultiplexer on ``leaf``'s first output port, its ports exported by
+    the names of ``outputs`` (the ``unexported_rows`` after them stay inside)."""
+    split = builder.AddNamedSystem("outputs", Demultiplexer(
+        [size for _, size in outputs] + ([unexported_rows] if unexported_rows else [])))
+    builder.Connect(leaf.get_output_port(0), split.get_input_port())
+    for i, (name, _) in enumerate(outputs):
+        builder.ExportOutput(split.get_output_port(i), name)
+
+
 def BuildStacked(diagram: Diagram, *, leaf: LeafSystem, leaf_name: str, inputs: Ports,
                  outputs: Ports, leaf_inputs: Sequence[str] = (),
                  leaf_outputs: Sequence[str] = (), unexported_rows: int = 0) -> None:
@@ -52,11 +63,7 @@ def BuildStacked(diagram: Diagram, *, leaf: LeafSystem, leaf_name: str, inputs: 
     builder.Connect(stack.get_output_port(), leaf.get_input_port(0))
     for name in leaf_inputs:
         builder.ExportInput(leaf.GetInputPort(name), name)
-    split = builder.AddNamedSystem("outputs", Demultiplexer(
-        [size for _, size in outputs] + ([unexported_rows] if unexported_rows else [])))
-    builder.Connect(leaf.get_output_port(0), split.get_input_port())
-    for i, (name, _) in enumerate(outputs):
-        builder.ExportOutput(split.get_output_port(i), name)
+    _export_split(builder, leaf, outputs, unexported_rows)
     for name in leaf_outputs:
         builder.ExportOutput(leaf.GetOutputPort(name), name)
     builder.BuildInto(diagram)
@@ -79,9 +86,5 @@ def BuildHeld(diagram: Diagram, *, leaf: LeafSystem, leaf_name: str, period_s: f
     for i in range(leaf.num_input_ports()):
         if leaf.get_input_port(i).get_name() != "held":
             builder.ExportInput(leaf.get_input_port(i), leaf.get_input_port(i).get_name())
-    split = builder.AddNamedSystem("outputs", Demultiplexer(
-        [size for _, size in outputs] + ([unexported_rows] if unexported_rows else [])))
-    builder.Connect(leaf.get_output_port(0), split.get_input_port())
-    for i, (name, _) in enumerate(outputs):
-        builder.ExportOutput(split.get_output_port(i), name)
+    _export_split(builder, leaf, outputs, unexported_rows)
     builder.BuildInto(diagram)
