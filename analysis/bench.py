@@ -11,6 +11,8 @@ Four kinds of numbers:
   cost of one update (discrete update plus output evaluation), with inputs fixed
   to their values in the running diagram and re-fixed every call so nothing is
   served from the cache;
+- the one-system loop (``loop_floor``): the station's plant closed by one Python
+  system doing the floor's kernels, the least a tick of such a diagram costs;
 - the electromagnetic model (a full 6 x n wrench matrix) and the allocation;
 - the stereo display: view matrices per frame and a rendered frame pair;
 - the offline analysis: the loop studies' wall time on the peg-in-hole scene.
@@ -32,6 +34,7 @@ from tqdm import tqdm
 
 from maglev_haptics.analysis.lattice_bench import (
     LATTICE_SIZES, format_lattice_report, lattice_costs, lattice_scaling, plot_lattice_scaling)
+from maglev_haptics.analysis.loop_floor import floor_loop_us
 from maglev_haptics.analysis.stereo_bench import format_stereo_report, stereo_costs
 from maglev_haptics.analysis.timing import leaf_system_costs, time_per_call_us
 from maglev_haptics.diagrams.application import BuildDiagram
@@ -55,6 +58,7 @@ LEVITATE_FILE = SCENARIO_DIR / "levitate.yaml"
 HAPTIC_FILES = [SCENARIO_DIR / f"{name}.yaml" for name in (
     "hanging_ball", "paddle_ball", "peg_in_hole", "gear_trace", "push_block", "door",
     "deformable_surface", "stereo_display")]
+FLOOR_LOOP_SCENARIOS = ("takeoff_hover_land", "four_magnet_tilt")  # one per instrument
 HOVER_TIME_S = 1.5  # operating point for the per-system costs (s into takeoff_hover_land)
 FLOOR_TOOL_PUSH_N = 1.0  # the peg is pushed down this hard onto the block (N)
 # --paced: the scenarios paced at 1x (the four kinds of loop: levitation, rigid contact
@@ -230,6 +234,10 @@ def run_benchmarks(duration_s: Optional[float] = None, progress: bool = True,
     built = BuildDiagram(scenario)
     simulator, _, _ = simulate(built, HOVER_TIME_S, progress=False)
     results["systems_us"] = leaf_system_costs(built, simulator.get_context())
+    results["one_system_loop"] = {
+        name: {**floor_loop_us(load_scenario(str(LEVITATE_FILE), name)),
+               "physics_floor_us": floor_us(results["scenarios"][name]["physics_floor"])}
+        for name in FLOOR_LOOP_SCENARIOS if name in results["scenarios"]}
     results["systems_us"]["plant step, hovering"] = plant_step_cost_us(scenario, hovering=True)
     results["systems_us"]["plant step, resting on the glass"] = plant_step_cost_us(
         scenario, hovering=False)
@@ -279,6 +287,11 @@ def format_report(results: Dict) -> str:
         lines.append(f"  {name:<24}{r['instrument']:<13}{r['simulated_s']:>7.2f}"
                      f"{r['realtime_factor']:>7.2f}{r['wall_us_per_1ms_tick']:>11.0f}"
                      f"{floor_us(r['physics_floor']):>10.0f}{r['tick_over_floor']:>12.2f}")
+    lines.append("One-system loop (analysis/loop_floor.py: the station's plant closed by one "
+                 "Python system doing the floor's kernels, two Python calls a tick):")
+    for name, r in results["one_system_loop"].items():
+        lines.append(f"  {name:<24}{r['us_per_tick']:>6.0f} us a tick, "
+                     f"{r['us_per_tick'] / r['physics_floor_us']:.2f} x the floor")
     lines.append("Per-system cost of one update at hover (us):")
     for name, us in sorted(results["systems_us"].items(), key=lambda kv: -kv[1]):
         lines.append(f"  {name:<52}{us:>8.1f}")

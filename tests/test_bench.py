@@ -53,3 +53,18 @@ def test_bench_quick_runs_a_second_a_scenario_no_analysis_and_two_lattice_sizes(
     assert results["analysis"] == {}
     assert len(results["lattice"]["sizes"]) == QUICK_LATTICE_SIZES
     assert "Offline analysis (wall s): not run (--quick)" in results["report"]
+
+
+def test_the_one_system_loop_hovers_the_instrument_with_the_floors_kernels():
+    from maglev_haptics.analysis.loop_floor import floor_loop_us
+    for name in bench.FLOOR_LOOP_SCENARIOS:
+        result = floor_loop_us(load_scenario("levitate", name), n_ticks=300, windows=1)
+        # Held where it was put: a fallen instrument would cost a contact step a tick.
+        assert result["drift_m"] < 1e-4
+        assert result["us_per_tick"] > 0
+
+
+def test_the_one_system_loop_refuses_a_scene_with_a_hand():
+    from maglev_haptics.analysis.loop_floor import floor_loop_us
+    with pytest.raises(ValueError, match="scenario.hand is set: the one-system loop"):
+        floor_loop_us(load_scenario("peg_in_hole"))
