@@ -46,7 +46,9 @@ def parse_tool_pose(row):
     if not np.all(np.isfinite(pose)):
         raise Refused("not_finite", f"tool row = {pose.tolist()}: must be finite, or all NaN "
                       "(not seen)")
-    norm = float(np.linalg.norm(pose[0:4]))
+    # Scaled by the largest component: a finite quaternion of 1e200 would overflow.
+    largest = float(np.max(np.abs(pose[0:4])))
+    norm = largest * float(np.linalg.norm(pose[0:4] / largest)) if largest > 0 else 0.0
     if abs(norm - 1.0) > UNIT_QUATERNION_TOLERANCE:
         raise Refused("out_of_range", f"quaternion = {pose[0:4].tolist()}: must have norm 1 "
                       f"(+-{UNIT_QUATERNION_TOLERANCE:g}), not {norm:.6g}")

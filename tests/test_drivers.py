@@ -5,6 +5,7 @@ says which in one line."""
 import json
 import math
 import time
+import warnings
 
 import lcm
 import numpy as np
@@ -43,9 +44,12 @@ def test_glasses_pose_goes_from_the_trackers_frame_to_w_in_metres():
     ([1.0, 0.0, 0.0, math.nan, 0.0, 0.0, 0.0], "not_finite"),
     ([1.0, 0.0, 0.0, 0.0, math.inf, 0.0, 0.0], "not_finite"),
     ([2.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0], "out_of_range"),
+    ([1e200, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0], "out_of_range"),  # its square overflows
+    ([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0], "out_of_range"),
 ])
 def test_a_tool_row_that_cannot_be_read_is_refused_by_reason(row, reason):
-    with pytest.raises(Refused) as refusal:
+    with pytest.raises(Refused) as refusal, warnings.catch_warnings():
+        warnings.simplefilter("error")
         parse_tool_pose(row)
     assert refusal.value.reason == reason
     assert parse_tool_pose([math.nan] * 7) is None  # NaN throughout: not seen
