@@ -9,7 +9,7 @@ from maglev_haptics.diagrams.application import BuildDiagram
 from maglev_haptics.diagrams.haptics import interactive_variant
 from maglev_haptics.diagrams.scenario import ScenarioError, load_scenario
 from maglev_haptics.diagrams.scene import PegInHole
-from maglev_haptics.systems.haptic_supervisor import HAPTIC, LEVITATE
+from maglev_haptics.systems.haptic_supervisor import HAPTIC, LANDING
 from maglev_haptics.systems.meshcat_hand import GRIP_BUTTON
 
 FREE_FORCE_LIMIT_N = 0.05
@@ -90,9 +90,10 @@ def test_peg_let_go_stays_still_with_the_links_delay_in_the_loop():
 
 def test_the_scripts_landing_ends_haptics_and_lands_the_instrument_let_go_in_the_hole():
     # The script's last hold ends at 9.4 s, with the peg let go in its hole at 6.5 s:
-    # haptics ends there, and the script lands the instrument. Left engaged, the
-    # scene would hold an instrument the device no longer carries once the script's
-    # force ramps down.
+    # haptics ends there, and the device lands the instrument where it is, straight
+    # down (the script's pose is 10 mm across and 12 mm up: following it would pull
+    # the peg out). Left engaged, the scene would hold an instrument the device no
+    # longer carries once the script's force ramps down.
     text = """{duration_s: 14.0, motion: {waypoints: [{pose: [0.0, 0.0, 0.025, 0.0, 0.0, 0.0],
                                            move_s: 1.0, hold_s: 8.0}]},
      hand: !ScriptedHand {start_s: 3.0, events: [{at_s: 1.8, grip: true}, {at_s: 6.5, grip: false}],
@@ -103,7 +104,12 @@ def test_the_scripts_landing_ends_haptics_and_lands_the_instrument_let_go_in_the
     log = result.log
     landing_starts_s = 9.4
     assert np.all(log["haptic_mode"][(log["t"] > 6.6) & (log["t"] < landing_starts_s)] == HAPTIC)
-    assert np.all(log["haptic_mode"][log["t"] > landing_starts_s + 0.01] == LEVITATE)
+    after = log["t"] > landing_starts_s + 0.01
+    assert np.all(log["haptic_mode"][after] == LANDING)
+    p_WI = log["p_WI_true"]
+    let_go = p_WI[np.searchsorted(log["t"], landing_starts_s)]
+    assert np.abs(p_WI[after, 0:2] - let_go[0:2]).max() < 1e-3
+    assert p_WI[after, 2].max() < let_go[2] + 3e-4
     touchdown = result.summary["touchdown"]
     assert touchdown is not None
     assert touchdown["speed_m_s"] < 0.05 and touchdown["tilt_deg"] < 2.0

@@ -1,4 +1,5 @@
-"""The device's mode logic: engage in the hand, hand back on disable, land a free let-go."""
+"""The device's mode logic: engage in the hand, hand back on disable, land a free let-go
+and an instrument let go when haptics ends."""
 
 import numpy as np
 import pytest
@@ -23,10 +24,11 @@ def pose_vector(xyz, rpy):
     return np.array([q.w(), q.x(), q.y(), q.z(), *xyz])
 
 
-def run(state, t0, n, *, X_WI, request, gripped, in_contact, tracking_ok=True):
+def run(state, t0, n, *, X_WI, request, gripped, in_contact, tracking_ok=True, faulted=False):
     for k in range(n):
         state = supervisor_step(state, t0 + k * PERIOD_S, PERIOD_S, HOVER, X_WI, tracking_ok,
-                                request, gripped, in_contact, PARAMETERS)
+                                request and not faulted, faulted, gripped, in_contact,
+                                PARAMETERS)
     return state, t0 + n * PERIOD_S
 
 
@@ -95,6 +97,36 @@ def test_disable_blends_back_from_where_haptics_ended():
     middle = supervisor_setpoint(state, t + CONFIG.handover_s / 2, scripted, REST_M, PARAMETERS)
     assert middle[0] == pytest.approx((0.03 + HOVER[0]) / 2)
     assert middle[6] < 0.0  # moving back toward the script's x
+
+
+def let_go_in_the_scene(X_WI):
+    """A supervisor in haptic mode whose instrument the scene holds, let go."""
+    state = initial_supervisor_state()
+    state, t = run(state, 0.0, 10, X_WI=X_WI, request=True, gripped=True, in_contact=True)
+    state, t = run(state, t, 200, X_WI=X_WI, request=True, gripped=False, in_contact=True)
+    assert state[0] == HAPTIC
+    return state, t
+
+
+def test_disable_with_the_handle_let_go_lands_where_the_instrument_is():
+    X_WI_in_hole = pose_vector([-0.01, 0.0, 0.0125], [0.0, 0.0, 0.3])
+    state, t = let_go_in_the_scene(X_WI_in_hole)
+    state, t = run(state, t, 1, X_WI=X_WI_in_hole, request=False, gripped=False,
+                   in_contact=True)
+    assert state[0] == LANDING
+    scripted = np.concatenate((HOVER, np.zeros(6)))  # centimetres away: not followed
+    for elapsed in np.linspace(0.0, CONFIG.landing_s, 7):
+        setpoint = supervisor_setpoint(state, state[1] + elapsed, scripted, REST_M, PARAMETERS)
+        np.testing.assert_allclose(setpoint[0:2], [-0.01, 0.0], atol=1e-9)  # straight down
+        assert REST_M - LANDING_PRESS_M - 1e-12 <= setpoint[2] <= 0.0125 + 1e-12
+
+
+def test_a_fault_with_the_handle_let_go_hands_back_to_the_supervisors_landing():
+    X_WI = pose_vector([-0.01, 0.0, 0.0125], [0.0, 0.0, 0.3])
+    state, t = let_go_in_the_scene(X_WI)
+    state, t = run(state, t, 1, X_WI=X_WI, request=True, gripped=False, in_contact=True,
+                   faulted=True)
+    assert state[0] == LEVITATE  # the device supervisor's landing is the script now
 
 
 def test_free_let_go_lands_level_and_then_ramps_the_force_down():
