@@ -179,7 +179,7 @@ def AddStereo(builder: DiagramBuilder, *, scenario: Scenario, station, haptics,
                 (JELLY_RGBA.r(), JELLY_RGBA.g(), JELLY_RGBA.b(), JELLY_RGBA.a())),
                 haptics.scene.surface.GetOutputPort("surface_positions_m"))
     else:
-        virtual_world = station.GetOutputPort("query_object")
+        virtual_world = station.GetOutputPort("rendered_world")
     return AddStereoDisplay(builder, scenario=scenario, station=station,
                             query_object_port=virtual_world, meshcat=meshcat,
                             frame_period_s=frame_period_s, frame_sink=frame_sink,

@@ -25,19 +25,22 @@ With the stereo display in the scenario, the user's head and the glasses' tracke
 
 - outputs ``glasses_measured`` (9: [capture time, qw, qx, qy, qz, x, y, z, ok]
   of the glasses in W, s and m; ``systems/head_sensor.py``) and ``head_pose``
-  (8: the scripted head, simulation only).
+  (8: the scripted head, simulation only); without a haptic scene also
+  ``rendered_world``, the query object the display renders the station's models from.
 """
 
 from __future__ import annotations
 
 import numpy as np
+from pydrake.geometry import SceneGraph
 from pydrake.math import RigidTransform, RollPitchYaw
 from pydrake.multibody.parsing import Parser
-from pydrake.multibody.plant import AddMultibodyPlant
+from pydrake.multibody.plant import AddMultibodyPlant, MultibodyPlant
 from pydrake.systems.framework import Diagram, DiagramBuilder
 from pydrake.systems.primitives import (
     Adder, AffineSystem, ConstantVectorSource, LinearSystem, MatrixGain, Multiplexer, Saturation,
     TrajectorySource)
+from pydrake.systems.rendering import MultibodyPositionToGeometryPose
 
 from maglev_haptics.diagrams.head_script import head_plan
 from maglev_haptics.diagrams.lcm_station import LcmStation, MakeLcmStation
@@ -218,10 +221,33 @@ def MakeStation(scenario: Scenario, *, magnetics, station=None) -> Diagram:
         _add_hand(builder, scenario, plant, hand, body, actuation_force=placement.get_output_port())
     if scenario.stereo is not None:
         _add_head(builder, scenario)
-        AddStereoRenderer(scene_graph)
+        if scenario.haptics is None:  # with a scene, the display draws the scene's world
+            builder.ExportOutput(_add_rendered_world(builder, scenario, plant),
+                                 "rendered_world")
     station = builder.Build()
     station.set_name("station")
     return station
+
+
+def _add_rendered_world(builder, scenario: Scenario, plant):
+    """The query output of a SceneGraph of its own, with the stereo display's render
+    engine, that shows the station's models at ``plant``'s state. In the plant's own
+    SceneGraph the engine's poses would be updated at every step of the plant (its
+    contact query asks for them: 28 us a tick in head_sweep); here only when a frame is
+    rendered."""
+    scene_graph = builder.AddNamedSystem("rendered_scene_graph", SceneGraph())
+    twin = MultibodyPlant(scenario.plant_config.time_step)
+    twin.RegisterAsSourceForSceneGraph(scene_graph)
+    add_station_models(twin, scenario)
+    twin.Finalize()
+    # The pose system keeps the twin alive; it has the plant's state layout.
+    poses = builder.AddNamedSystem(
+        "rendered_poses", MultibodyPositionToGeometryPose(twin, input_multibody_state=True))
+    builder.Connect(plant.get_state_output_port(), poses.get_input_port())
+    builder.Connect(poses.get_output_port(),
+                    scene_graph.get_source_pose_port(twin.get_source_id()))
+    AddStereoRenderer(scene_graph)
+    return scene_graph.get_query_output_port()
 
 
 def _add_head(builder, scenario: Scenario):

@@ -146,6 +146,32 @@ def test_head_sweep_prediction_halves_the_colocation_error():
     assert result.log["view_ok"][-1] == 1.0
 
 
+def test_the_rendered_world_shows_the_station_where_its_plant_has_it():
+    # The display renders from a SceneGraph of its own (the plant's would update the
+    # render engine at every step): each perceived geometry must be where the plant's
+    # SceneGraph has it, mid-flight, bit for bit.
+    from maglev_haptics.diagrams.application import BuildDiagram
+    from pydrake.geometry import Role
+
+    built = BuildDiagram(load_scenario("stereo_display", "head_sweep"))
+    simulator = Simulator(built.diagram)
+    simulator.AdvanceTo(1.5)  # hovering, the head moving
+    station = built.diagram.GetSubsystemByName("station")
+    context = station.GetMyContextFromRoot(simulator.get_context())
+
+    def perceived_poses(port_name):
+        query = station.GetOutputPort(port_name).Eval(context)
+        inspector = query.inspector()
+        return {inspector.GetName(g): query.GetPoseInWorld(g).GetAsMatrix34()
+                for g in inspector.GetAllGeometryIds(Role.kPerception)}
+
+    rendered, plant = perceived_poses("rendered_world"), perceived_poses("query_object")
+    assert rendered and rendered.keys() == plant.keys()
+    assert plant["two_magnet_instrument::base"][2, 3] > 0.015  # up, not at rest
+    for name, pose in plant.items():
+        np.testing.assert_array_equal(rendered[name], pose, err_msg=name)
+
+
 def test_stereo_run_writes_frames(tmp_path):
     code = main(["run", "levitate", "--no-meshcat", "--stereo", "--duration", "0.5",
                  "--out", str(tmp_path), "--scenario-text",
