@@ -20,10 +20,12 @@ import math
 from dataclasses import dataclass
 from functools import cached_property
 
+import numba
 import numpy as np
 from pydrake.math import RollPitchYaw, RotationMatrix
 from pydrake.systems.framework import LeafSystem
 
+from maglev_haptics.hardware.kernels import MATRIX, SCALAR, VECTOR, kernel
 from maglev_haptics.systems.rotations import rotation_matrix
 
 # An eye must be at least this far in front of the display plane (m): nearer, the
@@ -52,6 +54,14 @@ class DisplayRectangle:
     def size_m(self):
         """(width, height) of the active area (m)."""
         return float(np.linalg.norm(self.pb - self.pa)), float(np.linalg.norm(self.pc - self.pa))
+
+    @cached_property
+    def q_WC(self) -> np.ndarray:
+        """[w, x, y, z] of every eye camera C in W (``eye_camera``: C looks into the
+        screen, x right, y down; the same for any eye)."""
+        vr, vu, vn = self.axes
+        q = RotationMatrix(np.column_stack([vr, -vu, -vn])).ToQuaternion()
+        return np.array([q.w(), q.x(), q.y(), q.z()])
 
     @property
     def corners_W(self) -> np.ndarray:
@@ -116,6 +126,70 @@ def check_clipping(near, far, field_name: str = "near, far") -> None:
         raise ValueError(f"{field_name} = {near}, {far}: need 0 < near < far < inf (m)")
 
 
+@numba.njit(cache=True)
+def _dot3(a, b) -> float:
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+@numba.njit(cache=True)
+def _projection_into(pa, pb, pc, vr, vu, vn, pe, near, far, out) -> float:
+    """Kooima's P M^T T of the eye pe into ``out`` (4x4), written out for its zeros;
+    returns the eye's distance in front of the screen (m), which the caller checks."""
+    distance = _dot3(pe - pa, vn)
+    va, vb, vc = pa - pe, pb - pe, pc - pe
+    scale = near / distance
+    left, right = _dot3(vr, va) * scale, _dot3(vr, vb) * scale
+    bottom, top = _dot3(vu, va) * scale, _dot3(vu, vc) * scale
+    # P's rows mix at most two rows of [M^T T] = [vr, vu, vn | -axis . pe; 0 0 0 1].
+    rows = np.empty((3, 4))
+    for i, axis in enumerate((vr, vu, vn)):
+        rows[i, 0:3] = axis
+        rows[i, 3] = -_dot3(axis, pe)
+    a, b = 2 * near / (right - left), (right + left) / (right - left)
+    c, d = 2 * near / (top - bottom), (top + bottom) / (top - bottom)
+    e, f = -(far + near) / (far - near), -2 * far * near / (far - near)
+    out[0, :] = a * rows[0] + b * rows[2]
+    out[1, :] = c * rows[1] + d * rows[2]
+    out[2, :] = e * rows[2]
+    out[2, 3] += f
+    out[3, :] = -rows[2]
+    return distance
+
+
+@numba.njit(cache=True)
+def _intrinsics(pa, vr, vu, vn, width_m, height_m, pe, width_px, height_px):
+    """(distance (m), fx, fy, cx, cy (px)) of the eye pe's camera (``eye_camera``)."""
+    distance = _dot3(pe - pa, vn)
+    return (distance, distance * width_px / width_m, distance * height_px / height_m,
+            _dot3(pe - pa, vr) / width_m * width_px - 0.5,
+            (height_m - _dot3(pe - pa, vu)) / height_m * height_px - 0.5)
+
+
+@kernel((MATRIX, VECTOR, VECTOR, VECTOR, VECTOR, VECTOR, VECTOR, SCALAR, SCALAR, SCALAR, SCALAR,
+         SCALAR, SCALAR, VECTOR, VECTOR))
+def views_into(eyes_W, pa, pb, pc, vr, vu, vn, width_m, height_m, width_px, height_px, near,
+               far, q_WC, out) -> float:
+    """``StereoView``'s state for the eyes (2, 3) into ``out``: the eyes, both
+    projections (row-major) and both cameras, then view_ok 1; returns the nearer
+    eye's distance in front of the screen (m), which the caller checks."""
+    out[0:6] = eyes_W.ravel()
+    nearest = np.inf
+    projection = np.empty((4, 4))
+    for k in range(2):
+        pe = eyes_W[k].copy()
+        nearest = min(nearest, _projection_into(pa, pb, pc, vr, vu, vn, pe, near, far,
+                                                projection))
+        out[6 + 16 * k:22 + 16 * k] = projection.ravel()
+        _, fx, fy, cx, cy = _intrinsics(pa, vr, vu, vn, width_m, height_m, pe, width_px,
+                                        height_px)
+        camera = out[38 + CAMERA_SIZE * k:38 + CAMERA_SIZE * (k + 1)]
+        camera[0:4] = q_WC
+        camera[4:7] = pe
+        camera[7], camera[8], camera[9], camera[10] = fx, fy, cx, cy
+    out[38 + 2 * CAMERA_SIZE] = 1.0
+    return nearest
+
+
 def off_axis_projection(pa, pb, pc, pe, near, far) -> np.ndarray:
     """4x4 OpenGL projection P M^T T of the eye pe looking through the screen
     (corners lower-left pa, lower-right pb, upper-left pc; all in W, m), with the
@@ -128,21 +202,10 @@ def off_axis_projection(pa, pb, pc, pe, near, far) -> np.ndarray:
     check_clipping(near, far)
     pa, pb, pc, pe = (np.asarray(v, float) for v in (pa, pb, pc, pe))
     vr, vu, vn = screen_axes(pa, pb, pc)
-    distance = _check_distance(float(np.dot(pe - pa, vn)), pe)
-    va, vb, vc = pa - pe, pb - pe, pc - pe
-    scale = near / distance
-    left, right = np.dot(vr, va) * scale, np.dot(vr, vb) * scale
-    bottom, top = np.dot(vu, va) * scale, np.dot(vu, vc) * scale
-    P = np.array([
-        [2 * near / (right - left), 0.0, (right + left) / (right - left), 0.0],
-        [0.0, 2 * near / (top - bottom), (top + bottom) / (top - bottom), 0.0],
-        [0.0, 0.0, -(far + near) / (far - near), -2 * far * near / (far - near)],
-        [0.0, 0.0, -1.0, 0.0]])
-    Mt = np.eye(4)
-    Mt[0:3, 0:3] = np.array([vr, vu, vn])
-    T = np.eye(4)
-    T[0:3, 3] = -pe
-    return P @ Mt @ T
+    _check_distance(float(np.dot(pe - pa, vn)), pe)
+    projection = np.empty((4, 4))
+    _projection_into(pa, pb, pc, vr, vu, vn, pe, float(near), float(far), projection)
+    return projection
 
 
 def eye_camera(screen: DisplayRectangle, pe, width_px: int, height_px: int):
@@ -153,23 +216,12 @@ def eye_camera(screen: DisplayRectangle, pe, width_px: int, height_px: int):
     (Cz = -vn), its x along the screen's right, y along its down; the principal
     point is the foot of the eye's perpendicular on the screen, off centre.
     """
-    pa, (vr, vu, vn) = screen.pa, screen.axes
+    vr, vu, vn = screen.axes
     pe = np.asarray(pe, float)
-    distance = _check_distance(float(np.dot(pe - pa, vn)), pe)
-    width_m, height_m = screen.size_m
-    fx = distance * width_px / width_m
-    fy = distance * height_px / height_m
-    cx = np.dot(pe - pa, vr) / width_m * width_px - 0.5
-    cy = (height_m - np.dot(pe - pa, vu)) / height_m * height_px - 0.5
-    R_WC = np.column_stack([vr, -vu, -vn])
-    return R_WC, pe, fx, fy, cx, cy
-
-
-def camera_vector(screen: DisplayRectangle, pe, width_px: int, height_px: int) -> np.ndarray:
-    """``eye_camera`` packed as a CAMERA_SIZE vector [q_WC, p_WC, fx, fy, cx, cy]."""
-    R_WC, p_WC, fx, fy, cx, cy = eye_camera(screen, pe, width_px, height_px)
-    q_WC = RotationMatrix(R_WC).ToQuaternion()
-    return np.concatenate([[q_WC.w(), q_WC.x(), q_WC.y(), q_WC.z()], p_WC, [fx, fy, cx, cy]])
+    distance, fx, fy, cx, cy = _intrinsics(screen.pa, vr, vu, vn, *screen.size_m, pe,
+                                           float(width_px), float(height_px))
+    _check_distance(distance, pe)
+    return np.column_stack([vr, -vu, -vn]), pe, fx, fy, cx, cy
 
 
 def projected_pixel(projection: np.ndarray, p_W, width_px: int, height_px: int) -> np.ndarray:
@@ -267,11 +319,14 @@ class StereoView(LeafSystem):
         """The state vector for a glasses pose; ValueError if an eye cannot see the display."""
         s = self._screen
         eyes = eye_positions_W(q_WG, p_WG, self._ipd_m)
-        projections = [off_axis_projection(s.pa, s.pb, s.pc, e, self._near_m, self._far_m)
-                       for e in eyes]
-        cameras = [camera_vector(s, e, s.width_px, s.height_px) for e in eyes]
-        return np.concatenate([eyes.ravel(), projections[0].ravel(), projections[1].ravel(),
-                               cameras[0], cameras[1], [1.0]])
+        view = np.empty(39 + 2 * CAMERA_SIZE)
+        nearest = views_into(eyes, s.pa, s.pb, s.pc, *s.axes, *s.size_m, float(s.width_px),
+                             float(s.height_px), float(self._near_m), float(self._far_m), s.q_WC,
+                             view)
+        if not nearest >= MIN_EYE_DISTANCE_M:
+            for eye in eyes:
+                _check_distance(float(np.dot(eye - s.pa, s.axes[2])), eye)
+        return view
 
     def _update(self, context, discrete_state):
         x_WG = self._X_WG.Eval(context)
