@@ -26,6 +26,7 @@ from pydrake.math import RotationMatrix
 from pydrake.systems.framework import LeafSystem
 
 from maglev_haptics.hardware.constants import SAME_INSTANT_S
+from maglev_haptics.hardware.kernels import READONLY_VECTOR, SCALAR, VECTOR, kernel
 from maglev_haptics.systems.pose_estimator import MarkerModel, fit_pose
 from maglev_haptics.systems.rotations import rotation_matrix
 
@@ -148,10 +149,21 @@ class HeadSensor(LeafSystem):
         discrete_state.get_mutable_vector(self._queue).SetFromVector(queue.ravel())
 
     def _calc_released(self, context, output):
-        """The newest capture whose latency has passed by now (the oldest always has)."""
-        queue = context.get_discrete_state(self._queue).value().reshape(self._slots, -1)
-        due = queue[:, 0] + self._latency_s <= context.get_time() + SAME_INSTANT_S
-        output.SetFromVector(queue[np.flatnonzero(due)[-1]])
+        # Evaluated at every tick that logs it: one compiled call.
+        released_capture(context.get_discrete_state(self._queue).value(), self._latency_s,
+                         context.get_time(), output.get_mutable_value())
+
+
+@kernel((READONLY_VECTOR, SCALAR, SCALAR, VECTOR), (VECTOR, SCALAR, SCALAR, VECTOR))
+def released_capture(queue, latency_s, t, out) -> None:
+    """Into ``out``: the newest capture of ``queue`` (MEASUREMENT_SIZE each, oldest first)
+    whose latency (s) has passed by ``t`` (s); the oldest has always passed (the queue
+    holds the captures of one latency and one more)."""
+    size = out.size
+    slot = queue.size // size - 1
+    while slot > 0 and not queue[slot * size] + latency_s <= t + SAME_INSTANT_S:
+        slot -= 1
+    out[:] = queue[slot * size:(slot + 1) * size]
 
 
 # Nothing captured yet: capture time -inf, no pose, not ok.
