@@ -325,7 +325,7 @@ class CouplingLaw(LeafSystem):
                              inputs[rows["haptics_enable"]][0], self._period_s,
                              self._config.ramp_s)
         discrete_state.get_mutable_vector(self._ramp).SetAtIndex(0, fraction)
-        filtered = context.get_discrete_state(self._V_WI_filtered).CopyToVector()
+        filtered = context.get_discrete_state(self._V_WI_filtered).value()  # read only
         filtered = filtered + self._alpha * (inputs[rows["V_WI_measured"]] - filtered)
         discrete_state.get_mutable_vector(self._V_WI_filtered).SetFromVector(filtered)
         if self._config.passivity_controller:
@@ -345,7 +345,7 @@ class CouplingLaw(LeafSystem):
             fraction = 0.0
         on_tool, on_instrument, scale = limited_wrenches(
             inputs[rows["X_WI_measured"]],
-            context.get_discrete_state(self._V_WI_filtered).CopyToVector(),
+            context.get_discrete_state(self._V_WI_filtered).value(),
             inputs[rows["X_WT"]], inputs[rows["V_WT"]], self._R_IT, self._p_IT, self._k, self._b,
             fraction, self._config.max_force_n, self._config.max_torque_nm)
         observer = None

@@ -259,15 +259,16 @@ class SupervisorLaw(LeafSystem):
 
     def _update(self, context, discrete_state):
         # The update's state starts as a copy of the context's: stepped in place.
-        supervisor_update(self._inputs.Eval(context), self._scripted.Eval(context),
+        supervisor_update(self._inputs.EvalBasicVector(context).value(),
+                          self._scripted.EvalBasicVector(context).value(),
                           context.get_time(), self._period_s, self._parameters,
                           discrete_state.get_mutable_value(self._state))
 
     def _calc_outputs(self, context, output):
         supervisor_outputs(context.get_discrete_state(self._state).get_value(),
-                           context.get_time(), self._scripted.Eval(context),
-                           self._scripted_enable.Eval(context)[0], self._rest_height_m,
-                           self._parameters, output.get_mutable_value())
+                           context.get_time(), self._scripted.EvalBasicVector(context).value(),
+                           self._scripted_enable.EvalBasicVector(context).GetAtIndex(0),
+                           self._rest_height_m, self._parameters, output.get_mutable_value())
 
 
 class HapticSupervisor(Diagram):

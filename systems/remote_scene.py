@@ -102,13 +102,14 @@ class RemoteScene(LeafSystem):
             worker.check()
             return
         kind = STEP | (CONTACT if falls_on(context.get_time(), self._contact_period_s) else 0)
-        worker.request(context.get_discrete_state(self._x).value(), self._u.Eval(context), kind)
+        worker.request(context.get_discrete_state(self._x).value(),
+                       self._u.EvalBasicVector(context).value(), kind)
 
     def _result(self, context, kind: int) -> np.ndarray:
         """[x_next; contact] at the context's (x, u): the worker's if it is on it, else
         computed here."""
         x = context.get_discrete_state(self._x).value()
-        u = self._u.Eval(context)
+        u = self._u.EvalBasicVector(context).value()  # a view: copied below, or compared
         worker = self._worker
         if worker.answers(x, u, kind):
             if worker.started():
