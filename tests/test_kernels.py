@@ -23,13 +23,14 @@ def compiled_versions():
 
 
 def test_runs_compile_nothing_after_the_kernels_are_ready():
-    # Levitation, rigid contact with the hand, and the lattice on its worker thread.
+    # Levitation, rigid contact with the hand, the lattice on its worker thread, and the
+    # stereo display's views.
     builts = [BuildDiagram(load_scenario(name)) for name in
-              ("levitate", "peg_in_hole", "deformable_surface")]
+              ("levitate", "peg_in_hole", "deformable_surface", "stereo_display")]
     compile_kernels(progress=False)
     before = compiled_versions()
     assert all(signature in kernel.overloads for kernel, signature in declared_kernels())
-    for built, duration_s in zip(builts, (1.0, 3.0, 1.5)):
+    for built, duration_s in zip(builts, (1.0, 3.0, 1.5, 1.2)):
         simulate(built, duration_s, progress=False)
     after = compiled_versions()
     compiled_in_loop = {name: versions - before.get(name, set())
