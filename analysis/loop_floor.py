@@ -21,22 +21,25 @@ from maglev_haptics.diagrams.station import add_station_models, rest_transform
 from maglev_haptics.hardware.magnetics import load_magnetics
 from maglev_haptics.hardware.thermal import (
     coil_thermal, current_bounds_a, thermal_budget, winding_resistance_ohm)
+from maglev_haptics.hardware.wrench_kernel import POSE_OK
 from maglev_haptics.systems.current_allocator import (
     TORQUE_WEIGHT_PER_M, bounded_minimum_power_currents)
 from maglev_haptics.systems.levitation_controller import ControllerConfig, pd_gains, pd_wrench
-from maglev_haptics.hardware.wrench_kernel import POSE_OK
 from maglev_haptics.systems.magnetic_actuation import (
     instrument_generalized_force, wrench_matrix_at_pose)
 
 HOVER_ABOVE_REST_M = 0.010  # the loop holds the instrument this far above its rest pose
+SETTLE_S = 0.2  # simulated before the timing starts (s)
 
 
 class FloorLoop(LeafSystem):
     """Hovers the instrument with the floor's kernels alone: each tick (``tick_s``, s) a
     discrete update computes the PD wrench toward ``setpoint`` (12: p [m], rpy [rad],
-    their rates), the wrench matrix at the true pose and the thermal allocation at
-    ambient temperature into its state (the coil currents, A); its output is the
-    currents' wrench at the true pose (the actuation's kernel).
+    their rates) with ``controller``'s gains, the wrench matrix at the true pose and the
+    thermal allocation at ambient temperature into its state (the coil currents, A);
+    its output is the currents' wrench at the true pose (the actuation's kernel). The
+    floor's allocation is the thermal one: the shipped scenarios' (``maglev bench``
+    lists only those).
 
     .. pydrake_system::
 
@@ -47,20 +50,19 @@ class FloorLoop(LeafSystem):
         - generalized_force
     """
 
-    def __init__(self, *, config, setpoint: np.ndarray, tick_s: float):
+    def __init__(self, *, config, controller: ControllerConfig, setpoint: np.ndarray,
+                 tick_s: float):
         super().__init__()
         self._magnetics = load_magnetics(config)
         self._p_WA = np.asarray(config.p_WA, dtype=float)
         self._setpoint = np.asarray(setpoint, dtype=float)
         spec = config.instrument_spec()
         self._mass_kg = spec.mass_kg
-        self._kp, self._kd = pd_gains(ControllerConfig(), spec.mass_kg,
-                                      np.diag(spec.inertia_about_I()))
+        self._kp, self._kd = pd_gains(controller, spec.mass_kg, np.diag(spec.inertia_about_I()))
         thermal = coil_thermal(config)
-        limit_a = config.amplifier.current_limit_a
-        budget = thermal_budget(thermal, horizon_s=ControllerConfig().thermal_horizon_s,
-                                margin_c=ControllerConfig().thermal_margin_c,
-                                current_limit_a=limit_a)
+        budget = thermal_budget(thermal, horizon_s=controller.thermal_horizon_s,
+                                margin_c=controller.thermal_margin_c,
+                                current_limit_a=config.amplifier.current_limit_a)
         ambient_c = np.full(self._magnetics.n_coils, thermal.ambient_c)
         self._resistance_ohm = winding_resistance_ohm(thermal, ambient_c)
         self._bound_a = current_bounds_a(budget, ambient_c)
@@ -90,7 +92,7 @@ class FloorLoop(LeafSystem):
 
 def floor_loop_us(scenario, n_ticks: int = 2000, windows: int = 3) -> dict:
     """The one-system loop's wall time a tick (us, the best of ``windows`` runs of
-    ``n_ticks``, after 0.2 s to settle) for ``scenario``'s device, hovering
+    ``n_ticks``, after SETTLE_S) for ``scenario``'s device, hovering
     HOVER_ABOVE_REST_M above its rest pose; and how far it drifted from there (m), which
     says it held the instrument (a fallen one costs a contact step)."""
     if scenario.hand is not None:
@@ -106,13 +108,13 @@ def floor_loop_us(scenario, n_ticks: int = 2000, windows: int = 3) -> dict:
     plant.SetDefaultFloatingBaseBodyPose(plant.GetBodyByName("instrument", instrument), X_WI)
     setpoint = np.concatenate([X_WI.translation(), [0.0, 0.0, scenario.motion.start_xy_yaw[2]],
                                np.zeros(6)])
-    loop = builder.AddSystem(FloorLoop(config=scenario.device, setpoint=setpoint,
-                                       tick_s=tick_s))
+    loop = builder.AddSystem(FloorLoop(config=scenario.device, controller=scenario.controller,
+                                       setpoint=setpoint, tick_s=tick_s))
     builder.Connect(plant.get_state_output_port(instrument), loop.get_input_port())
     builder.Connect(loop.get_output_port(), plant.get_applied_generalized_force_input_port())
     simulator = Simulator(builder.Build())
     simulator.Initialize()
-    simulator.AdvanceTo(0.2)
+    simulator.AdvanceTo(SETTLE_S)
     best_s = float("inf")
     for _ in range(windows):
         start_s = simulator.get_context().get_time()

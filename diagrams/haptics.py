@@ -108,8 +108,8 @@ def haptics_request(scenario: Scenario) -> PiecewisePolynomial:
     ``enable_at_s`` to ``disable_at_s``, or without one until the motion script's
     landing begins. The script's force ramps down after its landing: haptics left
     engaged would render the scene on an instrument the device no longer carries
-    (nor brakes, let go); ended, the supervisor hands it back to the script, which
-    lands it."""
+    (nor brakes, let go). Ended with the handle in the hand, the supervisor hands the
+    instrument back to the script, which lands it; let go, it lands it where it is."""
     haptics = scenario.haptics
     end = haptics.disable_at_s
     if end is None:

@@ -12,9 +12,11 @@
     The setpoint starts at the pose where haptics ended and blends into the
     script over ``handover_s``, so disabling never yanks the instrument; after a
     fault the script is the device supervisor's landing;
-  - the request drops (no fault) while the handle is let go: **landing**, where
-    the instrument is. Nobody holds it, and the script's pose may be centimetres
-    away (a peg let go in its hole would be pulled out and across to it);
+  - the request drops (no fault) while the handle is let go (past the debounce,
+    the scene holding it): **landing**, where the instrument is. Nobody holds it,
+    and the script's pose may be centimetres away (a peg let go in its hole would be
+    pulled out and across to it). It stays landed, coils off, whatever the script
+    does next, until haptics is requested and the handle gripped again;
   - the handle is let go (for longer than ``release_debounce_s``) while the
     tool touches the scene (within ``contact_memory_s``): the scene holds it
     (a peg let go in its hole stays up between the virtual walls). Nobody
@@ -129,8 +131,10 @@ def _enter(new, next_mode: int, t: float, scripted_pose6, X_WI) -> None:
 def supervisor_step(state, t: float, period_s: float, scripted_pose6, X_WI, tracking_ok: bool,
                     request: bool, faulted: bool, gripped: bool, in_contact: bool,
                     parameters) -> np.ndarray:
-    """The supervisor's state one period (s) after ``state`` at time ``t`` (s); ``request``
-    is false while ``faulted``; ``parameters`` is ``supervisor_parameters(config)``."""
+    """The supervisor's state one period (s) after ``state`` at time ``t`` (s): a latched
+    device fault (``faulted``) drops the ``request``; ``parameters`` is
+    ``supervisor_parameters(config)``."""
+    request = request and not faulted
     new = state.copy()
     mode = int(state[_MODE])
     new[_SINCE_CONTACT] = 0.0 if in_contact else state[_SINCE_CONTACT] + period_s
@@ -139,7 +143,10 @@ def supervisor_step(state, t: float, period_s: float, scripted_pose6, X_WI, trac
     if mode != HAPTIC and request and gripped and tracking_ok:
         _enter(new, HAPTIC, t, scripted_pose6, X_WI)
     elif mode == HAPTIC and not request:
-        _enter(new, LEVITATE if gripped or faulted else LANDING, t, scripted_pose6, X_WI)
+        # Let go (past the debounce: the scene holds it), nobody is there to hand back to.
+        held_by_scene = new[_RELEASED] > parameters[_RELEASE_DEBOUNCE_S]
+        _enter(new, LANDING if held_by_scene and not faulted else LEVITATE, t,
+               scripted_pose6, X_WI)
     elif (mode == HAPTIC and new[_RELEASED] > parameters[_RELEASE_DEBOUNCE_S]
           and state[_RELEASED] <= parameters[_RELEASE_DEBOUNCE_S]
           and new[_SINCE_CONTACT] > parameters[_CONTACT_MEMORY_S]):
@@ -212,7 +219,7 @@ def supervisor_update(inputs, scripted, t, period_s, parameters, state):
     (SUPERVISOR_INPUTS stacked) and the scripted setpoint (12)."""
     state[:] = supervisor_step(
         state, t, period_s, scripted[0:6], inputs[_X_WI:_X_WI + 7], inputs[_TRACKING_OK] > 0.5,
-        inputs[_REQUEST] > 0.5 and inputs[_FAULT_BITS] == 0, inputs[_FAULT_BITS] != 0,
+        inputs[_REQUEST] > 0.5, inputs[_FAULT_BITS] != 0,
         inputs[_GRIPPED] > 0.5, inputs[_IN_CONTACT] > 0.5, parameters)
 
 

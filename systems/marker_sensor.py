@@ -107,10 +107,8 @@ class SampleNoise:
     Draws come in blocks of NOISE_BLOCK samples from numpy's default generator
     seeded with (seed, block), so they depend on (seed, k) only; the last block
     is cached because samples are usually consecutive. Block 0 is drawn here,
-    before a run's clock starts: drawn by the first tick that reads a sample, it
-    cost that tick 300 us. (Later blocks are drawn in place, 250-300 us once every
-    NOISE_BLOCK samples: drawn ahead on a thread, the GIL they passed back and forth
-    cost the tick more.)
+    before a run's clock starts, not by the first tick that reads a sample
+    (docs/architecture.md, "Real time").
     """
 
     def __init__(self, seed: int, n_markers: int):

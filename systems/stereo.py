@@ -107,8 +107,9 @@ def screen_axes(pa, pb, pc):
 
 def eye_distance_m(pa, pb, pc, pe) -> float:
     """Signed distance (m) of the eye pe in front of the display plane."""
+    pa = np.asarray(pa, float)
     _, _, vn = screen_axes(pa, pb, pc)
-    return float(np.dot(np.asarray(pe, float) - pa, vn))
+    return _eye_distance(pa, vn, np.asarray(pe, float))
 
 
 def _check_distance(distance: float, pe) -> float:
@@ -132,10 +133,15 @@ def _dot3(a, b) -> float:
 
 
 @numba.njit(cache=True)
-def _projection_into(pa, pb, pc, vr, vu, vn, pe, near, far, out) -> float:
-    """Kooima's P M^T T of the eye pe into ``out`` (4x4), written out for its zeros;
-    returns the eye's distance in front of the screen (m), which the caller checks."""
-    distance = _dot3(pe - pa, vn)
+def _eye_distance(pa, vn, pe) -> float:
+    """Signed distance (m) of the eye pe in front of the screen through pa, normal vn."""
+    return _dot3(pe - pa, vn)
+
+
+@numba.njit(cache=True)
+def _projection_into(pa, pb, pc, vr, vu, vn, pe, distance, near, far, out) -> None:
+    """Kooima's P M^T T of the eye pe, ``distance`` (m) in front of the screen, into
+    ``out`` (4x4), written out for its zeros."""
     va, vb, vc = pa - pe, pb - pe, pc - pe
     scale = near / distance
     left, right = _dot3(vr, va) * scale, _dot3(vr, vb) * scale
@@ -153,41 +159,42 @@ def _projection_into(pa, pb, pc, vr, vu, vn, pe, near, far, out) -> float:
     out[2, :] = e * rows[2]
     out[2, 3] += f
     out[3, :] = -rows[2]
-    return distance
 
 
 @numba.njit(cache=True)
-def _intrinsics(pa, vr, vu, vn, width_m, height_m, pe, width_px, height_px):
-    """(distance (m), fx, fy, cx, cy (px)) of the eye pe's camera (``eye_camera``)."""
-    distance = _dot3(pe - pa, vn)
-    return (distance, distance * width_px / width_m, distance * height_px / height_m,
+def _intrinsics(pa, vr, vu, width_m, height_m, pe, distance, width_px, height_px):
+    """(fx, fy, cx, cy) (px) of the camera of the eye pe, ``distance`` (m) in front of
+    the screen (``eye_camera``)."""
+    return (distance * width_px / width_m, distance * height_px / height_m,
             _dot3(pe - pa, vr) / width_m * width_px - 0.5,
             (height_m - _dot3(pe - pa, vu)) / height_m * height_px - 0.5)
 
 
 @kernel((MATRIX, VECTOR, VECTOR, VECTOR, VECTOR, VECTOR, VECTOR, SCALAR, SCALAR, SCALAR, SCALAR,
          SCALAR, SCALAR, VECTOR, VECTOR))
-def views_into(eyes_W, pa, pb, pc, vr, vu, vn, width_m, height_m, width_px, height_px, near,
-               far, q_WC, out) -> float:
+def view_state_into(eyes_W, pa, pb, pc, vr, vu, vn, width_m, height_m, width_px, height_px,
+                    near, far, q_WC, out):
     """``StereoView``'s state for the eyes (2, 3) into ``out``: the eyes, both
-    projections (row-major) and both cameras, then view_ok 1; returns the nearer
-    eye's distance in front of the screen (m), which the caller checks."""
+    projections (row-major) and both cameras, then view_ok 1. Returns (-1, 0.0), or
+    (k, its distance (m)) for an eye k nearer the screen than MIN_EYE_DISTANCE_M, with
+    ``out`` untouched."""
+    distances = np.array([_eye_distance(pa, vn, eyes_W[0]), _eye_distance(pa, vn, eyes_W[1])])
+    for k in range(2):
+        if not distances[k] >= MIN_EYE_DISTANCE_M:
+            return k, distances[k]
     out[0:6] = eyes_W.ravel()
-    nearest = np.inf
     projection = np.empty((4, 4))
     for k in range(2):
         pe = eyes_W[k].copy()
-        nearest = min(nearest, _projection_into(pa, pb, pc, vr, vu, vn, pe, near, far,
-                                                projection))
+        _projection_into(pa, pb, pc, vr, vu, vn, pe, distances[k], near, far, projection)
         out[6 + 16 * k:22 + 16 * k] = projection.ravel()
-        _, fx, fy, cx, cy = _intrinsics(pa, vr, vu, vn, width_m, height_m, pe, width_px,
-                                        height_px)
         camera = out[38 + CAMERA_SIZE * k:38 + CAMERA_SIZE * (k + 1)]
         camera[0:4] = q_WC
         camera[4:7] = pe
-        camera[7], camera[8], camera[9], camera[10] = fx, fy, cx, cy
+        camera[7], camera[8], camera[9], camera[10] = _intrinsics(
+            pa, vr, vu, width_m, height_m, pe, distances[k], width_px, height_px)
     out[38 + 2 * CAMERA_SIZE] = 1.0
-    return nearest
+    return -1, 0.0
 
 
 def off_axis_projection(pa, pb, pc, pe, near, far) -> np.ndarray:
@@ -202,9 +209,9 @@ def off_axis_projection(pa, pb, pc, pe, near, far) -> np.ndarray:
     check_clipping(near, far)
     pa, pb, pc, pe = (np.asarray(v, float) for v in (pa, pb, pc, pe))
     vr, vu, vn = screen_axes(pa, pb, pc)
-    _check_distance(float(np.dot(pe - pa, vn)), pe)
+    distance = _check_distance(_eye_distance(pa, vn, pe), pe)
     projection = np.empty((4, 4))
-    _projection_into(pa, pb, pc, vr, vu, vn, pe, float(near), float(far), projection)
+    _projection_into(pa, pb, pc, vr, vu, vn, pe, distance, float(near), float(far), projection)
     return projection
 
 
@@ -218,9 +225,9 @@ def eye_camera(screen: DisplayRectangle, pe, width_px: int, height_px: int):
     """
     vr, vu, vn = screen.axes
     pe = np.asarray(pe, float)
-    distance, fx, fy, cx, cy = _intrinsics(screen.pa, vr, vu, vn, *screen.size_m, pe,
-                                           float(width_px), float(height_px))
-    _check_distance(distance, pe)
+    distance = _check_distance(_eye_distance(screen.pa, vn, pe), pe)
+    fx, fy, cx, cy = _intrinsics(screen.pa, vr, vu, *screen.size_m, pe, distance,
+                                 float(width_px), float(height_px))
     return np.column_stack([vr, -vu, -vn]), pe, fx, fy, cx, cy
 
 
@@ -320,12 +327,11 @@ class StereoView(LeafSystem):
         s = self._screen
         eyes = eye_positions_W(q_WG, p_WG, self._ipd_m)
         view = np.empty(39 + 2 * CAMERA_SIZE)
-        nearest = views_into(eyes, s.pa, s.pb, s.pc, *s.axes, *s.size_m, float(s.width_px),
-                             float(s.height_px), float(self._near_m), float(self._far_m), s.q_WC,
-                             view)
-        if not nearest >= MIN_EYE_DISTANCE_M:
-            for eye in eyes:
-                _check_distance(float(np.dot(eye - s.pa, s.axes[2])), eye)
+        eye, distance = view_state_into(
+            eyes, s.pa, s.pb, s.pc, *s.axes, *s.size_m, float(s.width_px), float(s.height_px),
+            float(self._near_m), float(self._far_m), s.q_WC, view)
+        if eye >= 0:
+            _check_distance(distance, eyes[eye])
         return view
 
     def _update(self, context, discrete_state):

@@ -61,7 +61,6 @@ def test_the_one_system_loop_hovers_the_instrument_with_the_floors_kernels():
         result = floor_loop_us(load_scenario("levitate", name), n_ticks=300, windows=1)
         # Held where it was put: a fallen instrument would cost a contact step a tick.
         assert result["drift_m"] < 1e-4
-        assert result["us_per_tick"] > 0
 
 
 def test_the_one_system_loop_refuses_a_scene_with_a_hand():

@@ -27,8 +27,7 @@ def pose_vector(xyz, rpy):
 def run(state, t0, n, *, X_WI, request, gripped, in_contact, tracking_ok=True, faulted=False):
     for k in range(n):
         state = supervisor_step(state, t0 + k * PERIOD_S, PERIOD_S, HOVER, X_WI, tracking_ok,
-                                request and not faulted, faulted, gripped, in_contact,
-                                PARAMETERS)
+                                request, faulted, gripped, in_contact, PARAMETERS)
     return state, t0 + n * PERIOD_S
 
 
@@ -119,6 +118,16 @@ def test_disable_with_the_handle_let_go_lands_where_the_instrument_is():
         setpoint = supervisor_setpoint(state, state[1] + elapsed, scripted, REST_M, PARAMETERS)
         np.testing.assert_allclose(setpoint[0:2], [-0.01, 0.0], atol=1e-9)  # straight down
         assert REST_M - LANDING_PRESS_M - 1e-12 <= setpoint[2] <= 0.0125 + 1e-12
+
+
+def test_disable_during_a_let_go_shorter_than_the_debounce_hands_back_to_the_script():
+    X_WI = pose_vector([-0.01, 0.0, 0.0125], [0.0, 0.0, 0.3])
+    state = initial_supervisor_state()
+    state, t = run(state, 0.0, 10, X_WI=X_WI, request=True, gripped=True, in_contact=True)
+    state, t = run(state, t, int(CONFIG.release_debounce_s / PERIOD_S) - 5, X_WI=X_WI,
+                   request=True, gripped=False, in_contact=True)  # a flicker of the grip
+    state, t = run(state, t, 1, X_WI=X_WI, request=False, gripped=False, in_contact=True)
+    assert state[0] == LEVITATE
 
 
 def test_a_fault_with_the_handle_let_go_hands_back_to_the_supervisors_landing():

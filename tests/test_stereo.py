@@ -52,6 +52,26 @@ def test_projection_pixel_is_where_the_eye_ray_meets_the_display():
             np.testing.assert_allclose(pixel, through_display_pixel(eye, p_W), atol=1e-6)
 
 
+def test_projection_is_kooimas_P_Mt_T():
+    # Written out as matrices, for one off-centre eye: the compiled projection is
+    # checked against the paper's formula, not against itself.
+    eye, near, far = np.array([0.07, -0.21, 0.43]), 0.05, 2.0
+    vr, vu, vn = SCREEN.axes
+    distance = (eye - SCREEN.pa) @ vn
+    scale = near / distance
+    left, right = vr @ (SCREEN.pa - eye) * scale, vr @ (SCREEN.pb - eye) * scale
+    bottom, top = vu @ (SCREEN.pa - eye) * scale, vu @ (SCREEN.pc - eye) * scale
+    P = np.array([[2 * near / (right - left), 0, (right + left) / (right - left), 0],
+                  [0, 2 * near / (top - bottom), (top + bottom) / (top - bottom), 0],
+                  [0, 0, -(far + near) / (far - near), -2 * far * near / (far - near)],
+                  [0, 0, -1, 0]])
+    Mt, T = np.eye(4), np.eye(4)
+    Mt[0:3, 0:3] = [vr, vu, vn]
+    T[0:3, 3] = -eye
+    np.testing.assert_allclose(off_axis_projection(SCREEN.pa, SCREEN.pb, SCREEN.pc, eye, near, far),
+                               P @ Mt @ T, rtol=1e-12, atol=1e-12)
+
+
 def test_display_corners_map_to_the_image_corners():
     eye = np.array([0.3, -0.4, 0.35])  # far off-centre
     P = off_axis_projection(SCREEN.pa, SCREEN.pb, SCREEN.pc, eye, 0.05, 2.0)
@@ -126,7 +146,9 @@ def test_stereo_view_outputs_and_freezes_on_a_bad_pose():
         SCREEN.pa, SCREEN.pb, SCREEN.pc, eyes[0], 0.05, 2.0))
     assert view.GetOutputPort("view_ok").Eval(context)[0] == 1.0
     good = view.GetOutputPort("camera_right").Eval(context).copy()
-    for bad in (np.full(7, np.nan), np.array([1.0, 0, 0, 0, 0.0, 0.0, -0.2])):
+    # No pose; the glasses below the screen; an eye exactly on its plane (zero distance).
+    for bad in (np.full(7, np.nan), np.array([1.0, 0, 0, 0, 0.0, 0.0, -0.2]),
+                np.array([1.0, 0, 0, 0, 0.0, 0.0, 0.0])):
         view.get_input_port().FixValue(context, bad)
         context.SetDiscreteState(view.EvalUniquePeriodicDiscreteUpdate(context))
         assert view.GetOutputPort("view_ok").Eval(context)[0] == 0.0
