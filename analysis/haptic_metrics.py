@@ -104,6 +104,13 @@ def engaged_mask(log: Dict[str, np.ndarray], ramp_s: float) -> np.ndarray:
     return mask
 
 
+def clamped_in_haptics_s(log: Dict[str, np.ndarray]) -> float:
+    """How long (s) the coupling's wrench was clamped at its limits while in haptic mode:
+    out of it the coupling still runs, but nobody feels it."""
+    clamped = (log["coupling_clamped"] > 0.5) & (log["haptic_mode"] == HAPTIC)
+    return float(np.sum(clamped) * np.median(np.diff(log["t"])))
+
+
 def free_mask(log, ramp_s: float) -> np.ndarray:
     """Samples engaged, held and at least CONTACT_GUARD_S from any contact."""
     return (engaged_mask(log, ramp_s) & (log["handle_gripped"] > 0.5)
@@ -251,8 +258,7 @@ def haptic_summary(log, scenario, *, rest_height_m: float) -> Dict:
         "free_motion": (None if isinstance(haptics.scene, HangingBall)
                         else free_motion(log, ramp_s)),
         "releases": releases(log, rest_height_m, haptics.supervisor.release_debounce_s),
-        "coupling_clamped_s": float(np.sum(log["coupling_clamped"] > 0.5)
-                                    * np.median(np.diff(log["t"]))),
+        "coupling_clamped_s": clamped_in_haptics_s(log),
         # What the passivity controller dissipated (J); null when it is off.
         "passivity_dissipated_j": (float(log["passivity_dissipated_j"][-1])
                                    if haptics.coupling.passivity_controller else None),

@@ -151,20 +151,39 @@ def metric(summary: Dict, path: str):
     return value
 
 
-def run_point(job: SweepJob) -> Dict[str, Any]:
-    """One point: its scenario run, the metrics kept (a run that raised: its error)."""
+@dataclass
+class PointResult:
+    row: Dict[str, Any]  # the varied values, the metrics kept and the error (None: none)
+    summary_keys: List[str]  # the top-level keys of its summary.json (none: it raised)
+
+
+def run_point(job: SweepJob) -> PointResult:
+    """One point: its scenario run, the metrics kept. Its error: what the run raised,
+    or the line ``maglev run`` ends with when the instrument was lost or a fault
+    latched in a run that injected none (``analysis/run_outcome.py``)."""
+    from maglev_haptics.analysis.run_outcome import instrument_outcome
     from maglev_haptics.analysis.run_results import run_scenario
     row: Dict[str, Any] = dict(job.point)
     try:
         scenario = load_scenario(job.scenario, job.name, job.scenario_text,
                                  point_text(job.point))
-        summary = run_scenario(scenario, label="sweep point", progress=False).summary
-        row |= {name: metric(summary, name) for name in job.metrics}
-        row["error"] = None
+        result = run_scenario(scenario, label="sweep point", progress=False)
+        row |= {name: metric(result.summary, name) for name in job.metrics}
+        row["error"] = instrument_outcome(scenario, result.summary, result.log, "its run")
+        return PointResult(row, sorted(result.summary))
     except Exception as error:  # recorded in its row: the rest of the sweep goes on
         row |= {name: None for name in job.metrics}
         row["error"] = f"{type(error).__name__}: {error}"
-    return row
+        return PointResult(row, [])
+
+
+def unknown_metrics(metrics: List[str], results: List[PointResult]) -> List[str]:
+    """The metrics whose first key no point's summary.json has (a misspelling: a metric
+    that only some runs have, such as touchdown.speed_m_s, is known)."""
+    keys = {key for result in results for key in result.summary_keys}
+    if not keys:  # no run got as far as a summary: their errors say why
+        return []
+    return [name for name in metrics if name.split(".")[0] not in keys]
 
 
 def run_sweep(spec: SweepSpec, out_dir: Path, *, workers: int = 1,
@@ -174,7 +193,7 @@ def run_sweep(spec: SweepSpec, out_dir: Path, *, workers: int = 1,
             for point in spec.points()]
     ran = map_jobs(run_point, jobs, workers=workers, scheduler=scheduler,
                    description="sweep", progress=progress)
-    rows = ran.results
+    rows = [result.row for result in ran.results]
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     columns = [*spec.vary, *spec.metrics, "error"]
@@ -189,6 +208,11 @@ def run_sweep(spec: SweepSpec, out_dir: Path, *, workers: int = 1,
                   "metrics": spec.metrics},
          "rows": rows, "jobs": jobs_ran}, indent=1))
     plot = plot_sweep(spec, rows, out_dir / "sweep.png")
+    unknown = unknown_metrics(spec.metrics, ran.results)
+    if unknown:  # said after the files are written: the runs are not lost
+        keys = sorted({key for result in ran.results for key in result.summary_keys})
+        raise ScenarioError(f"{spec.source}: metrics: {unknown[0]}: no point's summary.json "
+                            f"has it (wrote {out_dir}); a summary has " + ", ".join(keys))
     return {"rows": rows, "jobs": jobs_ran, "files": [out_dir / "sweep.csv",
                                                       out_dir / "sweep.json", plot]}
 

@@ -461,8 +461,9 @@ Studies:
 BENCH_PARTS = """\
 What it runs, and how long each part took on a quiet 2-core machine (a busy one
 takes several times as long):
-  scenarios      the ten shipped scenarios, each its whole script (about 35 s in all);
-                 --duration S: S simulated seconds each
+  scenarios      every levitate scenario and the first of each other shipped file
+                 (stereo_display's head_sweep, the haptic scenes), each its whole
+                 script (about 35 s in all); --duration S: S simulated seconds each
   systems        each leaf system's update at hover, best of five, and the physics
                  floors (about 3 s)
   allocation     the wrench matrix and the current allocation (about 2 s)
@@ -490,8 +491,8 @@ def _add_run_parser(commands) -> None:
         "run", formatter_class=FORMATTER,
         help="simulate a scenario; write log.npz, summary.json, plots",
         description="Simulate a scenario; write log.npz, summary.json and plots to --out.\n"
-        "Exit codes: 0 done; 2 bad input; 4 the device (on LCM) is in use by another "
-        "application;\n5 a fault latched, or the instrument was lost, in a run whose "
+        "Exit codes: 0 done; 2 bad input; 3 the simulation stopped on an internal check;\n"
+        "4 the device (on LCM) is in use by another application;\n5 a fault latched, or the instrument was lost, in a run whose "
         "scenario injected no fault;\n128 + N stopped by signal N.",
         epilog=_epilog("""
             maglev run levitate                          # its first scenario, Meshcat at 1x

@@ -19,7 +19,7 @@ from typing import List, Optional
 import numpy as np
 from pydrake.math import RollPitchYaw
 
-from maglev_haptics.diagrams.motion import flight_plan
+from maglev_haptics.diagrams.motion import check_waypoints_reachable, flight_plan
 from maglev_haptics.hardware.constants import GRAVITY_M_S2
 from maglev_haptics.hardware.magnetics import load_magnetics
 from maglev_haptics.hardware.thermal import (
@@ -144,23 +144,21 @@ def _time_allowed(coils: _Coils, A, wrench, temperature_c) -> float:
 
 
 def describe(forecast: HoldForecast, label: str) -> str:
-    """One line on a hold the coils cannot keep for ever."""
-    where = f"{label}: motion.waypoints[{forecast.waypoint}]"
-    if forecast.cut_short:
-        return (f"{where}: held {forecast.hold_s:g} s, but the coils allow "
-                f"{forecast.allowed_s:.1f} s of it within their thermal budget; the "
-                f"device then lands (coil over-temperature)")
-    return (f"{where}: not sustainable (the coils allow {forecast.allowed_s:.1f} s there "
-            f"within their thermal budget); held {forecast.hold_s:g} s")
+    """One line on a hold the script holds longer than the coils allow."""
+    return (f"{label}: motion.waypoints[{forecast.waypoint}]: held {forecast.hold_s:g} s, "
+            f"but the coils allow {forecast.allowed_s:.1f} s of it within their thermal "
+            "budget; the device then lands (coil over-temperature)")
 
 
 def thermal_outlook(scenario, label: str) -> List[str]:
     """``describe``'s line for each hold of a levitation scenario with the thermal
-    allocation that the coils cannot keep for ever; none for other scenarios."""
+    allocation that the thermal budget would end; none for other scenarios. A waypoint
+    the coils cannot reach at all is refused first (``check_waypoints_reachable``)."""
     if scenario.haptics is not None or scenario.controller.allocation != "thermal":
         return []
     device = scenario.device
+    magnetics = load_magnetics(device)
+    check_waypoints_reachable(scenario.motion, device, magnetics, label)
     plan = flight_plan(scenario.motion, device.instrument_spec().rest_height_m)
-    return [describe(forecast, label)
-            for forecast in forecast_holds(scenario, plan, load_magnetics(device))
-            if not forecast.sustainable]
+    return [describe(forecast, label) for forecast in forecast_holds(scenario, plan, magnetics)
+            if forecast.cut_short]

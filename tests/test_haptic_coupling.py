@@ -6,9 +6,11 @@ import pytest
 from pydrake.math import RigidTransform, RollPitchYaw, RotationMatrix
 from scipy.spatial.transform import Rotation
 
+from maglev_haptics.analysis.haptic_metrics import clamped_in_haptics_s
 from maglev_haptics.systems.haptic_coupling import (
     CouplingConfig, HapticCoupling, clamp_scale, coupling_gains, coupling_wrenches,
     passivity_step, resolved_rotational_gains, spring_potential, velocity_filter_gain)
+from maglev_haptics.systems.haptic_supervisor import HAPTIC
 
 PERIOD_S = 1e-3
 # What the diagram builder fills in for a device: limits and rotational gains.
@@ -315,3 +317,13 @@ def test_the_passivity_observer_leaves_a_passive_port_alone_and_scales_an_axis_i
     assert out[0] == pytest.approx(wrench[0] / 3.0)  # 1 / (1 + 2 mJ / 1 mJ)
     np.testing.assert_array_equal(out[1:], wrench[1:])
     assert withheld == pytest.approx((wrench[0] - out[0]) * 1.0 * period_s)
+
+
+def test_clamped_time_counts_only_what_the_hand_could_feel():
+    """The summary's coupling_clamped_s: the samples clamped in haptic mode only (the
+    coupling runs, clamped or not, before haptics engages and after it ends)."""
+    t = np.arange(10) * 1e-3
+    clamped = np.array([1, 1, 1, 0, 1, 1, 0, 0, 1, 1], float)
+    mode = np.array([0, 0, HAPTIC, HAPTIC, HAPTIC, HAPTIC, HAPTIC, 0, 0, 0], float)
+    log = {"t": t, "coupling_clamped": clamped, "haptic_mode": mode}
+    assert clamped_in_haptics_s(log) == pytest.approx(3e-3)

@@ -380,3 +380,18 @@ def test_here_must_be_resolved():
     raw.directives[0].add_model.file = "file://{here}/models/gear.obj"
     with pytest.raises(ValueError, match=r"holds \{here\}, the scenario file's folder"):
         check_model_scene(raw, "scene")
+
+
+def test_the_readme_example_presses_on_the_model(tmp_path):
+    """README's "Feel your own model" scenario, as written there, with the gear as
+    my_part.obj: haptics engages and the hand's press reaches the model."""
+    readme = (Path(__file__).parents[1] / "README.md").read_text()
+    example = readme.split("```yaml\nmy_part:")[1].split("```")[0]
+    (tmp_path / "my_scenarios.yaml").write_text("my_part:" + example)
+    (tmp_path / "models").mkdir()
+    (tmp_path / "models" / "my_part.obj").write_bytes(
+        (SCENARIO_DIR / "models" / "gear.obj").read_bytes())
+    scenario = load_scenario(str(tmp_path / "my_scenarios.yaml"), "my_part")
+    result = run_scenario(scenario, label="my_part", progress=False)
+    assert result.summary["haptics_engaged_s"] > 3.0
+    assert result.log["tool_in_contact"][result.log["t"] > 5.0].any()

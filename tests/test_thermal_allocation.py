@@ -9,8 +9,8 @@ from pydrake.math import RollPitchYaw
 from maglev_haptics.analysis.run_results import run_scenario
 from maglev_haptics.diagrams.cli import main
 from maglev_haptics.diagrams.motion import flight_plan
-from maglev_haptics.diagrams.scenario import load_scenario
-from maglev_haptics.diagrams.thermal_forecast import forecast_holds
+from maglev_haptics.diagrams.scenario import ScenarioError, load_scenario
+from maglev_haptics.diagrams.thermal_forecast import forecast_holds, thermal_outlook
 from maglev_haptics.hardware.constants import GRAVITY_M_S2
 from maglev_haptics.hardware.magnetics import load_magnetics
 from maglev_haptics.hardware.thermal import coil_thermal, steady_state_temperature_c
@@ -106,3 +106,21 @@ def test_maglev_run_says_how_long_the_coils_allow_before_it_flies(capsys, tmp_pa
     assert first.startswith("levitate:takeoff_hover_land: motion.waypoints[0]: held 6 s, but "
                             "the coils allow ")
     assert "device then lands (coil over-temperature)" in first
+
+
+def test_the_outlook_speaks_only_of_holds_the_budget_would_end():
+    """square's corners cannot be held for ever but are held for 0.8 s of the 20 s the
+    coils allow: nothing to say. A hold past what they allow is one line."""
+    _, holds = forecast("square", "{}")
+    assert any(not hold.sustainable for hold in holds)
+    assert not any(hold.cut_short for hold in holds)
+    assert thermal_outlook(load_scenario("levitate", "square"), "square") == []
+    (line,) = thermal_outlook(load_scenario("levitate", "takeoff_hover_land", HIGH_HOLD), "high")
+    assert line.startswith("high: motion.waypoints[0]: held 6 s, but the coils allow ")
+
+
+def test_an_unreachable_waypoint_is_refused_before_any_forecast():
+    scenario = load_scenario("levitate", "takeoff_hover_land", "{motion: {waypoints: [{pose: "
+                             "[0, 0, 0.05, 0, 0, 0], move_s: 1.0, hold_s: 1.0}]}}")
+    with pytest.raises(ScenarioError, match=r"^high: motion.waypoints\[0\].pose = .*unreachable"):
+        thermal_outlook(scenario, "high")
