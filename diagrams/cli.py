@@ -302,7 +302,7 @@ def _cmd_driver(args) -> int:
         raise ValueError("--channels and --amps-per-volt: both are required for coil-daq")
     output = DaqCoilOutput(_daq_channels(args.channels), CoilOutputContract(
         n_coils=device.n_coils, current_limit_a=device.amplifier.current_limit_a,
-        amps_per_volt=args.amps_per_volt))
+        amps_per_volt=args.amps_per_volt, instrument=device.instrument))
     counts = output.serve(open_lcm(config.command_url),
                           channel(config, COIL_CURRENTS_COMMANDED), args.duration,
                           config.command_timeout_s, lease_channel=channel(config, LEASE_REQUEST),

@@ -142,7 +142,8 @@ def BuildDeviceSim(scenario) -> DeviceSim:
             hand_script.start(now_s - command.utime / US_PER_S)
 
     lease = LeaseServer(timeout_s=station_config.lease_timeout_s, publish_reply=lambda message:
-                        publish(publisher, channel(station_config, LEASE), message))
+                        publish(publisher, channel(station_config, LEASE), message),
+                        instrument=device.instrument)
     commands = builder.AddNamedSystem("commands_receiver", MakeCommandReceiver(
         lcm=open_lcm(station_config.command_url), station=station_config, limits=limits,
         lease=lease, period_s=period_s, on_command=on_command))

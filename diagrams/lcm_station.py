@@ -202,7 +202,8 @@ def MakeLcmStation(scenario) -> Diagram:
     builder = DiagramBuilder()
     command_lcm = open_lcm(station.command_url)
     lease = LeaseClient(lcm=command_lcm, channel=channel(station, LEASE_REQUEST),
-                        wait_s=station.wait_for_station_s)
+                        wait_s=station.wait_for_station_s,
+                        instrument=scenario.device.instrument)
     channels = station_channels(scenario, lease)
     receiver = builder.AddNamedSystem("receiver", MessageReceiver(
         lcm=open_lcm(station.url), channels=channels, period_s=period_s,

@@ -36,11 +36,13 @@ from maglev_haptics.hardware.link_checks import (
 @dataclass
 class CoilOutputContract:
     """What the card may be asked for: ``n_coils`` currents within ``current_limit_a``
-    (A), at ``amps_per_volt`` (A/V) of amplifier transconductance."""
+    (A), at ``amps_per_volt`` (A/V) of amplifier transconductance, by an application
+    that flies ``instrument`` (the one levitated over these coils)."""
 
     n_coils: int
     current_limit_a: float
     amps_per_volt: float
+    instrument: str
 
     def __post_init__(self):
         if not (np.isfinite(self.amps_per_volt) and self.amps_per_volt > 0):
@@ -74,7 +76,8 @@ class CommandLink:
                  log: Callable[[str], None] = log_to_stderr):
         self._apply = apply
         self._clock = clock
-        self.lease = LeaseServer(timeout_s=lease_timeout_s, publish_reply=publish_reply)
+        self.lease = LeaseServer(timeout_s=lease_timeout_s, publish_reply=publish_reply,
+                                 instrument=contract.instrument)
         limits = contract.limits()
         self.commands = InboundGate(command_channel, coil_currents_t,
                                     lambda message: check_command(message, limits),

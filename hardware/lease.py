@@ -8,6 +8,11 @@ answers on ``LEASE`` who holds it, at once and every ``REPLY_PERIOD_S``. The
 holder keeps it by commanding: once its commands have been silent for
 ``timeout_s`` it lapses. An application lets it go (RELEASE) when it stops.
 
+Both ends name their instrument: the device refuses a request for another one
+(``wrong_instrument``), and an application that reads the device's answer naming
+another stops with ``InstrumentMismatchError``: its wrench model, and so every
+current it would command, would be another device's.
+
 The device refuses every command whose session is not the holder's (counted as
 ``other_session``), so a second application's commands never reach the coils; it
 reads the device's answer naming another holder and stops with
@@ -39,6 +44,10 @@ class DeviceInUseError(RuntimeError):
     """Another application holds the device's lease: this one commands nothing."""
 
 
+class InstrumentMismatchError(ValueError):
+    """The device carries another instrument than the application's scenario flies."""
+
+
 def new_session() -> int:
     """A random, non-zero 62-bit session id."""
     return secrets.randbits(62) | 1
@@ -56,10 +65,13 @@ def describe_holder(message) -> str:
 
 class LeaseServer:
     """The device's end: who holds the lease. ``publish_reply(message)`` sends an
-    answer (on ``LEASE``); times are the device's clock (s)."""
+    answer (on ``LEASE``); times are the device's clock (s); ``instrument`` is the one
+    on the device (``DeviceConfig.instrument``)."""
 
-    def __init__(self, *, timeout_s: float, publish_reply: Callable[[lease_t], None]):
+    def __init__(self, *, timeout_s: float, publish_reply: Callable[[lease_t], None],
+                 instrument: str):
         self.timeout_s = float(timeout_s)
+        self.instrument = instrument
         self._publish_reply = publish_reply
         self.holder = lease_t()  # session 0: nobody
         self.holder.action = lease_t.FREE
@@ -79,8 +91,14 @@ class LeaseServer:
     def admit_request(self, message: lease_t, now_s: float) -> None:
         """An application's REQUEST or RELEASE (checked by ``check_lease_request``):
         where another session holds the lease, answers who does and raises
-        Refused("other_session")."""
+        Refused("other_session"); a REQUEST for another instrument raises
+        Refused("wrong_instrument")."""
         self._lapse(now_s)
+        if message.action == lease_t.REQUEST and message.instrument != self.instrument:
+            self.reply(now_s)
+            raise Refused("wrong_instrument", f"instrument = {message.instrument!r} "
+                          f"({describe_holder(message)}): the device carries "
+                          f"{self.instrument!r}")
         if self.holder.session not in (0, message.session):
             self.reply(now_s)
             action = "REQUEST" if message.action == lease_t.REQUEST else "RELEASE"
@@ -125,6 +143,7 @@ class LeaseServer:
         message.action = self.holder.action
         message.session, message.pid, message.host = (
             self.holder.session, self.holder.pid, self.holder.host)
+        message.instrument = self.instrument
         self._replied_s = now_s
         self._publish_reply(message)
 
@@ -145,10 +164,14 @@ class LeaseClient:
     ``on_reply`` reads the device's answers: one naming another holder before this
     session was granted raises ``DeviceInUseError``; ``on_tick`` asks again every
     ``REQUEST_PERIOD_S`` until granted, and raises TimeoutError if no grant came
-    within ``wait_s``. ``release()`` (also at exit) lets the lease go."""
+    within ``wait_s``; an answer from a device that carries another instrument than
+    ``instrument`` raises ``InstrumentMismatchError``. ``release()`` (also at exit)
+    lets the lease go."""
 
-    def __init__(self, *, lcm, channel: str, wait_s: float, session: Optional[int] = None):
+    def __init__(self, *, lcm, channel: str, wait_s: float, instrument: str,
+                 session: Optional[int] = None):
         self.session = new_session() if session is None else int(session)
+        self.instrument = instrument
         self.host = socket.gethostname()
         self.pid = os.getpid()
         self._lcm = lcm
@@ -172,6 +195,7 @@ class LeaseClient:
         message.utime = int(round(now_s * US_PER_S))
         message.session, message.action = self.session, action
         message.pid, message.host = self.pid, self.host
+        message.instrument = self.instrument
         publish(self._lcm, self._channel, message)
 
     def on_tick(self, now_s: float) -> None:
@@ -189,6 +213,11 @@ class LeaseClient:
             self._send(lease_t.REQUEST, now_s)
 
     def on_reply(self, message: lease_t, now_s: float) -> None:
+        if message.instrument != self.instrument:
+            raise InstrumentMismatchError(
+                f"the device carries the {message.instrument!r} instrument; this scenario "
+                f"flies {self.instrument!r} (device.instrument): run the device and the "
+                "application with the same device; this one commanded no coil")
         if message.action == lease_t.HELD and message.session == self.session:
             if not self.granted:
                 self.granted, self.granted_at_s = True, now_s

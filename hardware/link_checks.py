@@ -40,7 +40,8 @@ from tqdm import tqdm
 
 from maglev_haptics.hardware.lcm_messages import device_status_t, lease_t
 
-REASONS = ("malformed", "wrong_size", "not_finite", "out_of_range", "other_session", "replayed")
+REASONS = ("malformed", "wrong_size", "not_finite", "out_of_range", "other_session", "replayed",
+           "wrong_instrument")
 # The instrument tracker's measuring volume, as a distance from W's origin (m): an
 # Optotrak's reaches ~1-6 m from its cameras; a marker beyond 2 m of the display is
 # nowhere the instrument can be.

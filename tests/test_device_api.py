@@ -154,7 +154,8 @@ def test_connect_is_refused_while_another_application_holds_the_device():
     listener, commands = lcm.LCM(url), lcm.LCM(command_url)
     replies = []
     listener.subscribe("MAGLEV_LEASE", lambda _, data: replies.append(lease_t.decode(data)))
-    holder = LeaseClient(lcm=commands, channel="MAGLEV_LEASE_REQUEST", wait_s=180.0)
+    holder = LeaseClient(lcm=commands, channel="MAGLEV_LEASE_REQUEST", wait_s=180.0,
+                         instrument="two_magnet")
     stop = threading.Event()
 
     def keep_alive():  # the holder commands the coils off at 100 Hz

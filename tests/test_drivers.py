@@ -102,7 +102,8 @@ def test_dummy_ndi_tracker_publishes_unseen_glasses(tmp_path):
     assert not any(m.ok for m in received)  # the dummy sees nothing
 
 
-CONTRACT = CoilOutputContract(n_coils=27, current_limit_a=4.0, amps_per_volt=0.4)
+CONTRACT = CoilOutputContract(n_coils=27, current_limit_a=4.0, amps_per_volt=0.4,
+                              instrument="two_magnet")
 
 
 def command(currents):
@@ -139,7 +140,7 @@ def test_commands_outside_the_contract_are_refused(currents, reason, detail):
 def lease_request(session, sequence, action=lease_t.REQUEST):
     message = lease_t()
     message.session, message.sequence, message.action = session, sequence, action
-    message.pid, message.host = 4242, "labpc"
+    message.pid, message.host, message.instrument = 4242, "labpc", "two_magnet"
     return message.encode()
 
 
@@ -175,7 +176,7 @@ def test_the_coil_driver_applies_only_the_lease_holders_good_new_commands():
     counts = link.counts()
     assert counts["applied"] == 2 and counts["refused"] == {
         "malformed": 1, "wrong_size": 1, "not_finite": 1, "out_of_range": 1,
-        "other_session": 2, "replayed": 2}
+        "other_session": 2, "replayed": 2, "wrong_instrument": 0}
     assert counts["lease"]["requests_refused"]["other_session"] == 1
     assert len(lines) == 7 and all("refused a message" in line for line in lines)
     clock[0] = 0.6  # the holder silent past the lease's timeout: the next asker gets it

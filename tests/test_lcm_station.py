@@ -24,7 +24,8 @@ from maglev_haptics.diagrams.scenario import ScenarioError, load_scenario
 from maglev_haptics.hardware.lcm_link import publish
 from maglev_haptics.hardware.lcm_messages import (
     coil_currents_t, glasses_t, lease_t, markers_t)
-from maglev_haptics.hardware.lease import DeviceInUseError, LeaseClient, LeaseServer
+from maglev_haptics.hardware.lease import (
+    DeviceInUseError, InstrumentMismatchError, LeaseClient, LeaseServer)
 from maglev_haptics.hardware.link_checks import REASONS, LinkLimits
 from maglev_haptics.systems.station_messages import (
     LATENCY_BINS, MessageReceiver, ReceivedChannel, currents_and_power_from_message,
@@ -374,7 +375,7 @@ def a_command(sequence, session, currents, n_coils=None):
 def lease_request(session, sequence, action=lease_t.REQUEST):
     message = lease_t()
     message.session, message.sequence, message.action = session, sequence, action
-    message.pid, message.host = 1234, "labpc"
+    message.pid, message.host, message.instrument = 1234, "labpc", "two_magnet"
     return message
 
 
@@ -387,7 +388,7 @@ def test_the_issues_five_messages_never_reach_the_coils():
     bus = lcm.LCM("memq://")
     replies, lines = [], []
     station = LcmStation(channel_prefix="T_")
-    lease = LeaseServer(timeout_s=0.5, publish_reply=replies.append)
+    lease = LeaseServer(timeout_s=0.5, publish_reply=replies.append, instrument="two_magnet")
     receiver = MakeCommandReceiver(lcm=bus, station=station, limits=LinkLimits(27, 3, 4.0),
                                    lease=lease, period_s=0.001, log=lines.append)
     context = receiver.CreateDefaultContext()
@@ -413,7 +414,8 @@ def test_the_issues_five_messages_never_reach_the_coils():
     np.testing.assert_array_equal(commands.Eval(context), np.r_[good, 1.0])
     counts = receiver.counts(context, COMMANDS_PORT)
     assert counts["refused"] == {"malformed": 1, "wrong_size": 1, "not_finite": 2,
-                                 "out_of_range": 1, "other_session": 1, "replayed": 1}
+                                 "out_of_range": 1, "other_session": 1, "replayed": 1,
+                                 "wrong_instrument": 0}
     assert counts["messages_received"] == 1 and counts["messages_refused"] == 7
     assert counts["first_refused"]["out_of_range"] == (
         "current_a[0] = 1e+06 A: must be within +-4 A (the amplifiers' limit)")
@@ -435,12 +437,14 @@ def test_a_second_application_is_told_who_holds_the_device_and_commands_nothing(
     bus = lcm.LCM("memq://")
     replies = []
     station = LcmStation(channel_prefix="T_")
-    lease = LeaseServer(timeout_s=0.5, publish_reply=replies.append)
+    lease = LeaseServer(timeout_s=0.5, publish_reply=replies.append, instrument="two_magnet")
     receiver = MakeCommandReceiver(lcm=bus, station=station, limits=LinkLimits(27, 3, 4.0),
                                    lease=lease, period_s=0.001, log=lambda line: None)
     context = receiver.CreateDefaultContext()
-    first = LeaseClient(lcm=bus, channel="T_LEASE_REQUEST", wait_s=1.0)
-    second = LeaseClient(lcm=bus, channel="T_LEASE_REQUEST", wait_s=1.0)
+    first = LeaseClient(lcm=bus, channel="T_LEASE_REQUEST", wait_s=1.0,
+                        instrument="two_magnet")
+    second = LeaseClient(lcm=bus, channel="T_LEASE_REQUEST", wait_s=1.0,
+                         instrument="two_magnet")
     first.on_tick(0.0)
     tick(receiver, context, 0.001)
     first.on_reply(replies[-1], 0.001)
@@ -475,7 +479,8 @@ def test_the_application_refuses_bad_station_messages():
     scenario = load_scenario("peg_in_hole", scenario_text="{station: !LcmStation "
                              "{channel_prefix: T_}}")
     bus = lcm.LCM("memq://")
-    lease = LeaseClient(lcm=bus, channel="T_LEASE_REQUEST", wait_s=1.0)
+    lease = LeaseClient(lcm=bus, channel="T_LEASE_REQUEST", wait_s=1.0,
+                        instrument="two_magnet")
     receiver = MessageReceiver(lcm=bus, channels=station_channels(scenario, lease),
                                period_s=0.001, log=lambda line: None)
     context = receiver.CreateDefaultContext()
@@ -497,7 +502,7 @@ def test_the_application_refuses_bad_station_messages():
     np.testing.assert_allclose(receiver.GetOutputPort("markers_measured").Eval(context), good)
     markers = receiver.counts(context, "markers_measured")["refused"]
     assert markers == {"malformed": 1, "wrong_size": 1, "not_finite": 1, "out_of_range": 2,
-                       "other_session": 0, "replayed": 1}
+                       "other_session": 0, "replayed": 1, "wrong_instrument": 0}
     assert receiver.counts(context, "coil_currents")["refused"]["out_of_range"] == 1
     assert receiver.counts(context, "handle_gripped")["refused"]["out_of_range"] == 1
     np.testing.assert_array_equal(receiver.GetOutputPort("coil_currents").Eval(context),
@@ -612,3 +617,27 @@ def test_maglev_run_exit_codes_say_what_happened(monkeypatch, tmp_path, capsys, 
     elif outcome == "lost":
         assert error[-1] == ("levitate:takeoff_hover_land: the instrument was lost at 0.500 s "
                              "(sensor out of range)")
+
+
+def test_an_application_for_another_instrument_is_refused_and_told():
+    """The device carries the four-magnet instrument, the application's scenario the
+    two-magnet one: its request is refused (wrong_instrument), the lease stays free,
+    and the device's answer stops the application before it commands a coil."""
+    bus = lcm.LCM("memq://")
+    replies = []
+    station = LcmStation(channel_prefix="T_")
+    lease = LeaseServer(timeout_s=0.5, publish_reply=replies.append, instrument="four_magnet")
+    receiver = MakeCommandReceiver(lcm=bus, station=station, limits=LinkLimits(27, 3, 4.0),
+                                   lease=lease, period_s=0.001, log=lambda line: None)
+    context = receiver.CreateDefaultContext()
+    application = LeaseClient(lcm=bus, channel="T_LEASE_REQUEST", wait_s=1.0,
+                              instrument="two_magnet")
+    application.on_tick(0.0)
+    tick(receiver, context, 0.001)
+    assert receiver.counts(context, "lease_requests")["refused"]["wrong_instrument"] == 1
+    assert lease.holder.action == lease_t.FREE and replies[-1].instrument == "four_magnet"
+    with pytest.raises(InstrumentMismatchError, match=(
+            r"^the device carries the 'four_magnet' instrument; this scenario flies "
+            r"'two_magnet' \(device.instrument\)")):
+        application.on_reply(replies[-1], 0.001)
+    assert not application.granted

@@ -56,7 +56,7 @@ def valid_message(message_type, sequence=1):
         message.quaternion_wxyz, message.position_m, message.ok = [1.0, 0, 0, 0], [0, 0, 0.5], True
     else:
         message = lease_t()
-        message.session, message.action = 7, lease_t.REQUEST
+        message.session, message.action, message.instrument = 7, lease_t.REQUEST, "two_magnet"
     message.sequence = sequence
     return message
 
@@ -272,7 +272,8 @@ def test_device_sim_under_fuzz_keeps_its_coils_and_counts_what_it_refused():
     listener.subscribe("MAGLEV_COIL_CURRENTS",
                        lambda _, data: measured.append(coil_currents_t.decode(data).current_a))
     listener.subscribe("MAGLEV_LEASE", lambda _, data: replies.append(lease_t.decode(data)))
-    lease = LeaseClient(lcm=bus, channel="MAGLEV_LEASE_REQUEST", wait_s=60.0)
+    lease = LeaseClient(lcm=bus, channel="MAGLEV_LEASE_REQUEST", wait_s=60.0,
+                        instrument="two_magnet")
     delivered = Delivered(bus, ["MAGLEV_COIL_CURRENTS_COMMANDED", "MAGLEV_LEASE_REQUEST"])
     fuzzer = Fuzzer(26)
     sent_valid = 0
@@ -309,6 +310,7 @@ def test_device_sim_under_fuzz_keeps_its_coils_and_counts_what_it_refused():
                 else:
                     other = lease_t()
                     other.session, other.action, other.sequence = 99, lease_t.REQUEST, 1
+                    other.instrument = "two_magnet"
                     data, reason = (other.encode(), "other_session") if fuzzer.rng.random() < 0.5 \
                         else (fuzzer.rng.bytes(int(fuzzer.rng.integers(0, 60))), "malformed")
                     channel = "MAGLEV_LEASE_REQUEST"

@@ -14,16 +14,21 @@ class lease_t(object):
     device answers on LEASE who holds it (HELD, with the holder's session, host and
     process) or that nobody does (FREE), at once and every 0.1 s. The holder keeps it
     by commanding; it lapses once its commands have been silent for the lease timeout.
+    A request for another instrument than the device's is refused: the application's
+    wrench model would be another device's.
     """
 
-    __slots__ = ["sequence", "sent_wall_utime", "utime", "session", "action", "pid", "host"]
+    __slots__ = ["sequence", "sent_wall_utime", "utime", "session", "action", "pid", "host", "instrument"]
 
-    __typenames__ = ["int64_t", "int64_t", "int64_t", "int64_t", "int8_t", "int32_t", "string"]
+    __typenames__ = ["int64_t", "int64_t", "int64_t", "int64_t", "int8_t", "int32_t", "string", "string"]
 
-    __dimensions__ = [None, None, None, None, None, None, None]
+    __dimensions__ = [None, None, None, None, None, None, None, None]
 
     REQUEST = 1
-    """ the host it runs on ("": not known) """
+    """
+    REQUEST: the instrument the application flies; HELD, FREE:
+    the one on the device ("two_magnet", "four_magnet")
+    """
     RELEASE = 2
     HELD = 3
     FREE = 4
@@ -67,6 +72,12 @@ class lease_t(object):
         LCM Type: string
         """
 
+        self.instrument = ""
+        """
+        the host it runs on ("": not known)
+        LCM Type: string
+        """
+
 
     def encode(self):
         buf = BytesIO()
@@ -79,6 +90,10 @@ class lease_t(object):
         __host_encoded = self.host.encode('utf-8')
         buf.write(struct.pack('>I', len(__host_encoded)+1))
         buf.write(__host_encoded)
+        buf.write(b"\0")
+        __instrument_encoded = self.instrument.encode('utf-8')
+        buf.write(struct.pack('>I', len(__instrument_encoded)+1))
+        buf.write(__instrument_encoded)
         buf.write(b"\0")
 
     @staticmethod
@@ -97,12 +112,14 @@ class lease_t(object):
         self.sequence, self.sent_wall_utime, self.utime, self.session, self.action, self.pid = struct.unpack(">qqqqbi", buf.read(37))
         __host_len = struct.unpack('>I', buf.read(4))[0]
         self.host = buf.read(__host_len)[:-1].decode('utf-8', 'replace')
+        __instrument_len = struct.unpack('>I', buf.read(4))[0]
+        self.instrument = buf.read(__instrument_len)[:-1].decode('utf-8', 'replace')
         return self
 
     @staticmethod
     def _get_hash_recursive(parents):
         if lease_t in parents: return 0
-        tmphash = (0x56b092a03887a717) & 0xffffffffffffffff
+        tmphash = (0x976f6ed9eec86f3d) & 0xffffffffffffffff
         tmphash  = (((tmphash<<1)&0xffffffffffffffff) + (tmphash>>63)) & 0xffffffffffffffff
         return tmphash
     _packed_fingerprint = None
