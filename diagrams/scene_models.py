@@ -171,6 +171,19 @@ def _frame_field(directives: List[ModelDirective], reason: str) -> str:
     return ""
 
 
+def _frames_of_model(plant: MultibodyPlant, reason: str) -> str:
+    """Drake's ``reason`` for a frame missing from a model that exists, with the frames
+    that model has; Drake's own names the other models that have one (the built-in
+    tool's among them), not the valid names."""
+    match = re.search(r"no Frame named '([^']*)' in the model instance named '([^']*)'", reason)
+    if match is None or not plant.HasModelInstanceNamed(match[2]):
+        return reason
+    frames = [plant.get_frame(index).name()
+              for index in plant.GetFrameIndices(plant.GetModelInstanceByName(match[2]))]
+    return (f"model {match[2]!r} has no frame {match[1]!r}; its frames: "
+            + ", ".join(sorted(set(frames))))
+
+
 class AddedModels(NamedTuple):
     """What ``add_scene_models`` added: the tool's body, and the directives' models
     [(index of the add_model that added it or None, model name, model instance)]."""
@@ -202,7 +215,7 @@ def add_scene_models(plant: MultibodyPlant, scene_graph: SceneGraph, scene: Scen
         except Exception as error:  # Drake's parser: RuntimeError, its YAML's ValueError
             reason = _drake_reason(error)
             raise ValueError(f"{path}.directives{_frame_field(models.directives, reason)}: "
-                             f"{reason}") from None
+                             f"{_frames_of_model(plant, reason)}") from None
     # Each model named by the add_model that added it (nested directive files: theirs).
     add_model_index = {d.add_model.name: i for i, d in enumerate(models.directives)
                        if d.add_model}

@@ -319,10 +319,15 @@ WELD = "- add_weld: {parent: world, child: gear::gear}\n"
     ("!ModelScene\ndirectives: []", "haptics.scene.directives = []: must add at least one"),
     ("!ModelScene\ndirectives:\n" + GEAR + WELD + "friction: 0.3",
      "haptics.scene.friction: unknown field; ModelScene has directives, tool, contact"),
+    # A frame the built-in tool has ("body"): Drake names the tool, this names the frames.
+    ("!ModelScene\ndirectives:\n" + GEAR + "- add_weld: {parent: world, child: gear::body}",
+     "haptics.scene.directives[1].add_weld.child = 'gear::body': model 'gear' has no frame "
+     "'body'; its frames: gear"),
 ], ids=["missing obj", "missing sdf", "unknown frame", "no kind", "no name", "not a url",
         "pose not a mapping", "unknown tool body", "tool with joints", "tool among others",
         "light tool", "unknown shape", "wrong size", "no collision", "flat obj", "flat mesh",
-        "malformed sdf", "unknown directive", "not a list", "no models", "unknown field"])
+        "malformed sdf", "unknown directive", "not a list", "no models", "unknown field",
+        "a frame another model has"])
 def test_bad_model_scene_is_refused_in_one_line(tmp_path, scene_yaml, message):
     path = _scenario_file(tmp_path, scene_yaml)
     with pytest.raises(ScenarioError) as error:
