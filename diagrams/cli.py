@@ -541,14 +541,15 @@ def _add_device_sim_parser(commands) -> None:
             """))
     _add_scenario_arguments(device_sim)
     device_sim.add_argument("--duration", type=_positive_seconds, default=3600.0,
-                            help="longest it runs (s; default 3600)")
+                            help="longest it runs, in simulated seconds (default 3600; at "
+                            "--realtime 1 the same in wall seconds)")
     device_sim.add_argument("--realtime", type=_positive_rate, default=1.0,
                             help="real-time rate > 0 (default 1); the application must run "
                             "at the same --realtime")
     device_sim.add_argument("--normal-priority", action="store_true",
                             help="run the paced loop at normal priority (default: real-time "
-                            "priority, SCHED_FIFO, where the OS grants it; summary.json says "
-                            "which)")
+                            "priority, SCHED_FIFO, where the OS grants it; the report it "
+                            "prints at the end says which, under realtime.priority)")
     device_sim.set_defaults(func=_cmd_device_sim)
 
 
