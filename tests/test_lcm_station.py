@@ -429,18 +429,24 @@ def test_the_issues_five_messages_never_reach_the_coils():
     np.testing.assert_array_equal(commands.Eval(context), np.zeros(28))
 
 
+def device_end(instrument: str):
+    """(bus, the lease's answers, lease, command receiver, its context) of a device on an
+    in-memory bus carrying ``instrument``."""
+    bus = lcm.LCM("memq://")
+    replies = []
+    lease = LeaseServer(timeout_s=0.5, publish_reply=replies.append, instrument=instrument)
+    receiver = MakeCommandReceiver(lcm=bus, station=LcmStation(channel_prefix="T_"),
+                                   limits=LinkLimits(27, 3, 4.0), lease=lease, period_s=0.001,
+                                   log=lambda line: None)
+    return bus, replies, lease, receiver, receiver.CreateDefaultContext()
+
+
 def test_a_second_application_is_told_who_holds_the_device_and_commands_nothing():
     """The lease between two applications' commands: the second one's request is
     answered with the holder's session, host and process, its commands are refused,
     and its own station raises DeviceInUseError on reading that answer; once the
     holder lets go, the next asker gets it."""
-    bus = lcm.LCM("memq://")
-    replies = []
-    station = LcmStation(channel_prefix="T_")
-    lease = LeaseServer(timeout_s=0.5, publish_reply=replies.append, instrument="two_magnet")
-    receiver = MakeCommandReceiver(lcm=bus, station=station, limits=LinkLimits(27, 3, 4.0),
-                                   lease=lease, period_s=0.001, log=lambda line: None)
-    context = receiver.CreateDefaultContext()
+    bus, replies, _, receiver, context = device_end("two_magnet")
     first = LeaseClient(lcm=bus, channel="T_LEASE_REQUEST", wait_s=1.0,
                         instrument="two_magnet")
     second = LeaseClient(lcm=bus, channel="T_LEASE_REQUEST", wait_s=1.0,
@@ -623,13 +629,7 @@ def test_an_application_for_another_instrument_is_refused_and_told():
     """The device carries the four-magnet instrument, the application's scenario the
     two-magnet one: its request is refused (wrong_instrument), the lease stays free,
     and the device's answer stops the application before it commands a coil."""
-    bus = lcm.LCM("memq://")
-    replies = []
-    station = LcmStation(channel_prefix="T_")
-    lease = LeaseServer(timeout_s=0.5, publish_reply=replies.append, instrument="four_magnet")
-    receiver = MakeCommandReceiver(lcm=bus, station=station, limits=LinkLimits(27, 3, 4.0),
-                                   lease=lease, period_s=0.001, log=lambda line: None)
-    context = receiver.CreateDefaultContext()
+    bus, replies, lease, receiver, context = device_end("four_magnet")
     application = LeaseClient(lcm=bus, channel="T_LEASE_REQUEST", wait_s=1.0,
                               instrument="two_magnet")
     application.on_tick(0.0)

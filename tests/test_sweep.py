@@ -103,14 +103,20 @@ def test_a_diverged_point_puts_its_metric_on_a_log_axis(tmp_path, monkeypatch):
     assert touchdown.get_yscale() == "linear"
 
 
+def _sweep(tmp_path, duration_s: float, vary: str, metrics: str):
+    """(exit code, spec file, out folder) of ``maglev sweep`` over levitate."""
+    spec_file = tmp_path / "spec.yaml"
+    spec_file.write_text(f"scenario: levitate\nscenario_text: \"{{duration_s: {duration_s}}}\"\n"
+                         f"vary: {vary}\nmetrics: {metrics}\n")
+    out = tmp_path / "out"
+    return main(["sweep", str(spec_file), "--workers", "1", "--out", str(out)]), spec_file, out
+
+
 def test_a_point_that_loses_the_instrument_is_a_failed_point(tmp_path, capsys):
     # The estimator's 25 Hz behind a 3 ms tracker: the loop has no phase margin left.
-    spec_file = tmp_path / "spec.yaml"
-    spec_file.write_text("scenario: levitate\nscenario_text: \"{duration_s: 2.0}\"\n"
-                         "vary: {estimator.bandwidth_hz: [25], device.tracker.latency_s: [0.003]}\n"
-                         "metrics: [max_coil_current_a]\n")
-    out = tmp_path / "out"
-    assert main(["sweep", str(spec_file), "--workers", "1", "--out", str(out)]) == 1
+    code, _, out = _sweep(tmp_path, 2.0, "{estimator.bandwidth_hz: [25], "
+                          "device.tracker.latency_s: [0.003]}", "[max_coil_current_a]")
+    assert code == 1
     row = json.loads((out / "sweep.json").read_text())["rows"][0]
     assert row["error"].startswith("its run: the instrument was lost at ")
     assert row["max_coil_current_a"] > 0.0  # what the run measured is kept
@@ -118,12 +124,9 @@ def test_a_point_that_loses_the_instrument_is_a_failed_point(tmp_path, capsys):
 
 
 def test_a_metric_no_summary_has_is_named_after_the_runs(tmp_path, capsys):
-    spec_file = tmp_path / "spec.yaml"
-    spec_file.write_text("scenario: levitate\nscenario_text: \"{duration_s: 0.3}\"\n"
-                         "vary: {estimator.bandwidth_hz: [50]}\n"
-                         "metrics: [max_coil_current_a, hover_pos_err]\n")
-    out = tmp_path / "out"
-    assert main(["sweep", str(spec_file), "--workers", "1", "--out", str(out)]) == 2
+    code, spec_file, out = _sweep(tmp_path, 0.3, "{estimator.bandwidth_hz: [50]}",
+                                  "[max_coil_current_a, hover_pos_err]")
+    assert code == 2
     error = capsys.readouterr().err
     assert (f"{spec_file}: metrics: hover_pos_err: no point's summary.json has it (wrote {out}); "
             "a summary has ") in error
