@@ -15,8 +15,11 @@ dotted) with a list of values or a range, and the metrics to keep from each run'
 Every combination of the varied values is a job: the scenario's text, the point's
 values as one more YAML layer, and the scenario's own random seed, so a point gives
 the same numbers wherever it runs (``analysis/parallel.py``). Written: ``sweep.csv``
-(a row a point: the varied fields, then the metrics), ``sweep.json`` (the spec, the
-rows, what ran them) and ``sweep.png`` (each metric against each varied field).
+(a row a point: the varied fields, the metrics, then the point's error: what its run
+raised, or the line ``maglev run`` ends with when the instrument was lost),
+``sweep.json`` (the spec, the rows, what ran them) and ``sweep.png`` (each metric
+against each varied field, a failed point marked with a red cross). A metric that no
+point's summary has is named after the runs (a ScenarioError).
 """
 
 import csv
@@ -268,6 +271,11 @@ def plot_sweep(spec: SweepSpec, rows: List[Dict], path: Path) -> Path:
                     x, y = zip(*points)
                     label = ", ".join(f"{f}={v}" for f, v in zip(others, key)) or None
                     panel.plot(x, y, "o-", ms=4, label=label)
+            failed = [(row[varied], row[name]) for row in rows
+                      if row.get("error") and isinstance(row[name], (int, float))]
+            if failed:  # its run raised or lost the instrument: the table says how
+                panel.plot(*zip(*failed), "x", color="red", ms=9, mew=2,
+                           label="failed (see its error)" if i == 0 else None)
             values = [row[name] for row in rows if isinstance(row[name], (int, float))
                       and math.isfinite(row[name])]
             log_axis = bool(values) and min(values) > 0 and max(values) > LOG_AXIS_RATIO * min(
@@ -276,7 +284,7 @@ def plot_sweep(spec: SweepSpec, rows: List[Dict], path: Path) -> Path:
                 panel.set_yscale("log")
             panel.set_xlabel(varied)
             panel.set_ylabel(name + (" (log)" if log_axis else ""))
-            if others and len(groups) <= 8 and i == 0:
+            if i == 0 and (len(groups) <= 8 or failed) and panel.get_legend_handles_labels()[1]:
                 panel.legend(fontsize=6)
     figure.suptitle(f"sweep of {spec.scenario}" + (f":{spec.name}" if spec.name else ""))
     return save_figure(figure, path)

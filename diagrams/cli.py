@@ -663,7 +663,8 @@ def _add_sweep_parser(commands) -> None:
         "its fields (YAML paths, dotted: lists, or {start, stop, num}); keep the metrics "
         "the spec names from each run's summary.json. Prints them as a table and writes "
         "sweep.csv, sweep.json and sweep.png (each metric against each field); exits 1 if "
-        "a point's run failed.",
+        "a point's run failed (it raised, or lost the instrument: its error says how), 2 if "
+        "a metric is in no point's summary.json (said after the runs).",
         epilog=_epilog("""
             maglev sweep docs/sweep_example.yaml --out out/sweep
             maglev sweep my_sweep.yaml --scheduler tcp://10.0.0.5:8786

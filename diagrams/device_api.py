@@ -49,7 +49,8 @@ from maglev_haptics.diagrams.motion import check_pose_reachable
 from maglev_haptics.diagrams.runner import SHARED_SPIN_S, wait_until
 from maglev_haptics.diagrams.scenario import Scenario, load_scenario
 from maglev_haptics.hardware.kernels import compile_kernels
-from maglev_haptics.hardware.lease import DeviceInUseError  # noqa: F401 (connect raises it)
+from maglev_haptics.hardware.lease import (  # noqa: F401 (connect raises them)
+    DeviceInUseError, InstrumentMismatchError)
 from maglev_haptics.systems.blends import minimum_jerk_plan
 from maglev_haptics.systems.device_supervisor import (  # noqa: F401 (the API's fault bits)
     FAULT_COIL_OVER_CURRENT, FAULT_COIL_OVER_TEMPERATURE, FAULT_OVER_SPEED,
@@ -105,8 +106,9 @@ class MaglevDevice:
     def connect(self) -> None:
         """Build the diagram and start the device: resting on the glass, coils off.
         With a station on LCM, first take the device's lease (``hardware/lease.py``):
-        if another application holds it, raises DeviceInUseError, having commanded
-        no coil."""
+        if another application holds it, raises DeviceInUseError, and if the device
+        carries another instrument than the scenario's, InstrumentMismatchError, having
+        commanded no coil."""
         compile_kernels(progress=False)
         self._built = BuildDiagram(self.scenario, device_api=True, label="device")
         diagram = self._built.diagram

@@ -29,7 +29,8 @@ from maglev_haptics.systems.current_allocator import (
 from maglev_haptics.systems.levitation_controller import is_thermally_limited
 
 FORECAST_STEP_S = 0.01  # along the plan: the thermal model's period (s)
-# A hold that cannot last is followed this far past its end (s) to say how long it could.
+# A hold that cannot last is followed from its arrival for its length, and at least this
+# long (s), to say how long the coils allow it.
 MAX_EXTENSION_S = 600.0
 
 
@@ -122,25 +123,27 @@ def forecast_holds(scenario, plan, magnetics) -> List[HoldForecast]:
             t += FORECAST_STEP_S
         allowed_s = None
         if not sustainable:
-            allowed_s = _time_allowed(coils, A, lift, arrival_c)
+            allowed_s = _time_allowed(coils, A, lift, arrival_c, end_s - start_s)
         forecasts.append(HoldForecast(
             waypoint=index, start_s=float(start_s), hold_s=float(end_s - start_s),
             sustainable=sustainable, allowed_s=allowed_s, hottest_c=float(temperature_c.max())))
     return forecasts
 
 
-def _time_allowed(coils: _Coils, A, wrench, temperature_c) -> float:
+def _time_allowed(coils: _Coils, A, wrench, temperature_c, hold_s: float) -> float:
     """How long (s) the coils, from ``temperature_c``, carry ``wrench`` before the budget
-    cuts it short (at most MAX_EXTENSION_S); steps of 1/200 of the time constant (the
+    cuts it short, looked for over the hold's ``hold_s`` and at least MAX_EXTENSION_S
+    (the horizon is returned when they carry it that long); steps of 1/200 of the time constant (the
     update is exact for held currents)."""
+    horizon_s = max(MAX_EXTENSION_S, hold_s)
     step_s = coils.thermal.time_constant_s / 200
     t = 0.0
-    while t < MAX_EXTENSION_S:
+    while t < horizon_s:
         temperature_c, limited = coils.step(A, wrench, temperature_c, step_s)
         if limited:
             return t
         t += step_s
-    return MAX_EXTENSION_S
+    return horizon_s
 
 
 def describe(forecast: HoldForecast, label: str) -> str:

@@ -213,11 +213,13 @@ class LeaseClient:
             self._send(lease_t.REQUEST, now_s)
 
     def on_reply(self, message: lease_t, now_s: float) -> None:
-        if message.instrument != self.instrument:
+        if message.instrument != self.instrument:  # also a device restarted mid-run
+            commanded = ("this one commanded no coil" if self.granted_at_s is None
+                         else "this one stops commanding")
             raise InstrumentMismatchError(
                 f"the device carries the {message.instrument!r} instrument; this scenario "
                 f"flies {self.instrument!r} (device.instrument): run the device and the "
-                "application with the same device; this one commanded no coil")
+                f"application with the same device; {commanded}")
         if message.action == lease_t.HELD and message.session == self.session:
             if not self.granted:
                 self.granted, self.granted_at_s = True, now_s

@@ -19,7 +19,8 @@ never used when it:
 - ``other_session``: a command (or lease request) of a session that does not
   hold the device's lease (``hardware/lease.py``);
 - ``replayed``: a sequence number not newer than the last one accepted from the
-  same sender and session (a replay, a duplicate or an out-of-order message).
+  same sender and session (a replay, a duplicate or an out-of-order message);
+- ``wrong_instrument``: a lease request for another instrument than the device's.
 
 A refused message is a lost message: the receiver keeps what it had (the device's
 coils their last good command until ``command_timeout_s`` turns them off; the

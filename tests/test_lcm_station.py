@@ -538,9 +538,10 @@ def test_a_run_that_injected_no_fault_says_when_it_lost_the_instrument():
 
 @pytest.mark.slow
 def test_a_second_application_is_refused_and_a_lost_instrument_is_said(tmp_path):
-    """device-sim, the application flying levitate, and a second application started
-    beside it: the second is told in one line who holds the device and exits 4,
-    having commanded no coil. Then device-sim is paused for 0.4 s mid-flight (as a
+    """device-sim and an application for the four-magnet instrument: told the device
+    carries another, it exits 2 having commanded no coil. Then the application flying
+    levitate, and a second application started beside it: the second is told in one
+    line who holds the device and exits 4, having commanded no coil. Then device-sim is paused for 0.4 s mid-flight (as a
     loaded host does): the first application loses its markers, and ends saying when
     it lost the instrument, and exits 5."""
     port = 8300 + 2 * (os.getpid() % 50)
@@ -555,6 +556,14 @@ def test_a_second_application_is_refused_and_a_lost_instrument_is_said(tmp_path)
                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     first = second = None
     try:
+        other = subprocess.run(maglev + ["run", "levitate", "--name", "four_magnet_tilt", *paced,
+                                         "--no-meshcat", "--out", str(tmp_path / "other")],
+                               capture_output=True, text=True, timeout=180)
+        assert other.returncode == 2, other.stderr[-2000:]
+        assert other.stderr.strip().splitlines()[-1] == (
+            "maglev run: error: the device carries the 'two_magnet' instrument; this scenario "
+            "flies 'four_magnet' (device.instrument): run the device and the application with "
+            "the same device; this one commanded no coil")
         first = subprocess.Popen(maglev + ["run", "levitate", *paced, "--no-meshcat",
                                            "--duration", "8", "--out", str(tmp_path / "first")],
                                  stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)

@@ -103,6 +103,18 @@ def test_a_diverged_point_puts_its_metric_on_a_log_axis(tmp_path, monkeypatch):
     assert touchdown.get_yscale() == "linear"
 
 
+def test_a_failed_point_with_values_is_marked_in_the_plot(tmp_path, monkeypatch):
+    from maglev_haptics.analysis import sweep
+    figures = []
+    monkeypatch.setattr(sweep, "save_figure", lambda figure, path: figures.append(figure) or path)
+    rows = [dict(row) for row in ROWS]
+    rows[0]["error"] = "its run: the instrument was lost at 1.391 s (sensor out of range)"
+    sweep.plot_sweep(_spec(), rows, tmp_path / "sweep.png")
+    crosses = [line for line in figures[0].axes[0].get_lines() if line.get_marker() == "x"]
+    assert len(crosses) == 1 and list(crosses[0].get_xdata()) == [20]
+    assert list(crosses[0].get_ydata()) == [17.123456]
+
+
 def _sweep(tmp_path, duration_s: float, vary: str, metrics: str):
     """(exit code, spec file, out folder) of ``maglev sweep`` over levitate."""
     spec_file = tmp_path / "spec.yaml"
