@@ -167,7 +167,7 @@ def _cmd_run(args) -> int:
         duration = scenario.duration_s
     validate_scenario(scenario, label)
     out = _writable_folder(Path(args.out) if args.out else Path("out") / label.replace(":", "-"))
-    for line in (thermal_outlook(scenario, label) + stability_warnings(scenario, label)
+    for line in (thermal_outlook(scenario, label, duration) + stability_warnings(scenario, label)
                  + scene_warnings(scenario, label)):
         print(line)
     if args.interactive:
@@ -492,8 +492,9 @@ def _add_run_parser(commands) -> None:
         help="simulate a scenario; write log.npz, summary.json, plots",
         description="Simulate a scenario; write log.npz, summary.json and plots to --out.\n"
         "Exit codes: 0 done; 2 bad input; 3 the simulation stopped on an internal check;\n"
-        "4 the device (on LCM) is in use by another application;\n5 a fault latched, or the instrument was lost, in a run whose "
-        "scenario injected no fault;\n128 + N stopped by signal N.",
+        "4 the device (on LCM) is in use by another application;\n"
+        "5 a fault latched, or the instrument was lost, in a run whose scenario injected no "
+        "fault;\n128 + N stopped by signal N.",
         epilog=_epilog("""
             maglev run levitate                          # its first scenario, Meshcat at 1x
             maglev run levitate --name square --duration 2 --no-meshcat --out out/square

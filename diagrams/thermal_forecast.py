@@ -153,15 +153,18 @@ def describe(forecast: HoldForecast, label: str) -> str:
             "budget; the device then lands (coil over-temperature)")
 
 
-def thermal_outlook(scenario, label: str) -> List[str]:
+def thermal_outlook(scenario, label: str, duration_s: Optional[float] = None) -> List[str]:
     """``describe``'s line for each hold of a levitation scenario with the thermal
-    allocation that the thermal budget would end; none for other scenarios. A waypoint
-    the coils cannot reach at all is refused first (``check_waypoints_reachable``)."""
+    allocation that the thermal budget would end before the run does (at ``duration_s``,
+    else the scenario's ``duration_s``, else the script's end); none for other
+    scenarios. A waypoint the coils cannot reach at all is refused first
+    (``check_waypoints_reachable``)."""
     if scenario.haptics is not None or scenario.controller.allocation != "thermal":
         return []
     device = scenario.device
     magnetics = load_magnetics(device)
     check_waypoints_reachable(scenario.motion, device, magnetics, label)
     plan = flight_plan(scenario.motion, device.instrument_spec().rest_height_m)
+    end_s = next(s for s in (duration_s, scenario.duration_s, plan.end_s) if s is not None)
     return [describe(forecast, label) for forecast in forecast_holds(scenario, plan, magnetics)
-            if forecast.cut_short]
+            if forecast.cut_short and forecast.start_s + forecast.allowed_s < end_s]

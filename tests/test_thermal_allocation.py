@@ -115,8 +115,13 @@ def test_the_outlook_speaks_only_of_holds_the_budget_would_end():
     assert any(not hold.sustainable for hold in holds)
     assert not any(hold.cut_short for hold in holds)
     assert thermal_outlook(load_scenario("levitate", "square"), "square") == []
-    (line,) = thermal_outlook(load_scenario("levitate", "takeoff_hover_land", HIGH_HOLD), "high")
+    high = load_scenario("levitate", "takeoff_hover_land", HIGH_HOLD)
+    (line,) = thermal_outlook(high, "high")
     assert line.startswith("high: motion.waypoints[0]: held 6 s, but the coils allow ")
+    # A run that ends before the budget would: nothing to say.
+    (hold,) = forecast_holds(high, flight_plan(high.motion, high.device.instrument_spec()
+                                               .rest_height_m), load_magnetics(high.device))
+    assert thermal_outlook(high, "high", duration_s=hold.start_s + hold.allowed_s - 0.1) == []
 
 
 def test_an_unreachable_waypoint_is_refused_before_any_forecast():
