@@ -99,13 +99,22 @@ def test_a_hold_the_coils_cannot_keep_is_flown_as_long_as_forecast_then_landed()
 
 
 def test_maglev_run_says_how_long_the_coils_allow_before_it_flies(capsys, tmp_path):
-    code = main(["run", "levitate", "--name", "takeoff_hover_land", "--no-meshcat",
-                 "--duration", "0.05", "--out", str(tmp_path), "--scenario-text", HIGH_HOLD])
-    assert code == 0
-    first = capsys.readouterr().out.splitlines()[0]
+    def run_for(duration_s):
+        code = main(["run", "levitate", "--name", "takeoff_hover_land", "--no-meshcat",
+                     "--duration", f"{duration_s:.3f}", "--out", str(tmp_path),
+                     "--scenario-text", HIGH_HOLD])
+        return code, capsys.readouterr().out.splitlines()[0]
+
+    _, (hold,) = forecast("takeoff_hover_land", HIGH_HOLD)
+    # Past the moment the budget ends the hold (the loop moves it by at most 0.5 s).
+    code, first = run_for(hold.start_s + hold.allowed_s + 1.0)
+    assert code == 5  # the fault it foretold latched: coil over-temperature
     assert first.startswith("levitate:takeoff_hover_land: motion.waypoints[0]: held 6 s, but "
                             "the coils allow ")
     assert "device then lands (coil over-temperature)" in first
+    # A run that ends before the budget would is told nothing of it.
+    code, first = run_for(0.05)
+    assert code == 0 and first == "{"  # the summary comes first
 
 
 def test_the_outlook_speaks_only_of_holds_the_budget_would_end():
