@@ -34,7 +34,7 @@ from tqdm import tqdm
 
 from maglev_haptics.analysis.lattice_bench import (
     LATTICE_SIZES, format_lattice_report, lattice_costs, lattice_scaling, plot_lattice_scaling)
-from maglev_haptics.analysis.loop_floor import floor_loop_us
+from maglev_haptics.analysis.loop_floor import floor_loop_us, hover_transform
 from maglev_haptics.analysis.stereo_bench import format_stereo_report, stereo_costs
 from maglev_haptics.analysis.timing import leaf_system_costs, time_per_call_us
 from maglev_haptics.diagrams.application import BuildDiagram
@@ -90,9 +90,7 @@ def plant_step_cost_us(scenario, *, hovering: bool, n_steps: int = 1000) -> floa
     plant, _ = AddMultibodyPlant(scenario.plant_config, builder)
     instrument, hand = add_station_models(plant, scenario)
     plant.Finalize()
-    X_WI = rest_transform(scenario)
-    if hovering:
-        X_WI.set_translation(X_WI.translation() + [0.0, 0.0, 0.010])
+    X_WI = hover_transform(scenario) if hovering else rest_transform(scenario)
     plant.SetDefaultFloatingBaseBodyPose(plant.GetBodyByName("instrument", instrument), X_WI)
     bodies = [plant.GetBodyByName("instrument", instrument)]
     if hand is not None:

@@ -13,6 +13,7 @@ from __future__ import annotations
 import time
 
 import numpy as np
+from pydrake.math import RigidTransform
 from pydrake.multibody.plant import AddMultibodyPlant
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder, LeafSystem
@@ -28,8 +29,16 @@ from maglev_haptics.systems.levitation_controller import ControllerConfig, pd_ga
 from maglev_haptics.systems.magnetic_actuation import (
     instrument_generalized_force, wrench_matrix_at_pose)
 
-HOVER_ABOVE_REST_M = 0.010  # the loop holds the instrument this far above its rest pose
+HOVER_ABOVE_REST_M = 0.010  # the floor's plants hover the instrument this far above rest
 SETTLE_S = 0.2  # simulated before the timing starts (s)
+
+
+def hover_transform(scenario) -> RigidTransform:
+    """X_WI HOVER_ABOVE_REST_M above the instrument's rest pose: where the floor's
+    plants hover it, clear of the glass."""
+    X_WI = rest_transform(scenario)
+    X_WI.set_translation(X_WI.translation() + [0.0, 0.0, HOVER_ABOVE_REST_M])
+    return X_WI
 
 
 class FloorLoop(LeafSystem):
@@ -103,8 +112,7 @@ def floor_loop_us(scenario, n_ticks: int = 2000, windows: int = 3) -> dict:
     plant, _ = AddMultibodyPlant(scenario.plant_config, builder)
     instrument, _ = add_station_models(plant, scenario)
     plant.Finalize()
-    X_WI = rest_transform(scenario)
-    X_WI.set_translation(X_WI.translation() + [0.0, 0.0, HOVER_ABOVE_REST_M])
+    X_WI = hover_transform(scenario)
     plant.SetDefaultFloatingBaseBodyPose(plant.GetBodyByName("instrument", instrument), X_WI)
     setpoint = np.concatenate([X_WI.translation(), [0.0, 0.0, scenario.motion.start_xy_yaw[2]],
                                np.zeros(6)])

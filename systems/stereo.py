@@ -56,11 +56,16 @@ class DisplayRectangle:
         return float(np.linalg.norm(self.pb - self.pa)), float(np.linalg.norm(self.pc - self.pa))
 
     @cached_property
-    def q_WC(self) -> np.ndarray:
-        """[w, x, y, z] of every eye camera C in W (``eye_camera``: C looks into the
+    def R_WC(self) -> np.ndarray:
+        """(3, 3) every eye camera C's orientation in W (``eye_camera``: C looks into the
         screen, x right, y down; the same for any eye)."""
         vr, vu, vn = self.axes
-        q = RotationMatrix(np.column_stack([vr, -vu, -vn])).ToQuaternion()
+        return np.column_stack([vr, -vu, -vn])
+
+    @cached_property
+    def q_WC(self) -> np.ndarray:
+        """``R_WC`` as [w, x, y, z]."""
+        q = RotationMatrix(self.R_WC).ToQuaternion()
         return np.array([q.w(), q.x(), q.y(), q.z()])
 
     @property
@@ -228,7 +233,7 @@ def eye_camera(screen: DisplayRectangle, pe, width_px: int, height_px: int):
     distance = _check_distance(_eye_distance(screen.pa, vn, pe), pe)
     fx, fy, cx, cy = _intrinsics(screen.pa, vr, vu, *screen.size_m, pe, distance,
                                  float(width_px), float(height_px))
-    return np.column_stack([vr, -vu, -vn]), pe, fx, fy, cx, cy
+    return screen.R_WC, pe, fx, fy, cx, cy
 
 
 def projected_pixel(projection: np.ndarray, p_W, width_px: int, height_px: int) -> np.ndarray:
