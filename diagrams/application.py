@@ -23,7 +23,8 @@ from pydrake.systems.primitives import (
     ConstantVectorSource, LogVectorOutput, Multiplexer, ZeroOrderHold)
 
 from maglev_haptics.diagrams.haptics import AddHandCommands, AddHaptics
-from maglev_haptics.diagrams.lcm_station import LcmStation, measured_currents_max_age_s
+from maglev_haptics.diagrams.lcm_station import (
+    LcmStation, measured_currents_lag_ticks, measured_currents_max_age_s)
 from maglev_haptics.diagrams.motion import (
     FlightPlan, check_waypoints_reachable, flight_plan, landing_planner)
 from maglev_haptics.diagrams.scenario import Scenario
@@ -111,14 +112,17 @@ def AddApplication(builder: DiagramBuilder, *, scenario: Scenario, station, magn
         model=coil_thermal(device), n_coils=device.n_coils, period_s=THERMAL_PERIOD_S))
     builder.Connect(station.GetOutputPort("coil_currents"), temperatures.get_input_port())
     # The simulated station's currents are measured in the tick that reads them (age 0).
+    on_lcm = isinstance(scenario.station, LcmStation)
     max_currents_age_s = (measured_currents_max_age_s(scenario, scenario.station)
-                          if isinstance(scenario.station, LcmStation) else 0.0)
+                          if on_lcm else 0.0)
     supervisor = builder.AddNamedSystem("device_supervisor", DeviceSupervisor(
         initial_motion=initial_motion, limits=watch_limits(scenario),
         lost_grace_s=scenario.controller.lost_grace_s,
         plan_landing=landing_planner(scenario.motion, spec.rest_height_m),
         n_coils=device.n_coils, watchdog_period_s=WATCHDOG_PERIOD_S,
-        weight_n=spec.mass_kg * GRAVITY_M_S2, max_currents_age_s=max_currents_age_s))
+        weight_n=spec.mass_kg * GRAVITY_M_S2, max_currents_age_s=max_currents_age_s,
+        measured_lag_ticks=(measured_currents_lag_ticks(scenario, scenario.station)
+                            if on_lcm else 1)))
     for name in ("X_WI_measured", "V_WI_measured", "tracking_ok"):
         builder.Connect(estimator.GetOutputPort(name), supervisor.GetInputPort(name))
     for name in ("coil_currents", "coil_currents_age_s"):

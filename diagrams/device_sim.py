@@ -98,8 +98,6 @@ def MakeCommandReceiver(*, lcm, station, limits: LinkLimits, lease: LeaseServer,
     return MessageReceiver(
         lcm=lcm, on_tick=lease.on_tick, period_s=period_s,
         **({} if log is None else {"log": log}), channels=[
-            # Requests first: a command that follows its session's request in the same
-            # tick finds the lease granted.
             ReceivedChannel(
                 port=LEASE_REQUESTS, channel=channel(station, LEASE_REQUEST),
                 message_type=lease_t, size=0, decode=None, check=check_lease_request,

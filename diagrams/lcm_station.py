@@ -38,6 +38,7 @@ update a tick, and each sender encodes its own port (``systems/station_messages.
 """
 
 
+import math
 from dataclasses import dataclass
 
 import lcm
@@ -143,6 +144,14 @@ def measured_currents_max_age_s(scenario, station: LcmStation) -> float:
     them with their commands (s): the station publishes them every control tick, so a
     control period plus ``stale_margin_s``, as the markers' bound."""
     return 1.0 / scenario.control_rate_hz + station.stale_margin_s
+
+
+def measured_currents_lag_ticks(scenario, station: LcmStation) -> int:
+    """How many control ticks' commands a measured current read over LCM may follow:
+    a command reaches the device within a control period and ``stale_margin_s``, and
+    the current it drives comes back as long (measured: 2 ticks behind on one host)."""
+    period_s = 1.0 / scenario.control_rate_hz
+    return math.ceil(round(2.0 * (period_s + station.stale_margin_s) / period_s, 9))
 
 
 def station_channels(scenario, lease: LeaseClient) -> list:

@@ -185,6 +185,9 @@ class LeaseClient:
         self.lapses = 0  # times the device's answer said it no longer held for us
         self.lost_to: Optional[str] = None
         self._released = False
+        # The device answered this session's last request that another holds the lease
+        # or that it carries another instrument: a RELEASE would be refused.
+        self._refused = False
         reference = weakref.ref(self)
         atexit.register(lambda: reference() is not None and reference().release())
 
@@ -210,11 +213,14 @@ class LeaseClient:
                 "came with issue 26)?")
         if now_s - self._requested_s >= REQUEST_PERIOD_S:
             self._requested_s = now_s
+            self._refused = False
             self._send(lease_t.REQUEST, now_s)
 
     def on_reply(self, message: lease_t, now_s: float) -> None:
         if message.instrument != self.instrument:  # also a device restarted mid-run
-            commanded = ("this one commanded no coil" if self.granted_at_s is None
+            never_held = self.granted_at_s is None
+            self._refused = never_held  # the device refuses it: nothing to release
+            commanded = ("this one commanded no coil" if never_held
                          else "this one stops commanding")
             raise InstrumentMismatchError(
                 f"the device carries the {message.instrument!r} instrument; this scenario "
@@ -225,6 +231,7 @@ class LeaseClient:
                 self.granted, self.granted_at_s = True, now_s
             return
         if message.action == lease_t.HELD and not self.granted and self.granted_at_s is None:
+            self._refused = True  # another holds it: nothing to release
             raise DeviceInUseError(
                 f"the device is in use by another application ({describe_holder(message)}); "
                 "this one commanded no coil")
@@ -236,10 +243,13 @@ class LeaseClient:
                 self.lost_to = describe_holder(message)
 
     def release(self) -> None:
-        """Let the lease go (once)."""
+        """Let the lease go (once; not after the device answered that another holds it
+        or that it carries another instrument: this session holds nothing)."""
         if self._released:
             return
         self._released = True
+        if self._refused:
+            return
         try:
             self._send(lease_t.RELEASE, 0.0)
         except (OSError, RuntimeError):  # the LCM socket is already gone at exit

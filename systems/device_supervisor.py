@@ -49,11 +49,13 @@ CURRENT_TOLERANCE = 1e-6
 # long (s): near the budget's edge the PD's noise-driven corrections fall short now and
 # then, which the instrument rides through; a sustained shortfall is the load itself.
 THERMAL_LIMIT_PERSIST_S = 0.1
-# A coil whose measured current differs from its command of the tick before (clamped
-# to the limit) by more than this (A) on every check for STUCK_PERSIST_S (s) has a
-# stuck amplifier: the amplifiers follow a command within a tick (1 kHz bandwidth).
-# Against the same tick's command a fast allocation change (the active set switching)
-# would look like one.
+# A coil whose measured current lies farther than this (A) outside the span of the
+# commands it may follow (clamped to the limit) on every check for STUCK_PERSIST_S (s)
+# has a stuck amplifier: the amplifiers follow a command within a tick (1 kHz
+# bandwidth). The commands it may follow: the simulated station's, the tick before's;
+# over LCM, those of the link's round trip (measured currents 2-3 ticks behind). Against
+# one tick's command alone a fast allocation change (the active set switching, or a
+# saturating step) would look like one.
 STUCK_MISMATCH_A = 1.0
 STUCK_PERSIST_S = 0.01
 # With a coil stuck, a force the others cannot produce past this fraction of the
@@ -194,17 +196,17 @@ def tracking_lost_after(lost_s: float, tracking_ok: float, lost_grace_s: float,
 
 
 @numba.njit(cache=True)
-def mismatched_coils(measured_a, commanded_a, current_limit_a: float) -> np.ndarray:
-    """Mask of the coils whose measured current (A) is more than STUCK_MISMATCH_A from
-    their command (A) clamped to the amplifiers' limit (A)."""
+def mismatched_coils(measured_a, lowest_a, highest_a, current_limit_a: float) -> np.ndarray:
+    """Mask of the coils whose measured current (A) is more than STUCK_MISMATCH_A outside
+    the span [``lowest_a``, ``highest_a``] of the commands it may follow (A), each
+    clamped to the amplifiers' limit (A)."""
     mismatched = np.empty(len(measured_a), dtype=np.bool_)
     for i in range(len(measured_a)):
-        commanded = commanded_a[i]  # clamped as np.clip does: a NaN stays NaN
-        if commanded < -current_limit_a:
-            commanded = -current_limit_a
-        if commanded > current_limit_a:
-            commanded = current_limit_a
-        mismatched[i] = abs(measured_a[i] - commanded) > STUCK_MISMATCH_A
+        low = min(max(lowest_a[i], -current_limit_a), current_limit_a)
+        high = min(max(highest_a[i], -current_limit_a), current_limit_a)
+        # A NaN command compares False: no mismatch, as before the span.
+        mismatched[i] = (measured_a[i] < low - STUCK_MISMATCH_A
+                         or measured_a[i] > high + STUCK_MISMATCH_A)
     return mismatched
 
 
@@ -277,14 +279,14 @@ def supervisor_state(n_coils: int) -> Tuple[Tuple[str, int], ...]:
     """Its logic's state (name, size): the outputs, then what only the watchdogs read."""
     return supervisor_outputs(n_coils) + (
         ("landing_start_s", 1), ("thermally_limited_s", 1), ("mismatch_s", n_coils),
-        ("sent_a", n_coils))
+        ("sent_low_a", n_coils), ("sent_high_a", n_coils))
 
 
 # Each entry's place in the lists above: the kernels find its first row at starts[place].
 (POSE, VELOCITY, TRACKING_OK, CURRENTS, TEMPERATURES, THERMALLY_LIMITED, COMMANDED,
  SHORTFALL, CURRENTS_AGE_S) = range(9)
 (SETPOINT, ENABLE, FAULT_BITS, LOST_S, STUCK, POWER, LANDING_START_S, LIMITED_S,
- MISMATCH_S, SENT_A) = range(10)
+ MISMATCH_S, SENT_LOW_A, SENT_HIGH_A) = range(11)
 
 
 @numba.njit(cache=True)
@@ -305,8 +307,9 @@ def watchdog_check(inputs, at, state, next_state, rows, limits, lost_grace_s: fl
         # Stale currents follow an older command: compared, a stalled link would read
         # as a stuck coil. Their timers hold until fresh ones come.
         if inputs[at[CURRENTS_AGE_S]] <= max_currents_age_s:
-            mismatched = mismatched_coils(currents, state[rows[SENT_A]:rows[SENT_A] + n],
-                                          limits[0])
+            mismatched = mismatched_coils(
+                currents, state[rows[SENT_LOW_A]:rows[SENT_LOW_A] + n],
+                state[rows[SENT_HIGH_A]:rows[SENT_HIGH_A] + n], limits[0])
             for i in range(n):
                 mismatch_s = (state[rows[MISMATCH_S] + i] + watch_period_s if mismatched[i]
                               else 0.0)
@@ -328,25 +331,35 @@ def watchdog_check(inputs, at, state, next_state, rows, limits, lost_grace_s: fl
 
 
 @kernel((VECTOR, INDEX_VECTOR, VECTOR, VECTOR, INDEX_VECTOR, MATRIX, INDEX, INDEX, FLAG,
-         VECTOR, SCALAR, SCALAR, INDEX, SCALAR, SCALAR))
+         VECTOR, SCALAR, SCALAR, INDEX, INDEX, SCALAR, SCALAR))
 def supervisor_update(inputs, at, state, next_state, rows, commands, first_tick, tick,
                       landing, limits, lost_grace_s, period_s, watchdog_ticks,
-                      weight_n, max_currents_age_s) -> bool:
+                      lag_ticks, weight_n, max_currents_age_s) -> bool:
     """One tick (number ``tick``) of the supervisor: ``inputs`` (``supervisor_inputs``
     stacked, each port's first row at its entry of ``at``) and ``state`` (the
     context's, ``supervisor_state`` stacked, each at its entry of ``rows``) into
     ``next_state`` (a copy of ``state`` on entry): the tracking-lost timer; every
     ``watchdog_ticks`` ticks the watchdogs (``watchdog_check``, with ``limits`` as
     ``WatchLimits.as_vector``; measured currents older than ``max_currents_age_s``, s,
-    not compared with their commands), which latch a new fault; the next tick's command from
-    the active motion (its ``commands`` from ``first_tick``; ``landing``: it is a
+    not compared with their commands, the others with the span of the commands of the
+    ``lag_ticks`` ticks before the check, 1 to ``watchdog_ticks``), which latch a new
+    fault; the next tick's command from the active motion (its ``commands`` from ``first_tick``; ``landing``: it is a
     landing). True when a new fault must start a landing: the caller plans it and
     writes its command (Python, once a fault)."""
     next_state[rows[LOST_S]] = tracking_lost_after(
         state[rows[LOST_S]], inputs[at[TRACKING_OK]], lost_grace_s, period_s)
     n = at[TEMPERATURES] - at[CURRENTS]
-    if (tick + 1) % watchdog_ticks == 0:  # what the next check's currents follow
-        next_state[rows[SENT_A]:rows[SENT_A] + n] = inputs[at[COMMANDED]:at[COMMANDED] + n]
+    # The span of the commands the next check's currents may follow: those of its
+    # lag_ticks ticks before it.
+    to_check = (watchdog_ticks - tick % watchdog_ticks)  # ticks to the next check
+    if to_check <= lag_ticks:
+        commanded = inputs[at[COMMANDED]:at[COMMANDED] + n]
+        low = next_state[rows[SENT_LOW_A]:rows[SENT_LOW_A] + n]
+        high = next_state[rows[SENT_HIGH_A]:rows[SENT_HIGH_A] + n]
+        for i in range(n):
+            first = to_check == lag_ticks
+            low[i] = commanded[i] if first else min(low[i], commanded[i])
+            high[i] = commanded[i] if first else max(high[i], commanded[i])
     if tick % watchdog_ticks == 0:
         new = watchdog_check(inputs, at, state, next_state, rows, limits, lost_grace_s,
                              watchdog_ticks * period_s, weight_n, max_currents_age_s)
@@ -381,14 +394,15 @@ class SupervisorLogic(LeafSystem):
     fault's landing started (s; NaN: none), how long, at the watchdog checks, the
     controller has been thermally limited (s: the fault once it reaches
     THERMAL_LIMIT_PERSIST_S), how long each coil's current has been mismatched (s) and
-    the command the amplifiers were given the tick before a check (A: what the
-    check's measured currents follow, a tick late). The limits are an abstract
+    the span (lowest, highest) of the commands the amplifiers were given in the
+    ``measured_lag_ticks`` ticks before a check (A: what the check's measured currents
+    may follow). The limits are an abstract
     parameter (``WatchLimits``).
     """
 
     def __init__(self, *, initial_motion: Motion, limits: WatchLimits, lost_grace_s: float,
                  plan_landing: Callable, n_coils: int, watchdog_period_s: float,
-                 weight_n: float, max_currents_age_s: float):
+                 weight_n: float, max_currents_age_s: float, measured_lag_ticks: int = 1):
         super().__init__()
         self._weight_n = float(weight_n)
         self._plan_landing = plan_landing
@@ -400,6 +414,7 @@ class SupervisorLogic(LeafSystem):
         # link are compared at one check at most (half of STUCK_PERSIST_S).
         self._max_currents_age_s = min(float(max_currents_age_s),
                                        (self._watchdog_ticks - 1) * self._period_s)
+        self._lag_ticks = min(max(1, int(measured_lag_ticks)), self._watchdog_ticks)
         inputs = supervisor_inputs(n_coils)
         self._at = np.array([rows.start for rows in stacked_slices(inputs).values()])
         self._rows = stacked_slices(supervisor_state(n_coils))
@@ -493,7 +508,8 @@ class SupervisorLogic(LeafSystem):
                 self._inputs.EvalBasicVector(context).value(), self._at, state, next_state,
                 self._starts, motion.commands, motion.first_tick, tick, motion.landing,
                 context.get_abstract_parameter(self._limits).get_value().as_vector,
-                self._lost_grace_s, self._period_s, self._watchdog_ticks, self._weight_n,
+                self._lost_grace_s, self._period_s, self._watchdog_ticks, self._lag_ticks,
+                self._weight_n,
                 self._max_currents_age_s):
             # A new fault: land from the commanded motion's setpoint, now.
             now_s = context.get_time()
@@ -559,16 +575,22 @@ class DeviceSupervisor(Diagram):
     station's measured currents may be and still be compared with their commands
     (the station's own bound: over LCM a device that stalls 9-14 ms left them stale
     while the commands moved, and compared, a healthy coil would latch as stuck).
+    ``measured_lag_ticks``: how many ticks' commands a measured current may follow,
+    the checks' span (1: the tick before's, the simulated station's; over LCM, the
+    link's round trip: against the tick before's alone a saturating step, measured 2
+    ticks late, latched healthy coils as stuck and cut the power in flight); at most
+    the ticks between two checks.
     """
 
     def __init__(self, *, initial_motion: Motion, limits: WatchLimits, lost_grace_s: float,
                  plan_landing: Callable, n_coils: int, watchdog_period_s: float,
-                 weight_n: float, max_currents_age_s: float):
+                 weight_n: float, max_currents_age_s: float, measured_lag_ticks: int = 1):
         Diagram.__init__(self)
         self._logic = SupervisorLogic(
             initial_motion=initial_motion, limits=limits, lost_grace_s=lost_grace_s,
             plan_landing=plan_landing, n_coils=n_coils, watchdog_period_s=watchdog_period_s,
-            weight_n=weight_n, max_currents_age_s=max_currents_age_s)
+            weight_n=weight_n, max_currents_age_s=max_currents_age_s,
+            measured_lag_ticks=measured_lag_ticks)
         BuildStacked(self, leaf=self._logic, leaf_name="logic",
                      inputs=supervisor_inputs(n_coils), outputs=supervisor_outputs(n_coils),
                      unexported_rows=stacked_size(supervisor_state(n_coils))

@@ -307,13 +307,16 @@ class MessageReceiver(LeafSystem):
         self._stale_gap_s = {spec.port: (spec.stale_after_s + period_s if spec.stale_value
                                          is not None else math.inf) for spec in channels}
         self._period_s = float(period_s)
-        # Raw messages that LCM handed over since the last update: I/O, not state.
-        self._arrived = {spec.port: [] for spec in channels}
+        # Raw messages that LCM handed over since the last update, (port, data) in the
+        # order they came: I/O, not state. Read in that order, a command sent after
+        # its session's lease request finds the lease granted, and one sent before its
+        # session's release is still the holder's.
+        self._arrived = []
         self._counters, self._latencies, self._held = {}, {}, {}
         for spec in channels:
             subscription = lcm.subscribe(spec.channel,
-                                         lambda _, data, arrived=self._arrived[spec.port]:
-                                         arrived.append(data))
+                                         lambda _, data, port=spec.port:
+                                         self._arrived.append((port, data)))
             # LCM drops what queues past a subscription's capacity (30 by default): a
             # tick late by tens of ms must still read every message.
             subscription.set_queue_capacity(MESSAGE_QUEUE_CAPACITY)
@@ -354,7 +357,7 @@ class MessageReceiver(LeafSystem):
     def _initialize(self, context, discrete_state):
         for spec in self._channels.values():
             deadline = time.monotonic() + spec.wait_s
-            while spec.wait_s > 0 and not self._arrived[spec.port]:
+            while spec.wait_s > 0 and not any(port == spec.port for port, _ in self._arrived):
                 if time.monotonic() > deadline:
                     raise TimeoutError(
                         f"no message on LCM channel {spec.channel!r} within {spec.wait_s:g} "
@@ -365,8 +368,8 @@ class MessageReceiver(LeafSystem):
         # past the queue's capacity: the run counts from the newest message on.
         while self._lcm.handle_timeout(0) > 0:
             pass
-        for arrived in self._arrived.values():
-            del arrived[:-1]
+        newest = {port: k for k, (port, _) in enumerate(self._arrived)}
+        self._arrived[:] = [self._arrived[k] for k in sorted(newest.values())]
         discrete_state.set_value(self._started_at, [context.get_time()])
         self._read(context, discrete_state, at_start=True)
 
@@ -380,32 +383,31 @@ class MessageReceiver(LeafSystem):
             pass
         t_s = context.get_time()
         now_utime = time.time_ns() // 1000
-        for port, arrived in self._arrived.items():
-            if not arrived:
+        # Each port's counters, newest accepted message and latency bins this update.
+        accepted = {}
+        for port, data in self._arrived:
+            spec = self._channels[port]
+            message = self._gates[port].accept(data, t_s)
+            if message is None:
                 continue
-            spec, gate = self._channels[port], self._gates[port]
-            counters = None
-            newest = None
-            latency_bins = []
-            for data in arrived:
-                message = gate.accept(data, t_s)
-                if message is None:
-                    continue
-                if counters is None:
-                    counters = context.get_discrete_state(self._counters[port]).get_value() \
-                        .tolist()
-                received = counters[2]
-                latency_s = (now_utime - message.sent_wall_utime) / US_PER_S
-                counters = receiver_step(counters, message.sequence, t_s, latency_s,
-                                         self._stale_gap_s[port], at_start)
-                if counters[2] > received and not at_start:  # counted, and after the start
-                    latency_bins.append(latency_bin(latency_s))
-                if spec.on_accept is not None:
-                    spec.on_accept(message, t_s)
-                newest = message
-            arrived.clear()
-            if newest is None:  # every one refused: what was held holds
-                continue
+            read = accepted.get(port)
+            if read is None:
+                read = accepted[port] = [context.get_discrete_state(
+                    self._counters[port]).get_value().tolist(), None, []]
+            counters = read[0]
+            received = counters[2]
+            latency_s = (now_utime - message.sent_wall_utime) / US_PER_S
+            read[0] = counters = receiver_step(counters, message.sequence, t_s, latency_s,
+                                               self._stale_gap_s[port], at_start)
+            if counters[2] > received and not at_start:  # counted, and after the start
+                read[2].append(latency_bin(latency_s))
+            if spec.on_accept is not None:
+                spec.on_accept(message, t_s)
+            read[1] = message
+        self._arrived.clear()
+        # A port whose every message was refused is not in ``accepted``: what was held holds.
+        for port, (counters, newest, latency_bins) in accepted.items():
+            spec = self._channels[port]
             discrete_state.set_value(self._counters[port], counters)
             histogram = discrete_state.get_mutable_vector(self._latencies[port])
             for k in latency_bins:  # a BasicVector's element: a third of a NumPy view's cost

@@ -8,7 +8,8 @@ import pytest
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.primitives import TrajectorySource
 
-from maglev_haptics.diagrams.lcm_station import LcmStation, measured_currents_max_age_s
+from maglev_haptics.diagrams.lcm_station import (
+    LcmStation, measured_currents_lag_ticks, measured_currents_max_age_s)
 from maglev_haptics.diagrams.motion import flight_plan, landing_planner
 from maglev_haptics.diagrams.scenario import ScenarioError, load_scenario
 from maglev_haptics.systems.blends import (
@@ -51,7 +52,7 @@ def test_the_instruments_faults_count_only_while_the_coils_carry_it():
         FAULT_COIL_OVER_CURRENT
 
 
-def build(scenario, max_currents_age_s=0.0):
+def build(scenario, max_currents_age_s=0.0, measured_lag_ticks=1):
     spec = scenario.device.instrument_spec()
     plan = flight_plan(scenario.motion, spec.rest_height_m)
     supervisor = DeviceSupervisor(
@@ -59,7 +60,7 @@ def build(scenario, max_currents_age_s=0.0):
         lost_grace_s=LOST_GRACE_S,
         plan_landing=landing_planner(scenario.motion, spec.rest_height_m), n_coils=N_COILS,
         watchdog_period_s=WATCHDOG_PERIOD_S, weight_n=spec.mass_kg * 9.81,
-        max_currents_age_s=max_currents_age_s)
+        max_currents_age_s=max_currents_age_s, measured_lag_ticks=measured_lag_ticks)
     context = supervisor.CreateDefaultContext()
     pose = np.array([1.0, 0, 0, 0, 0.0, 0.0, 0.02])
     for port, value in (("X_WI_measured", pose), ("V_WI_measured", np.zeros(6)),
@@ -242,3 +243,38 @@ def test_the_lcm_stations_currents_may_be_a_control_period_and_its_margin_old():
     assert measured_currents_max_age_s(scenario, LcmStation()) == pytest.approx(0.003)
     assert measured_currents_max_age_s(scenario, LcmStation(stale_margin_s=0.01)) == \
         pytest.approx(0.011)  # the supervisor caps it under its checks' period
+
+
+def fly_lagging_currents(measured_lag_ticks: int, stuck_coil=None):
+    """Hovering, coil 3 commanded 4 sin(2 pi k / 8) A at tick k (a step of more than
+    STUCK_MISMATCH_A every tick, as a saturating allocation swings) and every current
+    measured 2 ticks after its command, as over LCM; ``stuck_coil`` measured at +4 A
+    whatever its 0.5 A command. Returns the coils latched stuck."""
+    supervisor, context, _, _ = build(load_scenario("levitate"), max_currents_age_s=0.003,
+                                      measured_lag_ticks=measured_lag_ticks)
+    simulator = Simulator(supervisor, context)
+    simulator.AdvanceTo(2.0)  # hovering, coils on
+    commands = []
+    for k in range(60):
+        commanded = np.full(N_COILS, 0.5)
+        commanded[3] = 4.0 * math.sin(2.0 * math.pi * k / 8)
+        commands.append(commanded)
+        measured = commands[max(0, k - 2)].copy()
+        if stuck_coil is not None:
+            measured[stuck_coil] = 4.0
+        supervisor.GetInputPort("coil_currents_commanded").FixValue(context, commanded)
+        supervisor.GetInputPort("coil_currents").FixValue(context, measured)
+        simulator.AdvanceTo(2.0 + (k + 1) * TICK_S)
+    return np.flatnonzero(supervisor.GetOutputPort("coils_stuck").Eval(context)).tolist()
+
+
+def test_currents_measured_a_round_trip_late_are_not_taken_for_a_stuck_coil():
+    """Over LCM a measured current follows its command 2-3 ticks late: against the tick
+    before's command alone a healthy coil whose command swings latched as stuck (the
+    device API's saturating step cut the power in flight); against the span of the
+    link's round trip it does not, and a coil that follows no command still latches."""
+    lcm_lag_ticks = measured_currents_lag_ticks(load_scenario("levitate"), LcmStation())
+    assert lcm_lag_ticks == 6  # (1 ms + 2 ms) each way; the supervisor caps it at 5
+    assert fly_lagging_currents(measured_lag_ticks=1) == [3]
+    assert fly_lagging_currents(measured_lag_ticks=lcm_lag_ticks) == []
+    assert fly_lagging_currents(measured_lag_ticks=lcm_lag_ticks, stuck_coil=20) == [20]

@@ -79,7 +79,8 @@ def test_a_stuck_amplifier_is_seen_by_its_mismatch_and_flown_around():
     commanded = np.full(27, 0.5)
     commanded[3] = 5.0  # clamped to the limit: no mismatch
     measured[3] = 4.0
-    assert np.flatnonzero(mismatched_coils(measured, commanded, LIMIT_A)).tolist() == [14]
+    assert np.flatnonzero(mismatched_coils(measured, commanded, commanded, LIMIT_A)).tolist() \
+        == [14]
 
 
 def test_a_coil_stuck_at_its_limit_under_the_hover_is_caught_and_landed_from_near_the_setpoint():

@@ -650,3 +650,38 @@ def test_an_application_for_another_instrument_is_refused_and_told():
             r"'two_magnet' \(device.instrument\)")):
         application.on_reply(replies[-1], 0.001)
     assert not application.granted
+
+
+def test_the_last_command_before_a_release_is_the_holders_and_a_refused_one_releases_nothing():
+    """The device reads a tick's messages in the order they came: the holder's last
+    command, then its RELEASE, in one tick, is its command (not another session's),
+    and then the lease is free. An application told that another holds the device
+    sends no RELEASE, which the device would refuse and log."""
+    bus, replies, lease, receiver, context = device_end("two_magnet")
+    holder = LeaseClient(lcm=bus, channel="T_LEASE_REQUEST", wait_s=1.0,
+                         instrument="two_magnet")
+    holder.on_tick(0.0)
+    publish(bus, "T_COIL_CURRENTS_COMMANDED", a_command(1, holder.session, np.ones(27)))
+    tick(receiver, context, 0.001)  # the request, then a command: granted, then used
+    holder.on_reply(replies[-1], 0.001)
+    publish(bus, "T_COIL_CURRENTS_COMMANDED", a_command(2, holder.session, np.zeros(27)))
+    holder.release()
+    tick(receiver, context, 0.002)
+    counts = receiver.counts(context, COMMANDS_PORT)
+    assert counts["messages_received"] == 2 and counts["messages_refused"] == 0
+    assert lease.holder.action == lease_t.FREE
+
+    other = LeaseClient(lcm=bus, channel="T_LEASE_REQUEST", wait_s=1.0,
+                        instrument="two_magnet")
+    holder = LeaseClient(lcm=bus, channel="T_LEASE_REQUEST", wait_s=1.0,
+                         instrument="two_magnet")
+    holder.on_tick(0.1)
+    tick(receiver, context, 0.101)
+    other.on_tick(0.101)
+    tick(receiver, context, 0.102)
+    with pytest.raises(DeviceInUseError):
+        other.on_reply(replies[-1], 0.102)
+    other.release()
+    tick(receiver, context, 0.103)
+    assert receiver.counts(context, "lease_requests")["messages_refused"] == 1  # its REQUEST
+    assert lease.holder.session == holder.session
