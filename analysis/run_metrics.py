@@ -16,6 +16,7 @@ from maglev_haptics.systems.rotations import rotation_matrix, rotations_of_quate
 
 HOVER_SETTLE_S = 0.5  # skipped at the start of each hold before hover errors count (s)
 HOLD_POSE_TOLERANCE = 1e-6  # the commanded pose is the hold's within this (m, rad)
+HOLD_CUT_SHORT_S = 0.002  # a hold flown to within this of its end was flown whole (s)
 
 
 def rpy_from_quaternions(q: np.ndarray) -> np.ndarray:
@@ -205,8 +206,12 @@ def summarize(log: Dict[str, np.ndarray], plan: FlightPlan, *, rest_height_m: fl
         position_error = p_WI[window] - log["p_WI_desired"][window]
         angle_error = angle_between_deg(q_WI[window], log["rpy_WI_desired"][window])
         estimate_error = log["p_WI_measured"][window] - p_WI[window]
+        # A hold the run ended, or a fault's landing cut short, ends where it was last
+        # flown (s).
+        flown_end_s = min(float(end), float(t[window][-1]))
         holds.append({
-            "start_s": float(start), "end_s": float(end),
+            "start_s": float(start), "end_s": flown_end_s,
+            "cut_short": bool(flown_end_s < end - HOLD_CUT_SHORT_S),
             "pose_desired": [*map(float, log["p_WI_desired"][window][0]),
                              *map(float, log["rpy_WI_desired"][window][0])],
             "position_error_rms_mm": float(1e3 * np.sqrt(np.mean(np.sum(position_error**2, 1)))),

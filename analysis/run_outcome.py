@@ -9,12 +9,13 @@ them), each fault with its time, and what it knows of why: the markers' longest 
 an LCM station, the messages the link refused, a lease lost to another
 application, the ticks the loop missed; ``maglev run`` then exits with
 ``EXIT_INSTRUMENT_LOST``. Runs with injected faults (and the fault campaign) are
-judged by their own checks instead.
+judged by their own checks instead: ``maglev run`` says in one line which faults
+latched, when, and where the instrument came down, and exits 0.
 """
 
 from __future__ import annotations
 
-from typing import Dict, Optional
+from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
@@ -30,6 +31,30 @@ FAULT_NAMES = {FAULT_SENSOR_OUT_OF_RANGE: "sensor out of range",
                FAULT_COIL_OVER_CURRENT: "coil over-current", FAULT_OVER_SPEED: "over-speed"}
 
 
+def latched_faults(log: Dict[str, np.ndarray]) -> List[Tuple[float, str]]:
+    """(time it latched, s; its name) of each fault that latched in the run, in order."""
+    if "fault_bits" not in log:
+        return []
+    bits = np.asarray(log["fault_bits"]).astype(np.int64)
+    t = np.asarray(log["t"])
+    return sorted((float(t[np.argmax(bits & bit)]), name) for bit, name in FAULT_NAMES.items()
+                  if np.any(bits & bit))
+
+
+def injected_faults_outcome(scenario, summary: Dict, log: Dict[str, np.ndarray],
+                            label: str) -> Optional[str]:
+    """In a run of ``scenario`` that injected faults, one line saying which latched and
+    when, and where the instrument came down; None when it injected none, or none latched."""
+    firsts = latched_faults(log)
+    if not injects_faults(scenario) or not firsts:
+        return None
+    faults = ", ".join(f"{name} at {when:.3f} s" for when, name in firsts)
+    touchdown = summary.get("touchdown")
+    down = ("; touchdown at {time_s:.3f} s, {speed_m_s:.3f} m/s".format(**touchdown)
+            if touchdown is not None and touchdown["time_s"] >= firsts[0][0] else "")
+    return f"{label}: the injected faults latched {faults}{down}"
+
+
 def injects_faults(scenario) -> bool:
     """Whether the scenario injects a fault (a ``faults`` entry or an occlusion)."""
     return bool(scenario.faults) or bool(scenario.occlusions)
@@ -40,18 +65,12 @@ def instrument_outcome(scenario, summary: Dict, log: Dict[str, np.ndarray],
     """One line saying when and how the instrument was lost, or a fault latched, in a
     run of ``scenario`` that injected no fault; None when none latched (or the
     scenario injected one)."""
-    if injects_faults(scenario) or "fault_bits" not in log:
+    firsts = latched_faults(log)
+    if injects_faults(scenario) or not firsts:
         return None
-    bits = np.asarray(log["fault_bits"]).astype(np.int64)
-    latched = np.flatnonzero(bits)
-    if latched.size == 0:
-        return None
-    t = np.asarray(log["t"])
-    at_s = float(t[latched[0]])
-    # Each fault that latched, in the order it did, with its time.
-    firsts = sorted((float(t[np.argmax(bits & bit)]), name) for bit, name in FAULT_NAMES.items()
-                    if np.any(bits & bit))
-    what = ("the instrument was lost" if np.any(bits & FAULT_SENSOR_OUT_OF_RANGE)
+    at_s = firsts[0][0]
+    what = ("the instrument was lost" if any(name == FAULT_NAMES[FAULT_SENSOR_OUT_OF_RANGE]
+                                             for _, name in firsts)
             else "a fault latched")
     faults = ", ".join(name if when == at_s else f"{name} at {when:.3f} s"
                        for when, name in firsts)

@@ -11,14 +11,16 @@ import numpy as np
 from maglev_haptics.analysis.haptic_metrics import haptic_summary
 from maglev_haptics.analysis.run_log import RunLogWriter
 from maglev_haptics.analysis.run_metrics import for_people, log_arrays, summarize
+from maglev_haptics.analysis.run_outcome import latched_faults
 from maglev_haptics.analysis.run_plots import plot_haptics, plot_run, plot_tick_times
 from maglev_haptics.analysis.stereo_metrics import plot_colocation, stereo_summary
 from maglev_haptics.analysis.stereo_video import StereoVideoWriter
 from maglev_haptics.diagrams.application import BuildDiagram
 from maglev_haptics.diagrams.lcm_station import LcmStation, station_counts
 from maglev_haptics.diagrams.meshcat_lifetime import start_meshcat
+from maglev_haptics.diagrams.motion import longest_landing_s
 from maglev_haptics.diagrams.runner import (
-    LandBeforeStopping, StopOnSignal, realtime_report, simulate)
+    PROGRESS_CHUNK_S, LandBeforeStopping, StopOnSignal, realtime_report, simulate)
 from maglev_haptics.diagrams.scenario import Scenario
 from maglev_haptics.hardware.thermal import coil_thermal
 from maglev_haptics.systems.device_visualizer import aim_camera_at_device
@@ -53,6 +55,11 @@ def run_scenario(scenario: Scenario, *, label: str, out_dir: Optional[Path] = No
                          realtime=realtime_rate > 0)
     if duration_s is None:
         duration_s = scenario.duration_s if scenario.duration_s is not None else built.plan.end_s
+    # A real instrument is not let fall where the run's time ends: it lands first (the
+    # simulated one's run may end anywhere). The stop is asked every PROGRESS_CHUNK_S.
+    lands_at_end = isinstance(scenario.station, LcmStation)
+    horizon_s = duration_s + (longest_landing_s(scenario.motion) + PROGRESS_CHUNK_S
+                              if lands_at_end else 0.0)
     # An interactive run is watched live; a recording would only grow.
     record = viewer is not None and built.meshcat_hand is None
     if record:
@@ -70,9 +77,11 @@ def run_scenario(scenario: Scenario, *, label: str, out_dir: Optional[Path] = No
         # and what it ran is written (a second one ends it at once).
         with StopOnSignal() as stop_signal:
             stop = LandBeforeStopping(built.diagram.GetSubsystemByName("device_supervisor"),
-                                      stop_signal)
+                                      stop_signal,
+                                      land_from_s=duration_s if lands_at_end else None,
+                                      haptics=built.haptics)
             simulator, wall_s, tick_times = simulate(
-                built, duration_s, realtime_rate=realtime_rate, progress=progress, label=label,
+                built, horizon_s, realtime_rate=realtime_rate, progress=progress, label=label,
                 stop=stop,
                 shares_cores=isinstance(scenario.station, LcmStation),
                 on_progress=log_writer.drain if log_writer is not None else None,
@@ -101,9 +110,11 @@ def run_scenario(scenario: Scenario, *, label: str, out_dir: Optional[Path] = No
                     holds_before_s=(scenario.haptics.enable_at_s
                                     if scenario.haptics is not None else None)),
         **haptic_summary(log, scenario, rest_height_m=spec.rest_height_m),
+        "faults_latched": [{"fault": name, "at_s": at_s} for at_s, name in latched_faults(log)],
     }
     if stop_signal.received is not None:
         summary["stopped_by"] = stop_signal.received
+    if stop_signal.received is not None or stop.landing_end_s is not None:
         summary["landed_before_stopping"] = stop.landing_end_s is not None
     if tick_times is not None:
         summary["realtime"] = {"rate": realtime_rate, **realtime_report(tick_times)}

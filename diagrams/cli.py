@@ -149,7 +149,7 @@ def _cmd_run(args) -> int:
     from maglev_haptics.diagrams.thermal_forecast import thermal_outlook
     from maglev_haptics.analysis.loop_studies import stability_warnings
     from maglev_haptics.analysis.run_outcome import (
-        EXIT_DEVICE_IN_USE, EXIT_INSTRUMENT_LOST, instrument_outcome)
+        EXIT_DEVICE_IN_USE, EXIT_INSTRUMENT_LOST, injected_faults_outcome, instrument_outcome)
     from maglev_haptics.hardware.lease import DeviceInUseError
 
     scenario, label = _load(args)
@@ -205,6 +205,13 @@ def _cmd_run(args) -> int:
         print(f"{label}: stopped by {stopped_by} at {result.summary['duration_s']:.3f} s"
               f"{landed}; the run so far is in {out}", file=sys.stderr)
         return 128 + signal.Signals[stopped_by].value
+    if result.summary.get("landed_before_stopping"):
+        print(f"{label}: the instrument was flying when the run's time ended: it was landed "
+              f"first, as a device's must be (the run ended at "
+              f"{result.summary['duration_s']:.3f} s)", file=sys.stderr)
+    injected = injected_faults_outcome(scenario, result.summary, result.log, label)
+    if injected is not None:
+        print(injected, file=sys.stderr)
     # A fault in a run that injected none: said in one line, last, with its own code.
     outcome = instrument_outcome(scenario, result.summary, result.log, label)
     if result.meshcat is not None:

@@ -48,6 +48,7 @@ from maglev_haptics.diagrams.lcm_station import LcmStation, station_lease
 from maglev_haptics.diagrams.motion import check_pose_reachable
 from maglev_haptics.diagrams.runner import SHARED_SPIN_S, wait_until
 from maglev_haptics.diagrams.scenario import Scenario, load_scenario
+from maglev_haptics.hardware.config_checks import nonnegative, positive
 from maglev_haptics.hardware.kernels import compile_kernels
 from maglev_haptics.hardware.lease import (  # noqa: F401 (connect raises them)
     DeviceInUseError, InstrumentMismatchError)
@@ -66,6 +67,10 @@ class DeviceTimeoutError(TimeoutError):
 
 class DeviceFaultError(RuntimeError):
     """A command refused, or a takeoff ended, by a latched fault."""
+
+
+class DeviceStateError(RuntimeError):
+    """A command the device's state refuses: a pose while the coils carry nothing."""
 
 
 @dataclass
@@ -95,11 +100,13 @@ class MaglevDevice:
                  name: Optional[str] = None, realtime_rate: float = 0.0):
         self.scenario = scenario if isinstance(scenario, Scenario) else load_scenario(
             scenario, name)
+        nonnegative("realtime_rate", realtime_rate)
         on_lcm = isinstance(self.scenario.station, LcmStation)
         self._realtime_rate = float(realtime_rate) if realtime_rate > 0 or not on_lcm else 1.0
         self._tick_callbacks: List[Callable[[TickState], None]] = []
         self._fault_callbacks: List[Callable[[int], None]] = []
         self._simulator = None
+        self.state: Optional[TickState] = None  # after each tick; None until connect()
 
     # --- connection ---------------------------------------------------------
 
@@ -179,12 +186,21 @@ class MaglevDevice:
 
     def set_desired_pose(self, pose, rates=None) -> None:
         """Hover at ``pose`` [x, y, z, roll, pitch, yaw] (m, rad) with setpoint
-        ``rates`` (m/s, rad/s; default zero); ends a takeoff or landing in progress.
-        A pose inside the glass or beyond what the coils can hold is refused."""
+        ``rates`` (m/s, rad/s; default zero); ends a takeoff's rise or a landing's
+        descent in progress. A pose inside the glass or beyond what the coils can hold
+        is refused, and so is any pose while the coils do not carry the instrument
+        fully (before ``takeoff``, after ``land``, while either ramps the force)."""
         self._require_no_faults("set_desired_pose")
         pose = _vector("pose", pose, 6)
         check_pose_reachable(pose, self.scenario.device, self._built.magnetics, "pose")
         rates = np.zeros(6) if rates is None else _vector("rates", rates, 6)
+        enable = self._current_enable()
+        if enable < 1.0:
+            raise DeviceStateError(
+                "set_desired_pose refused: the coils carry nothing (call takeoff() first)"
+                if enable == 0.0 else
+                f"set_desired_pose refused: the force is ramping (gain {enable:.2f} of 1): "
+                "let takeoff() or land() finish first")
         self._set_motion(hold_motion(np.concatenate((pose, rates)), self._current()[1],
                                      self._now(), self._built.tick_s))
 
@@ -221,25 +237,31 @@ class MaglevDevice:
 
     def coil_temperatures_c(self) -> np.ndarray:
         """The coils' estimated winding temperatures (C)."""
+        self._require_connection()
         return self.state.coil_temperature_c.copy()
 
     # --- motions -----------------------------------------------------------
 
     def takeoff(self, pose=None, timeout_s: float = 5.0) -> None:
         """Ramp the force up and rise to ``pose`` (default: the scenario's first
-        waypoint); blocks until hovering there, else lands and raises
-        DeviceTimeoutError."""
+        waypoint); blocks until hovering there (``timeout_s``, s), else lands and raises
+        DeviceTimeoutError. The force ramps up from what it is: called while flying,
+        or landing, it flies to ``pose`` from where the setpoint is."""
         self._require_no_faults("takeoff")
+        positive("timeout_s", timeout_s)
         motion = self.scenario.motion
         target = np.asarray(motion.waypoints[0].pose if pose is None else
                             _vector("pose", pose, 6), dtype=float)
         check_pose_reachable(target, self.scenario.device, self._built.magnetics, "pose")
-        start = self._current()[0][0:6]
-        ramp_s = motion.force_ramp_s
+        setpoint, enable = self._current()
+        ramp_s = motion.force_ramp_s * (1.0 - enable)
+        force_gain = (PiecewisePolynomial.FirstOrderHold([0.0, ramp_s], [[enable, 1.0]])
+                      if ramp_s > 0.0 else  # carried already: the gain stays 1
+                      PiecewisePolynomial.ZeroOrderHold([0.0, self._built.tick_s], [[1.0, 1.0]]))
         self._set_motion(make_motion(
-            minimum_jerk_plan(start, ramp_s, [(target, motion.waypoints[0].move_s, 0.0)], 0.0),
-            PiecewisePolynomial.FirstOrderHold([0.0, ramp_s], [[0.0, 1.0]]), self._now(),
-            self._built.tick_s))
+            minimum_jerk_plan(setpoint[0:6], ramp_s,
+                              [(target, motion.waypoints[0].move_s, 0.0)], 0.0),
+            force_gain, self._now(), self._built.tick_s))
 
         def hovering():
             if self.faults:
@@ -253,6 +275,7 @@ class MaglevDevice:
         """Descend onto the glass and ramp the force down; blocks until done, else
         cuts the coils and raises DeviceTimeoutError."""
         self._require_connection()
+        positive("timeout_s", timeout_s)
         context = self._contexts[self._supervisor]
         if not self._supervisor.active_motion(context).landing:
             self._supervisor.land(context)
@@ -261,6 +284,7 @@ class MaglevDevice:
     def run_for(self, duration_s: float) -> None:
         """Tick for ``duration_s`` (s), holding or carrying on what was commanded."""
         self._require_connection()
+        nonnegative("duration_s", duration_s)
         for _ in range(int(round(duration_s / self._built.tick_s))):
             self._tick()
 

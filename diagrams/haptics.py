@@ -59,6 +59,12 @@ class HapticParts:
     coupling: object
     supervisor: object
     coupling_config: CouplingConfig  # with the device-derived limits filled in
+    request: object  # the haptics request's TrajectorySource (1: requested)
+
+    def end_request(self) -> None:
+        """Haptics no longer requested from now on, as a user switching it off: the
+        coupling's force ramps out and the PD back in (the supervisor's handover)."""
+        self.request.UpdateTrajectory(PiecewisePolynomial(np.zeros((1, 1))))
 
 
 def loop_delay_s(scenario: Scenario) -> float:
@@ -179,7 +185,7 @@ def AddHaptics(builder, *, scenario: Scenario, magnetics, station, estimator, co
     builder.Connect(coupling.GetOutputPort("wrench_feedforward_W"),
                     controller.GetInputPort("wrench_feedforward_W"))
     return HapticParts(scene=scene, coupling=coupling, supervisor=supervisor,
-                       coupling_config=config)
+                       coupling_config=config, request=request)
 
 
 # A scene plant whose step costs more than this share of the tick gets a warning

@@ -69,6 +69,12 @@ def landing_planner(motion, rest_height_m: float):
     return plan
 
 
+def longest_landing_s(motion) -> float:
+    """The longest a landing that ``landing_planner`` plans for ``motion`` takes, from
+    a tilted pose, to the force ramped down and IDLE_AFTER_S more (s)."""
+    return 2 * motion.landing_s + motion.settle_s + motion.force_ramp_s + IDLE_AFTER_S
+
+
 def flight_plan(motion, rest_height_m: float) -> FlightPlan:
     """Setpoint and enable trajectories for ``motion`` (a MotionScript)."""
     times: List[float] = []
@@ -145,22 +151,24 @@ def check_pose_reachable(pose_value, device, magnetics, field_name: str) -> None
     limit = device.amplifier.current_limit_a
     lift = np.array([0.0, 0.0, HOLD_MARGIN * spec.mass_kg * GRAVITY_M_S2, 0.0, 0.0, 0.0])
     pose = np.asarray(pose_value, float)
+    shown = pose.tolist()
     R_WI = RollPitchYaw(pose[3:6]).ToRotationMatrix().matrix()
     tilt_deg = np.degrees(np.arccos(np.clip(R_WI[2, 2], -1, 1)))
     if tilt_deg > MAX_TILT_DEG:
         raise ScenarioError(
-            f"{field_name} = {list(pose_value)}: tilt {tilt_deg:.1f} deg is beyond the "
-            f"{MAX_TILT_DEG:.0f} deg the electromagnetic model is validated for")
+            f"{field_name} = {shown}: tilt {tilt_deg:.1f} deg is beyond the "
+            f"{MAX_TILT_DEG:.0f} deg the electromagnetic model is validated for (roll, pitch "
+            "and yaw are in radians)")
     clearance = base_clearance_m(pose, spec)
     if clearance < 0:
         raise ScenarioError(
-            f"{field_name} = {list(pose_value)}: unreachable, the instrument's base would be "
+            f"{field_name} = {shown}: unreachable, the instrument's base would be "
             f"{-1e3 * clearance:.1f} mm inside the display glass (z must keep it above W's z = 0)")
     A = magnetics.wrench_matrix_from(pose[0:3] - device.p_WA, R_WI)
     if np.linalg.matrix_rank(A) < 6:
         cutoffs = magnetics.cutoffs()
         raise ScenarioError(
-            f"{field_name} = {list(pose_value)}: unreachable, the magnets are out of the "
+            f"{field_name} = {shown}: unreachable, the magnets are out of the "
             f"coils' reach there (the electromagnetic model covers magnets within "
             f"{1e3 * cutoffs['rho_max_m']:.0f} mm of a coil's axis and "
             f"{1e3 * cutoffs['z_max_m']:.0f} mm above its top)")
@@ -168,7 +176,7 @@ def check_pose_reachable(pose_value, device, magnetics, field_name: str) -> None
     if np.linalg.norm(shortfall) > 1e-6 * lift[2]:
         minimum_power = np.max(np.abs(np.linalg.pinv(A) @ lift))
         raise ScenarioError(
-            f"{field_name} = {list(pose_value)}: unreachable, carrying {HOLD_MARGIN} x the "
+            f"{field_name} = {shown}: unreachable, carrying {HOLD_MARGIN} x the "
             f"instrument's weight there takes {minimum_power:.2f} A in the busiest coil at "
             f"minimum power, and even spread over all coils it falls "
             f"{np.linalg.norm(shortfall):.2f} N short within the "

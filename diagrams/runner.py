@@ -23,7 +23,7 @@ import threading
 import time
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Callable, Dict, List
+from typing import Callable, Dict, List, Optional
 
 import numpy as np
 from pydrake.systems.analysis import Simulator
@@ -31,6 +31,7 @@ from tqdm import tqdm
 
 from maglev_haptics.diagrams.application import MESHCAT_PERIOD_S
 from maglev_haptics.diagrams.motion import IDLE_AFTER_S
+from maglev_haptics.hardware.constants import SAME_INSTANT_S
 from maglev_haptics.hardware.realtime_priority import RT_SPIN_S, is_realtime, realtime_priority
 from maglev_haptics.hardware.kernels import compile_kernels
 
@@ -128,26 +129,33 @@ class StopOnSignal:
 
 class LandBeforeStopping:
     """``simulate``'s ``stop`` that lands first: once ``requested`` (a StopOnSignal)
-    has a signal, a flying instrument lands (the device supervisor's landing, as on
-    a fault) and the run stops once that is done; a second signal stops at once.
-    ``landing_end_s``: when the landing it waited for ends (s; None: none)."""
+    has a signal, or from ``land_from_s`` (s; None: never) on, a flying instrument
+    lands (the device supervisor's landing, as on a fault; ``haptics``, a
+    HapticParts or None, ends haptics first, as a fault does, so the coils' force is
+    the landing's) and the run stops once that is done; a second signal stops at
+    once. ``landing_end_s``: when the landing it waited for ends (s; None: none)."""
 
-    def __init__(self, supervisor, requested: StopOnSignal):
+    def __init__(self, supervisor, requested: StopOnSignal,
+                 land_from_s: Optional[float] = None, haptics=None):
         self._supervisor = supervisor
         self._requested = requested
+        self._land_from_s = math.inf if land_from_s is None else land_from_s
+        self._haptics = haptics
         self.landing_end_s = None
 
     def __call__(self, context) -> bool:
-        if not self._requested(context):
+        t_s = context.get_time()
+        if not (self._requested(context) or t_s >= self._land_from_s - SAME_INSTANT_S):
             return False
         if self._requested.count > 1:
             return True
-        t_s = context.get_time()
         if self.landing_end_s is None:
             supervisor_context = self._supervisor.GetMyMutableContextFromRoot(context)
             motion = self._supervisor.active_motion(supervisor_context)
             if motion.at(t_s)[1] == 0.0:
                 return True  # the coils carry nothing: nothing to land
+            if self._haptics is not None:
+                self._haptics.end_request()
             if not motion.landing:
                 motion = self._supervisor.land(supervisor_context)
             self.landing_end_s = motion.end_s

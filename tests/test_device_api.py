@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 
 from maglev_haptics.diagrams.device_api import (
-    FAULT_SENSOR_OUT_OF_RANGE, DeviceFaultError, DeviceInUseError, DeviceTimeoutError,
-    MaglevDevice)
+    FAULT_SENSOR_OUT_OF_RANGE, DeviceFaultError, DeviceInUseError, DeviceStateError,
+    DeviceTimeoutError, MaglevDevice)
 from maglev_haptics.diagrams.scenario import load_scenario
 from maglev_haptics.hardware.lcm_link import publish
 from maglev_haptics.hardware.lcm_messages import lease_t
@@ -72,6 +72,75 @@ def test_fly_with_the_api():
     device.land()
     assert device.state.X_WI[6] == pytest.approx(REST_Z_M, abs=1.5e-3)
     assert device._current_enable() == 0.0 and device.faults == 0
+    device.disconnect()
+
+
+def test_a_takeoff_while_flying_or_landing_never_lets_the_instrument_fall():
+    """The force ramps up from what it is: a second takeoff while hovering, or one
+    during a landing, flies to the pose from where the setpoint is; the instrument
+    never sinks towards the glass (a ramp restarted from zero dropped it 11 mm)."""
+    device = MaglevDevice("levitate")
+    device.connect()
+    device.takeoff()
+    heights = []
+    device.on_tick(lambda state: heights.append(state.X_WI[6]))
+    hover = np.asarray(device.scenario.motion.waypoints[0].pose)
+    device.takeoff(hover + [0.005, 0, 0, 0, 0, 0])
+    assert min(heights) > hover[2] - 0.5e-3
+    context = device._contexts[device._supervisor]
+    device._supervisor.land(context)  # a landing under way, as land() starts it
+    device.run_for(0.6)
+    landing_z = device.state.X_WI[6]
+    assert landing_z < hover[2] - 1e-3  # on its way down
+    heights.clear()
+    device.takeoff()
+    assert min(heights) > landing_z - 0.5e-3
+    assert np.linalg.norm(device.state.X_WI[4:7] - hover[0:3]) < 0.5e-3
+    device.land()
+    device.disconnect()
+
+
+def test_a_pose_is_refused_while_the_coils_do_not_carry_the_instrument():
+    """Before takeoff and after landing the coils carry nothing: a desired pose is
+    refused, saying what to do, instead of being taken and never flown."""
+    device = MaglevDevice("levitate")
+    device.connect()
+    with pytest.raises(DeviceStateError, match=r"the coils carry nothing \(call takeoff"):
+        device.set_desired_pose([0, 0, 0.02, 0, 0, 0])
+    device.takeoff()
+    device.set_desired_pose([0, 0, 0.02, 0, 0, 0])
+    device.land()
+    with pytest.raises(DeviceStateError, match="the coils carry nothing"):
+        device.set_desired_pose([0, 0, 0.02, 0, 0, 0])
+    device.disconnect()
+
+
+def test_the_apis_arguments_are_checked_by_name():
+    """Each bad argument names itself, its value and what is allowed; every call before
+    connect() says to connect first."""
+    with pytest.raises(ValueError, match=r"^realtime_rate = -1: must be a finite number >= 0"):
+        MaglevDevice("levitate", realtime_rate=-1)
+    device = MaglevDevice("levitate")
+    assert device.state is None
+    with pytest.raises(RuntimeError, match="not connected"):
+        device.coil_temperatures_c()
+    device.connect()
+    for call, message in (
+            (lambda: device.run_for(-1.0), r"^duration_s = -1.0: must be a finite number >= 0"),
+            (lambda: device.run_for(float("nan")), r"^duration_s = nan: must be a finite"),
+            (lambda: device.run_for("1"), r"^duration_s = '1': must be a finite"),
+            (lambda: device.takeoff(timeout_s=-1), r"^timeout_s = -1: must be a finite number > 0"),
+            (lambda: device.land(timeout_s=0), r"^timeout_s = 0: must be a finite number > 0")):
+        with pytest.raises(ValueError, match=message):
+            call()
+    assert device.state.t_s == 0.0  # nothing ran
+    device.takeoff()
+    with pytest.raises(Exception, match=r"^pose = \[0.0, 0.0, -0.01, 0.0, 0.0, 0.0\]: "
+                                        r"unreachable"):
+        device.set_desired_pose(np.array([0.0, 0.0, -0.01, 0.0, 0.0, 0.0]))
+    with pytest.raises(Exception, match=r"tilt 65.9 deg .* \(roll, pitch and yaw are in radians"):
+        device.set_desired_pose([0.0, 0.0, 0.02, 0.0, 20.0, 0.0])
+    device.land()
     device.disconnect()
 
 

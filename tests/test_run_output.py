@@ -56,6 +56,32 @@ def test_a_flown_hold_still_reports_its_hover_error(tmp_path):
     summary = json.loads((out / "summary.json").read_text())
     assert len(summary["holds"]) == 1
     assert 0 < summary["hover_position_error_rms_mm"] < 0.1
+    # The run ended 0.8 s into the 3 s hold: the hold says where it was last flown.
+    hold = summary["holds"][0]
+    assert hold["start_s"] == 1.4 and hold["end_s"] == pytest.approx(2.2, abs=0.002)
+    assert hold["cut_short"] and summary["faults_latched"] == []
+
+
+def test_a_run_with_injected_faults_says_which_latched_and_where_it_came_down(tmp_path,
+                                                                             capsys):
+    """The README's own example: a stuck amplifier latches coil over-current and the
+    device lands the instrument; the run says so in one line (exit 0: the fault was
+    asked for), the summary lists it, and the hold ends where the landing began."""
+    out = tmp_path / "stuck"
+    text = ("{faults: [!StuckAmplifier {coil: 13, at_s: 2.0, stuck_at: positive_limit}]}")
+    assert main(["run", "levitate", "--no-meshcat", "--out", str(out),
+                 "--scenario-text", text]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    [latched] = summary["faults_latched"]
+    assert latched["fault"] == "coil over-current" and 2.0 < latched["at_s"] < 2.03
+    hold = summary["holds"][0]
+    # The landing's minimum-jerk start leaves the hold's pose by 1 um within 30 ms.
+    assert hold["cut_short"] and latched["at_s"] < hold["end_s"] < latched["at_s"] + 0.05
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert last == (f"levitate:takeoff_hover_land: the injected faults latched coil "
+                    f"over-current at {latched['at_s']:.3f} s; touchdown at "
+                    f"{summary['touchdown']['time_s']:.3f} s, "
+                    f"{summary['touchdown']['speed_m_s']:.3f} m/s")
 
 
 @pytest.mark.parametrize("waits, replay, line", [

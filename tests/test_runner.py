@@ -8,11 +8,16 @@ import time
 import numpy as np
 import pytest
 
+from maglev_haptics.analysis.run_metrics import first_touchdown, log_arrays
 from maglev_haptics.diagrams import runner
+from maglev_haptics.diagrams.application import BuildDiagram
 from maglev_haptics.diagrams.cli import main
+from maglev_haptics.diagrams.motion import longest_landing_s
 from maglev_haptics.diagrams.runner import (
-    BETWEEN_TICKS_MARGIN_S, MEASURED_RUNS, RETRY_AFTER_SKIPS, BetweenTicks, BetweenTicksJob,
-    PacedTicks, TickTimes, advance_paced, realtime_report)
+    BETWEEN_TICKS_MARGIN_S, MEASURED_RUNS, PROGRESS_CHUNK_S, RETRY_AFTER_SKIPS, BetweenTicks,
+    BetweenTicksJob, LandBeforeStopping, PacedTicks, StopOnSignal, TickTimes, advance_paced,
+    realtime_report, simulate)
+from maglev_haptics.diagrams.scenario import load_scenario
 from maglev_haptics.hardware.realtime_priority import (
     LOOP_PRIORITY, RT_SPIN_S, fifo_permitted, is_realtime)
 
@@ -303,3 +308,24 @@ def test_paced_loop_runs_at_real_time_priority_and_sleeps_its_waits(monkeypatch)
         assert policies and set(policies) == {expected}
         assert np.all(np.array(waits) <= RT_SPIN_S) == priority
     assert not is_realtime()
+
+
+def test_a_run_lands_the_instrument_from_its_land_from_time_before_it_stops():
+    """What a run over LCM does when its time ends with the instrument flying (a
+    device's instrument is never let fall): from ``land_from_s`` on the run lands it,
+    softly and level, and stops once the force is ramped down, well before the longest
+    landing's horizon; ``landing_end_s`` says it landed."""
+    scenario = load_scenario("levitate")  # hovering at z = 18 mm from 2.2 s to 5.2 s
+    built = BuildDiagram(scenario)
+    stop = LandBeforeStopping(built.diagram.GetSubsystemByName("device_supervisor"),
+                              StopOnSignal(), land_from_s=3.0)
+    horizon_s = 3.0 + longest_landing_s(scenario.motion) + PROGRESS_CHUNK_S
+    simulator, _, _ = simulate(built, horizon_s, progress=False, stop=stop)
+    end_s = simulator.get_context().get_time()
+    log = log_arrays(built.logger, built.log_layout, simulator.get_context(), scenario.device)
+    assert log["p_WI_true"][log["t"] <= 3.0][-1, 2] > 0.015  # flying when its time came
+    touchdown = first_touchdown(log, scenario.device.instrument_spec().rest_height_m)
+    assert touchdown is not None and 3.0 < touchdown["time_s"] < end_s
+    assert touchdown["speed_m_s"] < 0.05 and touchdown["tilt_deg"] < 1.0
+    assert stop.landing_end_s is not None and end_s < horizon_s - 0.1
+    assert np.all(np.abs(log["coil_currents"][-10:]) < 1e-9)
