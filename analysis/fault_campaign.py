@@ -47,7 +47,7 @@ from maglev_haptics.analysis.loop_studies import loop_parameters  # noqa: E402
 from maglev_haptics.analysis.parallel import map_jobs  # noqa: E402
 from maglev_haptics.analysis.onset import (  # noqa: E402
     GROWTH_RATIO, OnsetPoint, held_still, velocity_growth)
-from maglev_haptics.analysis.run_plots import save_figure  # noqa: E402
+from maglev_haptics.analysis.run_plots import legend_outside, save_figure  # noqa: E402
 from maglev_haptics.diagrams.application import WATCHDOG_PERIOD_S  # noqa: E402
 from maglev_haptics.diagrams.hand_script import GripEvent  # noqa: E402
 from maglev_haptics.diagrams.scenario import load_scenario  # noqa: E402
@@ -376,6 +376,6 @@ def plot_outcomes(rows: List[Dict], path: Path) -> Path:
     axes.set_ylabel("runs")
     axes.yaxis.set_major_locator(MaxNLocator(integer=True))
     axes.set_title(f"fault campaign: {len(rows)} runs, outcome by fault kind")
-    axes.legend(fontsize=8)
+    legend_outside(axes)
     plt.setp(axes.get_xticklabels(), rotation=30, ha="right")
     return save_figure(figure, path)

@@ -161,24 +161,32 @@ def zwidth_study(scenario, settings: ZWidthSettings,
     region = np.zeros((len(B), len(K)), dtype=int)
     for i, damping in enumerate(B):
         for j, stiffness in enumerate(K):
-            q = replace(p, stiffness=float(stiffness), damping=float(damping))
-            H = environment_impedance(q)
-            if passivity_margin(H, q.device_damping) > 0:
-                region[i, j] = 3
-            elif passivity_margin(H, q.device_damping + q.hand_damping) > 0:
-                region[i, j] = 2
-            elif is_stable(q):
-                region[i, j] = 1
+            region[i, j] = zwidth_region(replace(p, stiffness=float(stiffness),
+                                                 damping=float(damping)))
         if progress is not None:
             progress(i + 1, len(B))
     stable_K = [float(K[row >= 1].max()) if (row >= 1).any() else None for row in region]
     return {"parameters": _parameters_dict(p), "stiffness_n_m": K.tolist(),
             "damping_n_s_m": B.tolist(), "region": region.tolist(),
-            "region_codes": {"3": "passive with the device's damping alone",
-                             "2": "passive with the hand's damping",
-                             "1": "stable with the hand, not passive", "0": "unstable"},
+            "region_codes": {str(code): name for code, name in enumerate(ZWIDTH_REGIONS)},
             "largest_stable_stiffness_by_damping_n_m": stable_K,
-            "scenario_point": {"stiffness_n_m": p.stiffness, "damping_n_s_m": p.damping}}
+            "scenario_point": {"stiffness_n_m": p.stiffness, "damping_n_s_m": p.damping,
+                               "region": ZWIDTH_REGIONS[zwidth_region(p)]}}
+
+
+# The Z-width's regions, by their code.
+ZWIDTH_REGIONS = ("unstable", "stable with the hand, not passive",
+                  "passive with the hand's damping", "passive with the device's damping alone")
+
+
+def zwidth_region(p) -> int:
+    """The Z-width region code (an index of ZWIDTH_REGIONS) of the loop ``p``."""
+    H = environment_impedance(p)
+    if passivity_margin(H, p.device_damping) > 0:
+        return 3
+    if passivity_margin(H, p.device_damping + p.hand_damping) > 0:
+        return 2
+    return 1 if is_stable(p) else 0
 
 
 def plot_zwidth(results: Dict, out_dir: Path, title: str) -> Path:

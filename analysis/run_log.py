@@ -97,6 +97,10 @@ class RunLogWriter:
         if not self._pieces or (not force and now - self._last_wall_s < CHUNK_WALL_S):
             return
         self._last_wall_s = now
+        self._hand_over()
+
+    def _hand_over(self) -> None:
+        """The pieces moved since the last chunk, to the writer as the next chunk."""
         self._pending.put((self._folder / f"chunk_{self._chunks:06d}.npy", self._pieces))
         self._pieces = []
         self._chunks += 1
@@ -114,6 +118,17 @@ class RunLogWriter:
         _write_atomically(out_dir / LOG_FILE, lambda file: np.savez_compressed(file, **log))
         shutil.rmtree(self._folder)
         return log
+
+    def abandon(self) -> None:
+        """For a run that raised: the writer stops after what it was given, and the
+        folder goes if no chunk was written (a run that stopped before it simulated
+        leaves no empty folder; one that raised later keeps what it moved out)."""
+        if self._pieces:
+            self._hand_over()
+        self._pending.put(None)
+        self._writer.join()
+        if self._chunks == 0:
+            shutil.rmtree(self._folder, ignore_errors=True)
 
     def _write_chunks(self) -> None:
         while (item := self._pending.get()) is not None:

@@ -25,7 +25,8 @@ def save_figure(figure, path: Path, *, dpi: int = 110, tight: bool = True) -> Pa
     plt.close(figure)
     return path
 
-def _legend_outside(ax) -> None:
+def legend_outside(ax) -> None:
+    """The legend beside the axes, never on what they show."""
     legend = ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.07, 1.0),
                        borderaxespad=0.0)
     for line in legend.get_lines():  # a faint or thin trace still gets a legible key
@@ -61,7 +62,7 @@ def plot_run(log: Dict[str, np.ndarray], out_dir: Path, *, title: str,
             ax.plot(t[measured], 1e3 * log["p_WI_measured"][measured, i], color="k", lw=0.5,
                     alpha=0.5, label="measured (each axis)" if i == 0 else None)
     ax.set_ylabel("position of I in W [mm]")
-    _legend_outside(ax)
+    legend_outside(ax)
 
     ax = axes[1]
     for i, axis in enumerate(("roll", "pitch", "yaw")):
@@ -70,7 +71,7 @@ def plot_run(log: Dict[str, np.ndarray], out_dir: Path, *, title: str,
         ax.plot(t, np.degrees(rpy_WI[:, i]), color=AXIS_COLORS[i], lw=1.2,
                 label=f"{axis} {source}")
     ax.set_ylabel("orientation [deg]")
-    _legend_outside(ax)
+    legend_outside(ax)
 
     ax = axes[2]
     error_mm = 1e3 * (p_WI - log["p_WI_desired"])
@@ -94,7 +95,7 @@ def plot_run(log: Dict[str, np.ndarray], out_dir: Path, *, title: str,
     angle.plot(t, angle_deg, color="k", lw=0.6)
     angle.set_ylim(0, 3 * max(np.percentile(angle_deg, 98), 1e-3))
     angle.set_ylabel("angle error [deg] (black)")
-    _legend_outside(ax)
+    legend_outside(ax)
 
     ax = axes[3]
     currents = log["coil_currents"]
@@ -104,7 +105,7 @@ def plot_run(log: Dict[str, np.ndarray], out_dir: Path, *, title: str,
     for sign in (-1, 1):
         ax.axhline(sign * current_limit_a, color="k", ls=":", lw=1)
     ax.set_ylabel(f"coil currents [A]\n({currents.shape[1]} coils, limit dotted)")
-    _legend_outside(ax)
+    legend_outside(ax)
 
     ax = axes[4]
     ax.plot(t, log["coil_power_w"], color="tab:purple", lw=1, label="coil power")
@@ -122,7 +123,7 @@ def plot_run(log: Dict[str, np.ndarray], out_dir: Path, *, title: str,
         middle = (low + high) / 2
         hottest.set_ylim(middle - MIN_TEMPERATURE_SPAN_C / 2, middle + MIN_TEMPERATURE_SPAN_C / 2)
     hottest.set_ylabel("hottest coil [deg C] (red)", color="tab:red")
-    _legend_outside(ax)
+    legend_outside(ax)
     ax.set_xlabel("time [s]")
 
     for ax in axes:
@@ -153,7 +154,7 @@ def plot_haptics(log: Dict[str, np.ndarray], out_dir: Path, *, title: str) -> Pa
     for i, axis in enumerate("xyz"):
         ax.plot(t, 1e3 * log["tau_user"][:, i], color=AXIS_COLORS[i], lw=0.8, label=f"about {axis}")
     ax.set_ylabel("torque [N mm]")
-    _legend_outside(ax)
+    legend_outside(ax)
     ax.set_xlabel("time [s]")
     for ax in axes:
         ax.grid(alpha=0.3)
@@ -188,7 +189,7 @@ def plot_tick_times(times: TickTimes, out_dir: Path, *, title: str) -> Path:
     trace.set_yscale("log")
     trace.set_xlabel("tick")
     trace.set_ylabel("wall time [us]")
-    _legend_outside(trace)
+    legend_outside(trace)
     bins = np.geomspace(max(compute_us.min(), 1.0), max(compute_us.max(), slot_us) * 1.05, 80)
     spread.hist(compute_us, bins=bins, color="tab:blue")
     spread.set_xscale("log")
@@ -199,7 +200,7 @@ def plot_tick_times(times: TickTimes, out_dir: Path, *, title: str) -> Path:
     spread.axvline(slot_us, color="k", ls="--", lw=1, label="slot")
     spread.set_xlabel("compute of a tick [us]")
     spread.set_ylabel("ticks")
-    _legend_outside(spread)
+    legend_outside(spread)
     for ax in (trace, spread):
         ax.grid(alpha=0.3, which="both")
     fig.suptitle(f"{title}: {report['ticks']} paced ticks, {report['deadline_misses']} missed "

@@ -86,6 +86,10 @@ def run_scenario(scenario: Scenario, *, label: str, out_dir: Optional[Path] = No
                 shares_cores=isinstance(scenario.station, LcmStation),
                 on_progress=log_writer.drain if log_writer is not None else None,
                 raise_priority=raise_priority)
+    except BaseException:
+        if log_writer is not None:
+            log_writer.abandon()
+        raise
     finally:
         if built.meshcat_hand is not None:
             built.meshcat_hand.Delete()

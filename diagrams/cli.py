@@ -366,6 +366,16 @@ def _positive_count(text: str) -> int:
     return value
 
 
+def _seed(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:  # numpy's generators take none below zero
+        raise argparse.ArgumentTypeError(f"{text!r}: must be a whole number >= 0")
+    return value
+
+
 def _cores() -> int:
     """The cores this process may use (analysis.parallel.default_workers, without
     importing the analysis package for a help text)."""
@@ -436,8 +446,14 @@ def _cmd_analyze(args) -> int:
     if args.json:
         print(json.dumps(results, indent=2))
     else:
+        # Each study's numbers that fit a screen: its scalars, its parameters, the
+        # scenario's own point and each instrument's workspace summary.
         headline = {key: value for key, value in results.items()
-                    if not isinstance(value, (list, dict)) or key in ("parameters",)}
+                    if not isinstance(value, (list, dict))
+                    or key in ("parameters", "scenario_point")}
+        for name, instrument in results.get("instruments", {}).items():
+            headline[name] = {key: instrument["summary"][key] for key in (
+                "hover_ceiling_m", "hover_current_a", "condition_number")}
         print(json.dumps(for_people(headline), indent=2))
         if "modes" in results:
             print(format_modes(results["modes"]))
@@ -460,7 +476,8 @@ Studies:
                  device must get from the hand or controller
   zwidth         the stiffness-damping range renderable stably and passively
   stability-map  largest stable stiffness against damping over sample rates and
-                 delays, with closed forms
+                 delays, with closed forms; and the whole loop's onsets, linearized and
+                 simulated (minutes; --quick leaves them out)
   workspace      over x, y, height, tilt and yaw, for both instruments: the wrench
                  matrix's condition number, hover current and power, the largest
                  force and torque each way within the peak and thermal current limits"""
@@ -656,7 +673,8 @@ def _add_faults_parser(commands) -> None:
             """, with_scenarios=False))
     faults.add_argument("--runs", type=_positive_count, default=20,
                         help="how many runs (default 20; the kinds take turns)")
-    faults.add_argument("--seed", type=int, default=0, help="the campaign's random seed")
+    faults.add_argument("--seed", type=_seed, default=0,
+                        help="the campaign's random seed, a whole number >= 0 (default 0)")
     _add_job_arguments(faults)
     faults.add_argument("--out", default="out/faults",
                         help="folder for faults.json and faults.png (default: out/faults)")

@@ -23,8 +23,8 @@ from maglev_haptics.diagrams.deformable_scene import DeformableSurface
 from maglev_haptics.diagrams.hand_script import MeshcatHand, ScriptedHand
 from maglev_haptics.diagrams.lcm_station import LcmStation, SimStation
 from maglev_haptics.diagrams.scenario_files import (  # noqa: F401  (the light half, re-exported)
-    LONGEST_S, SCENARIO_DIR, ScenarioError, resolve_scenario_file, scenario_names,
-    shipped_scenario_files, yaml_error)
+    LONGEST_S, SCENARIO_DIR, ScenarioError, check_unique_keys, resolve_scenario_file,
+    scenario_names, shipped_scenario_files, yaml_error)
 from maglev_haptics.diagrams.scene import HERE, HangingBall, ModelScene, PaddleBall, PegInHole
 from maglev_haptics.diagrams.scene_models import check_model_scene, resolve_here
 from maglev_haptics.diagrams.stereo_display import StereoConfig
@@ -164,6 +164,10 @@ class Scenario:
     def validate(self, label: str) -> None:
         """Range checks of every config, each error naming ``label: path.field``, its
         value and what is allowed; then the checks across configs."""
+        # The rates first: the checks below divide by them.
+        positive(f"{label}: control_rate_hz", self.control_rate_hz)
+        positive(f"{label}: log_rate_hz", self.log_rate_hz)
+        positive(f"{label}: plant_config.time_step", self.plant_config.time_step)
         self.device.validate(f"{label}: device")
         for tracker in ("tracker", "head_tracker"):
             rate_hz = getattr(self.device, tracker).rate_hz
@@ -200,9 +204,6 @@ class Scenario:
         require(0.0 <= self.marker_dropout_probability <= 1.0,
                 f"{label}: marker_dropout_probability", self.marker_dropout_probability,
                 "must be in [0, 1]")
-        positive(f"{label}: control_rate_hz", self.control_rate_hz)
-        positive(f"{label}: log_rate_hz", self.log_rate_hz)
-        positive(f"{label}: plant_config.time_step", self.plant_config.time_step)
         tracker_hz = self.device.tracker.rate_hz
         for name, tick_s in (("control_rate_hz", 1.0 / self.control_rate_hz),
                              ("plant_config.time_step", self.plant_config.time_step)):
@@ -245,9 +246,13 @@ class Scenario:
                     "hand is the device's, and device-sim has no Meshcat)")
 
 
+OVERLAY = "--scenario-text"  # what an error in a layer over the file's scenario names
+
+
 def _parse_mapping(text: str, source: str) -> dict:
     """The YAML mapping in ``text``, as Drake's loader reads it; a ScenarioError
     naming ``source`` if it is not one."""
+    check_unique_keys(text, source)
     try:
         raw = yaml_load_data(text)
     except yaml.YAMLError as error:
@@ -483,18 +488,30 @@ def load_scenario(name_or_path: str, name: Optional[str] = None,
     if name not in names:
         raise ScenarioError(f"{path}: no scenario named {name!r}; it has {', '.join(names)}")
     label = f"{path.stem}:{name}"
+    if not isinstance(raw[name], (dict, type(None))):
+        raise ScenarioError(f"{label}: must be a YAML mapping of the scenario's fields, not "
+                            f"{type(raw[name]).__name__} ({raw[name]!r})")
     scenario = _load_typed(label, raw[name] or {}, lambda: yaml_load_typed(
         schema=Scenario, data=text, child_name=name, defaults=Scenario()),
         lambda cut: yaml_load_typed(schema=Scenario, data=yaml_dump(cut), defaults=Scenario()))
     _resolve_relative_files(scenario, path.absolute().parent, path.parent)
-    for layer in (scenario_text, *more_text):
+    layers = [layer for layer in (scenario_text, *more_text) if _parse_mapping(layer, OVERLAY)]
+    if layers:  # the file's own first: an error after the layers is then theirs
+        validate_scenario(_models_resolved(scenario, path.parent), label)
+    for layer in layers:
         scenario = _layer(scenario, layer, label)
         _resolve_relative_files(scenario, Path.cwd(), path.parent)
-    if scenario.haptics is not None and isinstance(scenario.haptics.scene, ModelScene):
-        scenario = dataclasses.replace(scenario, haptics=dataclasses.replace(
-            scenario.haptics, scene=resolve_here(scenario.haptics.scene, path.parent)))
-    validate_scenario(scenario, label)
+    scenario = _models_resolved(scenario, path.parent)
+    validate_scenario(scenario, f"{label} ({OVERLAY})" if layers else label)
     return scenario
+
+
+def _models_resolved(scenario: Scenario, here: Path) -> Scenario:
+    """``scenario`` with a model scene's ``{here}`` made the scenario file's folder."""
+    if scenario.haptics is None or not isinstance(scenario.haptics.scene, ModelScene):
+        return scenario
+    return dataclasses.replace(scenario, haptics=dataclasses.replace(
+        scenario.haptics, scene=resolve_here(scenario.haptics.scene, here)))
 
 
 def _resolve_relative_files(scenario: Scenario, folder: Path, here: Path) -> None:
@@ -511,8 +528,8 @@ def _resolve_relative_files(scenario: Scenario, folder: Path, here: Path) -> Non
 
 def _layer(scenario: Scenario, text: str, label: str) -> Scenario:
     """``scenario`` with the YAML mapping ``text`` layered on it."""
-    layered = _parse_mapping(text, "--scenario-text")
-    return _load_typed(f"{label} (--scenario-text)", layered, lambda: yaml_load_typed(
+    layered = _parse_mapping(text, OVERLAY)
+    return _load_typed(f"{label} ({OVERLAY})", layered, lambda: yaml_load_typed(
         schema=Scenario, data=text, defaults=scenario),
         lambda cut: yaml_load_typed(schema=Scenario, data=yaml_dump(cut), defaults=scenario))
 

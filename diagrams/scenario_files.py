@@ -44,6 +44,34 @@ def yaml_error(source: str, error: yaml.YAMLError) -> ScenarioError:
     return ScenarioError(f"{source}: not valid YAML{where}: {problem}")
 
 
+def check_unique_keys(text: str, source: str) -> None:
+    """Raise a ScenarioError naming ``source``, the key's path and both lines where a
+    mapping in the YAML ``text`` gives a key twice: YAML keeps the last one silently,
+    so the first would be ignored without a word."""
+    try:
+        root = yaml.compose(text, Loader=_LOADER)
+    except yaml.YAMLError as error:
+        raise yaml_error(source, error) from None
+    pending = [(root, "")]  # in the file's order, outer keys first
+    while pending:
+        node, path = pending.pop(0)
+        if isinstance(node, yaml.MappingNode):
+            first_line = {}
+            for key, value in node.value:
+                name = key.value if isinstance(key, yaml.ScalarNode) else str(key.value)
+                if name in first_line:
+                    lines = sorted({first_line[name], key.start_mark.line + 1})
+                    where = " and ".join(map(str, lines))
+                    raise ScenarioError(
+                        f"{source}: {path}{name}: given twice (line{'s' if len(lines) > 1 else ''} "
+                        f"{where}); say each key once")
+                first_line[name] = key.start_mark.line + 1
+                pending.append((value, f"{path}{name}."))
+        elif isinstance(node, yaml.SequenceNode):
+            pending.extend((item, f"{path.rstrip('.')}[{i}].")
+                           for i, item in enumerate(node.value))
+
+
 def scenario_names(path: Path) -> List[str]:
     """The named scenarios in the file at ``path``, in its order (``Defaults`` left out).
     Reads the YAML's structure only (tags need no schema here)."""

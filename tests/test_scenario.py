@@ -48,6 +48,14 @@ def test_levitate_names_the_required_scenarios():
      "!LcmStation {...}"),
     ("a: {station: !LcmStation {url: 'tcp://10.0.0.1'}}", "station.url = 'tcp://10.0.0.1': must be an LCM UDP multicast URL"),
     ("a: {station: !LcmStation {stale_margin_s: -1}}", "station.stale_margin_s = -1"),
+    # The rate itself, not a check that divides by it.
+    ("a: {control_rate_hz: -5}", "a: control_rate_hz = -5.0: must be a finite number > 0"),
+    ("a: 5", "a: must be a YAML mapping of the scenario's fields, not int (5)"),
+    # YAML keeps the last of two; the first would be ignored without a word.
+    ("a:\n  duration_s: 0.2\n  duration_s: 0.3\n",
+     "a.duration_s: given twice (lines 2 and 3); say each key once"),
+    ("a: {motion: {waypoints: [{pose: [0, 0, 0.02, 0, 0, 0], hold_s: 1, hold_s: 2}]}}",
+     "a.motion.waypoints[0].hold_s: given twice (line 1)"),
 ])
 def test_bad_values_name_the_field(tmp_path, text, fragment):
     with pytest.raises(ScenarioError) as error:
@@ -187,7 +195,7 @@ def test_a_huge_finite_time_or_rate_is_refused_naming_its_field(text, message):
     """A hold of 1e308 s once ended in Drake's 'Times must be in increasing order.'"""
     with pytest.raises(ScenarioError) as error:
         load_scenario("levitate", scenario_text=text)
-    assert str(error.value) == f"levitate:takeoff_hover_land: {message}"
+    assert str(error.value) == f"levitate:takeoff_hover_land (--scenario-text): {message}"
 
 
 @pytest.mark.parametrize("file, text, field", [
@@ -207,3 +215,17 @@ def test_the_hands_and_the_heads_scripts_are_bounded_too(file, text, field):
 def test_a_long_hold_within_the_bound_loads():
     scenario = load_scenario("levitate", scenario_text="{motion: {waypoints: [{hold_s: 600}]}}")
     assert scenario.motion.waypoints[0].hold_s == 600
+
+
+def test_an_error_the_overlay_makes_is_said_to_be_the_overlays(tmp_path):
+    """A range error that --scenario-text brings in names it, as its type errors do;
+    one already in the file is the file's, the overlay or not."""
+    with pytest.raises(ScenarioError, match=r"^levitate:takeoff_hover_land \(--scenario-text\): "
+                                            r"duration_s = -1.0: must be a finite number > 0"):
+        load_scenario("levitate", scenario_text="{duration_s: -1}")
+    with pytest.raises(ScenarioError, match=r"^levitate:takeoff_hover_land \(--scenario-text\): "
+                                            r"duration_s: given twice"):
+        load_scenario("levitate", scenario_text="{duration_s: 1, duration_s: 2}")
+    path = write(tmp_path, "a: {log_rate_hz: 0}")
+    with pytest.raises(ScenarioError, match=r"^[^(]*a: log_rate_hz = 0"):
+        load_scenario(path, "a", scenario_text="{duration_s: 1}")
