@@ -46,7 +46,7 @@ from maglev_haptics.diagrams.station import hand_start_pose  # noqa: E402
 from maglev_haptics.systems.pose_estimator import CLOCK_ROWS  # noqa: E402
 
 # Systems whose states feed nothing back into the loop (name prefixes).
-RECORDING_ONLY = ("log_sample", "station/head", "head_pose_predictor", "stereo_view")
+RECORDING_ONLY = ("station/head", "head_pose_predictor", "stereo_view")
 # Held at the operating point: the coils' temperatures (a time constant of ~1 min,
 # read only by the watchdogs) and the device supervisor's fault mode.
 HELD_STATES = ("coil_temperatures", "device_supervisor")

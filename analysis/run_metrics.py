@@ -35,14 +35,11 @@ def log_arrays_from(times: np.ndarray, samples: np.ndarray, log_layout,
                     thermal) -> Dict[str, np.ndarray]:
     """``log_arrays`` from the logger's sample times (N,) [s] and samples (rows, N),
     ``log_layout`` (name -> its rows) and the coils' ``thermal`` model."""
-    # The logger reads a sample-and-hold: what it publishes at t was sampled one
-    # period earlier, and its t = 0 entry is the hold's blank initial state.
-    keep = slice(1, None)
-    data = {name: samples[rows, keep].T for name, rows in log_layout.items()}
+    data = {name: samples[rows].T for name, rows in log_layout.items()}
     if len(times) < 2:
         raise ValueError(f"the run logged {len(times)} sample(s) in {times[-1] if len(times) else 0} "
                          "s: simulate at least two log periods")
-    t = times[keep] - (times[1] - times[0])
+    t = times
     measured = data["X_WI_measured"]
     rendered = data["wrench_rendered_W"]
     engaged = (data["haptic_mode"][:, 0] == HAPTIC if "haptic_mode" in data

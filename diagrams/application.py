@@ -20,7 +20,7 @@ from pydrake.geometry import Meshcat, MeshcatVisualizer, MeshcatVisualizerParams
 from pydrake.multibody.meshcat import ContactVisualizer, ContactVisualizerParams
 from pydrake.systems.framework import Diagram, DiagramBuilder
 from pydrake.systems.primitives import (
-    ConstantVectorSource, LogVectorOutput, Multiplexer, ZeroOrderHold)
+    ConstantVectorSource, LogVectorOutput, Multiplexer)
 
 from maglev_haptics.diagrams.haptics import AddHandCommands, AddHaptics
 from maglev_haptics.diagrams.lcm_station import (
@@ -238,13 +238,11 @@ def AddLogging(builder: DiagramBuilder, *, scenario: Scenario, station, app: App
     stack = builder.AddNamedSystem("log_stack", Multiplexer(sizes))
     for i, port in enumerate(logged_ports.values()):
         builder.Connect(port, stack.get_input_port(i))
-    # Sampled by a hold in the same discrete update as the loop (so from the same
-    # cached values), not by the logger's publish after the update, which would
-    # recompute every logged Python output a second time each tick.
+    # Read in the logger's publish at the end of each step: from the state the next
+    # tick's update reads, whose values it computes and caches for that update (one
+    # Simulator step a tick), so the log adds no Python call.
     log_period_s = 1.0 / scenario.log_rate_hz
-    sample = builder.AddNamedSystem("log_sample", ZeroOrderHold(log_period_s, int(sum(sizes))))
-    builder.Connect(stack.get_output_port(), sample.get_input_port())
-    logger = LogVectorOutput(sample.get_output_port(), builder, log_period_s)
+    logger = LogVectorOutput(stack.get_output_port(), builder, log_period_s)
     logger.set_name("logger")
     ends = np.cumsum(sizes)
     return logger, {name: slice(end - size, end)

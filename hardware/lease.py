@@ -209,8 +209,8 @@ class LeaseClient:
         elif self.granted_at_s is None and now_s - self._first_request_s > self._wait_s:
             raise TimeoutError(
                 f"the station granted no lease within {self._wait_s:g} s of asking on "
-                f"{self._channel!r}: is it a device-sim or driver of this version (the lease "
-                "came with issue 26)?")
+                f"{self._channel!r}: is it a device-sim or driver of this version, which "
+                "answers the lease's requests?")
         if now_s - self._requested_s >= REQUEST_PERIOD_S:
             self._requested_s = now_s
             self._refused = False

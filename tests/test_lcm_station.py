@@ -187,8 +187,8 @@ def test_no_message_is_lost_in_steady_state(lockstep_run):
 
 
 # Half speed: each process gets 2 ms of wall clock a tick, so two paced processes keep
-# their slots on a 2-core host that also runs pytest; at full speed that is issue 13's
-# measurement (README: speed), not this wiring's.
+# their slots on a 2-core host that also runs pytest; at full speed that is the README's
+# Performance measurement, not this wiring's.
 TWO_PROCESS_RATE = 0.5
 
 

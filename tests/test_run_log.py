@@ -36,7 +36,7 @@ def test_chunked_log_is_the_in_memory_log(tmp_path, monkeypatch):
     for name, array in in_memory.items():
         np.testing.assert_array_equal(loaded[name], array, err_msg=name)
         np.testing.assert_array_equal(written[name], array, err_msg=name)
-    assert len(loaded["t"]) == 1300
+    assert len(loaded["t"]) == 1301  # 0 to 1.3 s at 1 kHz, the run's last state included
 
 
 def test_a_run_into_an_earlier_runs_folder_writes_its_own_results(tmp_path):
@@ -45,8 +45,8 @@ def test_a_run_into_an_earlier_runs_folder_writes_its_own_results(tmp_path):
                  out_dir=tmp_path)
     second = run_scenario(load_scenario("peg_in_hole"), label="second", duration_s=0.3,
                           progress=False, out_dir=tmp_path)
-    assert len(second.log["t"]) == 300 and "haptic_mode" in second.log
-    assert len(load_run_log(tmp_path)["t"]) == 300
+    assert len(second.log["t"]) == 301 and "haptic_mode" in second.log
+    assert len(load_run_log(tmp_path)["t"]) == 301
     assert json.loads((tmp_path / "summary.json").read_text())["scenario"] == "second"
 
 
