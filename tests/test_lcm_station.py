@@ -444,16 +444,19 @@ def device_end(instrument: str):
     return bus, replies, lease, receiver, receiver.CreateDefaultContext()
 
 
+def application_end(bus, instrument: str = "two_magnet") -> LeaseClient:
+    """An application's end of the lease on ``bus``, flying ``instrument``."""
+    return LeaseClient(lcm=bus, channel="T_LEASE_REQUEST", wait_s=1.0, instrument=instrument)
+
+
 def test_a_second_application_is_told_who_holds_the_device_and_commands_nothing():
     """The lease between two applications' commands: the second one's request is
     answered with the holder's session, host and process, its commands are refused,
     and its own station raises DeviceInUseError on reading that answer; once the
     holder lets go, the next asker gets it."""
     bus, replies, _, receiver, context = device_end("two_magnet")
-    first = LeaseClient(lcm=bus, channel="T_LEASE_REQUEST", wait_s=1.0,
-                        instrument="two_magnet")
-    second = LeaseClient(lcm=bus, channel="T_LEASE_REQUEST", wait_s=1.0,
-                         instrument="two_magnet")
+    first = application_end(bus)
+    second = application_end(bus)
     first.on_tick(0.0)
     tick(receiver, context, 0.001)
     first.on_reply(replies[-1], 0.001)
@@ -488,8 +491,7 @@ def test_the_application_refuses_bad_station_messages():
     scenario = load_scenario("peg_in_hole", scenario_text="{station: !LcmStation "
                              "{channel_prefix: T_}}")
     bus = lcm.LCM("memq://")
-    lease = LeaseClient(lcm=bus, channel="T_LEASE_REQUEST", wait_s=1.0,
-                        instrument="two_magnet")
+    lease = application_end(bus)
     receiver = MessageReceiver(lcm=bus, channels=station_channels(scenario, lease),
                                period_s=0.001, log=lambda line: None)
     context = receiver.CreateDefaultContext()
@@ -642,8 +644,7 @@ def test_an_application_for_another_instrument_is_refused_and_told():
     two-magnet one: its request is refused (wrong_instrument), the lease stays free,
     and the device's answer stops the application before it commands a coil."""
     bus, replies, lease, receiver, context = device_end("four_magnet")
-    application = LeaseClient(lcm=bus, channel="T_LEASE_REQUEST", wait_s=1.0,
-                              instrument="two_magnet")
+    application = application_end(bus)
     application.on_tick(0.0)
     tick(receiver, context, 0.001)
     assert receiver.counts(context, "lease_requests")["refused"]["wrong_instrument"] == 1
@@ -661,8 +662,7 @@ def test_the_last_command_before_a_release_is_the_holders_and_a_refused_one_rele
     and then the lease is free. An application told that another holds the device
     sends no RELEASE, which the device would refuse and log."""
     bus, replies, lease, receiver, context = device_end("two_magnet")
-    holder = LeaseClient(lcm=bus, channel="T_LEASE_REQUEST", wait_s=1.0,
-                         instrument="two_magnet")
+    holder = application_end(bus)
     holder.on_tick(0.0)
     publish(bus, "T_COIL_CURRENTS_COMMANDED", a_command(1, holder.session, np.ones(27)))
     tick(receiver, context, 0.001)  # the request, then a command: granted, then used
@@ -674,10 +674,8 @@ def test_the_last_command_before_a_release_is_the_holders_and_a_refused_one_rele
     assert counts["messages_received"] == 2 and counts["messages_refused"] == 0
     assert lease.holder.action == lease_t.FREE
 
-    other = LeaseClient(lcm=bus, channel="T_LEASE_REQUEST", wait_s=1.0,
-                        instrument="two_magnet")
-    holder = LeaseClient(lcm=bus, channel="T_LEASE_REQUEST", wait_s=1.0,
-                         instrument="two_magnet")
+    other = application_end(bus)
+    holder = application_end(bus)
     holder.on_tick(0.1)
     tick(receiver, context, 0.101)
     other.on_tick(0.101)
