@@ -83,10 +83,15 @@ def plot_run(log: Dict[str, np.ndarray], out_dir: Path, *, title: str,
     flying = z_desired > z_desired.min() + 2e-3
     span = max(np.percentile(np.abs(error_mm[flying] if flying.any() else error_mm), 99), 1e-3)
     linear = _round_up_125(1.5 * span)
-    reach = max(linear, 1.2 * np.nanmax(np.abs(error_mm[shown])))
+    # Up to a round number, labelled: 1.2 times the largest error could fall a hair
+    # under the next decade's mark, which then went undrawn.
+    reach = _round_up_125(max(linear, 1.2 * np.nanmax(np.abs(error_mm[shown]))))
     ax.set_yscale("symlog", linthresh=linear, linscale=2.0)
     ax.set_ylim(-reach, reach)
-    marks = linear * 10.0 ** np.arange(0, 1 + max(0, int(np.floor(np.log10(reach / linear)))))
+    marks = linear * 10.0 ** np.arange(0, 1 + max(0, int(np.floor(np.log10(reach / linear)
+                                                                   + 1e-9))))
+    if reach > marks[-1] * (1 + 1e-9):
+        marks = np.append(marks, reach)
     ax.set_yticks(np.concatenate((-marks[::-1], [0.0], marks)))
     ax.set_yticklabels([f"{value:g}" for value in np.concatenate((-marks[::-1], [0.0], marks))])
     ax.set_ylabel(f"{source} - commanded [mm]\n(linear within +-{linear:g}, log beyond)")
