@@ -43,7 +43,8 @@ def loop_parameters(scenario, axis: int = 0) -> LoopParameters:
     if scenario.haptics is None:
         raise StudyNotApplicable(
             "it has no haptic coupling (haptics: null): there is no rendered environment "
-            "whose loop to analyse; the levitation loop's own analysis is `linearize`")
+            "whose loop to analyse; the levitation loop's own analyses are `linearize` and "
+            "`multirate`")
     device = scenario.device
     coupling = scenario.haptics.coupling
     hand = scenario.hand.impedance
