@@ -46,6 +46,17 @@ def test_peg_loop_numbers(tmp_path):
         results["closed_form_ideal_wall_n_s_m"], rel=0.01)
 
 
+def test_zwidth_says_where_the_scenarios_coupling_lies(tmp_path, capsys):
+    """The terminal shows the scenario's own point and its region, not only the
+    parameters; the same point and region are in zwidth.json."""
+    assert main(["analyze", "zwidth", "peg_in_hole", "--quick", "--out", str(tmp_path)]) == 0
+    printed = capsys.readouterr().out
+    shown = json.loads(printed[printed.index("{"):printed.rindex("}") + 1])
+    point = json.loads((tmp_path / "zwidth.json").read_text())["scenario_point"]
+    assert shown["scenario_point"] == point
+    assert point["region"] == "passive with the hand's damping"  # 400 N/m, 5 N s/m
+
+
 def test_zwidth_regions_are_nested():
     """Passive with the device implies passive with the hand implies stable: along
     each damping row, the region code never rises with stiffness."""

@@ -88,9 +88,11 @@ def test_diagram_into_an_unwritable_place_is_refused(tmp_path, capsys):
     assert f"cannot write to {a_file}" in err
 
 
-def test_run_against_no_station_on_lcm_says_so_in_one_line(capsys):
+def test_run_against_no_station_on_lcm_says_so_in_one_line(tmp_path, capsys):
+    """... and leaves no empty log folder: it stopped before it simulated."""
     code, err = exit_code_and_stderr([
-        "run", "levitate", "--no-meshcat", "--duration", "0.1", "--scenario-text",
+        "run", "levitate", "--no-meshcat", "--duration", "0.1", "--out", str(tmp_path),
+        "--scenario-text",
         "{station: !LcmStation {url: 'udpm://239.255.76.67:7999?ttl=0', "
         "command_url: 'udpm://239.255.76.67:7998?ttl=0', "
         "channel_prefix: NOBODY_, wait_for_station_s: 0.2}}"], capsys)
@@ -98,6 +100,7 @@ def test_run_against_no_station_on_lcm_says_so_in_one_line(capsys):
     assert err.strip().splitlines()[-1] == ("maglev run: error: no message on LCM channel 'NOBODY_MARKERS' "
                            "within 0.2 s: is the station running (maglev device-sim SCENARIO, "
                            "or the device's drivers) on the same LCM URL?")
+    assert list(tmp_path.iterdir()) == []
 
 
 @pytest.mark.parametrize("argv, message", [
@@ -108,6 +111,8 @@ def test_run_against_no_station_on_lcm_says_so_in_one_line(capsys):
     (["faults", "--runs", "0"],
      "maglev faults: error: argument --runs: '0': must be a whole number >= 1"),
     (["faults", "--workers", "0"], "maglev faults: error: argument --workers: '0'"),
+    (["faults", "--seed", "-1"],
+     "maglev faults: error: argument --seed: '-1': must be a whole number >= 0"),
     (["sweep", "spec.yaml", "--workers", "two"], "maglev sweep: error: argument --workers: 'two'"),
     (["diagram", "levitate", "--out", "d.xyz"], "maglev diagram: error: argument --out: 'd.xyz'"),
     (["bench", "--quick", "--duration", "1"], "maglev bench: error: argument --duration: not "
