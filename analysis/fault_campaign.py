@@ -40,7 +40,6 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 from matplotlib.ticker import MaxNLocator  # noqa: E402
 import numpy as np  # noqa: E402
-from tqdm import tqdm  # noqa: E402
 
 from maglev_haptics.analysis.haptic_loop import critical_stiffness  # noqa: E402
 from maglev_haptics.analysis.loop_studies import loop_parameters  # noqa: E402

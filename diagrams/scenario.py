@@ -495,11 +495,13 @@ def load_scenario(name_or_path: str, name: Optional[str] = None,
         schema=Scenario, data=text, child_name=name, defaults=Scenario()),
         lambda cut: yaml_load_typed(schema=Scenario, data=yaml_dump(cut), defaults=Scenario()))
     _resolve_relative_files(scenario, path.absolute().parent, path.parent)
-    layers = [layer for layer in (scenario_text, *more_text) if _parse_mapping(layer, OVERLAY)]
+    # (text, its mapping) of each layer that sets something.
+    layers = [(text, layered) for text in (scenario_text, *more_text)
+              if (layered := _parse_mapping(text, OVERLAY))]
     if layers:  # the file's own first: an error after the layers is then theirs
         validate_scenario(_models_resolved(scenario, path.parent), label)
-    for layer in layers:
-        scenario = _layer(scenario, layer, label)
+    for text, layered in layers:
+        scenario = _layer(scenario, text, layered, label)
         _resolve_relative_files(scenario, Path.cwd(), path.parent)
     scenario = _models_resolved(scenario, path.parent)
     validate_scenario(scenario, f"{label} ({OVERLAY})" if layers else label)
@@ -526,9 +528,8 @@ def _resolve_relative_files(scenario: Scenario, folder: Path, here: Path) -> Non
         heightmap.file = str(folder / Path(file).expanduser())
 
 
-def _layer(scenario: Scenario, text: str, label: str) -> Scenario:
-    """``scenario`` with the YAML mapping ``text`` layered on it."""
-    layered = _parse_mapping(text, OVERLAY)
+def _layer(scenario: Scenario, text: str, layered: dict, label: str) -> Scenario:
+    """``scenario`` with the YAML mapping ``text`` (parsed: ``layered``) layered on it."""
     return _load_typed(f"{label} ({OVERLAY})", layered, lambda: yaml_load_typed(
         schema=Scenario, data=text, defaults=scenario),
         lambda cut: yaml_load_typed(schema=Scenario, data=yaml_dump(cut), defaults=scenario))
