@@ -150,6 +150,20 @@ def first_touchdown(log: Dict[str, np.ndarray], rest_height_m: float):
             "tilt_deg": float(np.degrees(np.arccos(np.clip(R_WI[2, 2], -1.0, 1.0))))}
 
 
+COILS_OFF_A = 1e-3  # every coil within this of zero counts as off (A)
+
+
+def final_state(log: Dict[str, np.ndarray], rest_height_m: float) -> Dict:
+    """Where the run left the instrument, as its last logged sample shows: its height
+    ``z_m`` (m, the recorded pose's), the busiest coil's current (A), and whether it
+    ``rests`` on the glass with every coil off (what a landing must end in)."""
+    p_WI, _, _, _ = recorded_pose(log)
+    z_m = float(p_WI[-1, 2])
+    busiest_a = float(np.max(np.abs(log["coil_currents"][-1])))
+    return {"z_m": z_m, "busiest_coil_current_a": busiest_a,
+            "rests": bool(z_m <= rest_height_m + AIRBORNE_M and busiest_a < COILS_OFF_A)}
+
+
 def for_people(value, digits: int = 6):
     """``value`` (a number, or dicts and lists of them) with each float rounded to
     ``digits`` significant digits: 6.6, not 6.6000000000000005."""
@@ -243,6 +257,7 @@ def summarize(log: Dict[str, np.ndarray], plan: FlightPlan, *, rest_height_m: fl
         "hover_busiest_coil_steady_temperature_at_hold_currents_c":
             holds[0]["busiest_coil_steady_temperature_at_hold_currents_c"] if holds else None,
         "touchdown": touchdown,
+        "final_state": final_state(log, rest_height_m),
         # Counted from the first estimate on: the log's t = 0 sample precedes it.
         "tracking_lost_s": float(np.sum(dt[tracked_before & (log["tracking_ok"] < 0.5)])),
         "allocation_saturated_s": float(np.sum(dt[shortfall > 1e-6])),

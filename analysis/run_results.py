@@ -16,7 +16,8 @@ from maglev_haptics.analysis.run_plots import plot_haptics, plot_run, plot_tick_
 from maglev_haptics.analysis.stereo_metrics import plot_colocation, stereo_summary
 from maglev_haptics.analysis.stereo_video import StereoVideoWriter
 from maglev_haptics.diagrams.application import BuildDiagram
-from maglev_haptics.diagrams.lcm_station import LcmStation, station_counts
+from maglev_haptics.diagrams.lcm_station import (
+    LcmStation, StopWhenDeviceSilent, station_counts)
 from maglev_haptics.diagrams.meshcat_lifetime import start_meshcat
 from maglev_haptics.diagrams.motion import longest_landing_s
 from maglev_haptics.diagrams.runner import (
@@ -80,9 +81,12 @@ def run_scenario(scenario: Scenario, *, label: str, out_dir: Optional[Path] = No
                                       stop_signal,
                                       land_from_s=duration_s if lands_at_end else None,
                                       haptics=built.haptics)
+            # A device gone silent stops the run at once: no landing without one.
+            asked = (StopWhenDeviceSilent(built.diagram, stop, scenario.station.lease_timeout_s)
+                     if lands_at_end else stop)
             simulator, wall_s, tick_times = simulate(
                 built, horizon_s, realtime_rate=realtime_rate, progress=progress, label=label,
-                stop=stop,
+                stop=asked,
                 shares_cores=isinstance(scenario.station, LcmStation),
                 on_progress=log_writer.drain if log_writer is not None else None,
                 raise_priority=raise_priority)
@@ -118,13 +122,17 @@ def run_scenario(scenario: Scenario, *, label: str, out_dir: Optional[Path] = No
     }
     if stop_signal.received is not None:
         summary["stopped_by"] = stop_signal.received
+        summary["signals_received"] = stop_signal.count
     if stop_signal.received is not None or stop.landing_end_s is not None:
-        summary["landed_before_stopping"] = stop.landing_end_s is not None
+        # What the log shows, not what was asked: a second signal ends a landing midway.
+        summary["landed_before_stopping"] = (stop.landing_end_s is not None
+                                             and summary["final_state"]["rests"])
     if tick_times is not None:
         summary["realtime"] = {"rate": realtime_rate, **realtime_report(tick_times)}
     if isinstance(scenario.station, LcmStation):
         summary["station"] = {"kind": "lcm", "url": scenario.station.url,
-                              **station_counts(built.diagram, simulator.get_context())}
+                              **station_counts(built.diagram, simulator.get_context(),
+                                               scenario.station.lease_timeout_s)}
     if scenario.stereo is not None:
         summary["stereo"] = stereo_summary(log, scenario, built.stereo, video_summary)
     if built.haptics is not None:

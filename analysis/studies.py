@@ -98,6 +98,8 @@ def run_study(study: str, scenario, *, label: str, out_dir: Path, quick: bool = 
                                             {"workers": workers, "scheduler": scheduler})
         except StudyNotApplicable as reason:
             raise StudyNotApplicable(f"{study} does not apply to {label}: {reason}") from None
+        bar.n = bar.total  # a study that reports no steps is one step, now done
+        bar.refresh()
     results = {"study": study, "scenario": label, "quick": quick, **results,
                "plots": [str(path.name) for path in plots]}
     results = _json_ready(results)

@@ -78,6 +78,16 @@ def parse_spec(text: str, source: str = "sweep spec") -> SweepSpec:
     allowed. The scenario and each point's overrides are loaded once here, so a bad
     field fails before any run."""
     try:
+        top = yaml.compose(text)
+    except yaml.YAMLError as error:
+        raise ScenarioError(f"{source}: not YAML: {str(error).splitlines()[0]}") from None
+    keys = ([key.value for key, _ in top.value] if isinstance(top, yaml.MappingNode) else [])
+    if keys and not {"scenario", "vary"} & set(keys):
+        # A scenario file, most likely: its tags would otherwise be the complaint.
+        raise ScenarioError(f"{source}: not a sweep spec: it has " + ", ".join(keys[:5])
+                            + ("..." if len(keys) > 5 else "") + "; a sweep spec has "
+                            "scenario, vary and metrics (see maglev sweep --help)")
+    try:
         raw = yaml.safe_load(text)
     except yaml.YAMLError as error:
         raise ScenarioError(f"{source}: not YAML: {str(error).splitlines()[0]}") from None

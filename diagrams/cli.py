@@ -23,7 +23,8 @@ from importlib.metadata import version
 from pathlib import Path
 
 from maglev_haptics.diagrams.scenario_files import (
-    LONGEST_S, ScenarioError, resolve_scenario_file, scenario_names, shipped_scenario_files)
+    LONGEST_S, ScenarioError, read_text_file, resolve_scenario_file, scenario_names,
+    shipped_scenario_files)
 
 # What `maglev diagram --out` may end in: graphviz's (dot -T) file formats for looking
 # at or editing a diagram, all of them in every graphviz build.
@@ -90,11 +91,18 @@ def _diagram_file(text: str) -> Path:
     return path
 
 
+# The folders this command created (innermost first): what it leaves empty, a refused
+# run's or study's, goes again when it ends (``_remove_empty_created_folders``).
+_created_folders = []
+
+
 def _writable_folder(folder: Path) -> Path:
     """``folder``, created if missing and checked by writing a file there, so a run that
     could not save its results stops before it starts; a ValueError naming --out if not."""
     try:
+        missing = [path for path in (folder, *folder.parents) if not path.exists()]
         folder.mkdir(parents=True, exist_ok=True)
+        _created_folders.extend(missing)
         with tempfile.TemporaryFile(dir=folder):
             pass
     except OSError as error:
@@ -201,14 +209,16 @@ def _cmd_run(args) -> int:
         print(f"wrote {out / name}")
     stopped_by = result.summary.get("stopped_by")
     if stopped_by is not None:
-        landed = " after landing" if result.summary["landed_before_stopping"] else ""
         print(f"{label}: stopped by {stopped_by} at {result.summary['duration_s']:.3f} s"
-              f"{landed}; the run so far is in {out}", file=sys.stderr)
+              f"{_how_it_was_left(result.summary)}; the run so far is in {out}",
+              file=sys.stderr)
         return 128 + signal.Signals[stopped_by].value
-    if result.summary.get("landed_before_stopping"):
-        print(f"{label}: the instrument was flying when the run's time ended: it was landed "
-              f"first, as a device's must be (the run ended at "
-              f"{result.summary['duration_s']:.3f} s)", file=sys.stderr)
+    if "landed_before_stopping" in result.summary:
+        landed = ("it was landed first, as a device's must be"
+                  if result.summary["landed_before_stopping"] else
+                  "its landing did not bring it to rest" + _how_it_was_left(result.summary))
+        print(f"{label}: the instrument was flying when the run's time ended: {landed} "
+              f"(the run ended at {result.summary['duration_s']:.3f} s)", file=sys.stderr)
     injected = injected_faults_outcome(scenario, result.summary, result.log, label)
     if injected is not None:
         print(injected, file=sys.stderr)
@@ -226,6 +236,19 @@ def _cmd_run(args) -> int:
     return 0
 
 
+def _how_it_was_left(summary) -> str:
+    """How a stopped run left the instrument, as its log's last sample shows."""
+    if summary.get("landed_before_stopping"):
+        return " after landing"
+    final = summary["final_state"]
+    if final["rests"]:
+        return ", the instrument resting with its coils off"
+    cut = (f" (signal {summary['signals_received']} ended its landing)"
+           if summary.get("signals_received", 0) > 1 else "")
+    return (f"{cut}: the instrument was left at z = {1e3 * final['z_m']:.1f} mm with "
+            f"{final['busiest_coil_current_a']:.2f} A in the busiest coil")
+
+
 def _meshcat_last_line(url: str, *, waits: bool, replay: bool) -> str:
     """What the run says of its Meshcat at the end: it serves until Enter where there
     is a terminal to wait on, and closes with the process where there is none."""
@@ -237,6 +260,7 @@ def _meshcat_last_line(url: str, *, waits: bool, replay: bool) -> str:
 
 
 def _cmd_device_sim(args) -> int:
+    from maglev_haptics.analysis.run_metrics import for_people
     from maglev_haptics.diagrams.device_sim import BuildDeviceSim
     from maglev_haptics.diagrams.lcm_station import lcm_config
     from maglev_haptics.diagrams.runner import StopOnSignal, realtime_report, simulate
@@ -252,10 +276,21 @@ def _cmd_device_sim(args) -> int:
             stop=lambda context: stop_signal(context) or device_sim.application_gone(context),
             shares_cores=True, raise_priority=not args.normal_priority)
     context = simulator.get_context()
-    print(json.dumps({"scenario": label, "duration_s": context.get_time(), "wall_time_s": wall_s,
-                      "commands": device_sim.command_counts(context),
-                      "lease": device_sim.lease_counts(context),
-                      "realtime": realtime_report(tick_times)}, indent=2))
+    gone = stop_signal.received is None and device_sim.application_gone(context)
+    report = {"scenario": label, "duration_s": context.get_time(), "wall_time_s": wall_s,
+              # The silence it stopped on is the application's end, not a gap in its commands.
+              "commands": device_sim.command_counts(context, until_now=not gone),
+              "lease": device_sim.lease_counts(context),
+              "realtime": realtime_report(tick_times)}
+    print(json.dumps(for_people(report), indent=2))  # 394.75 s, not 394.75000016864215
+    if stop_signal.received is not None:
+        print(f"device-sim {label}: stopped by {stop_signal.received} at "
+              f"{context.get_time():.3f} s", file=sys.stderr)
+        return 128 + signal.Signals[stop_signal.received].value
+    if gone:
+        print(f"device-sim {label}: no command since {device_sim.last_command_s(context):.3f} "
+              f"s (the application ended, or was lost): stopped at {context.get_time():.3f} s",
+              file=sys.stderr)
     return 0
 
 
@@ -418,7 +453,7 @@ def _cmd_sweep(args) -> int:
 
     path = Path(args.spec)
     try:
-        text = path.read_text()
+        text = read_text_file(path, str(path))
     except OSError as error:
         raise OSError(f"sweep spec {args.spec}: {error.strerror}") from None
     spec = parse_spec(text, str(path))
@@ -742,11 +777,60 @@ def build_parser() -> argparse.ArgumentParser:
     _add_faults_parser(commands)
     _add_sweep_parser(commands)
     _add_analyze_parser(commands)
+    parser.command_parsers = commands.choices
     return parser
 
 
+def _remove_empty_created_folders() -> None:
+    """Remove the folders this command created that hold no file (a refusal writes
+    nothing), their empty subfolders first; a folder with anything in it stays."""
+    for folder in _created_folders:
+        for inner, _, _ in sorted(os.walk(folder), key=lambda entry: -len(entry[0])):
+            try:
+                os.rmdir(inner)
+            except OSError:  # not empty: something was written there
+                pass
+    _created_folders.clear()
+
+
+class _ClosedPipeTolerant:
+    """A text stream whose reader may go away (``| head``, or a ``tee`` that the same
+    Ctrl-C ended): once its pipe is closed, what is written goes to /dev/null, so a run
+    whose results are written ends with its own exit code, not a broken pipe's."""
+
+    def __init__(self, stream):
+        self._stream = stream
+
+    def write(self, text: str) -> int:
+        try:
+            return self._stream.write(text)
+        except BrokenPipeError:
+            self._to_devnull()
+            return len(text)
+
+    def flush(self) -> None:
+        try:
+            self._stream.flush()
+        except BrokenPipeError:
+            self._to_devnull()
+
+    def _to_devnull(self) -> None:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, self._stream.fileno())  # the buffered rest goes there too
+        os.close(devnull)
+
+    def __getattr__(self, name):
+        return getattr(self._stream, name)
+
+
 def main(argv=None) -> int:
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args, unknown = parser.parse_known_args(argv)
+    if unknown:  # said by the command's own parser: "maglev run: error: ..."
+        parser.command_parsers[args.command].error(
+            f"unrecognized arguments: {' '.join(unknown)}")
+    streams = sys.stdout, sys.stderr
+    sys.stdout, sys.stderr = (_ClosedPipeTolerant(stream) for stream in streams)
     try:
         from maglev_haptics.hardware.extras import MissingExtraError
 
@@ -765,6 +849,11 @@ def main(argv=None) -> int:
               f"({error}); the scenario's values are likely outside what the model can handle",
               file=sys.stderr)
         return 3
+    finally:
+        _remove_empty_created_folders()
+        for stream in (sys.stdout, sys.stderr):
+            stream.flush()  # here, where a closed pipe is caught, not at the exit
+        sys.stdout, sys.stderr = streams
 
 
 if __name__ == "__main__":

@@ -177,7 +177,7 @@ def check_pose_reachable(pose_value, device, magnetics, field_name: str) -> None
         minimum_power = np.max(np.abs(np.linalg.pinv(A) @ lift))
         raise ScenarioError(
             f"{field_name} = {shown}: unreachable, carrying {HOLD_MARGIN} x the "
-            f"instrument's weight there takes {minimum_power:.2f} A in the busiest coil at "
+            f"instrument's weight there takes {minimum_power:.3g} A in the busiest coil at "
             f"minimum power, and even spread over all coils it falls "
-            f"{np.linalg.norm(shortfall):.2f} N short within the "
+            f"{np.linalg.norm(shortfall):.3g} N short within the "
             f"{limit} A limit (device.amplifier.current_limit_a)")

@@ -23,8 +23,8 @@ from maglev_haptics.diagrams.deformable_scene import DeformableSurface
 from maglev_haptics.diagrams.hand_script import MeshcatHand, ScriptedHand
 from maglev_haptics.diagrams.lcm_station import LcmStation, SimStation
 from maglev_haptics.diagrams.scenario_files import (  # noqa: F401  (the light half, re-exported)
-    LONGEST_S, SCENARIO_DIR, ScenarioError, check_unique_keys, resolve_scenario_file,
-    scenario_names, shipped_scenario_files, yaml_error)
+    LONGEST_S, SCENARIO_DIR, ScenarioError, check_unique_keys, read_text_file,
+    resolve_scenario_file, scenario_names, shipped_scenario_files, yaml_error)
 from maglev_haptics.diagrams.scene import HERE, HangingBall, ModelScene, PaddleBall, PegInHole
 from maglev_haptics.diagrams.scene_models import check_model_scene, resolve_here
 from maglev_haptics.diagrams.stereo_display import StereoConfig
@@ -479,14 +479,15 @@ def load_scenario(name_or_path: str, name: Optional[str] = None,
     """Load one named scenario (default: the file's first) and layer ``scenario_text``
     on it, then each of ``more_text`` in turn."""
     path = resolve_scenario_file(name_or_path)
-    text = path.read_text()
-    raw = _parse_mapping(text, str(path))
+    source = str(name_or_path)  # as the user named it: a shipped file by its name
+    text = read_text_file(path, source)
+    raw = _parse_mapping(text, source)
     names = [key for key in raw if key != "Defaults"]
     if not names:
-        raise ScenarioError(f"{path}: holds no named scenario")
+        raise ScenarioError(f"{source}: holds no named scenario")
     name = names[0] if name is None else name
     if name not in names:
-        raise ScenarioError(f"{path}: no scenario named {name!r}; it has {', '.join(names)}")
+        raise ScenarioError(f"{source}: no scenario named {name!r}; it has {', '.join(names)}")
     label = f"{path.stem}:{name}"
     if not isinstance(raw[name], (dict, type(None))):
         raise ScenarioError(f"{label}: must be a YAML mapping of the scenario's fields, not "

@@ -36,6 +36,18 @@ def resolve_scenario_file(name_or_path: str) -> Path:
     raise ScenarioError(f"scenario file {name_or_path!r} not found: give a path or one of {names}")
 
 
+def read_text_file(path: Path, source: str) -> str:
+    """The text of the file at ``path``; a ScenarioError naming ``source`` where it is
+    not UTF-8 text (an image or another binary file given by mistake)."""
+    data = Path(path).read_bytes()
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as error:
+        raise ScenarioError(
+            f"{source}: not a text file (byte {data[error.start]:#04x} at offset "
+            f"{error.start} is not UTF-8): give a YAML file") from None
+
+
 def yaml_error(source: str, error: yaml.YAMLError) -> ScenarioError:
     """PyYAML's error as one line naming ``source``, the line and the column."""
     mark = getattr(error, "problem_mark", None)
@@ -76,7 +88,7 @@ def scenario_names(path: Path) -> List[str]:
     """The named scenarios in the file at ``path``, in its order (``Defaults`` left out).
     Reads the YAML's structure only (tags need no schema here)."""
     try:
-        node = yaml.compose(Path(path).read_text(), Loader=_LOADER)
+        node = yaml.compose(read_text_file(path, str(path)), Loader=_LOADER)
     except yaml.YAMLError as error:
         raise yaml_error(str(path), error) from None
     if node is None:

@@ -1,6 +1,7 @@
 """The ``maglev`` command line as a new user meets it: bad input ends in one clear
 line and exit code 2, never a traceback; help texts list scenarios and examples."""
 
+import os
 import subprocess
 import sys
 from importlib.metadata import version
@@ -8,7 +9,7 @@ from importlib.metadata import version
 import pytest
 
 from maglev_haptics.diagrams.cli import DIAGRAM_FORMATS, main
-from maglev_haptics.diagrams.scenario import scenario_names, shipped_scenario_files
+from maglev_haptics.diagrams.scenario import SCENARIO_DIR, scenario_names, shipped_scenario_files
 
 COMMANDS = ("run", "device-sim", "driver", "diagram", "bench", "analyze")
 
@@ -103,7 +104,71 @@ def test_run_against_no_station_on_lcm_says_so_in_one_line(tmp_path, capsys):
     assert list(tmp_path.iterdir()) == []
 
 
+REFUSED_RUNS = [
+    (["run", "levitate", "--no-meshcat", "--scenario-text",
+      "{motion: {waypoints: [{pose: [0, 0, 0.03, 1.05, 0, 0]}]}}"], "tilt 60.2 deg is beyond"),
+    (["run", "levitate", "--no-meshcat", "--scenario-text", "{device: {instrument_mass_kg: 1e30}}"],
+     "takes 1.51e+31 A in the busiest coil at minimum power, and even spread over all coils it "
+     "falls 1.18e+31 N short"),
+    (["analyze", "passivity", "levitate"], "passivity does not apply to levitate"),
+    (["run", "levitate", "--no-meshcat", "--duration", "0.1", "--scenario-text",
+      "{station: !LcmStation {url: 'udpm://239.255.76.67:7997?ttl=0', "
+      "command_url: 'udpm://239.255.76.67:7996?ttl=0', channel_prefix: NOBODY_, "
+      "wait_for_station_s: 0.2}}"], "no message on LCM channel 'NOBODY_MARKERS'"),
+]
+
+
+@pytest.mark.parametrize("argv, message", REFUSED_RUNS)
+def test_a_refused_command_writes_nothing(argv, message, tmp_path, capsys):
+    """Not even the folders it would have written into: --out and its missing parents."""
+    code, err = exit_code_and_stderr(argv + ["--out", str(tmp_path / "out" / "run")], capsys)
+    assert code == 2 and message in err, err
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("make_file, message", [
+    (lambda path: path.write_bytes(b"\x89PNG\r\n\x1a\n\x00"),
+     "not a text file (byte 0x89 at offset 0 is not UTF-8): give a YAML file"),
+    (lambda path: path.write_text((SCENARIO_DIR / "peg_in_hole.yaml").read_text()),
+     "not a sweep spec: it has Defaults, peg_in_hole, peg_release_outside; a sweep spec has "
+     "scenario, vary and metrics"),
+])
+@pytest.mark.parametrize("command", ["run", "sweep"])
+def test_the_wrong_file_is_named_as_such(make_file, message, command, tmp_path, capsys):
+    path = tmp_path / "given.yaml"
+    make_file(path)
+    if command == "run" and "sweep" in message:
+        return  # a scenario file is what run takes
+    code, err = exit_code_and_stderr([command, str(path)], capsys)
+    assert code == 2
+    assert err.strip() == f"maglev {command}: error: {path}: {message}" + (
+        " (see maglev sweep --help)" if "sweep" in message else "")
+
+
+def test_an_unknown_name_in_a_shipped_file_names_the_file_as_given(capsys):
+    code, err = exit_code_and_stderr(["run", "levitate", "--name", "nope"], capsys)
+    assert code == 2
+    assert err.startswith("maglev run: error: levitate: no scenario named 'nope'; it has "
+                          "takeoff_hover_land, ")
+
+
+def test_a_run_whose_reader_went_away_ends_with_its_own_exit_code(tmp_path, monkeypatch):
+    """``maglev run ... | tee`` and Ctrl-C ends tee too: the run's printing then meets a
+    closed pipe, which must not turn its written results into a bad-input error."""
+    read_end, write_end = os.pipe()
+    os.close(read_end)  # the reader is gone: a write raises BrokenPipeError
+    with open(write_end, "w") as closed_pipe:
+        monkeypatch.setattr(sys, "stdout", closed_pipe)
+        code = main(["run", "levitate", "--no-meshcat", "--duration", "0.3", "--out",
+                     str(tmp_path)])
+        assert sys.stdout is closed_pipe
+    assert code == 0
+    assert {"log.npz", "summary.json", "levitation.png"} <= set(os.listdir(tmp_path))
+
+
 @pytest.mark.parametrize("argv, message", [
+    (["run", "levitate", "--fast"],
+     "maglev run: error: unrecognized arguments: --fast (see maglev run --help)"),
     (["run", "levitate", "--duration", "-1"],
      "maglev run: error: argument --duration: '-1': must be > 0 simulated seconds "
      "(see maglev run --help)"),

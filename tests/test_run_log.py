@@ -15,8 +15,9 @@ import numpy as np
 import pytest
 
 from maglev_haptics.analysis import load_run_log
-from maglev_haptics.analysis import run_log
+from maglev_haptics.analysis import run_log, run_results
 from maglev_haptics.analysis.run_results import run_scenario
+from maglev_haptics.diagrams import runner
 from maglev_haptics.diagrams.application import BuildDiagram
 from maglev_haptics.diagrams.scenario import load_scenario
 from maglev_haptics.hardware.realtime_priority import (
@@ -127,6 +128,77 @@ def test_a_stopped_run_writes_its_results_and_says_so_in_one_line(tmp_path, stop
     assert (tmp_path / "levitation.png").exists()
     assert np.all(log["wrench_commanded_W"][-10:] == 0.0)
     assert np.all(np.abs(log["coil_currents"][-10:]) < 1e-9)
+
+
+class ScriptedSignals(runner.StopOnSignal):
+    """SIGINT arriving at the given simulated times (s), as Ctrl-C pressed then."""
+
+    def __init__(self, at_s):
+        super().__init__()
+        self._at_s = list(at_s)
+
+    def __enter__(self):
+        return self
+
+    def __call__(self, context) -> bool:
+        self.count = sum(context.get_time() >= at_s for at_s in self._at_s)
+        self.received = "SIGINT" if self.count else None
+        return self.received is not None
+
+
+HOVER_40_S = "{motion: {waypoints: [{pose: [0, 0, 0.018, 0, 0, 0], hold_s: 40}]}}"
+
+
+@pytest.mark.parametrize("signals_at_s, lands", [([3.0], True), ([3.0, 3.3], False)])
+def test_a_stopped_runs_report_says_what_its_log_shows(monkeypatch, signals_at_s, lands):
+    """One Ctrl-C lands the hovering instrument before the run stops; a second one 0.3 s
+    later stops it at once, mid-landing: the summary then says it did not land, and
+    where its last sample left the instrument."""
+    scenario = load_scenario("levitate", scenario_text=HOVER_40_S)
+    monkeypatch.setattr(run_results, "StopOnSignal", lambda: ScriptedSignals(signals_at_s))
+    result = run_scenario(scenario, label="levitate", duration_s=20.0, progress=False)
+    summary, log = result.summary, result.log
+    assert summary["stopped_by"] == "SIGINT"
+    assert summary["signals_received"] == len(signals_at_s)
+    assert summary["landed_before_stopping"] is lands
+    final = summary["final_state"]
+    assert final["rests"] is lands
+    assert final["z_m"] == pytest.approx(log["p_WI_true"][-1, 2], abs=1e-6)
+    assert final["busiest_coil_current_a"] == pytest.approx(
+        np.max(np.abs(log["coil_currents"][-1])), abs=1e-5)
+    if lands:
+        assert np.max(np.abs(log["coil_currents"][-1])) < 1e-3
+    else:  # still flying, the coils carrying it
+        assert log["p_WI_true"][-1, 2] > 0.010 and final["busiest_coil_current_a"] > 0.5
+        assert summary["duration_s"] < 4.0
+
+
+@pytest.mark.slow  # a paced run in its own process, Ctrl-C twice
+def test_ctrl_c_twice_says_the_instrument_was_left_flying(tmp_path):
+    """Ctrl-C twice 0.3 s apart on a haptic run: the second ends the landing the first
+    began, and the last line says where the instrument was left, as the log shows."""
+    process = subprocess.Popen(
+        [sys.executable, "-m", "maglev_haptics.diagrams.cli", "run", "peg_in_hole",
+         "--no-meshcat", "--realtime", "1.0", "--out", str(tmp_path)],
+        stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 240.0
+    while not list((tmp_path / run_log.CHUNK_DIR).glob("chunk_000004.npy")):  # ~4 s flown
+        assert process.poll() is None and time.monotonic() < deadline, "the run never flew"
+        time.sleep(0.05)
+    process.send_signal(signal.SIGINT)
+    time.sleep(0.3)
+    process.send_signal(signal.SIGINT)
+    _, stderr = process.communicate(timeout=60)
+    assert process.returncode == 128 + signal.SIGINT.value
+    last_line = stderr.strip().splitlines()[-1]
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    log = load_run_log(tmp_path)
+    assert not summary["landed_before_stopping"] and "after landing" not in last_line
+    assert re.search(r"stopped by SIGINT at [\d.]+ s \(signal 2 ended its landing\): the "
+                     r"instrument was left at z = [\d.]+ mm with [\d.]+ A in the busiest coil",
+                     last_line), last_line
+    z_mm = float(re.search(r"z = ([\d.]+) mm", last_line).group(1))
+    assert z_mm == pytest.approx(1e3 * log["p_WI_true"][-1, 2], abs=0.06)
 
 
 @pytest.mark.skipif(not fifo_permitted(), reason="this process may not use SCHED_FIFO")
