@@ -74,18 +74,20 @@ def plot_run(log: Dict[str, np.ndarray], out_dir: Path, *, title: str,
     legend_outside(ax)
 
     ax = axes[2]
-    error_mm = 1e3 * (p_WI - log["p_WI_desired"])
+    # Tracking error only while the script flies it: resting on the glass below its
+    # commanded touchdown height is not an error (6.6 mm resting, 6 mm commanded).
+    z_desired = log["p_WI_desired"][:, 2]
+    flying = z_desired > z_desired.min() + 2e-3
+    error_mm = np.where(flying[:, None], 1e3 * (p_WI - log["p_WI_desired"]), np.nan)
     for i, axis in enumerate("xyz"):
         ax.plot(t, error_mm[:, i], color=AXIS_COLORS[i], lw=0.6, label=f"{axis} error")
     # Linear over the hover's errors, logarithmic beyond them (takeoff, touchdown, the
     # scripted press into the glass), so that none runs off the panel.
-    z_desired = log["p_WI_desired"][:, 2]
-    flying = z_desired > z_desired.min() + 2e-3
-    span = max(np.percentile(np.abs(error_mm[flying] if flying.any() else error_mm), 99), 1e-3)
+    span = max(np.nanpercentile(np.abs(error_mm), 99) if flying.any() else 0.0, 1e-3)
     linear = _round_up_125(1.5 * span)
     # Up to a round number, labelled: 1.2 times the largest error could fall a hair
     # under the next decade's mark, which then went undrawn.
-    reach = _round_up_125(max(linear, 1.2 * np.nanmax(np.abs(error_mm[shown]))))
+    reach = _round_up_125(max(linear, 1.2 * np.max(np.abs(np.nan_to_num(error_mm[shown])), initial=0.0)))
     ax.set_yscale("symlog", linthresh=linear, linscale=2.0)
     ax.set_ylim(-reach, reach)
     marks = linear * 10.0 ** np.arange(0, 1 + max(0, int(np.floor(np.log10(reach / linear)
@@ -94,11 +96,11 @@ def plot_run(log: Dict[str, np.ndarray], out_dir: Path, *, title: str,
         marks = np.append(marks, reach)
     ax.set_yticks(np.concatenate((-marks[::-1], [0.0], marks)))
     ax.set_yticklabels([f"{value:g}" for value in np.concatenate((-marks[::-1], [0.0], marks))])
-    ax.set_ylabel(f"{source} - commanded [mm]\n(linear within +-{linear:g}, log beyond)")
-    angle_deg = angle_between_deg(q_WI, log["rpy_WI_desired"])
+    ax.set_ylabel(f"{source} - commanded [mm], flying\n(linear within +-{linear:g}, log beyond)")
+    angle_deg = np.where(flying, angle_between_deg(q_WI, log["rpy_WI_desired"]), np.nan)
     angle = ax.twinx()
     angle.plot(t, angle_deg, color="k", lw=0.6)
-    angle.set_ylim(0, 3 * max(np.percentile(angle_deg, 98), 1e-3))
+    angle.set_ylim(0, 3 * max(np.nanpercentile(angle_deg, 98) if flying.any() else 0.0, 1e-3))
     angle.set_ylabel("angle error [deg] (black)")
     legend_outside(ax)
 
@@ -137,6 +139,26 @@ def plot_run(log: Dict[str, np.ndarray], out_dir: Path, *, title: str,
     return save_figure(fig, Path(out_dir) / "levitation.png", dpi=100)
 
 
+# The least each haptics panel spans, so that a quiet axis's noise (0.003 N, a few um)
+# is not stretched into what reads as a signal: the force and torque about zero.
+MIN_POSITION_SPAN_MM = 2.0
+MIN_FORCE_SPAN_N = 0.5
+MIN_TORQUE_SPAN_NMM = 5.0
+
+
+def span_at_least(ax, span: float, *, about_zero: bool = False) -> None:
+    """Widen ``ax``'s y range to ``span`` where autoscale made it narrower: around its
+    middle, or ``about_zero`` so zero is in view (a force that is nearly none)."""
+    low, high = ax.get_ylim()
+    if high - low >= span:
+        return
+    if about_zero:
+        ax.set_ylim(min(low, -span / 2), max(high, span / 2))
+    else:
+        middle = (low + high) / 2
+        ax.set_ylim(middle - span / 2, middle + span / 2)
+
+
 def plot_haptics(log: Dict[str, np.ndarray], out_dir: Path, *, title: str) -> Path:
     """Write ``haptics.png`` in the layout of the paper's Fig. 9 and 10: x, y, z
     position of the instrument (mm, measured) and x, y, z force rendered on the
@@ -152,13 +174,16 @@ def plot_haptics(log: Dict[str, np.ndarray], out_dir: Path, *, title: str) -> Pa
         ax = axes[i]
         ax.plot(t[measured], 1e3 * log["p_WI_measured"][measured, i], color=AXIS_COLORS[i], lw=1)
         ax.set_ylabel(f"{axis} position [mm]")
+        span_at_least(ax, MIN_POSITION_SPAN_MM)
         ax = axes[3 + i]
         ax.plot(t, log["f_user"][:, i], color=AXIS_COLORS[i], lw=0.8)
         ax.set_ylabel(f"{axis} force [N]")
+        span_at_least(ax, MIN_FORCE_SPAN_N, about_zero=True)
     ax = axes[6]
     for i, axis in enumerate("xyz"):
         ax.plot(t, 1e3 * log["tau_user"][:, i], color=AXIS_COLORS[i], lw=0.8, label=f"about {axis}")
     ax.set_ylabel("torque [N mm]")
+    span_at_least(ax, MIN_TORQUE_SPAN_NMM, about_zero=True)
     legend_outside(ax)
     ax.set_xlabel("time [s]")
     for ax in axes:

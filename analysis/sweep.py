@@ -275,8 +275,9 @@ def plot_sweep(spec: SweepSpec, rows: List[Dict], path: Path) -> Path:
                 panel.text(0.5, 0.5, "no value at any point", ha="center", va="center",
                            transform=panel.transAxes, color="0.4")
             for key, group in groups.items():
+                # A failed point stands alone, crossed out: joined, it reads as a trend.
                 points = [(row[varied], row[name]) for row in group
-                          if isinstance(row[name], (int, float))]
+                          if not row.get("error") and isinstance(row[name], (int, float))]
                 if points:
                     x, y = zip(*points)
                     label = ", ".join(f"{f}={v}" for f, v in zip(others, key)) or None

@@ -161,6 +161,49 @@ def test_levitation_png_shows_every_error_a_legible_legend_and_plain_temperature
                for label in temperature.get_yticklabels() if label.get_text())
 
 
+def test_levitation_png_draws_the_tracking_error_only_while_flying(tmp_path, monkeypatch):
+    """Resting on the glass 0.6 mm above the commanded touchdown height is not a
+    tracking error: the error panel draws nothing there."""
+    import numpy as np
+
+    from maglev_haptics.analysis import run_plots
+    figures = []
+    monkeypatch.setattr(run_plots, "save_figure", lambda figure, path, **_: figures.append(
+        figure) or path)
+    log = _synthetic_log()
+    resting = log["p_WI_desired"][:, 2] < 0.01
+    log["p_WI_true"][resting, 2] = log["p_WI_desired"][resting, 2] + 6e-4
+    run_plots.plot_run(log, tmp_path, title="synthetic", current_limit_a=4.0)
+    error = figures[0].axes[2]
+    for line in error.get_lines():
+        drawn = np.isfinite(line.get_ydata())
+        assert not np.any(drawn & resting) and np.any(drawn & ~resting)
+
+
+def test_haptics_png_does_not_stretch_a_quiet_axis_into_a_signal(tmp_path, monkeypatch):
+    """A force of a few mN, or a position still to um, fills no panel: each keeps a
+    floor on its scale (a force or torque with zero in view)."""
+    import numpy as np
+
+    from maglev_haptics.analysis import run_plots
+    figures = []
+    monkeypatch.setattr(run_plots, "save_figure", lambda figure, path, **_: figures.append(
+        figure) or path)
+    log = _synthetic_log()
+    n = len(log["t"])
+    noise = np.random.default_rng(1).standard_normal((n, 3))
+    log.update({"haptic_mode": np.full(n, run_plots.HAPTIC), "tool_in_contact": np.zeros(n),
+                "f_user": 0.003 * noise, "tau_user": 1e-5 * noise,
+                "p_WI_measured": 0.018 + 2e-6 * noise})
+    run_plots.plot_haptics(log, tmp_path, title="synthetic")
+    axes = figures[0].axes
+    spans = [high - low for low, high in (ax.get_ylim() for ax in axes[:7])]
+    assert min(spans[:3]) >= run_plots.MIN_POSITION_SPAN_MM
+    assert min(spans[3:6]) >= run_plots.MIN_FORCE_SPAN_N
+    assert spans[6] >= run_plots.MIN_TORQUE_SPAN_NMM
+    assert all(ax.get_ylim()[0] < 0.0 < ax.get_ylim()[1] for ax in axes[3:7])
+
+
 def test_realtime_png_draws_each_miss_above_the_slot_line(tmp_path, monkeypatch):
     """A tick that computed briefly but started behind a late one misses its slot: it
     is drawn where it ended, above the slot line, not at its short compute."""

@@ -3,6 +3,7 @@ the metrics kept as a table, a JSON and plots; a bad spec named before any run."
 
 import csv
 import json
+from pathlib import Path
 
 import pytest
 
@@ -113,6 +114,8 @@ def test_a_failed_point_with_values_is_marked_in_the_plot(tmp_path, monkeypatch)
     crosses = [line for line in figures[0].axes[0].get_lines() if line.get_marker() == "x"]
     assert len(crosses) == 1 and list(crosses[0].get_xdata()) == [20]
     assert list(crosses[0].get_ydata()) == [17.123456]
+    curves = [line for line in figures[0].axes[0].get_lines() if line.get_marker() == "o"]
+    assert curves and all(20 not in list(line.get_xdata()) for line in curves)  # not joined
 
 
 def _sweep(tmp_path, duration_s: float, vary: str, metrics: str):
@@ -144,3 +147,13 @@ def test_a_metric_no_summary_has_is_named_after_the_runs(tmp_path, capsys):
             "a summary has ") in error
     assert "hover_position_error_rms_mm" in error
     assert (out / "sweep.json").exists()
+
+
+@pytest.mark.slow  # nine 4 s flights
+def test_the_shipped_example_sweep_holds_at_every_point(tmp_path, capsys):
+    """The README's example runs as shown: exit 0, every point's hover held."""
+    example = Path(__file__).resolve().parent.parent / "docs" / "sweep_example.yaml"
+    assert main(["sweep", str(example), "--workers", "2", "--out", str(tmp_path)]) == 0
+    rows = json.loads((tmp_path / "sweep.json").read_text())["rows"]
+    assert len(rows) == 9 and not any(row["error"] for row in rows)
+    assert all(row["hover_position_error_rms_mm"] < 0.05 for row in rows)
