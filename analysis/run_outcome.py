@@ -11,6 +11,12 @@ application, the ticks the loop missed; ``maglev run`` then exits with
 ``EXIT_INSTRUMENT_LOST``. Runs with injected faults (and the fault campaign) are
 judged by their own checks instead: ``maglev run`` says in one line which faults
 latched, when, and where the instrument came down, and exits 0.
+
+A device that went silent (``station.device_silent`` in the summary: its process
+killed, its host gone) stopped the run without a landing; that is what its line
+says, with or without injected faults, and ``maglev run`` exits with
+``EXIT_INSTRUMENT_LOST``: the faults that latched as its messages stopped (the
+markers gone, so the sensor out of range) follow from it and are not its cause.
 """
 
 from __future__ import annotations
@@ -24,7 +30,8 @@ from maglev_haptics.systems.device_supervisor import (
     FAULT_SENSOR_OUT_OF_RANGE)
 
 EXIT_DEVICE_IN_USE = 4  # maglev run: another application holds the device's lease
-EXIT_INSTRUMENT_LOST = 5  # maglev run: a fault latched in a run that injected none
+EXIT_INSTRUMENT_LOST = 5  # maglev run: a fault latched in a run that injected none,
+# or the device went silent
 
 FAULT_NAMES = {FAULT_SENSOR_OUT_OF_RANGE: "sensor out of range",
                FAULT_COIL_OVER_TEMPERATURE: "coil over-temperature",
@@ -60,11 +67,28 @@ def injects_faults(scenario) -> bool:
     return bool(scenario.faults) or bool(scenario.occlusions)
 
 
+def device_silent_outcome(summary: Dict, label: str) -> Optional[str]:
+    """One line saying that the device went silent, when, on which channels and for how
+    long, and when the run stopped; None when it was heard to the end."""
+    silent = (summary.get("station") or {}).get("device_silent")
+    if not silent:
+        return None
+    channels = ", ".join(name.upper() for name in silent["channels"])
+    return (f"{label}: the device went silent at {silent['at_s']:.3f} s ({channels}: no "
+            f"message for {silent['for_s']:.2f} s, past the lease's {silent['timeout_s']:g} s "
+            f"timeout): the application stopped at {summary['duration_s']:.3f} s; it "
+            "cannot land what it no longer commands")
+
+
 def instrument_outcome(scenario, summary: Dict, log: Dict[str, np.ndarray],
                        label: str) -> Optional[str]:
     """One line saying when and how the instrument was lost, or a fault latched, in a
     run of ``scenario`` that injected no fault; None when none latched (or the
-    scenario injected one)."""
+    scenario injected one). A device that went silent is said first, injected
+    faults or not (``device_silent_outcome``)."""
+    silent = device_silent_outcome(summary, label)
+    if silent is not None:
+        return silent
     firsts = latched_faults(log)
     if injects_faults(scenario) or not firsts:
         return None

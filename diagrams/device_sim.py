@@ -17,6 +17,7 @@ never used; like a lost command, the last good one holds until
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Optional
 
@@ -60,17 +61,21 @@ class DeviceSim:
 
     def application_gone(self, context) -> bool:
         """Whether commands came and then stopped for ``stop_after_silence_s``."""
-        if self.command_counts(context)["messages_received"] == 0:
-            return False
-        arrival_s = self.command_receiver.newest_arrival_s(
-            self.command_receiver.GetMyContextFromRoot(context), COMMANDS_PORT)
-        return context.get_time() - arrival_s > self.stop_after_silence_s
+        last_s = self.last_command_s(context)  # -inf before the first: not gone yet
+        return math.isfinite(last_s) and context.get_time() - last_s > self.stop_after_silence_s
 
-    def command_counts(self, context) -> dict:
-        """What the device read, refused (by reason) and lost of the application's
-        commands (``MessageReceiver.counts``)."""
-        return self.command_receiver.counts(
+    def last_command_s(self, context) -> float:
+        """When the application's newest command was read (s; -inf: none yet)."""
+        return self.command_receiver.newest_arrival_s(
             self.command_receiver.GetMyContextFromRoot(context), COMMANDS_PORT)
+
+    def command_counts(self, context, until_now: bool = True) -> dict:
+        """What the device read, refused (by reason) and lost of the application's
+        commands (``MessageReceiver.counts``); ``until_now``: the silence since the
+        newest command counts as a gap (left out where it is the silence device-sim
+        stopped on: an application that ended)."""
+        return self.command_receiver.counts(
+            self.command_receiver.GetMyContextFromRoot(context), COMMANDS_PORT, until_now)
 
     def lease_counts(self, context) -> dict:
         """The lease requests read and refused, the holder now and the grants made."""

@@ -35,11 +35,17 @@ device side ran 1,450 us a tick with them against 400 without), and
 queued behind it (5 published, 1 handled, however often it is called), which a
 1 kHz loop cannot afford. One receiver reads every inbound channel in one
 update a tick, and each sender encodes its own port (``systems/station_messages.py``).
+
+A device that goes silent (its process killed, its host gone) stops the run: once
+the lease's answers have not come for ``lease_timeout_s`` (``device_silence``), the
+run stops at its next check, without the landing a run's end or a signal would
+fly, since the coils no longer take its commands (``StopWhenDeviceSilent``).
 """
 
 
 import math
 from dataclasses import dataclass
+from typing import Dict, Optional
 
 import lcm
 import numpy as np
@@ -47,9 +53,10 @@ from pydrake.systems.framework import Diagram, DiagramBuilder
 from pydrake.systems.primitives import Multiplexer
 
 from maglev_haptics.hardware.config_checks import positive, require
+from maglev_haptics.hardware.constants import SAME_INSTANT_S
 from maglev_haptics.hardware.lcm_messages import (
     coil_currents_t, device_status_t, glasses_t, lease_t, markers_t)
-from maglev_haptics.hardware.lease import LeaseClient
+from maglev_haptics.hardware.lease import REPLY_PERIOD_S, LeaseClient
 from maglev_haptics.hardware.link_checks import (
     REASONS, LinkLimits, check_glasses, check_lease_reply, check_markers,
     check_measured_currents, check_status)
@@ -98,7 +105,9 @@ class LcmStation:
     # ``maglev device-sim`` stops once none has come for ``stop_after_silence_s``.
     command_timeout_s: float = 0.010
     stop_after_silence_s: float = 1.0
-    # The device's lease lapses once its holder's commands have been silent this long (s).
+    # The device's lease lapses once its holder's commands have been silent this long
+    # (s); the application gives up on a device whose lease answers have been silent
+    # as long (``device_silence``).
     lease_timeout_s: float = 0.5
 
     def validate(self, path: str = "station") -> None:
@@ -233,18 +242,102 @@ def MakeLcmStation(scenario) -> Diagram:
     return diagram
 
 
+def station_receiver(diagram) -> MessageReceiver:
+    """The application's receiver of the station's messages, in a diagram with an LCM
+    station."""
+    return diagram.GetSubsystemByName("station").GetSubsystemByName("receiver")
+
+
 def station_lease(diagram) -> LeaseClient:
     """The application's end of the device's lease, in a diagram with an LCM station."""
-    return diagram.GetSubsystemByName("station").GetSubsystemByName("receiver").lease
+    return station_receiver(diagram).lease
 
 
-def station_counts(diagram, context) -> dict:
+def silent_channels(newest_arrivals: Dict[str, float], now_s: float,
+                    timeout_s: float) -> Dict[str, float]:
+    """{channel: how long it has been silent (s)} of the channels of ``newest_arrivals``
+    (channel: when its newest message was read, s; -inf: none yet) with no message for
+    ``timeout_s`` (s) or more at ``now_s`` (s, the same clock), in their order. A
+    channel never heard from is not among them: it did not go silent."""
+    return {name: now_s - arrival_s for name, arrival_s in newest_arrivals.items()
+            if math.isfinite(arrival_s) and now_s - arrival_s >= timeout_s - SAME_INSTANT_S}
+
+
+def device_silence(newest_arrivals: Dict[str, float], now_s: float, timeout_s: float,
+                   heartbeat: str = LEASE.lower(),
+                   heartbeat_period_s: float = REPLY_PERIOD_S) -> Optional[dict]:
+    """Whether the device went silent by ``now_s`` (s): None while it is heard, else
+    {"at_s": its last message (s), "channels": the channels silent for ``timeout_s``
+    (``silent_channels``: names as in ``newest_arrivals``), "for_s": the silence since
+    its last message (s), "timeout_s"}.
+
+    The device is its ``heartbeat`` channel, the lease's answers, which the end that
+    takes the coils' commands (device-sim, a lab's coil driver) sends every
+    ``heartbeat_period_s`` whoever holds the lease: silent for ``timeout_s`` past the
+    answer that was due, nothing takes the commands any more. The timeout is the
+    lease's (``LcmStation.lease_timeout_s``, 0.5 s): the device gives up on a silent
+    application after it (the lease lapses, the coils long off), so the application
+    gives up on a silent device after the same. Not the link's shorter timeouts: a
+    marker older than ``stale_after_s`` (3 ms) or a command older than
+    ``command_timeout_s`` (10 ms) is what a host's pause of 10-50 ms makes, which the
+    loop rides out (or lands blind) while the coils still take its commands; and a
+    channel silent alone is that channel's loss (markers: the landing flown blind),
+    not the device's. Since the heartbeat's last answer may precede the device's last
+    message by a period, every channel that stopped with it is silent for
+    ``timeout_s`` by then: all are named. The clock is the diagram's, the same as the
+    device's lease, so a host that pauses the application does not make the device
+    silent."""
+    heard_s = newest_arrivals.get(heartbeat, -math.inf)
+    if not (math.isfinite(heard_s)
+            and now_s - heard_s >= timeout_s + heartbeat_period_s - SAME_INSTANT_S):
+        return None
+    silent = silent_channels(newest_arrivals, now_s, timeout_s)
+    at_s = max(newest_arrivals[name] for name in silent)
+    return {"at_s": at_s, "channels": list(silent), "for_s": now_s - at_s,
+            "timeout_s": timeout_s}
+
+
+def newest_arrivals(diagram, context) -> Dict[str, float]:
+    """{channel (lower case, as ``station_counts`` names them): when its newest message
+    was read (s; -inf: none yet)} of the application's LCM station."""
+    receiver = station_receiver(diagram)
+    receiver_context = receiver.GetMyContextFromRoot(context)
+    return {name.lower(): receiver.newest_arrival_s(receiver_context, port)
+            for name, port in INBOUND_PORTS.items() if port in receiver.channels()}
+
+
+class StopWhenDeviceSilent:
+    """``simulate``'s ``stop`` for a run on an LCM station (asked between ticks, every
+    PROGRESS_CHUNK_S): True once the device went silent (``device_silence``, after the
+    station's ``lease_timeout_s``; ``silence`` then says when and which channels),
+    else what ``stop`` (the run's own: a signal, or its end with a landing) says.
+    A silent device stops the run at once, even mid-landing: a landing is the coils'
+    work, and nothing takes their commands any more."""
+
+    def __init__(self, diagram, stop, timeout_s: float):
+        self._diagram = diagram
+        self._stop = stop
+        self._timeout_s = float(timeout_s)
+        self.silence: Optional[dict] = None
+
+    def __call__(self, context) -> bool:
+        self.silence = device_silence(newest_arrivals(self._diagram, context),
+                                      context.get_time(), self._timeout_s)
+        return self.silence is not None or self._stop(context)
+
+
+def station_counts(diagram, context, timeout_s: Optional[float] = None) -> dict:
     """What the application's LCM station read, refused (by reason) and lost, and the
-    gaps in which a channel went stale, per channel and in all; and its lease."""
-    receiver = diagram.GetSubsystemByName("station").GetSubsystemByName("receiver")
+    gaps in which a channel went stale, per channel and in all, the silence since each
+    channel's last message counted up to the context's time; its lease; and
+    ``device_silent``: with ``timeout_s`` (the station's ``lease_timeout_s``),
+    ``device_silence`` at the context's time (None: the device was heard)."""
+    receiver = station_receiver(diagram)
     receiver_context = receiver.GetMyContextFromRoot(context)
     counts = {name.lower(): receiver.counts(receiver_context, port)
               for name, port in INBOUND_PORTS.items() if port in receiver.channels()}
+    silent = (device_silence(newest_arrivals(diagram, context), context.get_time(), timeout_s)
+              if timeout_s is not None else None)
     return {"messages_received": sum(c["messages_received"] for c in counts.values()),
             "messages_lost": sum(c["messages_lost"] for c in counts.values()),
             "messages_refused": sum(c["messages_refused"] for c in counts.values()),
@@ -252,4 +345,5 @@ def station_counts(diagram, context) -> dict:
                         for reason in REASONS},
             "stale_gaps": sum(c["stale_gaps"] for c in counts.values()),
             "lease": receiver.lease.counts(),
+            "device_silent": silent,
             "channels": counts}

@@ -20,7 +20,9 @@ Meshcat, measured): it is received and counted, but its latency, the start's and
 not the link's, is left out of the latency figures. A receiver whose
 newest message is older than ``stale_after_s`` reports it the way the hardware
 would report a missing signal: markers all NaN (so the estimator loses
-tracking and the controller lands blind), currents and grip held.
+tracking and the controller lands blind), currents and grip held. The
+silence after a sender's last message counts as a gap, as if a message read when
+the counts are asked ended it: a sender that died shows in the longest gap.
 """
 
 from __future__ import annotations
@@ -202,16 +204,34 @@ def latency_percentile_s(histogram, percent: int, largest_s: float) -> Optional[
             return min(upper_s, largest_s)
 
 
-def receiver_counts(state, latency_histogram) -> dict:
+def trailing_silence(state, now_s: float, stale_gap_s: float = math.inf) -> tuple:
+    """(longest gap (s), stale gaps) of a receiver's ``state`` (``receiver_step``'s) with
+    the silence since its newest message counted as a gap that ends at ``now_s`` (s,
+    the receiver's clock), as a message read then would end it: the longest gap is at
+    least that silence, and one longer than ``stale_gap_s`` is one more stale gap.
+    Before the first message nothing is silent: the counts are the state's."""
+    gap_max, stale_gaps = float(state[6]), int(state[7])
+    if now_s is None or state[2] <= 0:
+        return gap_max, stale_gaps
+    silence_s = now_s - state[1]
+    return max(gap_max, silence_s), stale_gaps + int(silence_s > stale_gap_s)
+
+
+def receiver_counts(state, latency_histogram, now_s: Optional[float] = None,
+                    stale_gap_s: float = math.inf) -> dict:
     """{"messages_received", "messages_lost", "messages_at_start", "latency_ms_mean",
     "latency_ms_p50", "latency_ms_p99", "latency_ms_max", "longest_gap_ms",
     "stale_gaps"} from a receiver's state and its latencies' histogram
     (``latency_bin``). The latencies leave out the messages received at the start
-    (``messages_at_start``); None before the first counted. Gaps count once a
-    message ends them: the silence after a sender stops is not one."""
+    (``messages_at_start``); None before the first counted. With ``now_s`` (s, the
+    receiver's clock) the silence since the newest message counts as a gap ending
+    then (``trailing_silence``): a sender that stopped leaves its silence in the
+    longest gap, and in the stale gaps once it is longer than ``stale_gap_s``;
+    without, gaps count once a message ends them."""
     received, at_start = int(state[2]), int(state[8])
     counted = received - at_start
     largest_s = state[5]
+    gap_max_s, stale_gaps = trailing_silence(state, now_s, stale_gap_s)
     return {"messages_received": received, "messages_lost": int(state[3]),
             "messages_at_start": at_start,
             "latency_ms_mean": 1e3 * state[4] / counted if counted else None,
@@ -219,7 +239,7 @@ def receiver_counts(state, latency_histogram) -> dict:
                1e3 * latency_percentile_s(latency_histogram, percent, largest_s)
                if counted else None for percent in (50, 99)},
             "latency_ms_max": 1e3 * largest_s if counted else None,
-            "longest_gap_ms": 1e3 * state[6], "stale_gaps": int(state[7])}
+            "longest_gap_ms": 1e3 * gap_max_s, "stale_gaps": stale_gaps}
 
 
 def message_sequence(data: bytes) -> tuple:
@@ -286,8 +306,9 @@ class MessageReceiver(LeafSystem):
     ``lcm.LCM``), takes each message through its channel's gate, counts it and
     keeps each channel's newest accepted message: one Python call a tick for every
     channel, since each call is what a 1 kHz tick pays for. A gap between two
-    messages in which a tick read the channel's stale value counts as a stale gap
-    (``counts``). ``on_tick(t_s)``, if given, is called at the end of every update
+    messages in which a tick read the channel's stale value counts as a stale gap,
+    and so does the silence since the newest message, when ``counts`` is asked
+    (between ticks: nothing is added to a tick). ``on_tick(t_s)``, if given, is called at the end of every update
     (the lease's ends ask and answer there). What a gate refused is counted in the
     gate (I/O, as the messages are), the rest in the discrete state.
     """
@@ -457,11 +478,16 @@ class MessageReceiver(LeafSystem):
         """When ``port``'s newest message was read (s on this diagram's clock; -inf: never)."""
         return context.get_discrete_state(self._counters[port]).GetAtIndex(1)
 
-    def counts(self, context, port: str) -> dict:
+    def counts(self, context, port: str, until_now: bool = True) -> dict:
         """What ``receiver_counts`` says so far for ``port``'s channel, and what its gate
-        refused (``messages_refused``, ``refused`` by reason, ``first_refused``)."""
+        refused (``messages_refused``, ``refused`` by reason, ``first_refused``).
+        ``until_now``: the silence since the channel's newest message, up to the
+        context's time, counts as a gap (in ``stale_gaps`` once a tick read the stale
+        value in it), as if a message read now ended it: a sender that stopped is seen."""
         return {**receiver_counts(context.get_discrete_state(self._counters[port]).get_value(),
-                                  context.get_discrete_state(self._latencies[port]).get_value()),
+                                  context.get_discrete_state(self._latencies[port]).get_value(),
+                                  context.get_time() if until_now else None,
+                                  self._stale_gap_s[port]),
                 **self._gates[port].counts()}
 
 
