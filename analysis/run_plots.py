@@ -75,12 +75,19 @@ def plot_run(log: Dict[str, np.ndarray], out_dir: Path, *, title: str,
 
     ax = axes[2]
     # Tracking error only while the script flies it: resting on the glass below its
-    # commanded touchdown height is not an error (6.6 mm resting, 6 mm commanded).
+    # commanded touchdown height is not an error (6.6 mm resting, 6 mm commanded), nor
+    # is where the user's hand carries it in haptic mode.
     z_desired = log["p_WI_desired"][:, 2]
     flying = z_desired > z_desired.min() + 2e-3
+    if "haptic_mode" in log:
+        flying &= log["haptic_mode"] != HAPTIC
     error_mm = np.where(flying[:, None], 1e3 * (p_WI - log["p_WI_desired"]), np.nan)
     for i, axis in enumerate("xyz"):
         ax.plot(t, error_mm[:, i], color=AXIS_COLORS[i], lw=0.6, label=f"{axis} error")
+    if "haptic_mode" in log and np.any(log["haptic_mode"] == HAPTIC):
+        ax.fill_between(t, 0, 1, where=log["haptic_mode"] == HAPTIC, color="tab:purple",
+                        alpha=0.1, lw=0, transform=ax.get_xaxis_transform(),
+                        label="haptic mode:\nthe hand holds it")
     # Linear over the hover's errors, logarithmic beyond them (takeoff, touchdown, the
     # scripted press into the glass), so that none runs off the panel.
     span = max(np.nanpercentile(np.abs(error_mm), 99) if flying.any() else 0.0, 1e-3)
