@@ -33,7 +33,7 @@ from maglev_haptics.diagrams.scenario import Scenario
 from maglev_haptics.diagrams.scene import ModelScene
 from maglev_haptics.diagrams.scene_builder import AddScene, measure_step_cost_s
 from maglev_haptics.diagrams.scene_models import (
-    model_scene_warnings, tool_grip_inverse_mass_per_kg)
+    model_scene_warnings, step_cost_levers, tool_grip_inverse_mass_per_kg)
 from maglev_haptics.diagrams.station import (
     hand_start_pose, hand_start_transform, rest_transform)
 from maglev_haptics.hardware.limits import device_limits
@@ -224,7 +224,7 @@ def scene_warnings(scenario: Scenario, label: str) -> List[str]:
             f"warning: {label}: haptics.scene: a step of its plant costs {1e6 * cost_s:.0f} us "
             f"here, more than {STEP_COST_WARNING_FRACTION:.0%} of the {1e6 * period_s:.0f} us "
             "tick, before the tool touches anything: the run will fall behind real time; "
-            "simplify its collision geometry (fewer, coarser meshes; primitives)")
+            f"make its contact cheaper: {step_cost_levers(scene)}")
     return lines
 
 

@@ -22,6 +22,12 @@ hull, which fills a bowl's hollow: ``scene_warnings`` names it), everything
 else compliant, the tool's built-in shape included, so a compliant tool meets a
 rigid mesh; friction and dissipation wherever the model gives none. A half-space
 (SDFormat's ``<plane>``) gets a slab TABLE_SLAB_M deep.
+
+A collision mesh must bound a solid, or the tool passes through it: one whose own
+surface contact meets (a rigid OBJ) must have every edge shared by exactly two
+faces that run it opposite ways (``surface_problem``) and enclose a positive
+volume; one replaced by its convex hull (a compliant OBJ, a ``Convex``) a hull of
+positive volume. Else a ValueError names the field that brought it.
 """
 
 import dataclasses
@@ -34,8 +40,9 @@ import numpy as np
 from pydrake.common.yaml import yaml_dump_typed, yaml_load_typed
 from pydrake.geometry import (
     AddCompliantHydroelasticProperties, AddCompliantHydroelasticPropertiesForHalfSpace,
-    AddContactMaterial, AddRigidHydroelasticProperties, CalcVolume, Convex, HalfSpace, Mesh,
-    ProximityProperties, Role, RoleAssign, SceneGraph)
+    AddContactMaterial, AddRigidHydroelasticProperties, CalcVolume, Capsule, Convex, Cylinder,
+    Ellipsoid, HalfSpace, Mesh, ProximityProperties, ReadObjToTriangleSurfaceMesh, Role,
+    RoleAssign, SceneGraph, Sphere)
 from pydrake.multibody.parsing import (
     AddModel, ModelDirective, ModelDirectives, Parser, ProcessModelDirectives)
 from pydrake.multibody.plant import CoulombFriction, MultibodyPlant
@@ -185,11 +192,14 @@ def _frames_of_model(plant: MultibodyPlant, reason: str) -> str:
 
 
 class AddedModels(NamedTuple):
-    """What ``add_scene_models`` added: the tool's body, and the directives' models
-    [(index of the add_model that added it or None, model name, model instance)]."""
+    """What ``add_scene_models`` added: the tool's body, the directives' models
+    [(index of the add_model that added it or None, model name, model instance)], and
+    the ids of the collision geometries whose hydroelastic properties are the
+    scene's ``contact`` (the generated models', and those a model leaves undeclared)."""
 
     tool_body: object
     models: list
+    contact_geometries: list
 
 
 def add_scene_models(plant: MultibodyPlant, scene_graph: SceneGraph, scene: SceneConfig,
@@ -221,18 +231,31 @@ def add_scene_models(plant: MultibodyPlant, scene_graph: SceneGraph, scene: Scen
                        if d.add_model}
     added = [(add_model_index.get(info.model_name), info.model_name, info.model_instance)
              for info in infos]
+    # The field that brought each model instance, for errors about its geometry.
+    fields = {instance: f"{path}.directives" + ("" if i is None else f"[{i}]")
+              for i, _, instance in added}
+    fields[tool.model_instance()] = (f"{path}.tool" if models.tool_sdf is not None
+                                     else f"{path}.tool.file = {models.tool_url!r}")
     for i, name, instance in added:
-        if not any(plant.GetCollisionGeometriesForBody(plant.get_body(index))
-                   for index in plant.GetBodyIndices(instance)):
-            where = "" if i is None else f"[{i}]"
-            raise ValueError(f"{path}.directives{where}: model {name!r} has no collision "
+        if not _collision_geometries(plant, instance):
+            raise ValueError(f"{fields[instance]}: model {name!r} has no collision "
                              "geometry: the tool would pass through it (give its links "
                              "<collision> elements)")
     if not plant.GetCollisionGeometriesForBody(tool):
         raise ValueError(f"{path}.tool: body {tool.scoped_name()} has no collision geometry: "
                          "it would touch nothing")
-    _default_contact(plant, scene_graph, scene.contact, path)
-    return AddedModels(tool, added)
+    generated = [instance for _, name, instance in added if name in models.generated]
+    if models.tool_sdf is not None:
+        generated.append(tool.model_instance())
+    contact_geometries = _default_contact(plant, scene_graph, scene.contact, fields) + [
+        geometry for instance in generated
+        for geometry in _collision_geometries(plant, instance)]
+    return AddedModels(tool, added, contact_geometries)
+
+
+def _collision_geometries(plant: MultibodyPlant, instance) -> list:
+    return [geometry for index in plant.GetBodyIndices(instance)
+            for geometry in plant.GetCollisionGeometriesForBody(plant.get_body(index))]
 
 
 def _add_tool(plant: MultibodyPlant, parser: Parser, models: SceneModels, scene, path: str):
@@ -281,44 +304,121 @@ def _check_tool_body(plant: MultibodyPlant, body, tool: SceneTool, path: str) ->
 
 
 def _check_obj_model(parser: Parser, model: AddModel, path: str) -> None:
-    """An OBJ added as a model is one body whose inertia Drake computes from its
-    volume: a ValueError naming the model if its file is missing or encloses none."""
+    """An OBJ added as a model is one rigid body whose inertia Drake computes from its
+    volume: a ValueError naming the model if its file is missing or its surface
+    bounds no solid."""
     try:
-        volume = CalcVolume(Mesh(parser.package_map().ResolveUrl(model.file)))
-    except Exception as error:
+        filename = parser.package_map().ResolveUrl(model.file)
+    except Exception as error:  # a missing file, an unknown package
         raise ValueError(f"{path}: model {model.name!r}: {_drake_reason(error)}") from None
-    if not volume > SMALLEST_VOLUME_M3:
-        raise ValueError(f"{path}: model {model.name!r} ({model.file}): its mesh encloses "
-                         f"{volume:.3g} m^3 (an open or flat surface, or faces wound inwards); "
-                         "hydroelastic contact needs a closed mesh with outward normals")
+    problem = _mesh_problem(Mesh(filename), touched=True)
+    if problem:
+        raise ValueError(f"{path}: model {model.name!r} ({model.file}): {problem}")
+
+
+CLOSED_MESH_NEEDED = "hydroelastic contact needs a closed, manifold mesh with outward normals"
+
+
+def _mesh_problem(shape, touched: bool) -> str:
+    """Why hydroelastic contact cannot use a Mesh or Convex ``shape``, ending in what
+    it needs; "" if it can. ``touched``: contact meets the shape's own surface (a
+    rigid OBJ), which then must bound a solid; a compliant OBJ's and a Convex's is
+    their convex hull, closed whatever the file."""
+    try:
+        problem = obj_surface_problem(shape.source().path()) if touched else ""
+        volume = CalcVolume(shape)  # (m^3)
+    except Exception as error:  # Drake's reader: a missing or unreadable file
+        return _drake_reason(error)
+    if not problem and not volume > SMALLEST_VOLUME_M3:
+        problem = (f"it encloses {volume:.3g} m^3 ("
+                   + ("its faces are wound inwards" if volume < 0 else "a flat surface") + ")")
+    return f"{problem}; {CLOSED_MESH_NEEDED}" if problem else ""
+
+
+def obj_surface_problem(filename: str) -> str:
+    """surface_problem of the triangles Drake reads from the OBJ ``filename`` (its
+    polygons split as Drake splits them), in the file's coordinates."""
+    # Drake's reader rather than a mesh library's (trimesh): the check sees the very
+    # triangles contact uses, where another reader welds, drops or splits its own way.
+    mesh = ReadObjToTriangleSurfaceMesh(filename)
+    triangles = np.array([[t.vertex(0), t.vertex(1), t.vertex(2)] for t in mesh.triangles()],
+                         dtype=int).reshape(-1, 3)
+    return surface_problem(np.array(mesh.vertices()).reshape(-1, 3), triangles)
+
+
+def surface_problem(vertices: np.ndarray, triangles: np.ndarray) -> str:
+    """Why the triangles (m, 3) of indices into ``vertices`` (n, 3) bound no solid: an
+    edge of one face only (a hole), an edge of more than two faces (not a manifold),
+    or an edge both its faces traverse the same way (a face flipped); with how many
+    edges and one of them. "" if every edge is shared by exactly two faces that
+    traverse it in opposite directions."""
+    # Vertices at the same point are one: exporters repeat a vertex per face and
+    # Drake keeps the copies, which leave no gap between the faces.
+    points, merged = np.unique(vertices, axis=0, return_inverse=True)
+    faces = merged.reshape(-1)[triangles]
+    faces = faces[(faces != np.roll(faces, 1, axis=1)).all(axis=1)]  # none of zero area
+    directed = faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)  # each face's edges as it winds
+    edges, faces_per_edge = np.unique(np.sort(directed, axis=1), axis=0, return_counts=True)
+    runs, times_run = np.unique(directed, axis=0, return_counts=True)
+
+    def between(edge) -> str:
+        # + 0.0 turns -0.0 into 0.0, which reads as the file writes it.
+        a, b = ("(" + ", ".join(f"{x + 0.0:.6g}" for x in points[i]) + ")" for i in edge)
+        return f"between vertices {a} and {b}"
+
+    open_edges = edges[faces_per_edge == 1]
+    if len(open_edges):
+        verb = "belongs" if len(open_edges) == 1 else "belong"
+        return (f"its surface is open: {_count(len(open_edges), 'edge')} {verb} to one face "
+                f"only (a hole), e.g. {between(open_edges[0])}")
+    shared = np.flatnonzero(faces_per_edge > 2)
+    if len(shared):
+        return (f"its surface is not a manifold: {_count(len(shared), 'edge')} shared by more "
+                f"than two faces, e.g. {between(edges[shared[0]])}, shared by "
+                f"{faces_per_edge[shared[0]]} faces")
+    # Every edge has two faces now: outward normals need them to run it opposite ways.
+    same_way = runs[times_run > 1]
+    if len(same_way):
+        return (f"its faces are not consistently oriented: {_count(len(same_way), 'edge')} "
+                f"traversed the same way by both faces (a face flipped), e.g. "
+                f"{between(same_way[0])}")
+    return ""
+
+
+def _count(n: int, noun: str) -> str:
+    return f"{n} {noun}" if n == 1 else f"{n} {noun}s"
 
 
 def _is_obj(shape) -> bool:
     return isinstance(shape, (Mesh, Convex)) and shape.extension() == ".obj"
 
 
-def _default_contact(plant: MultibodyPlant, scene_graph: SceneGraph, contact, path: str) -> None:
+def _declared_compliant(properties) -> bool:
+    """Whether ``properties`` make a geometry compliant: those carry a modulus (the
+    compliance type's value is not bound in Python)."""
+    return properties.HasProperty("hydroelastic", "hydroelastic_modulus")
+
+
+# The shapes Drake meshes at their resolution hint, compliant or rigid; a box's mesh is
+# the same whatever the hint, a half-space has none, a mesh is its file's.
+HINTED_SHAPES = (Sphere, Cylinder, Capsule, Ellipsoid)
+
+
+def _default_contact(plant: MultibodyPlant, scene_graph: SceneGraph, contact,
+                     fields: Dict[object, str]) -> List[object]:
     """Hydroelastic properties from ``contact`` on every collision geometry of the
     plant that declares none (and friction, dissipation where missing); a
-    ValueError for a mesh that encloses no volume."""
+    ValueError, naming the field in ``fields`` of the geometry's model instance, for
+    a mesh hydroelastic contact cannot use. The ids of the geometries it gave
+    ``contact``'s hydroelastic properties."""
     inspector = scene_graph.model_inspector()
     source = plant.get_source_id()
+    defaulted = []
     for geometry in inspector.GetAllGeometryIds(Role.kProximity):
         shape = inspector.GetShape(geometry)
-        if isinstance(shape, (Mesh, Convex)):
-            try:
-                volume = CalcVolume(shape)
-            except Exception as error:
-                volume, reason = 0.0, _drake_reason(error)
-            else:
-                reason = f"it encloses {volume:.3g} m^3 (an open or flat surface)"
-            if not volume > SMALLEST_VOLUME_M3:
-                raise ValueError(
-                    f"{path}: model {_model_name(plant, inspector, geometry)!r}, geometry "
-                    f"{inspector.GetName(geometry)!r} ({shape.source().description()}): {reason}; "
-                    "hydroelastic contact needs a closed mesh")
         properties = ProximityProperties(inspector.GetProximityProperties(geometry))
         if not properties.HasProperty("hydroelastic", "compliance_type"):
+            defaulted.append(geometry)
             if _is_obj(shape):
                 AddRigidHydroelasticProperties(contact.resolution_hint_m, properties)
             elif isinstance(shape, HalfSpace):
@@ -327,6 +427,19 @@ def _default_contact(plant: MultibodyPlant, scene_graph: SceneGraph, contact, pa
             else:
                 AddCompliantHydroelasticProperties(
                     contact.resolution_hint_m, contact.hydroelastic_modulus_pa, properties)
+        if isinstance(shape, (Mesh, Convex)):
+            # Checked before Drake builds its contact mesh, which aborts the process
+            # on a flat convex hull.
+            rigid_obj = (isinstance(shape, Mesh) and shape.extension() == ".obj"
+                         and not _declared_compliant(properties))
+            problem = _mesh_problem(shape, touched=rigid_obj)
+            if problem:
+                body = plant.GetBodyFromFrameId(inspector.GetFrameId(geometry))
+                raise ValueError(
+                    f"{fields[body.model_instance()]}: model "
+                    f"{_model_name(plant, inspector, geometry)!r}, geometry "
+                    f"{inspector.GetName(geometry)!r} ({shape.source().description()}): "
+                    f"{problem}")
         if not properties.HasProperty("material", "hunt_crossley_dissipation"):
             AddContactMaterial(dissipation=contact.hunt_crossley_dissipation_s_per_m,
                                properties=properties)
@@ -334,6 +447,7 @@ def _default_contact(plant: MultibodyPlant, scene_graph: SceneGraph, contact, pa
             AddContactMaterial(friction=CoulombFriction(contact.friction, contact.friction),
                                properties=properties)
         scene_graph.AssignRole(source, geometry, properties, RoleAssign.kReplace)
+    return defaulted
 
 
 def _model_name(plant: MultibodyPlant, inspector, geometry) -> str:
@@ -350,9 +464,7 @@ def model_scene_warnings(scene: ModelScene) -> List[str]:
     for geometry in inspector.GetAllGeometryIds(Role.kProximity):
         shape = inspector.GetShape(geometry)
         properties = inspector.GetProximityProperties(geometry)
-        # Compliant ones carry a modulus (the compliance type's value is not bound in
-        # Python).
-        if _is_obj(shape) and properties.HasProperty("hydroelastic", "hydroelastic_modulus"):
+        if _is_obj(shape) and _declared_compliant(properties):
             lines.append(
                 f"model {_model_name(plant, inspector, geometry)!r}, geometry "
                 f"{inspector.GetName(geometry)!r}: an OBJ mesh declared compliant; Drake "
@@ -376,17 +488,56 @@ def check_model_scene(scene: ModelScene, path: str) -> None:
 
 
 def _scratch_plant(scene: ModelScene, path: str):
-    """(plant, scene graph, tool body) of ``scene``'s models, finalized, outside any
+    """(plant, scene graph, AddedModels) of ``scene``'s models, finalized, outside any
     diagram."""
     plant = MultibodyPlant(1e-3)
     scene_graph = SceneGraph()
     plant.RegisterAsSourceForSceneGraph(scene_graph)
-    tool_body = add_scene_models(plant, scene_graph, scene, path).tool_body
+    added = add_scene_models(plant, scene_graph, scene, path)
     try:
         plant.Finalize()
     except Exception as error:
         raise ValueError(f"{path}: {_drake_reason(error)}") from None
-    return plant, scene_graph, tool_body
+    return plant, scene_graph, added
+
+
+def step_cost_levers(scene: ModelScene) -> str:
+    """What would make a step of the scene's plant cheaper, as its collision geometry
+    allows: a coarser resolution hint for the shapes Drake meshes at one (the
+    scene's ``contact.resolution_hint_m`` or their model's own), fewer and coarser
+    meshes; fewer geometries if it has neither."""
+    plant, scene_graph, added = _scratch_plant(scene, "scene")
+    inspector = scene_graph.model_inspector()
+    from_contact, own_hint, meshes = [], [], []
+    for geometry in inspector.GetAllGeometryIds(Role.kProximity):
+        shape = inspector.GetShape(geometry)
+        name = repr(inspector.GetName(geometry))
+        if isinstance(shape, (Mesh, Convex)):
+            meshes.append(name)
+        elif isinstance(shape, HINTED_SHAPES) and geometry in added.contact_geometries:
+            from_contact.append(name)
+        elif isinstance(shape, HINTED_SHAPES):
+            hint_m = inspector.GetProximityProperties(geometry).GetProperty(
+                "hydroelastic", "resolution_hint")
+            own_hint.append(f"{name} at {hint_m:g} m")
+    levers = []
+    if from_contact:
+        levers.append(f"a coarser contact.resolution_hint_m (now "
+                      f"{scene.contact.resolution_hint_m:g} m; it sets how finely Drake "
+                      f"meshes {_some(from_contact)})")
+    if own_hint:
+        levers.append(f"a coarser <drake:mesh_resolution_hint> in the model files "
+                      f"({_some(own_hint)})")
+    if meshes:
+        levers.append(f"fewer, coarser collision meshes ({_some(meshes)})")
+    return " or ".join(levers) or ("fewer collision geometries (Drake meshes boxes "
+                                   "coarsely whatever the hint)")
+
+
+def _some(names: List[str], shown: int = 3) -> str:
+    """Up to ``shown`` of ``names``, and how many more."""
+    more = f" and {len(names) - shown} more" if len(names) > shown else ""
+    return ", ".join(names[:shown]) + more
 
 
 def grip_inverse_mass_per_kg(M_BBo) -> float:
@@ -402,5 +553,5 @@ def grip_inverse_mass_per_kg(M_BBo) -> float:
 
 def tool_grip_inverse_mass_per_kg(scene: ModelScene) -> float:
     """grip_inverse_mass_per_kg of the scene's tool, at its frame T (1/kg)."""
-    _, _, tool_body = _scratch_plant(scene, "scene")
-    return grip_inverse_mass_per_kg(tool_body.default_spatial_inertia())
+    _, _, added = _scratch_plant(scene, "scene")
+    return grip_inverse_mass_per_kg(added.tool_body.default_spatial_inertia())
