@@ -89,7 +89,7 @@ def run_scenario(scenario: Scenario, *, label: str, out_dir: Optional[Path] = No
                 stop=asked,
                 shares_cores=isinstance(scenario.station, LcmStation),
                 on_progress=log_writer.drain if log_writer is not None else None,
-                raise_priority=raise_priority)
+                raise_priority=raise_priority, progress_total_s=duration_s)
     except BaseException:
         if log_writer is not None:
             log_writer.abandon()

@@ -36,6 +36,7 @@ from maglev_haptics.hardware.realtime_priority import RT_SPIN_S, is_realtime, re
 from maglev_haptics.hardware.kernels import compile_kernels
 
 PROGRESS_CHUNK_S = 0.25  # simulated seconds between progress-bar updates
+BAR_FORMAT = "{l_bar}{bar}| {n:.2f}/{total:.2f} sim s [{elapsed}{postfix}]"
 # A paced loop calls ``on_progress`` (moving the log to disk) this often (simulated s),
 # and one so far behind that no gap fits it at least this often, so the logger never
 # grows without bound.
@@ -284,7 +285,7 @@ def advance_paced(simulator, duration_s: float, tick_s: float, ticks: PacedTicks
     last = [time.perf_counter(), start_s]  # wall (s), simulated (s) at the last report
 
     def report_progress():
-        bar.update(context.get_time() - bar.n)
+        advance_bar(bar, context.get_time())
         bar.set_postfix_str(f"missed {ticks.missed}/{ticks.done}", refresh=False)
         now, t_s = time.perf_counter(), context.get_time()
         if show_rate is not None and t_s > last[1]:
@@ -321,7 +322,7 @@ def advance_paced(simulator, duration_s: float, tick_s: float, ticks: PacedTicks
                 if ticks.done % ticks_per_update == 0 and stop is not None and stop(context):
                     break
     finally:
-        bar.update(context.get_time() - bar.n)
+        advance_bar(bar, context.get_time())
     # The last frame and the log's tail, off the clock (not after an error: what
     # raised it is what the caller must see).
     for job in between.jobs:
@@ -329,11 +330,32 @@ def advance_paced(simulator, duration_s: float, tick_s: float, ticks: PacedTicks
     return between
 
 
+def advance_bar(bar, t_s: float) -> None:
+    """Move the progress bar to simulated time ``t_s`` (s); a landing past the bar's
+    total stretches it (tqdm cannot draw a count past its total)."""
+    if t_s > bar.total:
+        bar.total = t_s
+    bar.update(t_s - bar.n)
+
+
+def finish_bar(bar, total_s: float) -> None:
+    """End the progress bar where the run ended: a run past its ``total_s`` (a landing
+    after the run's time) shows the extra time; one cut short keeps its fraction."""
+    if bar.n > total_s:
+        bar.total = bar.n
+        bar.set_postfix_str(f"{bar.postfix + ', ' if bar.postfix else ''}landing "
+                            f"+{bar.n - total_s:.2f} s", refresh=False)
+    bar.refresh()
+
+
 def simulate(built, duration_s: float, *, realtime_rate: float = 0.0,
              progress: bool = True, label: str = "", stop=None,
-             shares_cores: bool = False, on_progress=None, raise_priority: bool = True):
+             shares_cores: bool = False, on_progress=None, raise_priority: bool = True,
+             progress_total_s: Optional[float] = None):
     """Advance the diagram to ``duration_s``; returns (simulator, wall seconds,
-    TickTimes of the paced ticks or None when not paced).
+    TickTimes of the paced ticks or None when not paced). The progress bar counts to
+    ``progress_total_s`` (s; default ``duration_s``): a run's time, where ``duration_s``
+    leaves room for a landing after it.
     ``stop(context)``, asked every PROGRESS_CHUNK_S of simulated time, ends the run
     early when True (``StopOnSignal`` for Ctrl-C and SIGTERM). ``shares_cores``:
     another paced process runs on this machine, so the wait between ticks sleeps
@@ -357,8 +379,9 @@ def simulate(built, duration_s: float, *, realtime_rate: float = 0.0,
             n_ticks = int(round(duration_s / built.tick_s))
             paced = PacedTicks(n_ticks, built.tick_s / realtime_rate)
         start = time.perf_counter()
-        with tqdm(total=float(duration_s), unit="sim s", disable=not progress, desc=label,
-                  bar_format="{l_bar}{bar}| {n:.2f}/{total:.2f} sim s [{elapsed}{postfix}]"
+        total_s = float(duration_s if progress_total_s is None else progress_total_s)
+        with tqdm(total=total_s, unit="sim s", disable=not progress, desc=label,
+                  bar_format=BAR_FORMAT
                   ) as bar:
             if paced is not None:
                 advance_paced(simulator, duration_s, built.tick_s, paced, bar, stop,
@@ -371,11 +394,12 @@ def simulate(built, duration_s: float, *, realtime_rate: float = 0.0,
                                    duration_s)
                 for t in chunks:
                     simulator.AdvanceTo(float(t))
-                    bar.update(float(t) - bar.n)
+                    advance_bar(bar, float(t))
                     if on_progress is not None:
                         on_progress(simulator.get_context())
                     if stop is not None and stop(simulator.get_context()):
                         break
+            finish_bar(bar, total_s)
     finally:
         gc.enable()
     wall_s = time.perf_counter() - start

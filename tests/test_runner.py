@@ -329,3 +329,21 @@ def test_a_run_lands_the_instrument_from_its_land_from_time_before_it_stops():
     assert touchdown["speed_m_s"] < 0.05 and touchdown["tilt_deg"] < 1.0
     assert stop.landing_end_s is not None and end_s < horizon_s - 0.1
     assert np.all(np.abs(log["coil_currents"][-10:]) < 1e-9)
+
+
+@pytest.mark.parametrize("ran_s, shown", [(8.95, "8.95/8.95 sim s [00:00, landing +3.95 s]"),
+                                          (4.0, "4.00/5.00 sim s [00:00]")])
+def test_the_progress_bar_ends_where_the_run_ended(ran_s, shown):
+    """A run over LCM of 5 s whose landing took it to 8.95 s ends its bar at 100% with
+    the landing's extra time, not at 81% of a horizon it never meant to reach; one cut
+    short keeps its true fraction."""
+    import io
+
+    from tqdm import tqdm
+    from maglev_haptics.diagrams.runner import BAR_FORMAT, advance_bar, finish_bar
+    text = io.StringIO()
+    with tqdm(total=5.0, file=text, bar_format=BAR_FORMAT) as bar:
+        for t_s in np.arange(0.25, ran_s, 0.25).tolist() + [ran_s]:
+            advance_bar(bar, t_s)
+        finish_bar(bar, 5.0)
+    assert shown in text.getvalue().rstrip().split("\r")[-1]
