@@ -158,7 +158,7 @@ def _cmd_run(args) -> int:
     from maglev_haptics.analysis.loop_studies import stability_warnings
     from maglev_haptics.analysis.run_outcome import (
         EXIT_DEVICE_IN_USE, EXIT_INSTRUMENT_LOST, injected_faults_outcome, instrument_outcome)
-    from maglev_haptics.hardware.lease import DeviceInUseError
+    from maglev_haptics.hardware.link.lease import DeviceInUseError
 
     scenario, label = _load(args)
     duration = args.duration
@@ -317,7 +317,7 @@ def _cmd_driver(args) -> int:
     config = lcm_config(scenario)
     device = scenario.device
     if args.kind == "head-tracker":
-        from maglev_haptics.hardware.ndi_head_tracker import NdiHeadTracker
+        from maglev_haptics.hardware.link.ndi_head_tracker import NdiHeadTracker
 
         if not args.romfile:
             raise ValueError("--romfile: the glasses' NDI tool definition (.rom) is required")
@@ -338,7 +338,7 @@ def _cmd_driver(args) -> int:
         print(json.dumps({"driver": args.kind, "scenario": label, "glasses_messages": sent,
                           "unreadable_frames": tracker.refused}))
         return 0
-    from maglev_haptics.hardware.daq_coil_output import CoilOutputContract, DaqCoilOutput
+    from maglev_haptics.hardware.link.daq_coil_output import CoilOutputContract, DaqCoilOutput
 
     if not args.channels or args.amps_per_volt is None:
         raise ValueError("--channels and --amps-per-volt: both are required for coil-daq")
@@ -832,7 +832,7 @@ def main(argv=None) -> int:
     streams = sys.stdout, sys.stderr
     sys.stdout, sys.stderr = (_ClosedPipeTolerant(stream) for stream in streams)
     try:
-        from maglev_haptics.hardware.extras import MissingExtraError
+        from maglev_haptics.hardware.link.extras import MissingExtraError
 
         return args.func(args)
     except (ScenarioError, ValueError, OSError, MissingExtraError) as error:

@@ -50,7 +50,7 @@ from maglev_haptics.diagrams.runner import SHARED_SPIN_S, wait_until
 from maglev_haptics.diagrams.scenario import Scenario, load_scenario
 from maglev_haptics.hardware.config_checks import nonnegative, positive
 from maglev_haptics.hardware.kernels import compile_kernels
-from maglev_haptics.hardware.lease import (  # noqa: F401 (connect raises them)
+from maglev_haptics.hardware.link.lease import (  # noqa: F401 (connect raises them)
     DeviceInUseError, InstrumentMismatchError)
 from maglev_haptics.systems.blends import minimum_jerk_plan
 from maglev_haptics.systems.device_supervisor import (  # noqa: F401 (the API's fault bits)
@@ -112,7 +112,7 @@ class MaglevDevice:
 
     def connect(self) -> None:
         """Build the diagram and start the device: resting on the glass, coils off.
-        With a station on LCM, first take the device's lease (``hardware/lease.py``):
+        With a station on LCM, first take the device's lease (``hardware/link/lease.py``):
         if another application holds it, raises DeviceInUseError, and if the device
         carries another instrument than the scenario's, InstrumentMismatchError, having
         commanded no coil."""

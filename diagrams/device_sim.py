@@ -7,10 +7,10 @@ currents from the application's commands. The hand's script waits for the
 application's first command and then runs on the application's clock. Run paced
 to the wall clock, as the real device is.
 
-Every command is checked before it reaches the coils (``hardware/link_checks.py``):
+Every command is checked before it reaches the coils (``hardware/link/link_checks.py``):
 one that does not decode, commands another coil count, holds a non-finite current
 or one past the amplifiers' limit, comes from a session that does not hold the
-lease (``hardware/lease.py``) or repeats an old sequence is refused, counted and
+lease (``hardware/link/lease.py``) or repeats an old sequence is refused, counted and
 never used; like a lost command, the last good one holds until
 ``command_timeout_s`` turns the coils off.
 """
@@ -30,10 +30,10 @@ from maglev_haptics.diagrams.lcm_station import (
     COIL_CURRENTS, COIL_CURRENTS_COMMANDED, DEVICE_STATUS, GLASSES, LEASE, LEASE_REQUEST,
     MARKERS, SimStation, channel, lcm_config, open_lcm)
 from maglev_haptics.diagrams.station import MakeStation
-from maglev_haptics.hardware.lcm_link import publish
-from maglev_haptics.hardware.lcm_messages import coil_currents_t, device_status_t, lease_t
-from maglev_haptics.hardware.lease import LeaseServer
-from maglev_haptics.hardware.link_checks import LinkLimits, check_command, check_lease_request
+from maglev_haptics.hardware.link.lcm_link import publish
+from maglev_haptics.hardware.link.lcm_messages import coil_currents_t, device_status_t, lease_t
+from maglev_haptics.hardware.link.lease import LeaseServer
+from maglev_haptics.hardware.link.link_checks import LinkLimits, check_command, check_lease_request
 from maglev_haptics.hardware.magnetics import load_magnetics
 from maglev_haptics.hardware.thermal import coil_thermal
 from maglev_haptics.systems.coil_thermal import CoilTemperatures

@@ -3,7 +3,7 @@
 ``MakeLcmStation`` is the station a real device plugs into: a Diagram named
 ``station`` with the simulated station's port names and units
 (``diagrams/station.py``), whose values come from LCM messages and go out as
-LCM messages (``hardware/lcm_messages``). ``diagrams/device_sim.py`` is the
+LCM messages (``hardware/link/lcm_messages``). ``diagrams/device_sim.py`` is the
 other end: the simulated station alone, speaking the same messages. Channels
 (``channel_prefix`` + name):
 
@@ -17,10 +17,10 @@ other end: the simulated station alone, speaking the same messages. Channels
   head tracker's samples);
 - ``LEASE_REQUEST`` (lease_t, application -> device: asks for the one-controller
   lease, and lets it go) and ``LEASE`` (lease_t, device -> application: who holds
-  it; ``hardware/lease.py``).
+  it; ``hardware/link/lease.py``).
 
 Every inbound message is checked before it is used, at both ends
-(``hardware/link_checks.py``): one that does not decode, has the wrong sizes, a
+(``hardware/link/link_checks.py``): one that does not decode, has the wrong sizes, a
 non-finite or out-of-range number, another session's command or an old sequence
 is refused, counted per channel and reason, and never used.
 
@@ -54,10 +54,10 @@ from pydrake.systems.primitives import Multiplexer
 
 from maglev_haptics.hardware.config_checks import positive, require
 from maglev_haptics.hardware.constants import SAME_INSTANT_S
-from maglev_haptics.hardware.lcm_messages import (
+from maglev_haptics.hardware.link.lcm_messages import (
     coil_currents_t, device_status_t, glasses_t, lease_t, markers_t)
-from maglev_haptics.hardware.lease import REPLY_PERIOD_S, LeaseClient
-from maglev_haptics.hardware.link_checks import (
+from maglev_haptics.hardware.link.lease import REPLY_PERIOD_S, LeaseClient
+from maglev_haptics.hardware.link.link_checks import (
     REASONS, LinkLimits, check_glasses, check_lease_reply, check_markers,
     check_measured_currents, check_status)
 from maglev_haptics.systems.station_messages import (
@@ -165,7 +165,7 @@ def measured_currents_lag_ticks(scenario, station: LcmStation) -> int:
 
 def station_channels(scenario, lease: LeaseClient) -> list:
     """The application's inbound channels for ``scenario`` (its LcmStation's names),
-    each with the link's checks (``hardware/link_checks.py``), the lease's answers
+    each with the link's checks (``hardware/link/link_checks.py``), the lease's answers
     going to ``lease``."""
     station = scenario.station
     device = scenario.device

@@ -1,4 +1,7 @@
-"""Device description, electromagnetic and thermal models, device limits (drivers later)."""
+"""The device and its physics: its description (coil array, instruments, amplifiers,
+display, trackers), the electromagnetic model and its tables and kernels, the coils'
+thermal model and the device's limits. ``link/``: what connects the application to a
+device (the LCM messages and their checks, the lease, the drivers)."""
 
 from maglev_haptics.hardware.device import (  # noqa: F401
     AmplifierSpec, CoilArraySpec, CoilSpec, DeviceConfig, DisplaySpec, GlassesSpec, HeadTrackerSpec,

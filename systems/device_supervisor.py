@@ -35,7 +35,7 @@ from maglev_haptics.hardware.config_checks import positive, require, vector
 from maglev_haptics.hardware.kernels import (
     FLAG, INDEX, INDEX_VECTOR, MATRIX, SCALAR, VECTOR, kernel)
 from maglev_haptics.hardware.exact_arithmetic import euclidean_norm, hypot, largest
-from maglev_haptics.hardware.lcm_messages import device_status_t
+from maglev_haptics.hardware.link.lcm_messages import device_status_t
 from maglev_haptics.systems.stacked_ports import BuildStacked, stacked_size, stacked_slices
 
 FAULT_SENSOR_OUT_OF_RANGE = device_status_t.FAULT_SENSOR_OUT_OF_RANGE

@@ -1,4 +1,4 @@
-"""The station's ports as LCM messages (``hardware/lcm_messages``), both ways.
+"""The station's ports as LCM messages (``hardware/link/lcm_messages``), both ways.
 
 The device side (``maglev device-sim`` or a lab's drivers) turns its port values
 into messages; the application side turns messages back into the same port
@@ -6,7 +6,7 @@ values, so the application cannot tell a simulated station from a real one.
 Times on the wire are integer microseconds on the sender's clock.
 
 Each receiver takes every message through its channel's ``InboundGate``
-(``hardware/link_checks.py``: it decodes, its sizes match the scenario, its numbers
+(``hardware/link/link_checks.py``: it decodes, its sizes match the scenario, its numbers
 are finite and in range, its session holds the lease, its sequence is newer than
 the last accepted) and never uses one it refuses; it counts them by reason. Of
 what it accepted it counts ``received``, ``lost`` the
@@ -36,9 +36,9 @@ from typing import Callable, Optional, Sequence
 import numpy as np
 from pydrake.systems.framework import LeafSystem
 
-from maglev_haptics.hardware.lcm_link import publish
-from maglev_haptics.hardware.link_checks import InboundGate, log_to_stderr
-from maglev_haptics.hardware.lcm_messages import (
+from maglev_haptics.hardware.link.lcm_link import publish
+from maglev_haptics.hardware.link.link_checks import InboundGate, log_to_stderr
+from maglev_haptics.hardware.link.lcm_messages import (
     coil_currents_t, device_status_t, glasses_t, markers_t)
 
 US_PER_S = 1_000_000
@@ -270,7 +270,7 @@ class ReceivedChannel:
     that name (1) gives the newest accepted message's sequence number (0 before the
     first): a tracker's frame number, whose gaps are frames missed.
 
-    The gate (``hardware/link_checks.py``): ``check(message)`` raises Refused for a
+    The gate (``hardware/link/link_checks.py``): ``check(message)`` raises Refused for a
     message outside what the scenario allows; ``session_of(message)`` keys the
     sequence gate by session (default: one sender); ``admit(message, t_s)`` raises
     Refused("other_session") for a message the lease does not admit;

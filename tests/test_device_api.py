@@ -18,9 +18,9 @@ from maglev_haptics.diagrams.device_api import (
     FAULT_SENSOR_OUT_OF_RANGE, DeviceFaultError, DeviceInUseError, DeviceStateError,
     DeviceTimeoutError, MaglevDevice)
 from maglev_haptics.diagrams.scenario import load_scenario
-from maglev_haptics.hardware.lcm_link import publish
-from maglev_haptics.hardware.lcm_messages import lease_t
-from maglev_haptics.hardware.lease import LeaseClient
+from maglev_haptics.hardware.link.lcm_link import publish
+from maglev_haptics.hardware.link.lcm_messages import lease_t
+from maglev_haptics.hardware.link.lease import LeaseClient
 from maglev_haptics.systems.station_messages import currents_message
 
 REST_Z_M = 0.0067  # the two-magnet instrument's origin resting on the glass (about, m)

@@ -23,9 +23,9 @@ from maglev_haptics.diagrams.lcm_station import (
     LcmStation, MakeLcmStation, StopWhenDeviceSilent, device_silence, newest_arrivals,
     silent_channels, station_counts, station_receiver)
 from maglev_haptics.diagrams.scenario import load_scenario
-from maglev_haptics.hardware.lcm_link import publish
-from maglev_haptics.hardware.lcm_messages import lease_t
-from maglev_haptics.hardware.lease import REPLY_PERIOD_S
+from maglev_haptics.hardware.link.lcm_link import publish
+from maglev_haptics.hardware.link.lcm_messages import lease_t
+from maglev_haptics.hardware.link.lease import REPLY_PERIOD_S
 from maglev_haptics.systems.station_messages import (
     LATENCY_BINS, currents_message, markers_message, receiver_counts, receiver_step,
     trailing_silence)

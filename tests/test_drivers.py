@@ -13,12 +13,12 @@ import pytest
 from pydrake.math import RigidTransform, RollPitchYaw
 
 from maglev_haptics.diagrams.cli import _daq_channels, main
-from maglev_haptics.hardware.daq_coil_output import (
+from maglev_haptics.hardware.link.daq_coil_output import (
     CoilOutputContract, CommandLink, coil_voltages)
-from maglev_haptics.hardware.extras import MissingExtraError, require_extra
-from maglev_haptics.hardware.lcm_messages import coil_currents_t, glasses_t, lease_t
-from maglev_haptics.hardware.link_checks import Refused
-from maglev_haptics.hardware.ndi_head_tracker import (
+from maglev_haptics.hardware.link.extras import MissingExtraError, require_extra
+from maglev_haptics.hardware.link.lcm_messages import coil_currents_t, glasses_t, lease_t
+from maglev_haptics.hardware.link.link_checks import Refused
+from maglev_haptics.hardware.link.ndi_head_tracker import (
     NdiHeadTracker, glasses_message, parse_tool_pose)
 
 

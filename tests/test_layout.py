@@ -33,7 +33,7 @@ def project_imports(path: Path):
 @pytest.mark.parametrize("folder", sorted(ALLOWED))
 def test_imports_flow_one_way(folder):
     wrong = [f"{path.relative_to(REPO)}:{line} imports {target}"
-             for path in sorted((REPO / folder).glob("*.py")) if path != CLI
+             for path in sorted((REPO / folder).rglob("*.py")) if path != CLI
              for line, target in project_imports(path)
              if target != folder and target not in ALLOWED[folder]]
     assert not wrong, "\n".join(wrong)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from pydrake.systems.analysis import Simulator
 
-from maglev_haptics.hardware.lcm_messages import markers_t
+from maglev_haptics.hardware.link.lcm_messages import markers_t
 from maglev_haptics.systems.station_messages import (
     LATENCY_BINS, LATENCY_BINS_PER_DECADE, LATENCY_LOW_S, US_PER_S, MessageReceiver,
     ReceivedChannel, latency_bin, latency_percentile_s, markers_from_message, markers_message,

@@ -21,12 +21,12 @@ from maglev_haptics.diagrams.device_sim import COMMANDS_PORT, BuildDeviceSim, Ma
 from maglev_haptics.diagrams.lcm_station import (
     LcmStation, marker_stale_after_s, station_channels, station_counts)
 from maglev_haptics.diagrams.scenario import ScenarioError, load_scenario
-from maglev_haptics.hardware.lcm_link import publish
-from maglev_haptics.hardware.lcm_messages import (
+from maglev_haptics.hardware.link.lcm_link import publish
+from maglev_haptics.hardware.link.lcm_messages import (
     coil_currents_t, glasses_t, lease_t, markers_t)
-from maglev_haptics.hardware.lease import (
+from maglev_haptics.hardware.link.lease import (
     DeviceInUseError, InstrumentMismatchError, LeaseClient, LeaseServer)
-from maglev_haptics.hardware.link_checks import REASONS, LinkLimits
+from maglev_haptics.hardware.link.link_checks import REASONS, LinkLimits
 from maglev_haptics.systems.station_messages import (
     LATENCY_BINS, MessageReceiver, ReceivedChannel, currents_and_power_from_message,
     currents_message, glasses_measurement_from_message, glasses_measurement_message,

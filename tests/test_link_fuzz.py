@@ -18,14 +18,14 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from maglev_haptics.hardware.lcm_messages import (
+from maglev_haptics.hardware.link.lcm_messages import (
     coil_currents_t, device_status_t, glasses_t, lease_t, markers_t)
-from maglev_haptics.hardware.lease import LeaseClient
-from maglev_haptics.hardware.link_checks import (
+from maglev_haptics.hardware.link.lease import LeaseClient
+from maglev_haptics.hardware.link.link_checks import (
     HEAD_RANGE_M, MARKER_RANGE_M, REASONS, InboundGate, LinkLimits, Refused, check_command,
     check_glasses, check_lease_reply, check_lease_request, check_markers,
     check_measured_currents, check_status)
-from maglev_haptics.hardware.ndi_head_tracker import glasses_message, parse_tool_pose
+from maglev_haptics.hardware.link.ndi_head_tracker import glasses_message, parse_tool_pose
 from maglev_haptics.systems.station_messages import currents_message, markers_message
 
 pytestmark = pytest.mark.slow

@@ -17,7 +17,7 @@ never used when it:
   younger than zero, temperatures outside ``TEMPERATURE_RANGE_C``, unknown fault
   bits or lease actions;
 - ``other_session``: a command (or lease request) of a session that does not
-  hold the device's lease (``hardware/lease.py``);
+  hold the device's lease (``hardware/link/lease.py``);
 - ``replayed``: a sequence number not newer than the last one accepted from the
   same sender and session (a replay, a duplicate or an out-of-order message);
 - ``wrong_instrument``: a lease request for another instrument than the device's.
@@ -39,7 +39,7 @@ from typing import Callable, Dict, Optional
 
 from tqdm import tqdm
 
-from maglev_haptics.hardware.lcm_messages import device_status_t, lease_t
+from maglev_haptics.hardware.link.lcm_messages import device_status_t, lease_t
 
 REASONS = ("malformed", "wrong_size", "not_finite", "out_of_range", "other_session", "replayed",
            "wrong_instrument")

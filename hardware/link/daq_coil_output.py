@@ -5,8 +5,8 @@ through ``nidaqmx``: each ``coil_currents_t`` command on the application's
 channel becomes one voltage per coil, ``current / amps_per_volt``, written to
 the card's channels in coil order.
 
-The same policy as ``maglev device-sim`` (``hardware/link_checks.py``,
-``hardware/lease.py``): a command is written only if it decodes, commands the
+The same policy as ``maglev device-sim`` (``hardware/link/link_checks.py``,
+``hardware/link/lease.py``): a command is written only if it decodes, commands the
 card's coil count, holds finite currents within the limit, comes from the session
 that holds the device's lease and is newer than the last one accepted. A refused
 command is a lost command: it is counted and never reaches the coils, and the last
@@ -25,11 +25,11 @@ from typing import Callable, List
 
 import numpy as np
 
-from maglev_haptics.hardware.extras import MissingDriverError, require_extra
-from maglev_haptics.hardware.lcm_link import publish
-from maglev_haptics.hardware.lcm_messages import coil_currents_t, lease_t
-from maglev_haptics.hardware.lease import LeaseServer
-from maglev_haptics.hardware.link_checks import (
+from maglev_haptics.hardware.link.extras import MissingDriverError, require_extra
+from maglev_haptics.hardware.link.lcm_link import publish
+from maglev_haptics.hardware.link.lcm_messages import coil_currents_t, lease_t
+from maglev_haptics.hardware.link.lease import LeaseServer
+from maglev_haptics.hardware.link.link_checks import (
     InboundGate, LinkLimits, check_command, check_lease_request, log_to_stderr)
 
 
@@ -56,7 +56,7 @@ class CoilOutputContract:
 
 def coil_voltages(message: coil_currents_t, contract: CoilOutputContract) -> np.ndarray:
     """Volts (n_coils,) for a command within the contract (zeros with the power cut);
-    raises Refused (``hardware/link_checks.py``) for one outside it."""
+    raises Refused (``hardware/link/link_checks.py``) for one outside it."""
     check_command(message, contract.limits())
     if not message.power_enabled:
         return np.zeros(contract.n_coils)

@@ -31,9 +31,9 @@ import socket
 import weakref
 from typing import Callable, Optional
 
-from maglev_haptics.hardware.lcm_link import publish
-from maglev_haptics.hardware.lcm_messages import lease_t
-from maglev_haptics.hardware.link_checks import Refused
+from maglev_haptics.hardware.link.lcm_link import publish
+from maglev_haptics.hardware.link.lcm_messages import lease_t
+from maglev_haptics.hardware.link.link_checks import Refused
 
 REPLY_PERIOD_S = 0.1  # the device says who holds the lease this often (s)
 REQUEST_PERIOD_S = 0.05  # an application not yet granted asks again this often (s)

@@ -21,10 +21,10 @@ import numpy as np
 from pydrake.common.eigen_geometry import Quaternion
 from pydrake.math import RigidTransform
 
-from maglev_haptics.hardware.extras import require_extra
-from maglev_haptics.hardware.lcm_link import publish
-from maglev_haptics.hardware.lcm_messages import glasses_t
-from maglev_haptics.hardware.link_checks import (
+from maglev_haptics.hardware.link.extras import require_extra
+from maglev_haptics.hardware.link.lcm_link import publish
+from maglev_haptics.hardware.link.lcm_messages import glasses_t
+from maglev_haptics.hardware.link.link_checks import (
     REASONS, UNIT_QUATERNION_TOLERANCE, Refused, check_glasses, log_to_stderr)
 
 MM_PER_M = 1000.0
