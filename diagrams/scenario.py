@@ -1,30 +1,29 @@
-"""Scenario schema and loading.
+"""The scenario's schema, its range checks, and loading a named scenario.
 
 A scenario file holds several named scenarios (plus an optional ``Defaults``
 entry that is ignored); each is a :class:`Scenario` in YAML, loaded with
 ``pydrake.common.yaml.yaml_load_typed`` over the defaults, so every field can
-be left out; Drake's loader refuses unknown keys, wrong types and unknown
-tags, and its error is reported with the field's full path. After loading, the
-values are range-checked, each error naming the field, its value and what is
-allowed.
+be left out. What Drake's loader refuses (unknown keys, wrong types, unknown
+tags) is explained field by field in ``diagrams/scenario_diagnosis.py``. After
+loading, the values are range-checked, each error naming the field, its value
+and what is allowed.
 """
 
 import dataclasses
-import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import List, Optional, Union
 
-import yaml
-from pydrake.common.yaml import yaml_dump, yaml_dump_typed, yaml_load_data, yaml_load_typed
+from pydrake.common.yaml import yaml_dump, yaml_dump_typed, yaml_load_typed
 from pydrake.multibody.plant import MultibodyPlantConfig
 
 from maglev_haptics.diagrams.deformable_scene import DeformableSurface
 from maglev_haptics.diagrams.hand_script import MeshcatHand, ScriptedHand
 from maglev_haptics.diagrams.lcm_station import LcmStation, SimStation
+from maglev_haptics.diagrams.scenario_diagnosis import load_typed, parse_mapping
 from maglev_haptics.diagrams.scenario_files import (  # noqa: F401  (the light half, re-exported)
-    LONGEST_S, SCENARIO_DIR, ScenarioError, check_unique_keys, read_text_file,
-    resolve_scenario_file, scenario_names, shipped_scenario_files, yaml_error)
+    LONGEST_S, SCENARIO_DIR, ScenarioError, read_text_file, resolve_scenario_file,
+    scenario_names, shipped_scenario_files)
 from maglev_haptics.diagrams.scene import HERE, HangingBall, ModelScene, PaddleBall, PegInHole
 from maglev_haptics.diagrams.scene_models import check_model_scene, resolve_here
 from maglev_haptics.diagrams.stereo_display import StereoConfig
@@ -249,229 +248,12 @@ class Scenario:
 OVERLAY = "--scenario-text"  # what an error in a layer over the file's scenario names
 
 
-def _parse_mapping(text: str, source: str) -> dict:
-    """The YAML mapping in ``text``, as Drake's loader reads it; a ScenarioError
-    naming ``source`` if it is not one."""
-    check_unique_keys(text, source)
-    try:
-        raw = yaml_load_data(text)
-    except yaml.YAMLError as error:
-        raise yaml_error(source, error) from None
-    if raw is None:
-        return {}
-    if not isinstance(raw, dict):
-        raise ScenarioError(f"{source}: must be a YAML mapping, not {type(raw).__name__}")
-    return raw
-
-
 def _check_scripted_hand(hand: "ScriptedHand", path: str) -> None:
     check_script_length([(f"{path}.start_s", hand.start_s)] + [
         (f"{path}.waypoints[{i}].{name}", getattr(w, name))
         for i, w in enumerate(hand.waypoints) for name in ("move_s", "hold_s")])
     for i, event in enumerate(hand.events):
         check_script_length([(f"{path}.events[{i}].at_s", event.at_s)])
-
-
-def _field_path(keys) -> str:
-    return "".join(f"[{key}]" if isinstance(key, int) else f".{key}" for key in keys).lstrip(".")
-
-
-def _options(hint) -> list:
-    """A Union's members, None left out; [hint] for anything else."""
-    if typing.get_origin(hint) is Union:
-        return [a for a in typing.get_args(hint) if a is not type(None)]
-    return [hint]
-
-
-def _fields(schema):
-    """{field name: type} of a config class (a dataclass, or a Drake config type with
-    ``__fields__``), in their order; None for anything else."""
-    if dataclasses.is_dataclass(schema):
-        return typing.get_type_hints(schema)
-    if isinstance(schema, type) and hasattr(schema, "__fields__"):
-        return {f.name: f.type for f in schema.__fields__}
-    return None
-
-
-def _hint_at(raw, keys):
-    """The schema's type hint of the field at ``keys`` (a Union as written), None where
-    the path leaves the dataclasses (an unknown field, or inside a Drake config)."""
-    hint, node = Scenario, raw
-    for key in keys:
-        options = _options(hint)
-        tag = node.get("_tag", "").lstrip("!") if isinstance(node, dict) else ""
-        schema = {option.__name__: option for option in options}.get(tag, options[0])
-        if isinstance(key, int):
-            if typing.get_origin(schema) is not list:
-                return None
-            hint = typing.get_args(schema)[0]
-        elif _fields(schema) is not None:
-            hint = _fields(schema).get(key)
-            if hint is None:
-                return None
-        else:
-            return None
-        node = node[key]
-    return hint
-
-
-def _check_structure(raw, hint, keys=()) -> None:
-    """What Drake's loader would refuse or misread, found from the schema itself: an
-    unknown field; a tag that is not one of the field's kinds; an untagged mapping
-    where a field holds one of several kinds (Drake would read a hanging ball's
-    ``scene: {contact: ...}`` as a fresh PegInHole); a scalar there (Drake would keep
-    it as the field's value)."""
-    options = _options(hint)
-    kinds = [option for option in options if dataclasses.is_dataclass(option)]
-    if len(options) > 1:
-        nullable = type(None) in typing.get_args(hint)
-        if len(kinds) > 1 and raw is not None and not isinstance(raw, dict):
-            raise ScenarioError(f"{_field_path(keys)} = {_flow_yaml(raw)}: must be "
-                                + _phrase(hint))
-        if isinstance(raw, dict):
-            named = {option.__name__: option for option in options}
-            tag = raw.get("_tag", "").lstrip("!")
-            if not tag:
-                raise ScenarioError(f"{_field_path(keys)}: needs a tag to choose its kind, one "
-                                    f"of {_tags(options)}")
-            if tag not in named:
-                raise ScenarioError(f"{_field_path(keys)}: !{tag} is not one of "
-                                    f"{_tags(options)}" + (", or null" if nullable else ""))
-            _check_structure(raw, named[tag], keys)
-        return
-    schema = options[0]
-    if typing.get_origin(schema) is list and isinstance(raw, list):
-        for i, item in enumerate(raw):
-            _check_structure(item, typing.get_args(schema)[0], keys + (i,))
-    elif _fields(schema) is not None and isinstance(raw, dict):
-        hints = _fields(schema)
-        for key, value in raw.items():
-            if key == "_tag":
-                continue
-            if key not in hints:
-                raise ScenarioError(f"{_field_path(keys + (key,))}: unknown field; "
-                                    f"{schema.__name__} has " + ", ".join(hints))
-            _check_structure(value, hints[key], keys + (key,))
-
-
-# What Drake's YAML loader raises on data that does not fit the schema (its Python
-# half asserts, converts with float(), iterates, and reads a dict field's items).
-LOAD_ERRORS = (RuntimeError, ValueError, TypeError, AssertionError, AttributeError)
-
-
-def _with_only(node, keys):
-    """``node`` cut down to the field at ``keys`` (its whole value), the tags of the
-    mappings on the way, and a list's one item on the way."""
-    if not keys:
-        return node
-    inner = _with_only(node[keys[0]], keys[1:])
-    if isinstance(node, list):
-        return [inner]
-    cut = {"_tag": node["_tag"]} if "_tag" in node else {}
-    cut[keys[0]] = inner
-    return cut
-
-
-def _failing_field(raw: dict, load_raw) -> tuple:
-    """The deepest key path in ``raw`` whose field alone ``load_raw`` still refuses
-    (down through the schema's mappings and lists); () if none does alone."""
-    keys, node = (), raw
-    while True:
-        schema = _options(_hint_at(raw, keys))[0] if keys else Scenario
-        if isinstance(node, dict) and _fields(schema) is not None or (
-                isinstance(node, dict) and len(_options(_hint_at(raw, keys))) > 1):
-            items = [(key, value) for key, value in node.items() if key != "_tag"]
-        elif isinstance(node, list) and typing.get_origin(schema) is list:
-            items = list(enumerate(node))
-        else:
-            return keys
-        for key, value in items:
-            try:
-                load_raw(_with_only(raw, keys + (key,)))
-            except LOAD_ERRORS:
-                keys, node = keys + (key,), value
-                break
-        else:
-            return keys
-
-
-def _load_typed(source: str, raw: dict, load, load_raw):
-    """``load()`` (Drake's yaml_load_typed, which checks keys, types and tags), with
-    any refusal as a ScenarioError of one line naming the field, its value and what it
-    must be: unknown fields and tags are found from the schema before loading; a value
-    Drake cannot convert, by loading ``raw``'s fields alone (``load_raw(cut)``).
-    Drake's own message is shown only where no single field is to blame."""
-    try:
-        _check_structure(raw, Scenario)
-        return load()
-    except ScenarioError as error:
-        raise ScenarioError(f"{source}: {error}") from None
-    except LOAD_ERRORS as error:
-        keys = _failing_field(raw, load_raw)
-        if not keys:
-            message = (str(error).splitlines() or [type(error).__name__])[0]
-            raise ScenarioError(f"{source}: {message}") from None
-        value = raw
-        for key in keys:
-            value = value[key]
-        hint = _hint_at(raw, keys)
-        named = [key for key in keys if isinstance(key, str)][-1]
-        what = _phrase(hint, named) if hint is not None else (
-            f"what {named} takes ({(str(error).splitlines() or [''])[0]})")
-        raise ScenarioError(f"{source}: {_field_path(keys)} = {_flow_yaml(value)}: must be "
-                            f"{what}") from None
-
-
-def _flow_yaml(value) -> str:
-    return yaml.safe_dump(value, default_flow_style=True, width=1000).strip().removesuffix(
-        "...").strip()
-
-
-# A field's unit, from its name's suffix (the schema's convention).
-UNITS = (("_m_s", "m/s"), ("_rad_s", "rad/s"), ("_n_m", "N*m"), ("_mm", "mm"), ("_hz", "Hz"),
-         ("_s", "s"), ("_m", "m"), ("_a", "A"), ("_n", "N"), ("_c", "C"), ("_kg", "kg"),
-         ("_rad", "rad"), ("_deg", "deg"), ("_ohm", "ohm"), ("_w", "W"), ("_j", "J"),
-         ("_v", "V"), ("_h", "H"))
-
-
-def _unit(name: str) -> str:
-    return next((f" ({unit})" for suffix, unit in UNITS if name.endswith(suffix)), "")
-
-
-def _tags(options) -> str:
-    return ", ".join(f"!{option.__name__} {{...}}" for option in options)
-
-
-def _phrase(hint, name: str = "") -> str:
-    """What a value of the schema type ``hint`` must be, as a user reads it: ``a number
-    (s)``, ``a whole number``, ``a list of numbers (m)``, ``one of !A {...}, !B {...}``."""
-    options = _options(hint)
-    null = ", or null" if type(None) in typing.get_args(hint) else ""
-    if len(options) > 1:
-        return "one of " + _tags(options) + null
-    schema = options[0]
-    if schema is float:
-        return "a number" + _unit(name) + null
-    if schema is int:
-        return "a whole number" + null
-    if schema is bool:
-        return "true or false" + null
-    if schema is str:
-        return "a string" + null
-    if typing.get_origin(schema) is list:
-        item = typing.get_args(schema)[0]
-        items = {float: "numbers" + _unit(name), int: "whole numbers", str: "strings",
-                 bool: "true or false"}.get(item)
-        if items is None:
-            items = (f"{item.__name__} mappings" if dataclasses.is_dataclass(item)
-                     else "mappings, each " + _phrase(item))
-        return f"a list of {items}" + null
-    if typing.get_origin(schema) is dict:
-        return "a mapping" + null
-    if _fields(schema) is not None:
-        return (f"a mapping of {schema.__name__}'s fields (" + ", ".join(_fields(schema))
-                + ")" + null)
-    return f"a {getattr(schema, '__name__', str(schema))}" + null
 
 
 def load_scenario(name_or_path: str, name: Optional[str] = None,
@@ -481,7 +263,7 @@ def load_scenario(name_or_path: str, name: Optional[str] = None,
     path = resolve_scenario_file(name_or_path)
     source = str(name_or_path)  # as the user named it: a shipped file by its name
     text = read_text_file(path, source)
-    raw = _parse_mapping(text, source)
+    raw = parse_mapping(text, source)
     names = [key for key in raw if key != "Defaults"]
     if not names:
         raise ScenarioError(f"{source}: holds no named scenario")
@@ -492,13 +274,13 @@ def load_scenario(name_or_path: str, name: Optional[str] = None,
     if not isinstance(raw[name], (dict, type(None))):
         raise ScenarioError(f"{label}: must be a YAML mapping of the scenario's fields, not "
                             f"{type(raw[name]).__name__} ({raw[name]!r})")
-    scenario = _load_typed(label, raw[name] or {}, lambda: yaml_load_typed(
+    scenario = load_typed(Scenario, label, raw[name] or {}, lambda: yaml_load_typed(
         schema=Scenario, data=text, child_name=name, defaults=Scenario()),
         lambda cut: yaml_load_typed(schema=Scenario, data=yaml_dump(cut), defaults=Scenario()))
     _resolve_relative_files(scenario, path.absolute().parent, path.parent)
     # (text, its mapping) of each layer that sets something.
     layers = [(text, layered) for text in (scenario_text, *more_text)
-              if (layered := _parse_mapping(text, OVERLAY))]
+              if (layered := parse_mapping(text, OVERLAY))]
     if layers:  # the file's own first: an error after the layers is then theirs
         validate_scenario(_models_resolved(scenario, path.parent), label)
     for text, layered in layers:
@@ -531,7 +313,7 @@ def _resolve_relative_files(scenario: Scenario, folder: Path, here: Path) -> Non
 
 def _layer(scenario: Scenario, text: str, layered: dict, label: str) -> Scenario:
     """``scenario`` with the YAML mapping ``text`` (parsed: ``layered``) layered on it."""
-    return _load_typed(f"{label} ({OVERLAY})", layered, lambda: yaml_load_typed(
+    return load_typed(Scenario, f"{label} ({OVERLAY})", layered, lambda: yaml_load_typed(
         schema=Scenario, data=text, defaults=scenario),
         lambda cut: yaml_load_typed(schema=Scenario, data=yaml_dump(cut), defaults=scenario))
 
