@@ -1,5 +1,6 @@
 """The ``maglev`` command line: run, device-sim, driver, diagram, bench, faults, sweep,
-analyze (docs/architecture.md).
+analyze (docs/architecture.md). It stands at the package's root, above every folder,
+since it dispatches to all of them (analysis included); no folder imports it.
 
 Only the standard library and the light scenario-file helpers are imported here: every
 ``--help`` answers at once, and pydrake, numba and Dask are imported when a command

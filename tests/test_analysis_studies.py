@@ -8,7 +8,7 @@ import pytest
 
 from maglev_haptics.analysis.loop_studies import ZWidthSettings, loop_parameters, zwidth_study
 from maglev_haptics.analysis.studies import study_names
-from maglev_haptics.diagrams.cli import main
+from maglev_haptics.cli import main
 from maglev_haptics.diagrams.scenario import load_scenario, scenario_names, shipped_scenario_files
 
 SCENARIOS = [(path.stem, name) for path in shipped_scenario_files()

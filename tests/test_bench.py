@@ -45,7 +45,7 @@ def test_bench_quick_runs_a_second_a_scenario_no_analysis_and_two_lattice_sizes(
     import json
 
     from maglev_haptics.analysis.bench import QUICK_DURATION_S, QUICK_LATTICE_SIZES
-    from maglev_haptics.diagrams.cli import main
+    from maglev_haptics.cli import main
     assert main(["bench", "--quick", "--json", "--out", str(tmp_path)]) == 0
     results = json.loads((tmp_path / "bench.json").read_text())
     assert {name: row["simulated_s"] for name, row in results["scenarios"].items()} == {

@@ -67,7 +67,7 @@ class RunOutput:
 def test_meshcat_hand_grips_and_lifts_the_instrument(tmp_path):
     out = tmp_path / "run"
     process = subprocess.Popen(
-        [sys.executable, "-m", "maglev_haptics.diagrams.cli", "run", "hanging_ball",
+        [sys.executable, "-m", "maglev_haptics.cli", "run", "hanging_ball",
          "--interactive", "--duration", str(RUN_S), "--out", str(out)],
         stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
         env={**os.environ, "MPLBACKEND": "Agg"})

@@ -8,7 +8,7 @@ from importlib.metadata import version
 
 import pytest
 
-from maglev_haptics.diagrams.cli import DIAGRAM_FORMATS, main
+from maglev_haptics.cli import DIAGRAM_FORMATS, main
 from maglev_haptics.diagrams.scenario import SCENARIO_DIR, scenario_names, shipped_scenario_files
 
 COMMANDS = ("run", "device-sim", "driver", "diagram", "bench", "analyze")
@@ -195,7 +195,7 @@ def test_a_bad_flag_is_one_line_not_the_usage_block(argv, message, capsys):
 def test_help_imports_neither_drake_nor_numba_nor_dask():
     """Every --help answers at once: the heavy packages load when a command runs."""
     code = ("import sys, contextlib, io\n"
-            "from maglev_haptics.diagrams.cli import main\n"
+            "from maglev_haptics.cli import main\n"
             "for argv in ([], ['run'], ['device-sim'], ['driver'], ['diagram'], ['bench'],\n"
             "             ['faults'], ['sweep'], ['analyze']):\n"
             "    with contextlib.redirect_stdout(io.StringIO()):\n"
@@ -212,11 +212,11 @@ def test_help_imports_neither_drake_nor_numba_nor_dask():
 
 def test_the_analyze_studies_named_in_the_cli_are_the_studies():
     from maglev_haptics.analysis.studies import study_names
-    from maglev_haptics.diagrams.cli import STUDIES
+    from maglev_haptics.cli import STUDIES
     assert sorted(STUDIES) == sorted(study_names())
 
 
 def test_the_default_workers_are_this_machines_cores():
     from maglev_haptics.analysis.parallel import default_workers
-    from maglev_haptics.diagrams.cli import build_parser
+    from maglev_haptics.cli import build_parser
     assert build_parser().parse_args(["faults"]).workers == default_workers()

@@ -217,7 +217,7 @@ def test_connect_is_refused_while_another_application_holds_the_device():
                         f"udpm://239.255.76.67:{port + 1}?ttl=0")
     station = f"{{station: !LcmStation {{url: '{url}', command_url: '{command_url}'}}}}"
     device = subprocess.Popen(
-        [sys.executable, "-m", "maglev_haptics.diagrams.cli", "device-sim", "levitate",
+        [sys.executable, "-m", "maglev_haptics.cli", "device-sim", "levitate",
          "--scenario-text", station, "--duration", "120"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     listener, commands = lcm.LCM(url), lcm.LCM(command_url)

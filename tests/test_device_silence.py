@@ -184,7 +184,7 @@ def test_device_sim_stopped_by_a_signal_says_so_and_exits_128_plus_n(monkeypatch
     """SIGTERM while device-sim runs: its report (rounded: 394.75 s, not
     394.75000016864215), then one line, exit 143."""
     from maglev_haptics.diagrams import device_sim, runner
-    from maglev_haptics.diagrams.cli import main
+    from maglev_haptics.cli import main
 
     class FakeDeviceSim:
         stop_after_silence_s = 1.0
@@ -243,7 +243,7 @@ def test_an_application_whose_device_dies_stops_within_the_lease_timeout(tmp_pat
     port = 8500 + 2 * (os.getpid() % 50)
     station = (f"{{station: !LcmStation {{url: 'udpm://239.255.76.67:{port}?ttl=0', "
                f"command_url: 'udpm://239.255.76.67:{port + 1}?ttl=0'}}}}")
-    maglev = [sys.executable, "-m", "maglev_haptics.diagrams.cli"]
+    maglev = [sys.executable, "-m", "maglev_haptics.cli"]
     paced = ["--scenario-text", station, "--realtime", "1"]
     listener = lcm.LCM(f"udpm://239.255.76.67:{port}?ttl=0")
     holders = []

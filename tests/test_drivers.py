@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from pydrake.math import RigidTransform, RollPitchYaw
 
-from maglev_haptics.diagrams.cli import _daq_channels, main
+from maglev_haptics.cli import _daq_channels, main
 from maglev_haptics.hardware.link.daq_coil_output import (
     CoilOutputContract, CommandLink, coil_voltages)
 from maglev_haptics.hardware.link.extras import MissingExtraError, require_extra

@@ -8,7 +8,7 @@ import pytest
 
 from maglev_haptics.analysis.fault_campaign import (
     FAULT_KINDS, FaultRun, outcome_row, plan_campaign)
-from maglev_haptics.diagrams.cli import main
+from maglev_haptics.cli import main
 from maglev_haptics.diagrams.scenario import load_scenario
 from maglev_haptics.systems.device_supervisor import FAULT_SENSOR_OUT_OF_RANGE
 

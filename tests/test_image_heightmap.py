@@ -11,7 +11,7 @@ from pydrake.systems.analysis import Simulator
 
 from maglev_haptics.analysis.run_results import run_scenario
 from maglev_haptics.diagrams.application import BuildDiagram
-from maglev_haptics.diagrams.cli import main
+from maglev_haptics.cli import main
 from maglev_haptics.diagrams.deformable_scene import build_scene_lattice
 from maglev_haptics.diagrams.scenario import load_scenario
 from maglev_haptics.scenarios.make_terrain_png import TERRAIN_PNG, write_terrain_png

@@ -204,7 +204,7 @@ def test_device_sim_and_application_in_two_processes(tmp_path, name):
     port = 7900 + 2 * (os.getpid() % 50)
     station = (f"{{station: !LcmStation {{url: 'udpm://239.255.76.67:{port}?ttl=0', "
                f"command_url: 'udpm://239.255.76.67:{port + 1}?ttl=0'}}}}")
-    maglev = [sys.executable, "-m", "maglev_haptics.diagrams.cli"]
+    maglev = [sys.executable, "-m", "maglev_haptics.cli"]
     paced = ["--scenario-text", station, "--realtime", str(TWO_PROCESS_RATE)]
     duration_s = 10.0
     device = subprocess.Popen(maglev + ["device-sim", name, *paced, "--duration", "120"],
@@ -552,7 +552,7 @@ def test_a_second_application_is_refused_and_a_lost_instrument_is_said(tmp_path)
     port = 8300 + 2 * (os.getpid() % 50)
     station = (f"{{station: !LcmStation {{url: 'udpm://239.255.76.67:{port}?ttl=0', "
                f"command_url: 'udpm://239.255.76.67:{port + 1}?ttl=0'}}}}")
-    maglev = [sys.executable, "-m", "maglev_haptics.diagrams.cli"]
+    maglev = [sys.executable, "-m", "maglev_haptics.cli"]
     paced = ["--scenario-text", station, "--realtime", str(TWO_PROCESS_RATE)]
     listener = lcm.LCM(f"udpm://239.255.76.67:{port}?ttl=0")
     holders = []
@@ -615,7 +615,7 @@ def test_maglev_run_exit_codes_say_what_happened(monkeypatch, tmp_path, capsys, 
     """`maglev run`'s ends: another application holds the device (4, one line), a fault
     latched in a run that injected none (5, the outcome last), a clean flight (0)."""
     from maglev_haptics.analysis import run_results
-    from maglev_haptics.diagrams.cli import main
+    from maglev_haptics.cli import main
 
     def run_scenario(scenario, **_):
         if outcome == "in use":

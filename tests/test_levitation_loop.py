@@ -7,7 +7,7 @@ import pytest
 
 from maglev_haptics.analysis.run_results import run_scenario
 from maglev_haptics.diagrams.application import WATCHDOG_PERIOD_S
-from maglev_haptics.diagrams.cli import main
+from maglev_haptics.cli import main
 from maglev_haptics.diagrams.scenario import load_scenario, scenario_names, shipped_scenario_files
 from maglev_haptics.systems.device_supervisor import FAULT_SENSOR_OUT_OF_RANGE
 

@@ -34,7 +34,7 @@ LIMITS = LinkLimits(n_coils=27, n_markers=3, current_limit_a=4.0)
 CHECKS = {coil_currents_t: [check_command, check_measured_currents],
           markers_t: [check_markers], device_status_t: [check_status], glasses_t: [check_glasses],
           lease_t: [check_lease_request, check_lease_reply]}
-MAGLEV = [sys.executable, "-m", "maglev_haptics.diagrams.cli"]
+MAGLEV = [sys.executable, "-m", "maglev_haptics.cli"]
 # Bad messages a process fuzz sends, at up to 10 kHz (10 s at most: a loaded host's
 # test process keeps 4-10 kHz beside its own checks).
 FUZZ_MESSAGES = 30_000

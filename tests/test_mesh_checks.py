@@ -10,7 +10,7 @@ import textwrap
 import numpy as np
 import pytest
 
-from maglev_haptics.diagrams.cli import main
+from maglev_haptics.cli import main
 from maglev_haptics.diagrams.haptics import scene_warnings
 from maglev_haptics.diagrams.scenario import ScenarioError, load_scenario
 from maglev_haptics.diagrams.scenario_files import SCENARIO_DIR

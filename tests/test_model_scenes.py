@@ -16,7 +16,7 @@ from pydrake.systems.framework import DiagramBuilder, LeafSystem
 from pydrake.trajectories import PiecewisePolynomial
 
 from maglev_haptics.analysis.run_results import run_scenario
-from maglev_haptics.diagrams.cli import main
+from maglev_haptics.cli import main
 from maglev_haptics.diagrams.haptics import scene_warnings
 from maglev_haptics.diagrams.scenario import (
     ScenarioError, load_scenario, scenario_from_yaml, scenario_yaml)

@@ -17,7 +17,7 @@ from distributed import Client, LocalCluster
 from maglev_haptics.analysis.fault_campaign import plan_campaign, run_fault
 from maglev_haptics.analysis.onset import bisect_onset, bracket_onset, onset_study
 from maglev_haptics.analysis.parallel import map_jobs, run_searches
-from maglev_haptics.diagrams.cli import main
+from maglev_haptics.cli import main
 from maglev_haptics.diagrams.scenario import load_scenario, scenario_from_yaml, scenario_yaml
 
 RUNS = 4  # the levitation kinds: a few seconds each

@@ -7,7 +7,7 @@ import dataclasses
 
 from maglev_haptics.analysis.loop_studies import stability_warnings
 from maglev_haptics.analysis.onset import OnsetPoint, grows, held_still
-from maglev_haptics.diagrams.cli import main
+from maglev_haptics.cli import main
 from maglev_haptics.diagrams.scenario import load_scenario, scenario_names, shipped_scenario_files
 
 # The peg scene's onset, the hand holding still, is ~4,500 N/m (docs/analysis.md).

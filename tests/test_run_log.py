@@ -61,7 +61,7 @@ def test_a_killed_run_leaves_its_log_to_within_a_second(tmp_path):
     """A paced run killed with SIGKILL mid-flight: no log.npz, but the chunks hold the
     flight up to less than a second before the kill."""
     process = subprocess.Popen(
-        [sys.executable, "-m", "maglev_haptics.diagrams.cli", "run", "levitate", "--no-meshcat",
+        [sys.executable, "-m", "maglev_haptics.cli", "run", "levitate", "--no-meshcat",
          "--realtime", "1.0", "--duration", "60", "--out", str(tmp_path)],
         stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     shown = []  # the simulated times its progress bar shows (s)
@@ -103,7 +103,7 @@ def test_a_stopped_run_writes_its_results_and_says_so_in_one_line(tmp_path, stop
     so in one line (no traceback). The hover is held 40 s, so the signal finds the
     instrument flying however late a loaded host lets this test send it."""
     process = subprocess.Popen(
-        [sys.executable, "-m", "maglev_haptics.diagrams.cli", "run", "levitate", "--no-meshcat",
+        [sys.executable, "-m", "maglev_haptics.cli", "run", "levitate", "--no-meshcat",
          "--realtime", "1.0", "--duration", "60", "--out", str(tmp_path), "--scenario-text",
          "{motion: {waypoints: [{pose: [0, 0, 0.018, 0, 0, 0], hold_s: 40}]}}"],
         stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
@@ -178,7 +178,7 @@ def test_ctrl_c_twice_says_the_instrument_was_left_flying(tmp_path):
     """Ctrl-C twice 0.3 s apart on a haptic run: the second ends the landing the first
     began, and the last line says where the instrument was left, as the log shows."""
     process = subprocess.Popen(
-        [sys.executable, "-m", "maglev_haptics.diagrams.cli", "run", "peg_in_hole",
+        [sys.executable, "-m", "maglev_haptics.cli", "run", "peg_in_hole",
          "--no-meshcat", "--realtime", "1.0", "--out", str(tmp_path)],
         stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 240.0

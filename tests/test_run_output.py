@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from maglev_haptics.analysis.run_metrics import for_people
-from maglev_haptics.diagrams.cli import _meshcat_last_line, main
+from maglev_haptics.cli import _meshcat_last_line, main
 
 
 def test_for_people_rounds_floats_to_six_significant_digits():

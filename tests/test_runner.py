@@ -11,7 +11,7 @@ import pytest
 from maglev_haptics.analysis.run_metrics import first_touchdown, log_arrays
 from maglev_haptics.diagrams import runner
 from maglev_haptics.diagrams.application import BuildDiagram
-from maglev_haptics.diagrams.cli import main
+from maglev_haptics.cli import main
 from maglev_haptics.diagrams.motion import longest_landing_s
 from maglev_haptics.diagrams.runner import (
     BETWEEN_TICKS_MARGIN_S, MEASURED_RUNS, PROGRESS_CHUNK_S, RETRY_AFTER_SKIPS, BetweenTicks,

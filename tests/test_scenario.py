@@ -2,7 +2,7 @@
 
 import pytest
 
-from maglev_haptics.diagrams.cli import main
+from maglev_haptics.cli import main
 from maglev_haptics.diagrams.scenario import (
     Scenario, ScenarioError, load_scenario, scenario_names, shipped_scenario_files)
 

@@ -11,7 +11,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from pydrake.common.yaml import yaml_load_data
 
-from maglev_haptics.diagrams.cli import main
+from maglev_haptics.cli import main
 from maglev_haptics.diagrams.scenario import (
     ScenarioError, load_scenario, scenario_names, shipped_scenario_files)
 

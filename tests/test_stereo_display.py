@@ -10,7 +10,7 @@ from pydrake.systems.primitives import ConstantVectorSource, VectorLogSink
 
 from maglev_haptics.analysis.run_results import run_scenario
 from maglev_haptics.analysis.stereo_metrics import closest_point_of_rays, colocation_errors
-from maglev_haptics.diagrams.cli import main
+from maglev_haptics.cli import main
 from maglev_haptics.diagrams.scenario import ScenarioError, load_scenario
 from maglev_haptics.hardware.device import DisplaySpec, GlassesSpec, HeadTrackerSpec
 from maglev_haptics.systems.head_predictor import HeadPosePredictor, HeadPredictorConfig

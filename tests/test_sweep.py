@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from maglev_haptics.analysis.sweep import parse_spec, point_text
-from maglev_haptics.diagrams.cli import main
+from maglev_haptics.cli import main
 from maglev_haptics.diagrams.scenario import ScenarioError, load_scenario
 
 SPEC = """

@@ -7,7 +7,7 @@ import pytest
 from pydrake.math import RollPitchYaw
 
 from maglev_haptics.analysis.run_results import run_scenario
-from maglev_haptics.diagrams.cli import main
+from maglev_haptics.cli import main
 from maglev_haptics.diagrams.motion import flight_plan
 from maglev_haptics.diagrams.scenario import ScenarioError, load_scenario
 from maglev_haptics.diagrams.thermal_forecast import forecast_holds, thermal_outlook
