@@ -152,7 +152,7 @@ def _cmd_run(args) -> int:
     from maglev_haptics.analysis.run_metrics import for_people
     from maglev_haptics.analysis.run_results import run_scenario
     from maglev_haptics.diagrams.meshcat_lifetime import close_meshcat
-    from maglev_haptics.diagrams.lcm_station import LcmStation, SimStation
+    from maglev_haptics.diagrams.lcm_station import chosen_station
     from maglev_haptics.diagrams.runner import MISS_WARNING_FRACTION
     from maglev_haptics.diagrams.scenario import validate_scenario, with_stereo
     from maglev_haptics.diagrams.thermal_forecast import thermal_outlook
@@ -164,9 +164,7 @@ def _cmd_run(args) -> int:
     scenario, label = _load(args)
     duration = args.duration
     if args.station is not None:
-        station = SimStation() if args.station == "sim" else (
-            scenario.station if isinstance(scenario.station, LcmStation) else LcmStation())
-        scenario = dataclasses.replace(scenario, station=station)
+        scenario = dataclasses.replace(scenario, station=chosen_station(args.station, scenario))
     if args.stereo and scenario.stereo is None:
         scenario = with_stereo(scenario, label)
     if args.interactive:

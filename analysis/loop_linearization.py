@@ -39,7 +39,7 @@ from maglev_haptics.analysis.linearization import (  # noqa: E402
     MAX_DENOMINATOR, difference_step, hyperperiod_s, leaf_systems, modes, monodromy_central,
     nudged, state_after, state_names, state_vector)
 from maglev_haptics.analysis.loop_studies import StudyNotApplicable  # noqa: E402
-from maglev_haptics.diagrams.application import BuildDiagram  # noqa: E402
+from maglev_haptics.diagrams.application import BuildDiagram, RunMode  # noqa: E402
 from maglev_haptics.diagrams.hand_script import ScriptedHand, hand_plan  # noqa: E402
 from maglev_haptics.diagrams.haptics import stepped_in_place  # noqa: E402
 from maglev_haptics.diagrams.station import hand_start_pose  # noqa: E402
@@ -208,21 +208,20 @@ def loop_map(scenario, *, progress: Optional[Callable[[int, int], None]] = None,
     check_applies(scenario)
     t0 = operating_point_s(scenario)
     with_hand = isinstance(scenario.hand, ScriptedHand)
-    built = BuildDiagram(stepped_in_place(scenario), hand_target_offset_input=with_hand)
+    built = BuildDiagram(stepped_in_place(scenario), mode=RunMode.LINEARIZE)
     names = state_names(built.diagram)
     held = MODE_COORDINATES + sample_clocks(built.diagram)
     kept = [i for i, name in enumerate(names)
             if not name.startswith(RECORDING_ONLY + HELD_STATES) and name not in held]
     kept_names = [names[i] for i in kept]
     timings = _update_timings(built.diagram)
-    sensor = built.diagram.GetSubsystemByName("station").GetSubsystemByName("marker_sensor")
+    sensor = built.station.system.GetSubsystemByName("marker_sensor")
     period = hyperperiod_s(_periods(timings, kept_names) + [sensor.sample_period_s])
     t0 = map_start_s(timings, t0, period)
     if operating_point_from is None:
         context = _operating_context(built.diagram, t0)
     else:
-        reference = BuildDiagram(stepped_in_place(operating_point_from),
-                                 hand_target_offset_input=with_hand)
+        reference = BuildDiagram(stepped_in_place(operating_point_from), mode=RunMode.LINEARIZE)
         context = built.diagram.CreateDefaultContext()
         _fix_inputs(built.diagram, context)
         context.SetTimeStateAndParametersFrom(_operating_context(reference.diagram, t0))

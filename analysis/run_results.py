@@ -15,14 +15,13 @@ from maglev_haptics.analysis.run_outcome import latched_faults
 from maglev_haptics.analysis.run_plots import plot_haptics, plot_run, plot_tick_times
 from maglev_haptics.analysis.stereo_metrics import plot_colocation, stereo_summary
 from maglev_haptics.analysis.stereo_video import StereoVideoWriter
-from maglev_haptics.diagrams.application import BuildDiagram
-from maglev_haptics.diagrams.lcm_station import (
-    LcmStation, StopWhenDeviceSilent, station_counts)
+from maglev_haptics.diagrams.application import BuildDiagram, RunMode
 from maglev_haptics.diagrams.meshcat_lifetime import start_meshcat
 from maglev_haptics.diagrams.motion import longest_landing_s
 from maglev_haptics.diagrams.runner import (
     PROGRESS_CHUNK_S, LandBeforeStopping, StopOnSignal, realtime_report, simulate)
 from maglev_haptics.diagrams.scenario import Scenario
+from maglev_haptics.diagrams.station import station_kind
 from maglev_haptics.hardware.thermal import coil_thermal
 from maglev_haptics.systems.device_visualizer import aim_camera_at_device
 from maglev_haptics.systems.meshcat_hand import wait_for_browser
@@ -44,7 +43,7 @@ def run_scenario(scenario: Scenario, *, label: str, out_dir: Optional[Path] = No
     With a station on LCM the run is paced (at 1.0 unless told): the device keeps
     the wall clock's time, so the application must too. ``raise_priority``: a paced
     loop runs at real-time priority where the OS grants it."""
-    if isinstance(scenario.station, LcmStation) and realtime_rate <= 0:
+    if station_kind(scenario).keeps_wall_clock and realtime_rate <= 0:
         realtime_rate = 1.0
     viewer = start_meshcat() if meshcat else None
     video = None
@@ -53,12 +52,12 @@ def run_scenario(scenario: Scenario, *, label: str, out_dir: Optional[Path] = No
                                   encoder=scenario.stereo.images.encoder)
     built = BuildDiagram(scenario, meshcat=viewer, label=label,
                          frame_sink=video.add if video is not None else None,
-                         realtime=realtime_rate > 0)
+                         mode=RunMode.PACED if realtime_rate > 0 else RunMode.SIMULATE)
     if duration_s is None:
         duration_s = scenario.duration_s if scenario.duration_s is not None else built.plan.end_s
     # A real instrument is not let fall where the run's time ends: it lands first (the
     # simulated one's run may end anywhere). The stop is asked every PROGRESS_CHUNK_S.
-    lands_at_end = isinstance(scenario.station, LcmStation)
+    lands_at_end = built.station.lands_before_run_end
     horizon_s = duration_s + (longest_landing_s(scenario.motion) + PROGRESS_CHUNK_S
                               if lands_at_end else 0.0)
     # An interactive run is watched live; a recording would only grow.
@@ -77,17 +76,14 @@ def run_scenario(scenario: Scenario, *, label: str, out_dir: Optional[Path] = No
         # Ctrl-C or SIGTERM lands a flying instrument, ends the run between ticks,
         # and what it ran is written (a second one ends it at once).
         with StopOnSignal() as stop_signal:
-            stop = LandBeforeStopping(built.diagram.GetSubsystemByName("device_supervisor"),
-                                      stop_signal,
+            stop = LandBeforeStopping(built.app.supervisor, stop_signal,
                                       land_from_s=duration_s if lands_at_end else None,
                                       haptics=built.haptics)
-            # A device gone silent stops the run at once: no landing without one.
-            asked = (StopWhenDeviceSilent(built.diagram, stop, scenario.station.lease_timeout_s)
-                     if lands_at_end else stop)
+            # What the station stops a run for (a device gone silent) stops it at once:
+            # no landing without one.
             simulator, wall_s, tick_times = simulate(
                 built, horizon_s, realtime_rate=realtime_rate, progress=progress, label=label,
-                stop=asked,
-                shares_cores=isinstance(scenario.station, LcmStation),
+                stop=built.station.watch(stop), shares_cores=built.station.shares_cores,
                 on_progress=log_writer.drain if log_writer is not None else None,
                 raise_priority=raise_priority, progress_total_s=duration_s)
     except BaseException:
@@ -129,10 +125,9 @@ def run_scenario(scenario: Scenario, *, label: str, out_dir: Optional[Path] = No
                                              and summary["final_state"]["rests"])
     if tick_times is not None:
         summary["realtime"] = {"rate": realtime_rate, **realtime_report(tick_times)}
-    if isinstance(scenario.station, LcmStation):
-        summary["station"] = {"kind": "lcm", "url": scenario.station.url,
-                              **station_counts(built.diagram, simulator.get_context(),
-                                               scenario.station.lease_timeout_s)}
+    station_summary = built.station.summary(simulator.get_context())
+    if station_summary is not None:
+        summary["station"] = station_summary
     if scenario.stereo is not None:
         summary["stereo"] = stereo_summary(log, scenario, built.stereo, video_summary)
     if built.haptics is not None:

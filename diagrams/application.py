@@ -1,43 +1,45 @@
 """The application half (docs/architecture.md) wired to a station: the whole diagram.
 
-``BuildDiagram(scenario)`` is a recipe: ``MakeStation``; ``AddApplication`` (the pose
-estimator, the coils' thermal model, the device supervisor, which flies the motion
-script and lands on a fault, and the levitation controller, which allocates the
-currents); ``AddLevitationCommands`` or, with haptics, ``AddHaptics`` (the scene,
-coupling and supervisor, ``diagrams/haptics.py``); with a hand ``AddHandCommands``;
-with the stereo display ``AddStereo`` (``diagrams/stereo_display.py``);
-``AddLogging`` (a logger at ``log_rate_hz``); and, given a Meshcat,
-``AddVisualization``.
+``BuildDiagram(scenario, mode=...)`` is a recipe, read top to bottom: ``AddStation``;
+``AddApplication`` (the pose estimator, the coils' thermal model, the device
+supervisor, which flies the motion script and lands on a fault, and the levitation
+controller, which allocates the currents and commands the station); the commands
+the controller tracks, ``AddLevitationCommands`` or, with haptics, ``AddHaptics`` (the
+scene, coupling and supervisor, ``diagrams/haptics.py``); with a simulated hand
+``AddHandCommands``; with the stereo display ``AddStereo``; ``AddLogging``; and,
+given a Meshcat, ``AddVisualization``. Every choice comes from the scenario, the
+station (what it is: ``diagrams/station_interface.py``) and one ``RunMode``.
 """
 
 from __future__ import annotations
 
+import enum
 from dataclasses import dataclass, field
 from typing import Dict, List, Optional
 
 import numpy as np
 from pydrake.geometry import Meshcat, MeshcatVisualizer, MeshcatVisualizerParams, Role
 from pydrake.multibody.meshcat import ContactVisualizer, ContactVisualizerParams
-from pydrake.systems.framework import Diagram, DiagramBuilder
+from pydrake.systems.framework import Diagram, DiagramBuilder, LeafSystem, OutputPort
 from pydrake.systems.primitives import (
-    ConstantVectorSource, LogVectorOutput, Multiplexer)
+    ConstantVectorSource, LogVectorOutput, Multiplexer, VectorLogSink)
 
-from maglev_haptics.diagrams.haptics import AddHandCommands, AddHaptics
-from maglev_haptics.diagrams.lcm_station import (
-    LcmStation, measured_currents_lag_ticks, measured_currents_max_age_s)
+from maglev_haptics.diagrams.haptics import AddHandCommands, AddHaptics, HapticParts
 from maglev_haptics.diagrams.motion import (
     FlightPlan, check_waypoints_reachable, flight_plan, landing_planner)
 from maglev_haptics.diagrams.scenario import Scenario
-from maglev_haptics.diagrams.station import MakeStation
-from maglev_haptics.diagrams.stereo_display import AddStereoDisplay
+from maglev_haptics.diagrams.station import AddStation
+from maglev_haptics.diagrams.station_interface import Station
+from maglev_haptics.diagrams.stereo_display import AddStereoDisplay, StereoParts
 from maglev_haptics.hardware.constants import GRAVITY_M_S2
-from maglev_haptics.hardware.magnetics import load_magnetics
+from maglev_haptics.hardware.magnetics import MagneticsModel, load_magnetics
 from maglev_haptics.hardware.thermal import coil_thermal
 from maglev_haptics.systems.coil_thermal import CoilTemperatures
 from maglev_haptics.systems.device_supervisor import (
     DeviceSupervisor, WatchLimits, hold_motion, make_motion)
 from maglev_haptics.systems.device_visualizer import DeviceVisualizer
 from maglev_haptics.systems.lattice_visualizer import JELLY_RGBA, LatticeVisualizer, surface_faces
+from maglev_haptics.systems.meshcat_hand import MeshcatHandInput
 from maglev_haptics.systems.levitation_controller import LevitationController
 from maglev_haptics.systems.pose_estimator import PoseEstimator
 from maglev_haptics.systems.stereo_renderer import AddStereoRenderer, SurfaceLayer
@@ -63,20 +65,19 @@ def watch_limits(scenario: Scenario) -> WatchLimits:
         boundary_radius_m=watchdog.boundary_radius_m)
 
 
-@dataclass
-class BuiltDiagram:
-    diagram: Diagram
-    plan: FlightPlan
-    logger: object  # one VectorLogSink of all logged signals, stacked
-    log_layout: Dict[str, slice]  # name -> its rows in the logger's data
-    magnetics: object
-    tick_s: float  # the control period: the real-time loop's tick (s)
-    haptics: Optional[object] = None  # diagrams.haptics.HapticParts
-    meshcat_hand: Optional[object] = None  # the MeshcatHandInput whose controls to delete
-    stereo: Optional[object] = None  # diagrams.stereo_display.StereoParts
-    # Paced runs: the visualizers the runner publishes every MESHCAT_PERIOD_S between ticks.
-    frame_publishers: List[object] = field(default_factory=list)
-    meshcat: Optional[Meshcat] = None  # the one given, if any
+class RunMode(enum.Enum):
+    """How the diagram will be run: the one choice ``BuildDiagram`` takes besides the
+    scenario."""
+    SIMULATE = "simulate"  # as fast as it goes, or stepped: visualizers publish themselves
+    # Paced to the wall clock: Meshcat's frames are the runner's, between ticks, and the
+    # stereo display may skip a frame rather than make a tick late.
+    PACED = "paced"
+    # The device API commands: the supervisor rests on the glass, coils off, until told,
+    # and the feed-forward wrench is a source it sets.
+    DEVICE_API = "device_api"
+    # The loop's offline analysis: a scripted hand's target takes an exported offset,
+    # ``hand_target_offset`` (the user's motion as the loop's input), which the caller fixes.
+    LINEARIZE = "linearize"
 
 
 @dataclass
@@ -90,11 +91,12 @@ class ApplicationParts:
     scripted_enable: object  # and its force-ramp output port
 
 
-def AddApplication(builder: DiagramBuilder, *, scenario: Scenario, station, magnetics,
+def AddApplication(builder: DiagramBuilder, *, scenario: Scenario, station: Station, magnetics,
                    plan: FlightPlan, device_api: bool, label: str) -> ApplicationParts:
     """The pose estimator, the coils' thermal model, the device supervisor (which flies
     ``plan``, or with ``device_api`` rests on the glass, coils off, until the API
-    commands) and the levitation controller, wired to ``station`` and each other."""
+    commands) and the levitation controller, wired to ``station`` and each other; the
+    controller commands the station's coils."""
     device = scenario.device
     spec = device.instrument_spec()
     tick_s = 1.0 / scenario.control_rate_hz
@@ -111,18 +113,14 @@ def AddApplication(builder: DiagramBuilder, *, scenario: Scenario, station, magn
     temperatures = builder.AddNamedSystem("coil_temperatures", CoilTemperatures(
         model=coil_thermal(device), n_coils=device.n_coils, period_s=THERMAL_PERIOD_S))
     builder.Connect(station.GetOutputPort("coil_currents"), temperatures.get_input_port())
-    # The simulated station's currents are measured in the tick that reads them (age 0).
-    on_lcm = isinstance(scenario.station, LcmStation)
-    max_currents_age_s = (measured_currents_max_age_s(scenario, scenario.station)
-                          if on_lcm else 0.0)
     supervisor = builder.AddNamedSystem("device_supervisor", DeviceSupervisor(
         initial_motion=initial_motion, limits=watch_limits(scenario),
         lost_grace_s=scenario.controller.lost_grace_s,
         plan_landing=landing_planner(scenario.motion, spec.rest_height_m),
         n_coils=device.n_coils, watchdog_period_s=WATCHDOG_PERIOD_S,
-        weight_n=spec.mass_kg * GRAVITY_M_S2, max_currents_age_s=max_currents_age_s,
-        measured_lag_ticks=(measured_currents_lag_ticks(scenario, scenario.station)
-                            if on_lcm else 1)))
+        weight_n=spec.mass_kg * GRAVITY_M_S2,
+        max_currents_age_s=station.measured_currents_max_age_s,
+        measured_lag_ticks=station.measured_currents_lag_ticks))
     for name in ("X_WI_measured", "V_WI_measured", "tracking_ok"):
         builder.Connect(estimator.GetOutputPort(name), supervisor.GetInputPort(name))
     for name in ("coil_currents", "coil_currents_age_s"):
@@ -146,27 +144,40 @@ def AddApplication(builder: DiagramBuilder, *, scenario: Scenario, station, magn
         builder.Connect(estimator.GetOutputPort(name), controller.GetInputPort(name))
     builder.Connect(supervisor.GetOutputPort("tracking_lost_s"),
                     controller.GetInputPort("tracking_lost_s"))
+    builder.Connect(controller.GetOutputPort("coil_currents_commanded"),
+                    station.GetInputPort("coil_currents_commanded"))
     return ApplicationParts(
         estimator=estimator, temperatures=temperatures, supervisor=supervisor,
         controller=controller, scripted_setpoint=supervisor.GetOutputPort("setpoint"),
         scripted_enable=supervisor.GetOutputPort("enable"))
 
 
-def AddLevitationCommands(builder: DiagramBuilder, *, app: ApplicationParts) -> None:
+@dataclass
+class LevitationCommands:
+    """What the controller tracks without haptics: the script's setpoint, and the
+    feed-forward wrench's source (the device API sets it)."""
+    setpoint: OutputPort
+    feedforward: ConstantVectorSource  # 6: [f; tau] in W (N, N*m), zero unless set
+
+
+def AddLevitationCommands(builder: DiagramBuilder, *, app: ApplicationParts) -> LevitationCommands:
     """Without haptics the controller flies the script at full PD, no brake, and a
     feed-forward wrench (``haptic_feedforward``) that stays zero unless the device API
     sets it."""
     controller = app.controller
     builder.Connect(app.scripted_setpoint, controller.GetInputPort("setpoint"))
     builder.Connect(app.scripted_enable, controller.GetInputPort("enable"))
+    sources = {}
     for name, port, value in (("pd_gain", "pd_gain", [1.0]),
                               ("brake_gain", "brake_gain", [0.0]),
                               ("haptic_feedforward", "wrench_feedforward_W", np.zeros(6))):
-        source = builder.AddNamedSystem(name, ConstantVectorSource(value))
-        builder.Connect(source.get_output_port(), controller.GetInputPort(port))
+        sources[name] = builder.AddNamedSystem(name, ConstantVectorSource(value))
+        builder.Connect(sources[name].get_output_port(), controller.GetInputPort(port))
+    return LevitationCommands(setpoint=app.scripted_setpoint,
+                              feedforward=sources["haptic_feedforward"])
 
 
-def AddStereo(builder: DiagramBuilder, *, scenario: Scenario, station, haptics,
+def AddStereo(builder: DiagramBuilder, *, scenario: Scenario, station: Station, haptics,
               meshcat: Optional[Meshcat], frame_period_s: float, frame_sink,
               realtime: bool):
     """The stereo display (``diagrams/stereo_display.py``) of the virtual world: the
@@ -190,11 +201,12 @@ def AddStereo(builder: DiagramBuilder, *, scenario: Scenario, station, haptics,
                             realtime=realtime, surface=surface)
 
 
-def AddLogging(builder: DiagramBuilder, *, scenario: Scenario, station, app: ApplicationParts,
-               setpoint, haptics, stereo, simulated: bool):
+def AddLogging(builder: DiagramBuilder, *, scenario: Scenario, station: Station,
+               app: ApplicationParts, setpoint, haptics, stereo):
     """(logger, layout): one logger of every logged signal stacked, sampled at
     ``log_rate_hz``; ``layout`` maps each name to its rows."""
     estimator, controller, supervisor = app.estimator, app.controller, app.supervisor
+    simulated = station.simulated
     # What only a simulation knows (the true state, the hand's) is logged only there.
     logged_ports = {"instrument_state": station.GetOutputPort("instrument_state")} \
         if simulated else {}
@@ -249,15 +261,15 @@ def AddLogging(builder: DiagramBuilder, *, scenario: Scenario, station, app: App
                     for name, size, end in zip(logged_ports, sizes, ends)}
 
 
-def AddVisualization(builder: DiagramBuilder, *, scenario: Scenario, meshcat: Meshcat, station,
-                     app: ApplicationParts, setpoint, haptics, simulated: bool,
-                     frame_period_s: float) -> List[object]:
+def AddVisualization(builder: DiagramBuilder, *, scenario: Scenario, meshcat: Meshcat,
+                     station: Station, app: ApplicationParts, setpoint, haptics,
+                     frame_period_s: float) -> List[LeafSystem]:
     """Meshcat's layers: the true instrument and the glass (a simulated station's), the
     device's overlay (coils, measured markers and pose, setpoint, rendered wrench), the
     scene, its contact forces and the lattice's surface. Returns the visualizers, each
     publishing every ``frame_period_s`` (s)."""
     frame_publishers = []
-    if simulated:  # the true instrument and the glass; the measured one is drawn below
+    if station.simulated:  # the true instrument and the glass; the measured one is drawn below
         frame_publishers.append(MeshcatVisualizer.AddToBuilder(
             builder, station.GetOutputPort("query_object"), meshcat,
             MeshcatVisualizerParams(publish_period=frame_period_s, role=Role.kIllustration)))
@@ -302,68 +314,72 @@ def AddVisualization(builder: DiagramBuilder, *, scenario: Scenario, meshcat: Me
     return frame_publishers
 
 
-def BuildDiagram(scenario: Scenario, *, meshcat: Optional[Meshcat] = None,
-                 label: str = "scenario", frame_sink=None, realtime: bool = False,
-                 hand_target_offset_input: bool = False,
-                 device_api: bool = False) -> BuiltDiagram:
-    """The whole diagram for ``scenario``; ``label`` names it in error messages.
+@dataclass
+class BuiltDiagram:
+    """The whole diagram and its typed parts (``BuildDiagram``)."""
+    diagram: Diagram
+    plan: FlightPlan
+    station: Station
+    app: ApplicationParts
+    logger: VectorLogSink  # one logger of all logged signals, stacked
+    log_layout: Dict[str, slice]  # name -> its rows in the logger's data
+    magnetics: MagneticsModel
+    tick_s: float  # the control period: the real-time loop's tick (s)
+    levitation: Optional[LevitationCommands] = None  # without haptics
+    haptics: Optional[HapticParts] = None  # with haptics
+    meshcat_hand: Optional[MeshcatHandInput] = None  # whose controls to delete after a run
+    stereo: Optional[StereoParts] = None
+    # Paced runs: the visualizers the runner publishes every MESHCAT_PERIOD_S between ticks.
+    frame_publishers: List[LeafSystem] = field(default_factory=list)
+    meshcat: Optional[Meshcat] = None  # the one given, if any
 
-    With the stereo display, ``frame_sink(t, left, right)`` receives the rendered
-    eye images (none rendered without it). ``realtime`` (a paced run) lets rendering skip
-    frames, and leaves the Meshcat frames to the runner, between ticks
-    (``frame_publishers``): a frame may be late, a tick may not.
-    ``hand_target_offset_input``: export ``hand_target_offset`` (analysis only; the
-    caller must fix it). ``device_api``: the ``device_supervisor`` starts resting on
-    the glass, coils off, for the device API to command (instead of flying the
-    motion script), and the feed-forward wrench (``haptic_feedforward``) is a
-    constant source that the API sets.
-    """
+
+def BuildDiagram(scenario: Scenario, *, mode: RunMode = RunMode.SIMULATE,
+                 meshcat: Optional[Meshcat] = None, label: str = "scenario",
+                 frame_sink=None) -> BuiltDiagram:
+    """The whole diagram for ``scenario``, built for ``mode``; ``label`` names it in
+    error messages. With the stereo display, ``frame_sink(t, left, right)`` receives
+    the rendered eye images (none rendered without it)."""
     device = scenario.device
     magnetics = load_magnetics(device)
     check_waypoints_reachable(scenario.motion, device, magnetics, label)
     plan = flight_plan(scenario.motion, device.instrument_spec().rest_height_m)
-    simulated = not isinstance(scenario.station, LcmStation)
+    paced = mode is RunMode.PACED
     builder = DiagramBuilder()
-    station = builder.AddSystem(MakeStation(scenario, magnetics=magnetics))
+    station = AddStation(builder, scenario=scenario, magnetics=magnetics)
     app = AddApplication(builder, scenario=scenario, station=station, magnetics=magnetics,
-                         plan=plan, device_api=device_api, label=label)
-    haptics = None
+                         plan=plan, device_api=mode is RunMode.DEVICE_API, label=label)
+    levitation = haptics = None
     if scenario.haptics is None:
-        AddLevitationCommands(builder, app=app)
+        commands = levitation = AddLevitationCommands(builder, app=app)
     else:
-        haptics = AddHaptics(builder, scenario=scenario, magnetics=magnetics, station=station,
-                             estimator=app.estimator, controller=app.controller,
-                             scripted_setpoint=app.scripted_setpoint,
-                             scripted_enable=app.scripted_enable,
-                             fault_bits=app.supervisor.GetOutputPort("fault_bits"))
-    # The setpoint the controller tracks: the device supervisor's, or with haptics the haptic one's.
-    setpoint = (app.scripted_setpoint if haptics is None
-                else haptics.supervisor.GetOutputPort("setpoint"))
+        commands = haptics = AddHaptics(
+            builder, scenario=scenario, magnetics=magnetics, station=station,
+            estimator=app.estimator, controller=app.controller,
+            scripted_setpoint=app.scripted_setpoint, scripted_enable=app.scripted_enable,
+            fault_bits=app.supervisor.GetOutputPort("fault_bits"))
     meshcat_hand = None
-    if scenario.hand is not None and simulated:  # else the device's process moves the hand
+    if scenario.hand is not None and station.simulated:  # else the device moves the hand
         meshcat_hand = AddHandCommands(builder, scenario=scenario, station=station,
                                        meshcat=meshcat,
-                                       target_offset_input=hand_target_offset_input)
-    builder.Connect(app.controller.GetOutputPort("coil_currents_commanded"),
-                    station.GetInputPort("coil_currents_commanded"))
-    frame_period_s = FRAMES_BETWEEN_TICKS_PERIOD_S if realtime else MESHCAT_PERIOD_S
+                                       target_offset_input=mode is RunMode.LINEARIZE)
+    frame_period_s = FRAMES_BETWEEN_TICKS_PERIOD_S if paced else MESHCAT_PERIOD_S
     stereo = None
     if scenario.stereo is not None:
         stereo = AddStereo(builder, scenario=scenario, station=station, haptics=haptics,
                            meshcat=meshcat, frame_period_s=frame_period_s,
-                           frame_sink=frame_sink, realtime=realtime)
+                           frame_sink=frame_sink, realtime=paced)
     logger, log_layout = AddLogging(builder, scenario=scenario, station=station, app=app,
-                                    setpoint=setpoint, haptics=haptics, stereo=stereo,
-                                    simulated=simulated)
+                                    setpoint=commands.setpoint, haptics=haptics, stereo=stereo)
     frame_publishers = [stereo.visualizer] if stereo is not None and stereo.visualizer else []
     if meshcat is not None:
         frame_publishers += AddVisualization(
             builder, scenario=scenario, meshcat=meshcat, station=station, app=app,
-            setpoint=setpoint, haptics=haptics, simulated=simulated,
-            frame_period_s=frame_period_s)
+            setpoint=commands.setpoint, haptics=haptics, frame_period_s=frame_period_s)
     diagram = builder.Build()
     diagram.set_name("maglev_haptics")
-    return BuiltDiagram(diagram=diagram, plan=plan, logger=logger, log_layout=log_layout,
-                        magnetics=magnetics, tick_s=1.0 / scenario.control_rate_hz,
+    return BuiltDiagram(diagram=diagram, plan=plan, station=station, app=app, logger=logger,
+                        log_layout=log_layout, magnetics=magnetics,
+                        tick_s=1.0 / scenario.control_rate_hz, levitation=levitation,
                         haptics=haptics, meshcat_hand=meshcat_hand, stereo=stereo,
-                        frame_publishers=frame_publishers if realtime else [], meshcat=meshcat)
+                        frame_publishers=frame_publishers if paced else [], meshcat=meshcat)

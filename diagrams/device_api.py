@@ -43,11 +43,11 @@ import numpy as np
 from pydrake.systems.analysis import Simulator
 from pydrake.trajectories import PiecewisePolynomial
 
-from maglev_haptics.diagrams.application import BuildDiagram
-from maglev_haptics.diagrams.lcm_station import LcmStation, station_lease
+from maglev_haptics.diagrams.application import BuildDiagram, RunMode
 from maglev_haptics.diagrams.motion import check_pose_reachable
 from maglev_haptics.diagrams.runner import SHARED_SPIN_S, wait_until
 from maglev_haptics.diagrams.scenario import Scenario, load_scenario
+from maglev_haptics.diagrams.station import station_kind
 from maglev_haptics.hardware.config_checks import nonnegative, positive
 from maglev_haptics.hardware.kernels import compile_kernels
 from maglev_haptics.hardware.link.lease import (  # noqa: F401 (connect raises them)
@@ -101,8 +101,9 @@ class MaglevDevice:
         self.scenario = scenario if isinstance(scenario, Scenario) else load_scenario(
             scenario, name)
         nonnegative("realtime_rate", realtime_rate)
-        on_lcm = isinstance(self.scenario.station, LcmStation)
-        self._realtime_rate = float(realtime_rate) if realtime_rate > 0 or not on_lcm else 1.0
+        keeps_wall_clock = station_kind(self.scenario).keeps_wall_clock
+        self._realtime_rate = (float(realtime_rate) if realtime_rate > 0 or not keeps_wall_clock
+                               else 1.0)
         self._tick_callbacks: List[Callable[[TickState], None]] = []
         self._fault_callbacks: List[Callable[[int], None]] = []
         self._simulator = None
@@ -117,30 +118,31 @@ class MaglevDevice:
         carries another instrument than the scenario's, InstrumentMismatchError, having
         commanded no coil."""
         compile_kernels(progress=False)
-        self._built = BuildDiagram(self.scenario, device_api=True, label="device")
+        self._built = BuildDiagram(self.scenario, mode=RunMode.DEVICE_API, label="device")
         diagram = self._built.diagram
         simulator = Simulator(diagram)
         self._simulator = None
         simulator.Initialize()  # on LCM, DeviceInUseError where another holds the lease
         self._simulator = simulator
         root = self._simulator.get_mutable_context()
-        self._supervisor = diagram.GetSubsystemByName("device_supervisor")
-        self._feedforward = diagram.GetSubsystemByName("haptic_feedforward")
-        self._controller = diagram.GetSubsystemByName("levitation_controller")
-        estimator = diagram.GetSubsystemByName("pose_estimator")
-        station = diagram.GetSubsystemByName("station")
-        self._temperatures = diagram.GetSubsystemByName("coil_temperatures")
+        app = self._built.app
+        self._supervisor = app.supervisor
+        self._feedforward = self._built.levitation.feedforward
+        self._controller = app.controller
+        estimator = app.estimator
+        station = self._built.station.system
+        self._temperatures = app.temperatures
         self._contexts = {system: system.GetMyMutableContextFromRoot(root) for system in (
             self._supervisor, self._feedforward, self._controller, estimator, station,
             self._temperatures)}
         self._ports = [estimator.GetOutputPort(name) for name in
                        ("X_WI_measured", "V_WI_measured", "tracking_ok")]
         self._estimator, self._station = estimator, station
-        self._shares_cores = isinstance(self.scenario.station, LcmStation)
+        self._shares_cores = self._built.station.shares_cores
         self._clock_zero, self._ticks = time.perf_counter(), 0
         self.state = self._read_state()
-        if self._shares_cores:  # on LCM: the lease before anything else
-            lease = station_lease(diagram)
+        lease = self._built.station.lease
+        if lease is not None:  # the device's lease before anything else
             try:
                 self._run_until(lambda: lease.granted, self.scenario.station.wait_for_station_s,
                                 "connect (the device's lease)", on_timeout=lambda: None)
@@ -154,8 +156,8 @@ class MaglevDevice:
         self._coils_off()
         self.set_feedforward_wrench(np.zeros(6))
         self._tick()
-        if self._shares_cores:
-            station_lease(self._built.diagram).release()
+        if self._built.station.lease is not None:
+            self._built.station.lease.release()
         self._simulator = None
 
     # --- commands (each takes effect on the next tick) ---------------------

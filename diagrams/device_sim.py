@@ -29,7 +29,7 @@ from maglev_haptics.diagrams.haptics import AddHandCommands
 from maglev_haptics.diagrams.lcm_station import (
     COIL_CURRENTS, COIL_CURRENTS_COMMANDED, DEVICE_STATUS, GLASSES, LEASE, LEASE_REQUEST,
     MARKERS, SimStation, channel, lcm_config, open_lcm)
-from maglev_haptics.diagrams.station import MakeStation
+from maglev_haptics.diagrams.station import AddStation
 from maglev_haptics.hardware.link.lcm_link import publish
 from maglev_haptics.hardware.link.lcm_messages import coil_currents_t, device_status_t, lease_t
 from maglev_haptics.hardware.link.lease import LeaseServer
@@ -130,8 +130,8 @@ def BuildDeviceSim(scenario) -> DeviceSim:
     period_s = 1.0 / scenario.control_rate_hz
     n_markers = len(device.instrument_spec().p_IK_m)
     builder = DiagramBuilder()
-    station = builder.AddSystem(MakeStation(scenario, magnetics=load_magnetics(device),
-                                            station=SimStation()))
+    station = AddStation(builder, scenario=scenario, magnetics=load_magnetics(device),
+                         config=SimStation())
     publisher = open_lcm(station_config.url)
     hand_script = None
     if scenario.hand is not None:

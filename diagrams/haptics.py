@@ -23,6 +23,7 @@ from typing import List, Optional
 import numpy as np
 from pydrake.geometry import Meshcat
 from pydrake.math import RollPitchYaw
+from pydrake.systems.framework import OutputPort
 from pydrake.systems.primitives import Adder, TrajectorySource
 from pydrake.trajectories import PiecewisePolynomial
 
@@ -31,7 +32,7 @@ from maglev_haptics.diagrams.hand_script import MeshcatHand, hand_plan
 from maglev_haptics.diagrams.motion import flight_plan
 from maglev_haptics.diagrams.scenario import Scenario
 from maglev_haptics.diagrams.scene import ModelScene
-from maglev_haptics.diagrams.scene_builder import AddScene, measure_step_cost_s
+from maglev_haptics.diagrams.scene_builder import AddScene, SceneParts, measure_step_cost_s
 from maglev_haptics.diagrams.scene_models import (
     model_scene_warnings, step_cost_levers, tool_grip_inverse_mass_per_kg)
 from maglev_haptics.diagrams.station import (
@@ -55,11 +56,18 @@ SUPERVISOR_PERIOD_S = 0.005
 
 @dataclass
 class HapticParts:
-    scene: object  # diagrams.scene.SceneParts
-    coupling: object
-    supervisor: object
+    """What ``AddHaptics`` added: the scene (a plant or the lattice), the coupling, the
+    haptic supervisor, and the haptics request it reads."""
+    scene: SceneParts
+    coupling: HapticCoupling
+    supervisor: HapticSupervisor
     coupling_config: CouplingConfig  # with the device-derived limits filled in
-    request: object  # the haptics request's TrajectorySource (1: requested)
+    request: TrajectorySource  # the haptics request (1: requested)
+
+    @property
+    def setpoint(self) -> OutputPort:
+        """The setpoint the controller tracks: the haptic supervisor's."""
+        return self.supervisor.GetOutputPort("setpoint")
 
     def end_request(self) -> None:
         """Haptics no longer requested from now on, as a user switching it off: the

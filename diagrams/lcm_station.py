@@ -49,9 +49,11 @@ from typing import Dict, Optional
 
 import lcm
 import numpy as np
-from pydrake.systems.framework import Diagram, DiagramBuilder
+from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import Multiplexer
 
+from maglev_haptics.diagrams.hand_script import MeshcatHand
+from maglev_haptics.diagrams.station_interface import Station
 from maglev_haptics.hardware.config_checks import positive, require
 from maglev_haptics.hardware.constants import SAME_INSTANT_S
 from maglev_haptics.hardware.link.lcm_messages import (
@@ -84,7 +86,7 @@ INBOUND_PORTS = {MARKERS: "markers_measured", COIL_CURRENTS: "coil_currents",
 class SimStation:
     """The simulated station, in the application's own diagram (the default)."""
 
-    def validate(self, path: str = "station") -> None:
+    def validate(self, label: str, scenario) -> None:
         """Nothing to check: the device config describes the simulated station."""
 
 
@@ -110,8 +112,17 @@ class LcmStation:
     # as long (``device_silence``).
     lease_timeout_s: float = 0.5
 
-    def validate(self, path: str = "station") -> None:
-        """Range checks; a ValueError names ``path.field``, its value and what is allowed."""
+    def validate(self, label: str, scenario) -> None:
+        """Range checks, and what ``scenario`` (labelled ``label``) may hold with a station
+        on LCM; a ValueError names the field, its value and what is allowed."""
+        path = f"{label}: station"
+        require(scenario.stereo is None or scenario.haptics is not None, f"{label}: stereo",
+                "set", "needs a haptic scene with station: !LcmStation (without one the "
+                "display draws the simulated station's instrument, which a real station "
+                "has not)")
+        require(not isinstance(scenario.hand, MeshcatHand), f"{label}: hand", "!MeshcatHand",
+                "must be a !ScriptedHand or null with station: !LcmStation (the simulated "
+                "hand is the device's, and device-sim has no Meshcat)")
         for name in ("url", "command_url"):
             value = getattr(self, name)
             require(value.split("://")[0] == "udpm", f"{path}.{name}", value,
@@ -135,6 +146,12 @@ def open_lcm(url: str):
 
 def channel(station, name: str) -> str:
     return station.channel_prefix + name
+
+
+def chosen_station(choice: str, scenario):
+    """The station config for ``maglev run --station CHOICE``: ``sim`` the simulated
+    one; ``lcm`` the scenario's LcmStation, or the defaults where it has none."""
+    return SimStation() if choice == "sim" else lcm_config(scenario)
 
 
 def lcm_config(scenario) -> LcmStation:
@@ -201,18 +218,18 @@ def station_channels(scenario, lease: LeaseClient) -> list:
     return channels
 
 
-def MakeLcmStation(scenario) -> Diagram:
-    """The application's station for ``scenario.station`` (an LcmStation), named
-    ``station``: inputs ``coil_currents_commanded`` and ``coil_power``; outputs
-    ``markers_measured``, ``markers_sample_time_s`` (when they were read, s),
-    ``markers_sample_count`` (the tracker's frame number the message carried),
-    ``coil_currents``, ``coil_currents_age_s`` (how old the newest measured currents
-    are, s), with a hand in the scenario ``handle_gripped``, with the
-    stereo display ``glasses_measured``. Its ``receiver`` checks and counts the
-    messages it read, refused and lost on each channel; building it waits up to
-    ``wait_for_station_s`` for the station's markers. Its first tick asks for the
-    device's lease (``receiver.lease``, a LeaseClient), and it sends no command
-    until the lease is granted: an answer naming another holder raises
+def MakeLcmStation(scenario) -> "LcmStationInterface":
+    """The application's station for ``scenario.station`` (an LcmStation): an
+    ``LcmStationInterface`` whose Diagram, named ``station``, has inputs
+    ``coil_currents_commanded`` and ``coil_power``; outputs ``markers_measured``,
+    ``markers_sample_time_s`` (when they were read, s), ``markers_sample_count`` (the
+    tracker's frame number the message carried), ``coil_currents``,
+    ``coil_currents_age_s`` (how old the newest measured currents are, s), with a hand
+    in the scenario ``handle_gripped``, with the stereo display ``glasses_measured``.
+    Its ``receiver`` checks and counts the messages it read, refused and lost on each
+    channel; building it waits up to ``wait_for_station_s`` for the station's markers.
+    Its first tick asks for the device's lease (``lease``, a LeaseClient), and it sends
+    no command until the lease is granted: an answer naming another holder raises
     DeviceInUseError, and no grant within ``wait_for_station_s`` a TimeoutError."""
     station = scenario.station
     n_coils = scenario.device.n_coils
@@ -226,7 +243,6 @@ def MakeLcmStation(scenario) -> Diagram:
     receiver = builder.AddNamedSystem("receiver", MessageReceiver(
         lcm=open_lcm(station.url), channels=channels, period_s=period_s,
         on_tick=lease.on_tick))
-    receiver.lease = lease
     for port in receiver.ports():
         builder.ExportOutput(receiver.GetOutputPort(port), port)
     sender = builder.AddNamedSystem("coil_currents_commanded_sender", MessageSender(
@@ -239,18 +255,7 @@ def MakeLcmStation(scenario) -> Diagram:
     builder.ExportInput(command.get_input_port(1), "coil_power")
     diagram = builder.Build()
     diagram.set_name("station")
-    return diagram
-
-
-def station_receiver(diagram) -> MessageReceiver:
-    """The application's receiver of the station's messages, in a diagram with an LCM
-    station."""
-    return diagram.GetSubsystemByName("station").GetSubsystemByName("receiver")
-
-
-def station_lease(diagram) -> LeaseClient:
-    """The application's end of the device's lease, in a diagram with an LCM station."""
-    return station_receiver(diagram).lease
+    return LcmStationInterface(diagram, scenario=scenario, receiver=receiver, lease=lease)
 
 
 def silent_channels(newest_arrivals: Dict[str, float], now_s: float,
@@ -297,53 +302,61 @@ def device_silence(newest_arrivals: Dict[str, float], now_s: float, timeout_s: f
             "timeout_s": timeout_s}
 
 
-def newest_arrivals(diagram, context) -> Dict[str, float]:
-    """{channel (lower case, as ``station_counts`` names them): when its newest message
-    was read (s; -inf: none yet)} of the application's LCM station."""
-    receiver = station_receiver(diagram)
-    receiver_context = receiver.GetMyContextFromRoot(context)
-    return {name.lower(): receiver.newest_arrival_s(receiver_context, port)
-            for name, port in INBOUND_PORTS.items() if port in receiver.channels()}
+class LcmStationInterface(Station):
+    """The station on LCM (``MakeLcmStation``): a device keeps the wall clock, lands
+    what flies before a run ends, shares this machine's cores where it is
+    ``maglev device-sim``, measures its currents a link's round trip late, holds a
+    lease, and is watched for silence (``device_silence``)."""
 
+    simulated = False
+    keeps_wall_clock = True
+    lands_before_run_end = True
+    shares_cores = True
 
-class StopWhenDeviceSilent:
-    """``simulate``'s ``stop`` for a run on an LCM station (asked between ticks, every
-    PROGRESS_CHUNK_S): True once the device went silent (``device_silence``, after the
-    station's ``lease_timeout_s``; ``silence`` then says when and which channels),
-    else what ``stop`` (the run's own: a signal, or its end with a landing) says.
-    A silent device stops the run at once, even mid-landing: a landing is the coils'
-    work, and nothing takes their commands any more."""
+    def __init__(self, system, *, scenario, receiver: MessageReceiver, lease: LeaseClient):
+        super().__init__(system)
+        self.config = scenario.station
+        self.receiver = receiver
+        self.lease = lease
+        self.measured_currents_max_age_s = measured_currents_max_age_s(scenario, self.config)
+        self.measured_currents_lag_ticks = measured_currents_lag_ticks(scenario, self.config)
 
-    def __init__(self, diagram, stop, timeout_s: float):
-        self._diagram = diagram
-        self._stop = stop
-        self._timeout_s = float(timeout_s)
-        self.silence: Optional[dict] = None
+    def newest_arrivals(self, context) -> Dict[str, float]:
+        """{channel (lower case, as ``summary`` names them): when its newest message was
+        read (s; -inf: none yet)} at the root ``context``."""
+        receiver_context = self.receiver.GetMyContextFromRoot(context)
+        return {name.lower(): self.receiver.newest_arrival_s(receiver_context, port)
+                for name, port in INBOUND_PORTS.items() if port in self.receiver.channels()}
 
-    def __call__(self, context) -> bool:
-        self.silence = device_silence(newest_arrivals(self._diagram, context),
-                                      context.get_time(), self._timeout_s)
-        return self.silence is not None or self._stop(context)
+    def watch(self, stop):
+        """``stop``, or True once the device went silent (``device_silence`` after the
+        station's ``lease_timeout_s``). Asked between ticks, every PROGRESS_CHUNK_S. A
+        silent device stops the run at once, even mid-landing: a landing is the coils'
+        work, and nothing takes their commands any more."""
+        return lambda context: self.silence(context) is not None or stop(context)
 
+    def silence(self, context) -> Optional[dict]:
+        """``device_silence`` at the root ``context``'s time: None while the device is heard."""
+        return device_silence(self.newest_arrivals(context), context.get_time(),
+                              self.config.lease_timeout_s)
 
-def station_counts(diagram, context, timeout_s: Optional[float] = None) -> dict:
-    """What the application's LCM station read, refused (by reason) and lost, and the
-    gaps in which a channel went stale, per channel and in all, the silence since each
-    channel's last message counted up to the context's time; its lease; and
-    ``device_silent``: with ``timeout_s`` (the station's ``lease_timeout_s``),
-    ``device_silence`` at the context's time (None: the device was heard)."""
-    receiver = station_receiver(diagram)
-    receiver_context = receiver.GetMyContextFromRoot(context)
-    counts = {name.lower(): receiver.counts(receiver_context, port)
-              for name, port in INBOUND_PORTS.items() if port in receiver.channels()}
-    silent = (device_silence(newest_arrivals(diagram, context), context.get_time(), timeout_s)
-              if timeout_s is not None else None)
-    return {"messages_received": sum(c["messages_received"] for c in counts.values()),
-            "messages_lost": sum(c["messages_lost"] for c in counts.values()),
-            "messages_refused": sum(c["messages_refused"] for c in counts.values()),
-            "refused": {reason: sum(c["refused"][reason] for c in counts.values())
-                        for reason in REASONS},
-            "stale_gaps": sum(c["stale_gaps"] for c in counts.values()),
-            "lease": receiver.lease.counts(),
-            "device_silent": silent,
-            "channels": counts}
+    def summary(self, context) -> dict:
+        """``station`` in summary.json: the URL; what the application read, refused (by
+        reason) and lost, and the gaps in which a channel went stale, per channel and in
+        all, the silence since each channel's last message counted up to the context's
+        time; its lease; and ``device_silent``, ``device_silence`` at the context's time
+        (None: the device was heard)."""
+        receiver_context = self.receiver.GetMyContextFromRoot(context)
+        counts = {name.lower(): self.receiver.counts(receiver_context, port)
+                  for name, port in INBOUND_PORTS.items() if port in self.receiver.channels()}
+        silent = self.silence(context)
+        return {"kind": "lcm", "url": self.config.url,
+                "messages_received": sum(c["messages_received"] for c in counts.values()),
+                "messages_lost": sum(c["messages_lost"] for c in counts.values()),
+                "messages_refused": sum(c["messages_refused"] for c in counts.values()),
+                "refused": {reason: sum(c["refused"][reason] for c in counts.values())
+                            for reason in REASONS},
+                "stale_gaps": sum(c["stale_gaps"] for c in counts.values()),
+                "lease": self.lease.counts(),
+                "device_silent": silent,
+                "channels": counts}

@@ -235,14 +235,7 @@ class Scenario:
             check_script_length([(f"{label}: stereo.head.start_s", head.start_s)] + [
                 (f"{label}: stereo.head.waypoints[{i}].{name}", getattr(w, name))
                 for i, w in enumerate(head.waypoints) for name in ("move_s", "hold_s")])
-        self.station.validate(f"{label}: station")
-        if isinstance(self.station, LcmStation):
-            require(self.stereo is None or self.haptics is not None, f"{label}: stereo", "set",
-                    "needs a haptic scene with station: !LcmStation (without one the display "
-                    "draws the simulated station's instrument, which a real station has not)")
-            require(not isinstance(self.hand, MeshcatHand), f"{label}: hand", "!MeshcatHand",
-                    "must be a !ScriptedHand or null with station: !LcmStation (the simulated "
-                    "hand is the device's, and device-sim has no Meshcat)")
+        self.station.validate(label, self)
 
 
 OVERLAY = "--scenario-text"  # what an error in a layer over the file's scenario names

@@ -1,8 +1,10 @@
 """The station: what real hardware replaces (docs/architecture.md).
 
-``MakeStation`` returns a Diagram named ``station``, simulated here or, with
-``station: !LcmStation``, the LCM interface to a real or simulated device
-(``diagrams/lcm_station.py``), with the same ports either way:
+``AddStation`` adds the scenario's station to a diagram and returns it as a
+``Station`` (``diagrams/station_interface.py``: what it is, and what the rest asks
+of it): simulated here (``SimulatedStation``) or, with ``station: !LcmStation``, the
+LCM interface to a real or simulated device (``diagrams/lcm_station.py``). Its
+Diagram, named ``station``, has the same ports either way:
 
 - inputs ``coil_currents_commanded`` (n_coils, A) and ``coil_power`` (1: the
   amplifiers' supply, the device's enable line; 0 cuts every coil's current);
@@ -43,8 +45,9 @@ from pydrake.systems.primitives import (
 from pydrake.systems.rendering import MultibodyPositionToGeometryPose
 
 from maglev_haptics.diagrams.head_script import head_plan
-from maglev_haptics.diagrams.lcm_station import LcmStation, MakeLcmStation
+from maglev_haptics.diagrams.lcm_station import LcmStation, LcmStationInterface, MakeLcmStation
 from maglev_haptics.diagrams.scenario import Scenario, ScenarioError
+from maglev_haptics.diagrams.station_interface import Station
 from maglev_haptics.plant_models import PACKAGE_XML
 from maglev_haptics.systems.fault_injection import (
     CorruptSample, LatencySpike, Shove, Shoves, StuckAmplifier, StuckAmplifiers)
@@ -146,12 +149,45 @@ def hand_start_transform(scenario: Scenario) -> RigidTransform:
     return RigidTransform(RollPitchYaw(roll, pitch, yaw), [x, y, z])
 
 
-def MakeStation(scenario: Scenario, *, magnetics, station=None) -> Diagram:
-    """The station of ``scenario`` (or ``station``, a SimStation or an LcmStation, in
-    its place): simulated here, or the LCM interface with the same ports
-    (``diagrams/lcm_station.py``)."""
-    if isinstance(station or scenario.station, LcmStation):
+class SimulatedStation(Station):
+    """The simulated station, in the application's own diagram: its truth is there to
+    read, it keeps the simulator's time, a run may end with the instrument anywhere,
+    and its currents are measured in the tick that reads them."""
+
+    simulated = True
+    keeps_wall_clock = False
+    lands_before_run_end = False
+    shares_cores = False
+    measured_currents_max_age_s = 0.0
+    measured_currents_lag_ticks = 1
+
+
+def AddStation(builder: DiagramBuilder, *, scenario: Scenario, magnetics,
+               config=None) -> Station:
+    """The station of ``scenario`` (or of ``config``, a SimStation or an LcmStation in
+    the scenario's place), added to ``builder``."""
+    station = MakeStation(scenario, magnetics=magnetics, config=config)
+    builder.AddSystem(station.system)
+    return station
+
+
+def station_kind(scenario: Scenario, config=None) -> type:
+    """The Station class of ``scenario``'s station (or of ``config`` in its place): its
+    class-level answers (``keeps_wall_clock``, ...) hold before it is built."""
+    return LcmStationInterface if isinstance(config or scenario.station, LcmStation) \
+        else SimulatedStation
+
+
+def MakeStation(scenario: Scenario, *, magnetics, config=None) -> Station:
+    """The station of ``scenario`` (or of ``config`` in its place): simulated here, or
+    the LCM interface with the same ports (``diagrams/lcm_station.py``)."""
+    if station_kind(scenario, config) is LcmStationInterface:
         return MakeLcmStation(scenario)
+    return SimulatedStation(_simulated_station(scenario, magnetics))
+
+
+def _simulated_station(scenario: Scenario, magnetics) -> Diagram:
+    """The simulated station's Diagram, named ``station`` (the module docstring's ports)."""
     device = scenario.device
     spec = device.instrument_spec()
     if abs(device.display.thickness_m - DISPLAY_MODEL_THICKNESS_M) > 1e-9:

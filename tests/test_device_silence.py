@@ -20,8 +20,7 @@ from pydrake.systems.framework import DiagramBuilder
 
 from maglev_haptics.analysis.run_outcome import device_silent_outcome, instrument_outcome
 from maglev_haptics.diagrams.lcm_station import (
-    LcmStation, MakeLcmStation, StopWhenDeviceSilent, device_silence, newest_arrivals,
-    silent_channels, station_counts, station_receiver)
+    LcmStation, MakeLcmStation, device_silence, silent_channels)
 from maglev_haptics.diagrams.scenario import load_scenario
 from maglev_haptics.hardware.link.lcm_link import publish
 from maglev_haptics.hardware.link.lcm_messages import lease_t
@@ -110,16 +109,17 @@ def test_a_silent_device_is_the_line_printed_not_a_lost_instrument():
 
 
 def lcm_station_on_memory(name: str = "levitate"):
-    """(scenario, a diagram holding its LCM station, that diagram's context, the
+    """(scenario, the LCM station, a diagram holding it, that diagram's context, the
     station's LCM bus): the application's station on an in-memory LCM (``memq://``),
     whose messages a test publishes on the receiver's own bus."""
     scenario = load_scenario(name)
     scenario = dataclasses.replace(scenario, station=LcmStation(
         url="memq://", command_url="memq://", channel_prefix="T_"))
     builder = DiagramBuilder()
-    builder.AddSystem(MakeLcmStation(scenario))  # named "station"
+    station = MakeLcmStation(scenario)
+    builder.AddSystem(station.system)
     diagram = builder.Build()
-    return scenario, diagram, diagram.CreateDefaultContext(), station_receiver(diagram)._lcm
+    return scenario, station, diagram, diagram.CreateDefaultContext(), station.receiver._lcm
 
 
 def test_a_device_that_stops_sending_is_seen_silent_and_its_silence_counted():
@@ -128,15 +128,14 @@ def test_a_device_that_stops_sending_is_seen_silent_and_its_silence_counted():
     Its silence is seen once the answer due at 0.4 s is 0.5 s late, the run's stop
     says stop (without asking the run's own, which would land), and the counts hold
     the silence: the longest gap, and a stale gap for the markers."""
-    scenario, diagram, context, bus = lcm_station_on_memory()
-    receiver = station_receiver(diagram)
+    scenario, station, diagram, context, bus = lcm_station_on_memory()
+    receiver = station.receiver
     receiver_context = receiver.GetMyMutableContextFromRoot(context)
-    lease = receiver.lease
+    lease = station.lease
     markers = np.array([0.01, 0.0, 0.02, -0.01, 0.0, 0.02, 0.0, 0.01, 0.02])
     currents = np.r_[np.zeros(27), 1.0]
     asked = []
-    stop = StopWhenDeviceSilent(diagram, lambda context: asked.append(context.get_time()),
-                                scenario.station.lease_timeout_s)
+    stop = station.watch(lambda context: asked.append(context.get_time()))
 
     def tick(t_s):
         context.SetTime(t_s)
@@ -156,20 +155,21 @@ def test_a_device_that_stops_sending_is_seen_silent_and_its_silence_counted():
             publish(bus, "T_LEASE", reply)
         tick(t_s + 0.001)
     assert lease.granted
-    assert newest_arrivals(diagram, context) == {
+    assert station.newest_arrivals(context) == {
         "markers": pytest.approx(0.351), "coil_currents": pytest.approx(0.351),
         "lease": pytest.approx(0.301)}
     for t_s in (0.5, 0.75, 0.9):  # the lease's answer due at 0.401 is not yet 0.5 s late
         tick(t_s)
-        assert not stop(context) and stop.silence is None
+        assert not stop(context) and station.silence(context) is None
     assert asked == [0.5, 0.75, 0.9]
     tick(0.901)
     assert stop(context) and asked == [0.5, 0.75, 0.9]  # the run's own stop not asked
-    assert stop.silence == {"at_s": pytest.approx(0.351), "timeout_s": 0.5,
-                            "channels": ["markers", "coil_currents", "lease"],
-                            "for_s": pytest.approx(0.55)}
-    counts = station_counts(diagram, context, scenario.station.lease_timeout_s)
-    assert counts["device_silent"] == stop.silence
+    silence = station.silence(context)
+    assert silence == {"at_s": pytest.approx(0.351), "timeout_s": 0.5,
+                       "channels": ["markers", "coil_currents", "lease"],
+                       "for_s": pytest.approx(0.55)}
+    counts = station.summary(context)
+    assert counts["device_silent"] == silence and counts["kind"] == "lcm"
     channels = counts["channels"]
     assert channels["markers"]["longest_gap_ms"] == pytest.approx(550.0)
     assert channels["markers"]["stale_gaps"] == 1  # the markers read as unseen in it
@@ -177,7 +177,6 @@ def test_a_device_that_stops_sending_is_seen_silent_and_its_silence_counted():
     assert channels["coil_currents"]["stale_gaps"] == 0  # held, never stale
     assert channels["lease"]["longest_gap_ms"] == pytest.approx(600.0)
     assert counts["stale_gaps"] == 1 and counts["messages_lost"] == 0
-    assert station_counts(diagram, context)["device_silent"] is None  # not asked
 
 
 def test_device_sim_stopped_by_a_signal_says_so_and_exits_128_plus_n(monkeypatch, capsys):

@@ -19,7 +19,7 @@ from maglev_haptics.analysis.run_outcome import instrument_outcome
 from maglev_haptics.diagrams.application import BuildDiagram
 from maglev_haptics.diagrams.device_sim import COMMANDS_PORT, BuildDeviceSim, MakeCommandReceiver
 from maglev_haptics.diagrams.lcm_station import (
-    LcmStation, marker_stale_after_s, station_channels, station_counts)
+    LcmStation, marker_stale_after_s, station_channels)
 from maglev_haptics.diagrams.scenario import ScenarioError, load_scenario
 from maglev_haptics.hardware.link.lcm_link import publish
 from maglev_haptics.hardware.link.lcm_messages import (
@@ -178,7 +178,7 @@ def test_levitation_over_lcm_follows_the_all_in_one_run(lockstep_run):
 def test_no_message_is_lost_in_steady_state(lockstep_run):
     """Every tracker sample and measured current the device sent is read and counted."""
     _, scenario, duration_s, application, context, _ = lockstep_run
-    counts = station_counts(application.diagram, context)
+    counts = application.station.summary(context)
     markers = counts["channels"]["markers"]
     assert markers["messages_received"] > 0.95 * duration_s * scenario.device.tracker.rate_hz
     assert (counts["channels"]["coil_currents"]["messages_received"]

@@ -47,6 +47,7 @@ class FakeSimulator:
 
 class Bar:
     n = 0.0
+    total = float("inf")
 
     def update(self, step):
         self.n += step
