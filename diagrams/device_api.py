@@ -47,7 +47,7 @@ from maglev_haptics.diagrams.application import BuildDiagram, RunMode
 from maglev_haptics.diagrams.motion import check_pose_reachable
 from maglev_haptics.diagrams.runner import SHARED_SPIN_S, wait_until
 from maglev_haptics.diagrams.scenario import Scenario, load_scenario
-from maglev_haptics.diagrams.station import station_kind
+from maglev_haptics.diagrams.scenario_run import run_rate
 from maglev_haptics.hardware.config_checks import nonnegative, positive
 from maglev_haptics.hardware.kernels import compile_kernels
 from maglev_haptics.hardware.link.lease import (  # noqa: F401 (connect raises them)
@@ -101,9 +101,7 @@ class MaglevDevice:
         self.scenario = scenario if isinstance(scenario, Scenario) else load_scenario(
             scenario, name)
         nonnegative("realtime_rate", realtime_rate)
-        keeps_wall_clock = station_kind(self.scenario).keeps_wall_clock
-        self._realtime_rate = (float(realtime_rate) if realtime_rate > 0 or not keeps_wall_clock
-                               else 1.0)
+        self._realtime_rate = float(run_rate(self.scenario, realtime_rate))
         self._tick_callbacks: List[Callable[[TickState], None]] = []
         self._fault_callbacks: List[Callable[[int], None]] = []
         self._simulator = None

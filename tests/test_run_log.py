@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 
 from maglev_haptics.analysis import load_run_log
-from maglev_haptics.analysis import run_log, run_results
+from maglev_haptics.analysis import run_log
 from maglev_haptics.analysis.run_results import run_scenario
-from maglev_haptics.diagrams import runner
+from maglev_haptics.diagrams import runner, scenario_run
 from maglev_haptics.diagrams.application import BuildDiagram
 from maglev_haptics.diagrams.scenario import load_scenario
 from maglev_haptics.hardware.realtime_priority import (
@@ -155,7 +155,7 @@ def test_a_stopped_runs_report_says_what_its_log_shows(monkeypatch, signals_at_s
     later stops it at once, mid-landing: the summary then says it did not land, and
     where its last sample left the instrument."""
     scenario = load_scenario("levitate", scenario_text=HOVER_40_S)
-    monkeypatch.setattr(run_results, "StopOnSignal", lambda: ScriptedSignals(signals_at_s))
+    monkeypatch.setattr(scenario_run, "StopOnSignal", lambda: ScriptedSignals(signals_at_s))
     result = run_scenario(scenario, label="levitate", duration_s=20.0, progress=False)
     summary, log = result.summary, result.log
     assert summary["stopped_by"] == "SIGINT"
