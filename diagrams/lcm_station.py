@@ -1,9 +1,13 @@
-"""The station over LCM, the application's side; and the station switch.
+"""The station over LCM, the application's side; and the station configs a scenario picks.
 
-``MakeLcmStation`` is the station a real device plugs into: a Diagram named
-``station`` with the simulated station's port names and units
-(``diagrams/station.py``), whose values come from LCM messages and go out as
-LCM messages (``hardware/link/lcm_messages``). ``diagrams/device_sim.py`` is the
+``MakeLcmStation`` is the station a real device plugs into: an
+``LcmStationInterface`` (a ``Station``, ``diagrams/station_interface.py``: it keeps
+the wall clock, lands before a run ends, watches for a silent device, counts the
+link for the summary and holds the lease) whose Diagram, named ``station``, has the
+simulated station's port names and units (``diagrams/station.py``); its values come
+from LCM messages and go out as LCM messages (``hardware/link/lcm_messages``).
+``SimStation`` and ``LcmStation`` are the scenario's ``station`` variants.
+``diagrams/device_sim.py`` is the
 other end: the simulated station alone, speaking the same messages. Channels
 (``channel_prefix`` + name):
 
