@@ -569,8 +569,13 @@ def test_a_second_application_is_refused_and_a_lost_instrument_is_said(tmp_path)
             "maglev run: error: the device carries the 'two_magnet' instrument; this scenario "
             "flies 'four_magnet' (device.instrument): run the device and the application with "
             "the same device; this one commanded no coil")
-        first = subprocess.Popen(maglev + ["run", "levitate", *paced, "--no-meshcat",
-                                           "--duration", "8", "--out", str(tmp_path / "first")],
+        # Hovering still when the pause comes, on a host where each of the two
+        # applications before it takes 10-20 s to start (the script lands at 8 s).
+        hovering = station[:-1] + ", motion: {waypoints: [{pose: [0, 0, 0.018, 0, 0, 0], " \
+            "hold_s: 40}]}}"
+        first = subprocess.Popen(maglev + ["run", "levitate", "--scenario-text", hovering,
+                                           "--realtime", str(TWO_PROCESS_RATE), "--no-meshcat",
+                                           "--duration", "20", "--out", str(tmp_path / "first")],
                                  stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         deadline = time.monotonic() + 180
         while not any(h.action == lease_t.HELD for h in holders):
