@@ -43,8 +43,9 @@ class FlownScenario:
 def run_rate(scenario: Scenario, realtime_rate: float) -> float:
     """The real-time rate a run of ``scenario`` takes: as told, or 1.0 where its station
     keeps the wall clock's time (a device: the application must keep it too)."""
-    return 1.0 if station_kind(scenario).keeps_wall_clock and realtime_rate <= 0 \
-        else realtime_rate
+    if station_kind(scenario).keeps_wall_clock and realtime_rate <= 0:
+        return 1.0
+    return realtime_rate
 
 
 def fly_scenario(scenario: Scenario, *, label: str, duration_s: Optional[float] = None,

@@ -174,8 +174,8 @@ def AddStation(builder: DiagramBuilder, *, scenario: Scenario, magnetics,
 def station_kind(scenario: Scenario, config=None) -> type:
     """The Station class of ``scenario``'s station (or of ``config`` in its place): its
     class-level answers (``keeps_wall_clock``, ...) hold before it is built."""
-    return LcmStationInterface if isinstance(config or scenario.station, LcmStation) \
-        else SimulatedStation
+    return (LcmStationInterface if isinstance(config or scenario.station, LcmStation)
+            else SimulatedStation)
 
 
 def MakeStation(scenario: Scenario, *, magnetics, config=None) -> Station:

@@ -53,9 +53,6 @@ class Station:
     def GetOutputPort(self, name: str) -> OutputPort:
         return self.system.GetOutputPort(name)
 
-    def HasOutputPort(self, name: str) -> bool:
-        return self.system.HasOutputPort(name)
-
     def watch(self, stop: Callable) -> Callable:
         """``simulate``'s ``stop``: ``stop(context)``, or True where the station itself
         ends the run."""

@@ -220,3 +220,22 @@ def test_the_default_workers_are_this_machines_cores():
     from maglev_haptics.analysis.parallel import default_workers
     from maglev_haptics.cli import build_parser
     assert build_parser().parse_args(["faults"]).workers == default_workers()
+
+
+@pytest.mark.parametrize("summary, said", [
+    ({"landed_before_stopping": True, "final_state": {"rests": True}}, " after landing"),
+    ({"landed_before_stopping": False, "signals_received": 2,
+      "final_state": {"rests": False, "z_m": 0.0156, "busiest_coil_current_a": 2.464}},
+     " (signal 2 ended its landing): the instrument was left at z = 15.6 mm with 2.46 A in "
+     "the busiest coil"),
+    ({"landed_before_stopping": False,
+      "final_state": {"rests": False, "z_m": 0.0112, "busiest_coil_current_a": 4.0}},
+     ": the instrument was left at z = 11.2 mm with 4.00 A in the busiest coil"),
+    ({"final_state": {"rests": True, "z_m": 0.007, "busiest_coil_current_a": 0.0}},
+     ", the instrument resting with its coils off"),
+])
+def test_a_stopped_run_says_where_its_last_sample_left_the_instrument(summary, said):
+    """What `maglev run` ends with after a signal or a device's run end: read from the
+    summary's final_state (the log's last sample), never from what was asked."""
+    from maglev_haptics.cli import _how_it_was_left
+    assert _how_it_was_left(summary) == said
