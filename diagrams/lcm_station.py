@@ -60,6 +60,7 @@ from maglev_haptics.diagrams.hand_script import MeshcatHand
 from maglev_haptics.diagrams.station_interface import Station
 from maglev_haptics.hardware.config_checks import positive, require
 from maglev_haptics.hardware.constants import SAME_INSTANT_S
+from maglev_haptics.hardware.device import DeviceConfig
 from maglev_haptics.hardware.link.lcm_messages import (
     coil_currents_t, device_status_t, glasses_t, lease_t, markers_t)
 from maglev_haptics.hardware.link.lease import REPLY_PERIOD_S, LeaseClient
@@ -86,12 +87,27 @@ INBOUND_PORTS = {MARKERS: "markers_measured", COIL_CURRENTS: "coil_currents",
                  LEASE: "lease"}  # the lease's answers feed no port
 
 
+# What a simulated station's ``device`` may set against the scenario's: the plant, the
+# coils and the tracker, where a device differs from the model of it.
+DEVICE_TRUTH_FIELDS = ("instrument_mass_kg", "instrument_com_offset_m", "magnet_strength_scales",
+                       "coil_force_scales", "tracker", "amplifier", "thermal")
+
+
 @dataclass
 class SimStation:
-    """The simulated station, in the application's own diagram (the default)."""
+    """The simulated station, in the application's own diagram (the default).
+
+    ``device``, when set, is the device as it is (DEVICE_TRUTH_FIELDS layered on the
+    scenario's ``device`` when the scenario is loaded), while the application flies
+    with the scenario's: how a calibration is tried without a device.
+    """
+
+    device: Optional[DeviceConfig] = None
 
     def validate(self, label: str, scenario) -> None:
-        """Nothing to check: the device config describes the simulated station."""
+        """The simulated device's own range checks."""
+        if self.device is not None:
+            self.device.validate(f"{label}: station.device")
 
 
 @dataclass

@@ -19,7 +19,7 @@ from pydrake.multibody.plant import MultibodyPlantConfig
 
 from maglev_haptics.diagrams.deformable_scene import DeformableSurface
 from maglev_haptics.diagrams.hand_script import MeshcatHand, ScriptedHand
-from maglev_haptics.diagrams.lcm_station import LcmStation, SimStation
+from maglev_haptics.diagrams.lcm_station import DEVICE_TRUTH_FIELDS, LcmStation, SimStation
 from maglev_haptics.diagrams.scenario_diagnosis import load_typed, parse_mapping
 from maglev_haptics.diagrams.scenario_files import (  # noqa: F401  (the light half, re-exported)
     LONGEST_S, SCENARIO_DIR, ScenarioError, read_text_file, resolve_scenario_file,
@@ -280,8 +280,38 @@ def load_scenario(name_or_path: str, name: Optional[str] = None,
         scenario = _layer(scenario, text, layered, label)
         _resolve_relative_files(scenario, Path.cwd(), path.parent)
     scenario = _models_resolved(scenario, path.parent)
+    scenario = _with_simulated_device(scenario, [raw[name] or {}, *(m for _, m in layers)],
+                                      f"{label} ({OVERLAY})" if layers else label)
     validate_scenario(scenario, f"{label} ({OVERLAY})" if layers else label)
     return scenario
+
+
+def _with_simulated_device(scenario: Scenario, mappings, label: str) -> Scenario:
+    """``scenario`` whose ``station: !SimStation {device: ...}`` is the scenario's
+    ``device`` with each layer's station device (``mappings``: the file's scenario,
+    then each overlay, as parsed) laid on it in turn; a layer that sets the station
+    without a device starts again from the scenario's."""
+    if not isinstance(scenario.station, SimStation) or scenario.station.device is None:
+        return scenario
+    device_layers = []
+    for mapping in mappings:
+        station = mapping.get("station") if isinstance(mapping, dict) else None
+        if isinstance(station, dict):
+            device_layers = device_layers + [station["device"]] if "device" in station else []
+    device = scenario.device
+    for layer in device_layers:
+        refused = [key for key in layer if key not in DEVICE_TRUTH_FIELDS]
+        if refused:
+            raise ScenarioError(
+                f"{label}: station.device.{refused[0]}: a simulated station's device may "
+                f"differ from the scenario's only in {', '.join(DEVICE_TRUTH_FIELDS)} (the "
+                "plant, the coils and the tracker); set the rest in the scenario's device")
+        device = load_typed(DeviceConfig, f"{label}: station.device", layer,
+                            lambda: yaml_load_typed(schema=DeviceConfig, data=yaml_dump(layer),
+                                                    defaults=device),
+                            lambda cut: yaml_load_typed(schema=DeviceConfig,
+                                                        data=yaml_dump(cut), defaults=device))
+    return dataclasses.replace(scenario, station=SimStation(device=device))
 
 
 def _models_resolved(scenario: Scenario, here: Path) -> Scenario:

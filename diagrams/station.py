@@ -33,6 +33,8 @@ With the stereo display in the scenario, the user's head and the glasses' tracke
 
 from __future__ import annotations
 
+from xml.etree import ElementTree
+
 import numpy as np
 from pydrake.geometry import SceneGraph
 from pydrake.math import RigidTransform, RollPitchYaw
@@ -48,6 +50,7 @@ from maglev_haptics.diagrams.head_script import head_plan
 from maglev_haptics.diagrams.lcm_station import LcmStation, LcmStationInterface, MakeLcmStation
 from maglev_haptics.diagrams.scenario import Scenario, ScenarioError
 from maglev_haptics.diagrams.station_interface import Station
+from maglev_haptics.hardware.magnetics import load_magnetics
 from maglev_haptics.plant_models import PACKAGE_XML
 from maglev_haptics.systems.fault_injection import (
     CorruptSample, LatencySpike, Shove, Shoves, StuckAmplifier, StuckAmplifiers)
@@ -59,6 +62,7 @@ from maglev_haptics.systems.stereo_renderer import AddStereoRenderer
 
 DISPLAY_MODEL_URL = "package://maglev_haptics/display.sdf"
 DISPLAY_MODEL_THICKNESS_M = 0.010
+DRAKE_SDF_NAMESPACE = "http://drake.mit.edu"
 HAND_GRIP_PERIOD_S = 0.01  # the hand closes or opens on the handle within 10 ms (s)
 
 
@@ -115,12 +119,40 @@ def rest_transform(scenario: Scenario) -> RigidTransform:
     return RigidTransform(RollPitchYaw(0.0, 0.0, yaw), [x, y, spec.rest_height_m])
 
 
-def add_station_models(plant, scenario: Scenario):
-    """Add the instrument, the display and (when the scenario has one) the user's
-    hand to ``plant``; returns the model instances (instrument, hand or None)."""
+def instrument_model_text(parser: Parser, device) -> str | None:
+    """The instrument's SDFormat with ``device``'s mass and centre of mass, or None
+    where the shipped model already has them. The rotational inertia about the centre
+    of mass scales with the mass (a calibration weighs the instrument; it does not
+    take it apart)."""
+    spec = device.instrument_spec()
+    offset = [float(v) for v in device.instrument_com_offset_m]
+    path = parser.package_map().ResolveUrl(spec.model_url)
+    ElementTree.register_namespace("drake", DRAKE_SDF_NAMESPACE)  # kept as written
+    tree = ElementTree.parse(path)
+    inertial = tree.find("model/link[@name='instrument']/inertial")
+    model_mass_kg = float(inertial.find("mass").text)
+    if abs(model_mass_kg - spec.mass_kg) <= 1e-9 and not any(offset):
+        return None
+    inertial.find("mass").text = repr(spec.mass_kg)
+    for element in inertial.find("inertia"):
+        element.text = repr(float(element.text) * spec.mass_kg / model_mass_kg)
+    pose = inertial.find("pose")
+    if pose is None:
+        pose = ElementTree.SubElement(inertial, "pose")
+    pose.text = " ".join(repr(v) for v in (*offset, 0.0, 0.0, 0.0))
+    return ElementTree.tostring(tree.getroot(), encoding="unicode")
+
+
+def add_station_models(plant, scenario: Scenario, device=None):
+    """Add the instrument (of ``device``, default the scenario's), the display and
+    (when the scenario has one) the user's hand to ``plant``; returns the model
+    instances (instrument, hand or None)."""
+    device = scenario.device if device is None else device
     parser = Parser(plant)
     parser.package_map().AddPackageXml(str(PACKAGE_XML))
-    instrument = parser.AddModels(url=scenario.device.instrument_spec().model_url)[0]
+    text = instrument_model_text(parser, device)
+    instrument = (parser.AddModels(url=device.instrument_spec().model_url) if text is None
+                  else parser.AddModelsFromString(text, "sdf"))[0]
     parser.AddModels(url=DISPLAY_MODEL_URL)
     hand = parser.AddModels(url=HAND_MODEL_URL)[0] if scenario.hand is not None else None
     return instrument, hand
@@ -180,15 +212,29 @@ def station_kind(scenario: Scenario, config=None) -> type:
 
 def MakeStation(scenario: Scenario, *, magnetics, config=None) -> Station:
     """The station of ``scenario`` (or of ``config`` in its place): simulated here, or
-    the LCM interface with the same ports (``diagrams/lcm_station.py``)."""
+    the LCM interface with the same ports (``diagrams/lcm_station.py``). A simulated
+    station whose ``device`` differs from the scenario's (``SimStation.device``: the
+    device as it is, against the model the application flies with) has its own
+    electromagnetic model."""
     if station_kind(scenario, config) is LcmStationInterface:
         return MakeLcmStation(scenario)
-    return SimulatedStation(_simulated_station(scenario, magnetics))
+    device = station_device(scenario, config)
+    if device is not scenario.device:
+        magnetics = load_magnetics(device)
+    return SimulatedStation(_simulated_station(scenario, device, magnetics))
 
 
-def _simulated_station(scenario: Scenario, magnetics) -> Diagram:
-    """The simulated station's Diagram, named ``station`` (the module docstring's ports)."""
-    device = scenario.device
+def station_device(scenario: Scenario, config=None):
+    """The device a simulated station simulates: its ``SimStation.device`` (the
+    scenario's overlaid, ``diagrams/scenario.py``), else the scenario's."""
+    config = config or scenario.station
+    device = getattr(config, "device", None)
+    return scenario.device if device is None else device
+
+
+def _simulated_station(scenario: Scenario, device, magnetics) -> Diagram:
+    """The simulated station's Diagram of ``device``, named ``station`` (the module
+    docstring's ports)."""
     spec = device.instrument_spec()
     if abs(device.display.thickness_m - DISPLAY_MODEL_THICKNESS_M) > 1e-9:
         raise ScenarioError(
@@ -196,13 +242,9 @@ def _simulated_station(scenario: Scenario, magnetics) -> Diagram:
             f"model is {DISPLAY_MODEL_THICKNESS_M} m thick; other values need their own model")
     builder = DiagramBuilder()
     plant, scene_graph = AddMultibodyPlant(scenario.plant_config, builder)
-    instrument, hand = add_station_models(plant, scenario)
+    instrument, hand = add_station_models(plant, scenario, device)
     plant.Finalize()
     body = plant.GetBodyByName("instrument", instrument)
-    if abs(body.default_mass() - spec.mass_kg) > 1e-6:
-        raise ScenarioError(
-            f"device.instrument_mass_kg = {spec.mass_kg}: the model {spec.model_url} has "
-            f"{body.default_mass()} kg; the two must agree")
     plant.SetDefaultFloatingBaseBodyPose(body, rest_transform(scenario))
     if hand is not None:
         plant.SetDefaultFloatingBaseBodyPose(plant.GetBodyByName("hand", hand),

@@ -6,16 +6,33 @@ from a scenario's ``device:`` block. SI units throughout; frames as in docs/arch
 array, C_j coil j, I instrument).
 """
 
+import copyreg
 import dataclasses
 import math
 from dataclasses import dataclass, field
 from typing import List, Optional
 
 import numpy as np
+from pydrake.common.schema import Transform
+from pydrake.common.yaml import yaml_dump_typed, yaml_load_typed
+from pydrake.math import RigidTransform
 
 from maglev_haptics.hardware.config_checks import nonnegative, positive, require
 
 NDFEB_DENSITY_KG_M3 = 7500.0
+# A magnet's strength or a coil's wrench per ampere against the model: a device outside
+# this is another device, not a calibration of this one.
+MODEL_SCALE_RANGE = (0.5, 1.5)
+MAX_COM_OFFSET_M = 0.02  # a centre of mass past this is off the instrument's body (m)
+
+
+def _transform_from_yaml(text: str) -> Transform:
+    return yaml_load_typed(schema=Transform, data=text)
+
+
+# Drake's schema Transform does not pickle; a device config does (sweeps and worker
+# processes carry scenarios): through its YAML.
+copyreg.pickle(Transform, lambda value: (_transform_from_yaml, (yaml_dump_typed(value),)))
 INSTRUMENT_KINDS = ("two_magnet", "four_magnet")
 
 
@@ -215,6 +232,13 @@ class TrackerSpec:
     rate_hz: float = 860.0
     noise_m: float = 1.0e-5  # standard deviation per marker coordinate
     latency_s: float = 1.5e-3  # measurement to availability (Optotrak ~1-2 ms)
+    # The pose of the frame T the tracker reports markers in, in W: where the tracker
+    # is bolted against the display. Nominal T is W; ``maglev calibrate fit`` measures it.
+    X_WT: Transform = field(default_factory=Transform)
+
+    def pose_WT(self) -> RigidTransform:
+        """X_WT as a RigidTransform."""
+        return self.X_WT.GetDeterministicValue()
 
 
 @dataclass
@@ -254,6 +278,14 @@ class DeviceConfig:
     instrument: str = "two_magnet"
     magnet: Optional[MagnetSpec] = None  # None: the kind's magnets
     instrument_mass_kg: Optional[float] = None  # None: the kind's mass
+    # The centre of mass in I (m): nominal at I's origin; a tool or a handle off-centre
+    # moves it, and the gravity torque about I with it.
+    instrument_com_offset_m: List[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
+    # Each magnet's strength (one per magnet of the instrument, in p_IM's order) and each
+    # coil's wrench per ampere (n_coils), as scales on the electromagnetic model; None is
+    # 1.0 for each: a grade's +-3 % of remanence, a coil's windings and placement.
+    magnet_strength_scales: Optional[List[float]] = None
+    coil_force_scales: Optional[List[float]] = None
     coil: CoilSpec = field(default_factory=CoilSpec)
     array: CoilArraySpec = field(default_factory=CoilArraySpec)
     amplifier: AmplifierSpec = field(default_factory=AmplifierSpec)
@@ -294,6 +326,34 @@ class DeviceConfig:
         positive(f"{path}.tracker.rate_hz", self.tracker.rate_hz)
         nonnegative(f"{path}.tracker.noise_m", self.tracker.noise_m)
         nonnegative(f"{path}.tracker.latency_s", self.tracker.latency_s)
+        require(self.tracker.X_WT.IsDeterministic() and self.tracker.X_WT.base_frame is None,
+                f"{path}.tracker.X_WT", self.tracker.X_WT,
+                "must be a fixed pose in W (no random distribution, no base_frame)")
+        offset = np.asarray(self.instrument_com_offset_m, dtype=float)
+        require(offset.shape == (3,) and np.all(np.isfinite(offset))
+                and np.linalg.norm(offset) <= MAX_COM_OFFSET_M, f"{path}.instrument_com_offset_m",
+                self.instrument_com_offset_m,
+                f"must be [x, y, z] in I (m), at most {MAX_COM_OFFSET_M} m from I's origin")
+        n_magnets = len(default_instrument(self.instrument).p_IM_m)
+        for name, count in (("magnet_strength_scales", n_magnets),
+                            ("coil_force_scales", array.n_coils)):
+            scales = getattr(self, name)
+            if scales is not None:
+                values = np.asarray(scales, dtype=float)
+                require(values.shape == (count,) and np.all(values >= MODEL_SCALE_RANGE[0])
+                        and np.all(values <= MODEL_SCALE_RANGE[1]), f"{path}.{name}", scales,
+                        f"must be {count} numbers (one per {name.split('_')[0]}) in "
+                        f"[{MODEL_SCALE_RANGE[0]}, {MODEL_SCALE_RANGE[1]}], or null for 1.0 each")
+
+    def model_scales(self) -> tuple:
+        """(magnet scales (n_magnets,), coil scales (n_coils,)): the wrench model's
+        per-magnet and per-coil factors, ones where the config leaves them null."""
+        n_magnets = len(self.instrument_spec().p_IM_m)
+        magnets = np.ones(n_magnets) if self.magnet_strength_scales is None \
+            else np.asarray(self.magnet_strength_scales, dtype=float)
+        coils = np.ones(self.n_coils) if self.coil_force_scales is None \
+            else np.asarray(self.coil_force_scales, dtype=float)
+        return np.ascontiguousarray(magnets), np.ascontiguousarray(coils)
 
     def instrument_spec(self) -> InstrumentSpec:
         spec = default_instrument(self.instrument)

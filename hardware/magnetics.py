@@ -35,6 +35,7 @@ def check_magnet_pose(p_CM, u_C) -> tuple[np.ndarray, np.ndarray]:
 
 
 _ORIGIN = np.zeros((1, 3))
+_ONE = np.ones(1)
 
 
 def _rotation_with_z(u: np.ndarray) -> np.ndarray:
@@ -72,6 +73,7 @@ class MagneticsModel:
         self.table = table
         self.p_ACj = np.ascontiguousarray(config.array.coil_positions_A())
         self.p_IM = np.ascontiguousarray(self.instrument.p_IM)
+        self.magnet_scales, self.coil_scales = config.model_scales()
         self._values = table.kernel_values
         self._axes = np.ascontiguousarray(table.axes)
         # Kernel work space: 3 tilt nodes x 6 components, summed in float32.
@@ -100,8 +102,9 @@ class MagneticsModel:
         if p_AI.shape != (3,) or R_AI.shape != (3, 3):
             raise ValueError(f"p_AI shape {p_AI.shape}, R_AI shape {R_AI.shape}: "
                              "must be (3,) and (3, 3)")
-        status, matrix = wrench_matrix_kernel(self._values, self._axes, self.p_ACj,
-                                              self.p_IM, p_AI, R_AI, self._scratch)
+        status, matrix = wrench_matrix_kernel(self._values, self._axes, self.p_ACj, self.p_IM,
+                                              self.magnet_scales, self.coil_scales, p_AI, R_AI,
+                                              self._scratch)
         if status == POSE_NOT_FINITE:
             name, value = ("p_AI", p_AI) if not np.all(np.isfinite(p_AI)) else ("R_AI", R_AI)
             raise ValueError(f"{name} = {value!r}: must be finite")
@@ -110,9 +113,26 @@ class MagneticsModel:
         return matrix
 
     def kernel_arguments(self) -> tuple:
-        """(values, axes, p_ACj, p_IM, scratch): ``wrench_matrix_kernel``'s model arguments,
-        for a kernel that computes the matrix inside its own compiled call."""
-        return self._values, self._axes, self.p_ACj, self.p_IM, self._scratch
+        """(values, axes, p_ACj, p_IM, magnet_scales, coil_scales, scratch):
+        ``wrench_matrix_kernel``'s model arguments, for a kernel that computes the
+        matrix inside its own compiled call."""
+        return (self._values, self._axes, self.p_ACj, self.p_IM, self.magnet_scales,
+                self.coil_scales, self._scratch)
+
+    def magnet_wrench_matrices(self, p_AI: np.ndarray, R_AI: np.ndarray) -> np.ndarray:
+        """(n_magnets, 6, n_coils): each magnet's share of ``wrench_matrix_from`` at
+        nominal strength and coil scales, the terms a calibration weighs."""
+        p_AI, R_AI = _kernel_array(p_AI), _kernel_array(R_AI)
+        ones = np.ones(1), np.ones(self.n_coils)
+        shares = []
+        for m in range(len(self.p_IM)):
+            status, matrix = wrench_matrix_kernel(self._values, self._axes, self.p_ACj,
+                                                  self.p_IM[m:m + 1].copy(), *ones, p_AI, R_AI,
+                                                  self._scratch)
+            if status != POSE_OK:
+                self.wrench_matrix_from(p_AI, R_AI)  # raises the pose's own error
+            shares.append(matrix)
+        return np.array(shares)
 
     def coil_magnet_wrench(self, p_CM, u_C) -> tuple[np.ndarray, np.ndarray]:
         """(force [N/A], torque [N m/A]) of one coil at +1 A on one instrument magnet.
@@ -124,7 +144,7 @@ class MagneticsModel:
         p, u = check_magnet_pose(p_CM, u_C)
         # The matrix kernel for one coil at the origin and one magnet at I's
         # origin, I's z along u: one compiled kernel serves both entry points.
-        _, wrench = wrench_matrix_kernel(self._values, self._axes, _ORIGIN, _ORIGIN,
+        _, wrench = wrench_matrix_kernel(self._values, self._axes, _ORIGIN, _ORIGIN, _ONE, _ONE,
                                          p, _rotation_with_z(u), self._scratch)
         return wrench[:3, 0], wrench[3:, 0]
 

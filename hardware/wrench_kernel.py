@@ -144,14 +144,17 @@ def pair_wrench_C(values, axes, p_CM, w_x, w_y, out, scratch):
     return True
 
 
-@kernel((FLOAT32_TENSOR4, MATRIX, MATRIX, MATRIX, VECTOR, MATRIX, FLOAT32_VECTOR),
+@kernel((FLOAT32_TENSOR4, MATRIX, MATRIX, MATRIX, VECTOR, VECTOR, VECTOR, MATRIX, FLOAT32_VECTOR),
         fastmath=VECTORIZING_MATH)
-def wrench_matrix_kernel(values, axes, p_ACj, p_IM, p_AI, R_AI, scratch):
+def wrench_matrix_kernel(values, axes, p_ACj, p_IM, magnet_scales, coil_scales, p_AI, R_AI,
+                         scratch):
     """(status, (6, n_coils) wrench per ampere on the instrument).
 
     The matrix is in A axes, torques about I's origin. p_ACj (n_coils, 3) coil
-    top centres [m]; p_IM (n_magnets, 3) magnet centres in I [m]; p_AI (3,) [m]
-    and R_AI (3, 3) the instrument pose; scratch (18,) float32 work space.
+    top centres [m]; p_IM (n_magnets, 3) magnet centres in I [m]; magnet_scales
+    (n_magnets,) and coil_scales (n_coils,) multiply each pair's wrench (a
+    magnet's strength, a coil's wrench per ampere; 1.0 leaves it exact);
+    p_AI (3,) [m] and R_AI (3, 3) the instrument pose; scratch (18,) float32 work space.
     Every magnet is magnetized along I's +z. status is POSE_OK, POSE_NOT_FINITE
     or POSE_NOT_ROTATION (then the matrix is zero).
     """
@@ -177,13 +180,14 @@ def wrench_matrix_kernel(values, axes, p_ACj, p_IM, p_AI, R_AI, scratch):
                 p_CM[k] = p_AI[k] + r_IM[k] - p_ACj[j, k]
             if not pair_wrench_C(values, axes, p_CM, w_x, w_y, wrench, scratch):
                 continue
-            fx, fy, fz = wrench[0], wrench[1], wrench[2]
+            scale = magnet_scales[m] * coil_scales[j]
+            fx, fy, fz = wrench[0] * scale, wrench[1] * scale, wrench[2] * scale
             matrix[0, j] += fx
             matrix[1, j] += fy
             matrix[2, j] += fz
-            matrix[3, j] += wrench[3] + r_IM[1] * fz - r_IM[2] * fy
-            matrix[4, j] += wrench[4] + r_IM[2] * fx - r_IM[0] * fz
-            matrix[5, j] += wrench[5] + r_IM[0] * fy - r_IM[1] * fx
+            matrix[3, j] += wrench[3] * scale + r_IM[1] * fz - r_IM[2] * fy
+            matrix[4, j] += wrench[4] * scale + r_IM[2] * fx - r_IM[0] * fz
+            matrix[5, j] += wrench[5] * scale + r_IM[0] * fy - r_IM[1] * fx
     return status, matrix
 
 

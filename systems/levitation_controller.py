@@ -184,10 +184,10 @@ def controller_outputs(n_coils: int) -> Tuple[Tuple[str, int], ...]:
 # ``pose_seen`` (flag, then the 7 of the pose) memoizes the wrench matrix ``A``: it
 # changes at the tracker's rate, the command every tick.
 @kernel((VECTOR, INDEX_VECTOR, VECTOR, VECTOR, SCALAR, SCALAR, VECTOR,
-         FLOAT32_TENSOR4, MATRIX, MATRIX, MATRIX, FLOAT32_VECTOR, VECTOR, MATRIX,
+         FLOAT32_TENSOR4, MATRIX, MATRIX, MATRIX, VECTOR, VECTOR, FLOAT32_VECTOR, VECTOR, MATRIX,
          FLAG, VECTOR, SCALAR, SCALAR, VECTOR))
 def control_law(inputs, starts, kp, kd, mass_kg, lost_grace_s, p_WA,
-                values, axes, p_ACj, p_IM, scratch, pose_seen, A,
+                values, axes, p_ACj, p_IM, magnet_scales, coil_scales, scratch, pose_seen, A,
                 thermal_allocation, limits, current_limit_a, torque_weight, out):
     """One tick of the controller: ``inputs`` (``controller_inputs`` stacked, each port
     from its entry of ``starts``) to ``out`` (``controller_outputs`` stacked), with the
@@ -199,7 +199,8 @@ def control_law(inputs, starts, kp, kd, mass_kg, lost_grace_s, p_WA,
                                 inputs[starts[1]:starts[1] + 7].copy(),
                                 inputs[starts[2]:starts[2] + 6].copy())
     if pose_seen[0] != 1.0 or np.any(pose_seen[1:] != pose):
-        status, matrix = wrench_matrix_at_pose(pose, p_WA, values, axes, p_ACj, p_IM, scratch)
+        status, matrix = wrench_matrix_at_pose(pose, p_WA, values, axes, p_ACj, p_IM,
+                                               magnet_scales, coil_scales, scratch)
         if status != POSE_OK:
             pose_seen[0] = 0.0
             return status

@@ -30,17 +30,20 @@ def raise_pose_error(magnetics, p_WA, q_WI) -> None:
 
 
 @numba.njit(cache=True)
-def wrench_matrix_at_pose(q_WI, p_WA, values, axes, p_ACj, p_IM, scratch):
+def wrench_matrix_at_pose(q_WI, p_WA, values, axes, p_ACj, p_IM, magnet_scales, coil_scales,
+                          scratch):
     """(status, (6, n_coils) wrench matrix) for the pose vector q_WI (C-ordered, 7) in
     W: ``wrench_matrix_at`` inside a kernel; the model arguments are
     ``MagneticsModel.kernel_arguments()``."""
-    return wrench_matrix_kernel(values, axes, p_ACj, p_IM, q_WI[4:7] - p_WA,
-                                rotation_from_quaternion(q_WI[0:4].copy()), scratch)
+    return wrench_matrix_kernel(values, axes, p_ACj, p_IM, magnet_scales, coil_scales,
+                                q_WI[4:7] - p_WA, rotation_from_quaternion(q_WI[0:4].copy()),
+                                scratch)
 
 
-@kernel((VECTOR, VECTOR, VECTOR, FLOAT32_TENSOR4, MATRIX, MATRIX, MATRIX, FLOAT32_VECTOR, VECTOR))
+@kernel((VECTOR, VECTOR, VECTOR, FLOAT32_TENSOR4, MATRIX, MATRIX, MATRIX, VECTOR, VECTOR,
+         FLOAT32_VECTOR, VECTOR))
 def instrument_generalized_force(instrument_state, coil_currents, p_WA, values, axes, p_ACj,
-                                 p_IM, scratch, out):
+                                 p_IM, magnet_scales, coil_scales, scratch, out):
     """[tau; f] in W (N*m about I's origin, N) on the instrument's free body, into ``out``;
     returns the wrench matrix's pose status (``POSE_OK``: written).
 
@@ -50,7 +53,7 @@ def instrument_generalized_force(instrument_state, coil_currents, p_WA, values, 
     model arguments are ``MagneticsModel.kernel_arguments()``.
     """
     status, A = wrench_matrix_at_pose(instrument_state[0:7].copy(), p_WA, values, axes, p_ACj,
-                                      p_IM, scratch)
+                                      p_IM, magnet_scales, coil_scales, scratch)
     if status != POSE_OK:
         return status
     wrench = A @ coil_currents

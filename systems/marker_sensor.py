@@ -1,8 +1,9 @@
 """Marker sensor (station): a simulated optical tracker (Optotrak-like).
 
-Each sample publishes the W-frame positions of the instrument's markers with
+Each sample publishes the positions of the instrument's markers in the tracker's
+frame T (``tracker.X_WT``: where the tracker is bolted; nominally T is W) with
 per-coordinate Gaussian noise, optional quantization, latency and occlusion.
-Markers are a flat (3 n,) vector [x0 y0 z0 x1 ...] of p_WK in m; a marker the
+Markers are a flat (3 n,) vector [x0 y0 z0 x1 ...] of p_TK in m; a marker the
 tracker does not see is NaN in all three coordinates.
 
 Latency L: the sample published at t_k shows the instrument at t_k - L. The
@@ -29,7 +30,7 @@ import numpy as np
 from pydrake.systems.framework import Diagram, LeafSystem
 
 from maglev_haptics.hardware.device import InstrumentSpec, TrackerSpec
-from maglev_haptics.hardware.kernels import MASK_MATRIX, MATRIX, SCALAR, VECTOR, kernel
+from maglev_haptics.hardware.kernels import FLAG, MASK_MATRIX, MATRIX, SCALAR, VECTOR, kernel
 from maglev_haptics.systems.fault_injection import (
     CorruptSample, LatencySpike, corrupt, stalled)
 from maglev_haptics.systems.rotations import (
@@ -83,14 +84,18 @@ def quantize(values: np.ndarray, step: float) -> np.ndarray:
 
 
 @kernel((SCALAR, VECTOR, MATRIX, SCALAR, SCALAR, SCALAR, SCALAR, MATRIX, VECTOR, VECTOR, VECTOR,
-         MASK_MATRIX, VECTOR))
+         MASK_MATRIX, FLAG, MATRIX, VECTOR, VECTOR))
 def _measure(t, instrument_state, p_IK, latency_s, noise_m, quantization_m, dropout_probability,
-             normal, uniform, occlusion_start, occlusion_end, occlusion_hides, p_WK_out):
-    """MarkerSensor.measure written into p_WK_out (3 n,) [m], given the sample's
-    draws normal (n, 3) and uniform (n,) and the occlusion table of
-    _occlusion_table."""
+             normal, uniform, occlusion_start, occlusion_end, occlusion_hides, in_T, R_TW, p_TW,
+             p_TK_out):
+    """MarkerSensor.measure written into p_TK_out (3 n,) [m], given the sample's
+    draws normal (n, 3) and uniform (n,), the occlusion table of _occlusion_table
+    and, where ``in_T``, the pose X_TW (R_TW, p_TW [m]) of W in the tracker's frame."""
     q_WI = extrapolate_pose(instrument_state[:7], instrument_state[7:13], -latency_s)
-    p_WK = quantize(marker_positions_W(q_WI, p_IK) + noise_m * normal, quantization_m)
+    p_WK = marker_positions_W(q_WI, p_IK)
+    if in_T:
+        p_WK = p_WK @ R_TW.T + p_TW
+    p_WK = quantize(p_WK + noise_m * normal, quantization_m)
     t_capture = t - latency_s
     for k in range(len(p_IK)):
         hidden = uniform[k] < dropout_probability
@@ -98,7 +103,7 @@ def _measure(t, instrument_state, p_IK, latency_s, noise_m, quantization_m, drop
             if occlusion_hides[j, k] and occlusion_start[j] <= t_capture < occlusion_end[j]:
                 hidden = True
         for i in range(3):
-            p_WK_out[3 * k + i] = np.nan if hidden else p_WK[k, i]
+            p_TK_out[3 * k + i] = np.nan if hidden else p_WK[k, i]
 
 
 class SampleNoise:
@@ -215,6 +220,10 @@ class MarkerSensorLaw(LeafSystem):
         self.rate_hz = float(tracker.rate_hz)
         self._noise_m = _check_nonnegative("tracker.noise_m", tracker.noise_m, "m")
         self._latency_s = _check_nonnegative("tracker.latency_s", tracker.latency_s, "s")
+        X_TW = tracker.pose_WT().inverse()
+        self._in_T = not X_TW.IsExactlyIdentity()
+        self._R_TW = np.ascontiguousarray(X_TW.rotation().matrix())
+        self._p_TW = np.ascontiguousarray(X_TW.translation())
         self._quantization_m = _check_nonnegative("quantization_m", quantization_m, "m")
         self._dropout = float(dropout_probability)
         self._occlusion_start, self._occlusion_end, self._occlusion_hides = \
@@ -238,7 +247,8 @@ class MarkerSensorLaw(LeafSystem):
         normal, uniform = self._noise.draw(sample)
         _measure(t, instrument_state, self._p_IK, self._latency_s, self._noise_m,
                  self._quantization_m, self._dropout, normal, uniform,
-                 self._occlusion_start, self._occlusion_end, self._occlusion_hides, p_WK_out)
+                 self._occlusion_start, self._occlusion_end, self._occlusion_hides,
+                 self._in_T, self._R_TW, self._p_TW, p_WK_out)
         if self._corruptions:
             corrupt(sample, p_WK_out, self._corruptions, self.rate_hz)
 
@@ -282,7 +292,8 @@ class MarkerSensor(Diagram):
 
     - ``instrument_state`` (13): the plant's free-body state
       [qw qx qy qz x y z wx wy wz vx vy vz] (m, rad/s, m/s; velocities in W).
-    - ``markers_measured`` (3 n): p_WK [m] of the n markers, NaN where not seen:
+    - ``markers_measured`` (3 n): p_TK [m] of the n markers in the tracker's frame T
+      (W unless ``tracker.X_WT`` says otherwise), NaN where not seen:
       the newest sample published before now (NaN before the first, at t = 0).
     - ``markers_sample_time_s`` (1): when that sample was published (s); it shows
       the instrument ``tracker.latency_s`` before.

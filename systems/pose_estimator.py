@@ -42,7 +42,7 @@ from pydrake.systems.framework import Diagram, LeafSystem
 from maglev_haptics.hardware.config_checks import finite, positive, require
 from maglev_haptics.hardware.constants import SAME_INSTANT_S
 from maglev_haptics.hardware.device import InstrumentSpec, TrackerSpec
-from maglev_haptics.hardware.kernels import MATRIX, SCALAR, VECTOR, kernel
+from maglev_haptics.hardware.kernels import FLAG, MATRIX, SCALAR, VECTOR, kernel
 from maglev_haptics.systems.rotations import (
     quaternion_conjugate, quaternion_exp, quaternion_from_rotation_matrix, quaternion_log,
     quaternion_multiply)
@@ -393,13 +393,14 @@ CLOCK_ROWS = (_PROCESSED, _LAST, _LAST_COUNT)
  _JUMP_HOLD_S) = range(8)
 
 
-@kernel((VECTOR, SCALAR, SCALAR, SCALAR, VECTOR, MATRIX, VECTOR, VECTOR))
-def estimator_record(markers_W, sample_time_s, sample_count, t, held, p_IK, parameters,
-                     record):
+@kernel((VECTOR, SCALAR, SCALAR, SCALAR, VECTOR, MATRIX, VECTOR, FLAG, MATRIX, VECTOR, VECTOR))
+def estimator_record(markers_T, sample_time_s, sample_count, t, held, p_IK, parameters,
+                     in_T, R_WT, p_WT, record):
     """The estimator's record at time ``t`` (s) into ``record``: ``held`` (the record at
-    the last tick) after the sample ``markers_W`` published at ``sample_time_s`` (s),
+    the last tick) after the sample ``markers_T`` published at ``sample_time_s`` (s),
     frame ``sample_count``, if the estimator has not processed it yet and its
-    processing ended before ``t``. The filter steps over the frames since the last
+    processing ended before ``t``. The markers are in the tracker's frame T, taken to
+    W by X_WT (R_WT, p_WT [m]) where ``in_T``. The filter steps over the frames since the last
     it processed (a frame missed on the link is two periods, not one).
     ``parameters``: the residual limit (m), the filter's alpha and beta, the tracker's
     period (s), the processing delay (s) and the jump limits (m, rad, s)."""
@@ -413,6 +414,9 @@ def estimator_record(markers_W, sample_time_s, sample_count, t, held, p_IK, para
     if not (fresh and sample_time_s + parameters[_PROCESSING_DELAY_S] < t - SAME_INSTANT_S):
         return
     frames = 1.0
+    markers_W = markers_T
+    if in_T:
+        markers_W = (markers_T.reshape((-1, 3)) @ R_WT.T + p_WT).ravel()
     if held[_PROCESSED] > 0.0 and sample_count - held[_LAST_COUNT] > 1.0:
         frames = sample_count - held[_LAST_COUNT]
     _estimator_update(markers_W, p_IK, parameters[_RESIDUAL_LIMIT_M], parameters[_ALPHA],
@@ -466,6 +470,10 @@ class PoseEstimatorLaw(LeafSystem):
         self._sample_count = self.DeclareVectorInputPort("markers_sample_count", 1)
         self._held = self.DeclareVectorInputPort("held", RECORD_SIZE)
         self.DeclareVectorOutputPort("record", RECORD_SIZE, self._calc_record)
+        X_WT = tracker.pose_WT()
+        self._in_T = not X_WT.IsExactlyIdentity()
+        self._R_WT = np.ascontiguousarray(X_WT.rotation().matrix())
+        self._p_WT = np.ascontiguousarray(X_WT.translation())
 
     def _calc_record(self, context, output):
         # Views, not copies: the kernel only reads them.
@@ -474,7 +482,7 @@ class PoseEstimatorLaw(LeafSystem):
             self._sample_time.EvalBasicVector(context).GetAtIndex(0),
             self._sample_count.EvalBasicVector(context).GetAtIndex(0), context.get_time(),
             self._held.EvalBasicVector(context).value(), self._model.p_IK, self._parameters,
-            output.get_mutable_value())
+            self._in_T, self._R_WT, self._p_WT, output.get_mutable_value())
 
 
 class PoseEstimator(Diagram):
@@ -492,7 +500,8 @@ class PoseEstimator(Diagram):
         - V_WI_measured
         - tracking_ok
 
-    - ``markers_measured`` (3 n): p_WK [m], NaN for markers not seen;
+    - ``markers_measured`` (3 n): p_TK [m] in the tracker's frame T, NaN for markers
+      not seen; the estimator takes them to W with ``tracker.X_WT``;
       ``markers_sample_time_s`` (1): when they were published (s);
       ``markers_sample_count`` (1): their frame number (the filter steps over the
       frames since the last it processed: a missed frame is two periods).
