@@ -16,6 +16,10 @@ Four kinds of numbers:
 - the electromagnetic model (a full 6 x n wrench matrix) and the allocation;
 - the stereo display: view matrices per frame and a rendered frame pair;
 - the offline analysis: the loop studies' wall time on the peg-in-hole scene.
+
+Every figure's line ends with the machine's two yardsticks (``machine_yardsticks``):
+takeoff_hover_land's physics floor (us) and the shipped lattice's masses stepped a
+microsecond, so that two machines' numbers can be compared.
 """
 
 from __future__ import annotations
@@ -67,6 +71,7 @@ PACED_SCENARIOS = (("levitate", "takeoff_hover_land"), ("peg_in_hole", None),
                    ("paddle_ball", None), ("deformable_surface", None))
 QUICK_DURATION_S = 1.0  # --quick: simulated seconds a scenario
 QUICK_LATTICE_SIZES = 2  # --quick: the lattice's smallest sizes only
+YARDSTICK_SCENARIO = "takeoff_hover_land"  # its physics floor is the machine's yardstick
 
 
 def _step_cost_us(builder, n_steps: int, period_s: float) -> float:
@@ -203,7 +208,8 @@ def run_benchmarks(duration_s: Optional[float] = None, progress: bool = True,
     that long. With ``out_dir``, writes bench.json and lattice_scaling.png there."""
     if quick:
         duration_s = QUICK_DURATION_S
-    results: Dict = {"scenarios": {}, "systems_us": {}, "wrench_matrix_us": {}, "allocation": {}}
+    results: Dict = {"scenarios": {}, "systems_us": {}, "wrench_matrix_us": {}, "allocation": {},
+                     "machine": {}}
     scenarios = [(LEVITATE_FILE, name) for name in scenario_names(LEVITATE_FILE)]
     scenarios += [(path, scenario_names(path)[0]) for path in HAPTIC_FILES]
     for path, name in scenarios:
@@ -219,6 +225,10 @@ def run_benchmarks(duration_s: Optional[float] = None, progress: bool = True,
         lattice = built.haptics.scene.lattice if built.haptics is not None else None
         floor = physics_floor_us(scenario, None if lattice is None else lattice_costs(
             scenario.haptics.scene)[f"symplectic_euler_{scenario.haptics.scene.substeps}_us"])
+        if lattice is not None:
+            results["machine"]["lattice_masses"] = lattice.num_masses
+            results["machine"]["lattice_masses_per_us"] = (
+                lattice.num_masses / floor["lattice_tick_other_core_us"])
         results["scenarios"][name] = {
             "instrument": scenario.device.instrument,
             "simulated_s": sim_s,
@@ -228,6 +238,9 @@ def run_benchmarks(duration_s: Optional[float] = None, progress: bool = True,
             "physics_floor": floor,
             "tick_over_floor": tick_us / floor_us(floor),
         }
+    if YARDSTICK_SCENARIO in results["scenarios"]:
+        results["machine"]["takeoff_floor_us"] = floor_us(
+            results["scenarios"][YARDSTICK_SCENARIO]["physics_floor"])
     scenario = load_scenario(str(LEVITATE_FILE), "takeoff_hover_land")
     built = BuildDiagram(scenario)
     simulator, _, _ = simulate(built, HOVER_TIME_S, progress=False)
@@ -275,7 +288,25 @@ def analysis_costs() -> Dict[str, float]:
     return costs
 
 
+def machine_yardsticks(machine: Dict) -> str:
+    """The tag every figure's line ends with: the takeoff floor (us) and the lattice's
+    masses a microsecond, where measured."""
+    parts = []
+    if "takeoff_floor_us" in machine:
+        parts.append(f"takeoff floor {machine['takeoff_floor_us']:.0f} us")
+    if "lattice_masses_per_us" in machine:
+        parts.append(f"lattice {machine['lattice_masses_per_us']:.1f} masses/us")
+    return "  [" + ", ".join(parts) + "]" if parts else ""
+
+
+def _with_yardsticks(lines, tag: str):
+    """Each line that carries a figure (indented), ``tag`` appended."""
+    return [line + tag if line.startswith("  ") and any(ch.isdigit() for ch in line) else line
+            for line in lines]
+
+
 def format_report(results: Dict) -> str:
+    tag = machine_yardsticks(results.get("machine", {}))
     lines = ["Scenarios, whole diagram (Meshcat off); the physics floor is the plants, the "
              "wrench kernels and one allocation in series, or the lattice's tick on the other "
              "core where that is longer:",
@@ -314,4 +345,9 @@ def format_report(results: Dict) -> str:
                          f"({100 * r['miss_fraction']:.3f}%)  {r['tick_compute_us_p50']:.0f} / "
                          f"{r['tick_compute_us_p99']:.0f} / {r['tick_compute_us_max']:.0f}"
                          f"  at {r['priority']}")
-    return "\n".join(lines)
+    machine = results.get("machine", {})
+    if machine:
+        lines.append("Machine yardsticks:" + tag.removeprefix("  ") + (
+            f" ({machine['lattice_masses']} masses)" if "lattice_masses" in machine else ""))
+    lines = "\n".join(lines).split("\n")  # the sections' own multi-line blocks too
+    return "\n".join(_with_yardsticks(lines, tag))

@@ -65,7 +65,7 @@ def lattice_costs(scene: DeformableSurface) -> Dict:
                               link_damping_n_s_per_m=scene.link_damping_n_s_per_m)
         x = lattice.positions_m.copy()
         v = np.where(lattice.fixed[:, None], 0.0, 1e-3 * rng.standard_normal(x.shape))
-        return (x, v, model.links, model.rest_lengths_m, model.stiffness_n_per_m,
+        return (x, v, *model.topology, model.rest_lengths_m, model.stiffness_n_per_m,
                 model.damping_n_s_per_m, model.mass_kg, model.inv_mass_per_kg,
                 model.gravity_m_s2, model.surface, np.zeros_like(x), far, np.zeros(3),
                 np.zeros(3), probe.radius_m, probe.stiffness_n_per_m, probe.onset_depth_m,
@@ -131,12 +131,12 @@ def format_lattice_report(scaling: Dict) -> str:
              f"{1e3 * scaling['node_mass_kg']:.0f} g nodes, "
              f"{scaling['link_damping_n_s_per_m']} N s/m links:",
              f"  {'masses':>7}{'links':>8}{'SE x1':>8}{'SE x4':>8}{'implicit':>10}"
-             f"{'CG it':>7}{'k max x1':>10}{'x2':>8}{'x4':>8}"]
+             f"{'CG it':>7}{'k max x1':>10}{'x2':>8}{'x4':>8}{'masses/us x1':>14}"]
     for r in scaling["sizes"]:
         k = r["symplectic_euler_max_link_stiffness_n_per_m"]
         lines.append(f"  {r['masses']:>7}{r['links']:>8}{r['symplectic_euler_1_us']:>8.0f}"
                      f"{r['symplectic_euler_4_us']:>8.0f}{r['linearly_implicit_us']:>10.0f}"
                      f"{r['linearly_implicit_cg_iterations']:>7}{k['1']:>10.0f}{k['2']:>8.0f}"
-                     f"{k['4']:>8.0f}")
+                     f"{k['4']:>8.0f}{r['masses'] / r['symplectic_euler_1_us']:>14.1f}")
     lines.append("  (implicit: links 10x the 1-substep limit; it is stable at any stiffness)")
     return "\n".join(lines)

@@ -24,6 +24,7 @@ FLOAT32_VECTOR = types.Array(types.float32, 1, "C")
 FLOAT32_TENSOR4 = types.Array(types.float32, 4, "C")
 INDEX_VECTOR = types.Array(types.int64, 1, "C")
 INDEX_MATRIX = types.Array(types.int64, 2, "C")
+UINT32_VECTOR = types.Array(types.uint32, 1, "C")  # indices without the negative-index fixup
 MASK_MATRIX = types.Array(types.boolean, 2, "C")
 SCALAR = types.float64
 INDEX = types.int64

@@ -125,7 +125,7 @@ class DeformableSurface(LeafSystem):
         """One tick of (x, v) in place, synchronously."""
         m = self._model
         probe = probe_arguments(tool, self._p_TP)
-        common = (x, v, m.links, m.rest_lengths_m, m.stiffness_n_per_m, m.damping_n_s_per_m,
+        common = (x, v, *m.topology, m.rest_lengths_m, m.stiffness_n_per_m, m.damping_n_s_per_m,
                   m.mass_kg, m.inv_mass_per_kg, m.gravity_m_s2, m.surface, self._external,
                   probe[0:3], probe[3:6], probe[6:9], *self._constants, self._period_s)
         if self._implicit:

@@ -16,6 +16,12 @@ the opposite force at the vertex, so the wrench on the tool is exactly the
 negative sum of the forces on the masses, its torque taken about the tool's
 origin T.
 
+The link forces are computed a block of masses at a time (``LINK_BLOCK`` links at
+most): their links' coordinate differences gathered into flat per-link arrays, the
+arithmetic done on those in one branch-free loop the compiler vectorizes, then the
+forces scattered back, each mass's own links summed in registers. So the links are
+kept sorted by their first mass, first < second (``lattice_model`` does it).
+
 Integrators, one tick of length h (s):
 - symplectic Euler (velocity first, then position) with ``substeps`` equal
   substeps. Per mode of angular frequency w with stiffness-proportional link
@@ -41,28 +47,36 @@ import scipy.sparse.linalg
 from maglev_haptics.hardware.config_checks import nonnegative, positive
 from maglev_haptics.hardware.constants import GRAVITY_M_S2
 from maglev_haptics.hardware.kernels import (
-    FLAG, INDEX, INDEX_MATRIX, INDEX_VECTOR, MATRIX, READONLY_VECTOR, SCALAR, TENSOR3, VECTOR,
-    kernel)
+    FLAG, INDEX, INDEX_MATRIX, INDEX_VECTOR, MATRIX, READONLY_VECTOR, SCALAR, TENSOR3,
+    UINT32_VECTOR, VECTOR, kernel)
 
 SYMPLECTIC_EULER = "symplectic_euler"
 LINEARLY_IMPLICIT = "linearly_implicit"
 INTEGRATORS = (SYMPLECTIC_EULER, LINEARLY_IMPLICIT)
 
-# The argument types the steps share: x, v, links, rest, k, b, mass, inv_mass, gravity,
-# surface, external, p_WP, v_WP, p_WT, then the probe's six constants and the tick h.
-STEP_ARGUMENTS = (MATRIX, MATRIX, INDEX_MATRIX, VECTOR, VECTOR, VECTOR, VECTOR, VECTOR, VECTOR,
+# The links' arrays the kernels take: links (m, 2), then LatticeModel's link_offsets,
+# link_blocks and link_ends.
+TOPOLOGY = (INDEX_MATRIX, INDEX_VECTOR, INDEX_VECTOR, UINT32_VECTOR)
+# The argument types the steps share: x, v, the topology, rest, k, b, mass, inv_mass,
+# gravity, surface, external, p_WP, v_WP, p_WT, then the probe's six constants and h.
+STEP_ARGUMENTS = (MATRIX, MATRIX, *TOPOLOGY, VECTOR, VECTOR, VECTOR, VECTOR, VECTOR, VECTOR,
                   INDEX_VECTOR, MATRIX, VECTOR, VECTOR, VECTOR, *(SCALAR,) * 7)
 # tick_from's: masses in and out, probe, the model's arrays, external, constants, the
 # integrator's flag and counts, and the work space of both integrators.
-TICK_ARGUMENTS = (VECTOR, VECTOR, VECTOR, INDEX_MATRIX, VECTOR, VECTOR, VECTOR, VECTOR, VECTOR,
+TICK_ARGUMENTS = (VECTOR, VECTOR, VECTOR, *TOPOLOGY, VECTOR, VECTOR, VECTOR, VECTOR, VECTOR,
                   VECTOR, INDEX_VECTOR, MATRIX, VECTOR, FLAG, INDEX, INDEX, MATRIX, TENSOR3,
                   MATRIX, MATRIX)
+
+
+# Links a block of the link-force pass at most: its per-link arrays stay in the L1 cache.
+LINK_BLOCK = 256
+_LINK_ROW = LINK_BLOCK + 8  # a row of the per-link work space, padded off a 4 KiB multiple
 
 
 class LatticeModel(NamedTuple):
     """The arrays the kernels read; see ``lattice_model``."""
 
-    links: np.ndarray  # (m, 2) int64 mass indices
+    links: np.ndarray  # (m, 2) int64 mass indices, first < second, sorted by first
     rest_lengths_m: np.ndarray  # (m,)
     stiffness_n_per_m: np.ndarray  # (m,)
     damping_n_s_per_m: np.ndarray  # (m,)
@@ -70,6 +84,35 @@ class LatticeModel(NamedTuple):
     inv_mass_per_kg: np.ndarray  # (n,); 0 for fixed masses
     surface: np.ndarray  # (n_s,) int64 indices of the surface vertices
     gravity_m_s2: np.ndarray  # (3,) in W
+    link_offsets: np.ndarray  # (n + 1,) int64: mass i's links are link_offsets[i]..[i + 1] - 1
+    link_blocks: np.ndarray  # int64 mass boundaries of blocks of at most LINK_BLOCK links
+    link_ends: np.ndarray  # (m,) uint32: each link's second mass
+
+    @property
+    def topology(self):
+        """(links, link_offsets, link_blocks, link_ends): the kernels' first link arguments."""
+        return self.links, self.link_offsets, self.link_blocks, self.link_ends
+
+
+def link_topology(links, num_masses: int):
+    """(order, links, offsets, blocks, ends) for ``links`` (m, 2): each link written
+    first < second, sorted (stably) by its first mass; ``order`` the permutation
+    applied (the link's index in ``links``); offsets (n + 1) the first link of each
+    mass; blocks the mass boundaries of consecutive masses whose links number at most
+    LINK_BLOCK (no mass has more than LINK_BLOCK links of its own)."""
+    links = np.sort(np.asarray(links, dtype=np.int64).reshape(-1, 2), axis=1)
+    order = np.argsort(links[:, 0], kind="stable")
+    links = np.ascontiguousarray(links[order])
+    offsets = np.searchsorted(links[:, 0], np.arange(num_masses + 1)).astype(np.int64)
+    if np.diff(offsets).max(initial=0) > LINK_BLOCK:
+        raise ValueError(f"a mass has more than LINK_BLOCK = {LINK_BLOCK} links")
+    blocks = [0]
+    for i in range(num_masses):
+        if offsets[i + 1] - offsets[blocks[-1]] > LINK_BLOCK:
+            blocks.append(i)
+    blocks.append(num_masses)
+    return (order, links, offsets, np.array(blocks, dtype=np.int64),
+            np.ascontiguousarray(links[:, 1], dtype=np.uint32))
 
 
 @dataclass
@@ -95,19 +138,23 @@ def lattice_model(links, rest_lengths_m, fixed, surface, *, node_mass_kg: float,
                   link_stiffness_n_per_m: float, link_damping_n_s_per_m: float,
                   gravity_m_s2=(0.0, 0.0, -GRAVITY_M_S2)) -> LatticeModel:
     """Contiguous kernel arrays: every mass ``node_mass_kg`` (kg), every link the
-    same stiffness (N/m) and damping (N*s/m), ``fixed`` (n,) bool masses immobile."""
+    same stiffness (N/m) and damping (N*s/m), ``fixed`` (n,) bool masses immobile.
+    The links are reordered as ``link_topology`` says (a lattice from
+    ``build_lattice`` already is), their rest lengths with them."""
     n = len(fixed)
     m = len(links)
     mass = np.full(n, float(node_mass_kg))
+    order, links, offsets, blocks, ends = link_topology(links, n)
     return LatticeModel(
-        links=np.ascontiguousarray(links, dtype=np.int64),
-        rest_lengths_m=np.ascontiguousarray(rest_lengths_m, dtype=float),
+        links=links,
+        rest_lengths_m=np.ascontiguousarray(np.asarray(rest_lengths_m, dtype=float)[order]),
         stiffness_n_per_m=np.full(m, float(link_stiffness_n_per_m)),
         damping_n_s_per_m=np.full(m, float(link_damping_n_s_per_m)),
         mass_kg=mass,
         inv_mass_per_kg=np.where(np.asarray(fixed, bool), 0.0, 1.0 / mass),
         surface=np.ascontiguousarray(np.asarray(surface).ravel(), dtype=np.int64),
-        gravity_m_s2=np.asarray(gravity_m_s2, dtype=float).copy())
+        gravity_m_s2=np.asarray(gravity_m_s2, dtype=float).copy(),
+        link_offsets=offsets, link_blocks=blocks, link_ends=ends)
 
 
 # --- forces -------------------------------------------------------------------------
@@ -123,34 +170,87 @@ def _add_opposite(out, i, j, a, b, c):
     out[j, 2] -= c
 
 
-# Let LLVM fuse multiply-adds and use reciprocals (one division a link, ~1.5x faster);
-# unlike full fastmath it keeps IEEE NaN/inf semantics.
+# Let LLVM fuse multiply-adds and use reciprocals (one division a link); unlike full
+# fastmath it keeps IEEE NaN/inf semantics. error_model="numpy": a division by zero
+# gives inf instead of raising, so no branch stops the loops from vectorizing.
 LINK_MATH = {"contract", "reassoc", "arcp", "nsz"}
 
 
-@numba.njit(cache=True, fastmath=LINK_MATH)
-def _add_link_range(x, v, links, rest, k, b, start, stop, f):
-    """Add the spring-damper forces of links start..stop-1 into f (n, 3) (N)."""
-    for e in range(start, stop):
-        i, j = links[e, 0], links[e, 1]
-        dx = x[j, 0] - x[i, 0]
-        dy = x[j, 1] - x[i, 1]
-        dz = x[j, 2] - x[i, 2]
-        squared = dx * dx + dy * dy + dz * dz
+@numba.njit(cache=True, fastmath=LINK_MATH, error_model="numpy", inline="always")
+def _gather_block(x, v, offsets, ends, m0, m1, e0, d):
+    """d[0:3, c], d[3:6, c] = x and v of link e0 + c's second mass minus its first's,
+    for the links of masses m0..m1-1 (x, v flat: 3 a mass)."""
+    dx, dy, dz, wx, wy, wz = d[0], d[1], d[2], d[3], d[4], d[5]
+    for i in range(m0, m1):
+        xi0, xi1, xi2 = x[3 * i], x[3 * i + 1], x[3 * i + 2]
+        vi0, vi1, vi2 = v[3 * i], v[3 * i + 1], v[3 * i + 2]
+        for e in range(offsets[i], offsets[i + 1]):
+            c = e - e0
+            j3 = 3 * ends[e]
+            dx[c] = x[j3] - xi0
+            dy[c] = x[j3 + 1] - xi1
+            dz[c] = x[j3 + 2] - xi2
+            wx[c] = v[j3] - vi0
+            wy[c] = v[j3 + 1] - vi1
+            wz[c] = v[j3 + 2] - vi2
+
+
+@numba.njit(cache=True, fastmath=LINK_MATH, error_model="numpy", inline="always")
+def _link_arithmetic(d, rest, k, b, e0, count):
+    """d[0:3, c] = the force of link e0 + c on its first mass (N), from its differences:
+    (k (L - L0) + b u.(v_j - v_i)) u. No branch: the compiler vectorizes it."""
+    dx, dy, dz, wx, wy, wz = d[0], d[1], d[2], d[3], d[4], d[5]
+    rest, k, b = rest[e0:e0 + count], k[e0:e0 + count], b[e0:e0 + count]
+    for c in range(count):
+        e = c
+        squared = dx[c] * dx[c] + dy[c] * dy[c] + dz[c] * dz[c]
         inverse = 1.0 / math.sqrt(squared)
         length = squared * inverse
-        closing = (dx * (v[j, 0] - v[i, 0]) + dy * (v[j, 1] - v[i, 1])
-                   + dz * (v[j, 2] - v[i, 2])) * inverse
+        closing = (dx[c] * wx[c] + dy[c] * wy[c] + dz[c] * wz[c]) * inverse
         # The force along the link over its length: times (dx, dy, dz) it is the force.
         s = (k[e] * (length - rest[e]) + b[e] * closing) * inverse
-        _add_opposite(f, i, j, s * dx, s * dy, s * dz)
+        dx[c] = s * dx[c]
+        dy[c] = s * dy[c]
+        dz[c] = s * dz[c]
 
 
-@numba.njit(cache=True)
-def link_forces(x, v, links, rest, k, b, f):
-    """f (n, 3) = every link's spring-damper force on each mass (N)."""
-    f[:] = 0.0
-    _add_link_range(x, v, links, rest, k, b, 0, links.shape[0], f)
+@numba.njit(cache=True, fastmath=LINK_MATH, error_model="numpy", inline="always")
+def _scatter_block(offsets, ends, m0, m1, e0, d, f):
+    """f (flat) += each link's force d[0:3] on its first mass, minus it on its second;
+    a mass's own links summed in registers first."""
+    fx, fy, fz = d[0], d[1], d[2]
+    for i in range(m0, m1):
+        ax, ay, az = 0.0, 0.0, 0.0
+        for e in range(offsets[i], offsets[i + 1]):
+            c = e - e0
+            j3 = 3 * ends[e]
+            ax += fx[c]
+            ay += fy[c]
+            az += fz[c]
+            f[j3] -= fx[c]
+            f[j3 + 1] -= fy[c]
+            f[j3 + 2] -= fz[c]
+        f[3 * i] += ax
+        f[3 * i + 1] += ay
+        f[3 * i + 2] += az
+
+
+@numba.njit(cache=True, fastmath=LINK_MATH, error_model="numpy")
+def link_forces(x, v, links, offsets, blocks, ends, rest, k, b, f):
+    """f (n, 3) = every link's spring-damper force on each mass (N); the topology as
+    ``LatticeModel.topology`` (``links`` itself is not read here)."""
+    size = x.shape[0] * 3
+    x_flat = x.reshape(size)
+    v_flat = v.reshape(size)
+    f_flat = f.reshape(size)
+    f_flat[:] = 0.0
+    d = np.empty((6, _LINK_ROW))
+    for block in range(blocks.shape[0] - 1):
+        m0, m1 = blocks[block], blocks[block + 1]
+        e0 = offsets[m0]
+        _gather_block(x_flat, v_flat, offsets, ends, m0, m1, e0, d)
+        _link_arithmetic(d, rest, k, b, e0, offsets[m1] - e0)
+        _scatter_block(offsets, ends, m0, m1, e0, d, f_flat)
 
 
 @numba.njit(cache=True)
@@ -244,20 +344,22 @@ def _total_force(i, a, mass, gravity, external, f):
 
 # --- integrators ------------------------------------------------------------------------
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def _symplectic_substep(x, v, mass, inv_mass, gravity, external, f, h_s):
+    """v += h_s F / m, then x += h_s v, at the free masses; a select, not a branch,
+    keeps the fixed ones."""
     for i in range(x.shape[0]):
-        if inv_mass[i] == 0.0:
-            continue
+        free = inv_mass[i] != 0.0
         for a in range(3):
-            v[i, a] += h_s * inv_mass[i] * _total_force(i, a, mass, gravity, external, f)
-            x[i, a] += h_s * v[i, a]
+            moved = v[i, a] + h_s * inv_mass[i] * _total_force(i, a, mass, gravity, external, f)
+            v[i, a] = moved if free else v[i, a]
+            x[i, a] = x[i, a] + h_s * v[i, a] if free else x[i, a]
 
 
 @kernel((*STEP_ARGUMENTS, INDEX, MATRIX))
-def symplectic_euler_tick(x, v, links, rest, k, b, mass, inv_mass, gravity, surface, external,
-                          p_WP, v_WP, p_WT, radius, k_c, onset, d_hc, mu, slip_speed, h,
-                          substeps, f):
+def symplectic_euler_tick(x, v, links, offsets, blocks, ends, rest, k, b, mass, inv_mass, gravity,
+                          surface, external, p_WP, v_WP, p_WT, radius, k_c, onset, d_hc, mu,
+                          slip_speed, h, substeps, f):
     """Advance x, v (in place) by h (s) in ``substeps`` symplectic Euler substeps.
 
     ``external`` (n, 3) N is held over the tick; the probe is held at p_WP moving
@@ -267,7 +369,7 @@ def symplectic_euler_tick(x, v, links, rest, k, b, mass, inv_mass, gravity, surf
     wrench = np.zeros(6)
     touching = 0
     for step in range(substeps):
-        link_forces(x, v, links, rest, k, b, f)
+        link_forces(x, v, links, offsets, blocks, ends, rest, k, b, f)
         w, t = add_probe_forces(x, v, surface, p_WP, v_WP, p_WT, radius, k_c, onset, d_hc,
                                 mu, slip_speed, mass, h_s, f)
         if step == 0:
@@ -326,10 +428,10 @@ def _dot(a, b):
 
 
 @kernel((*STEP_ARGUMENTS, SCALAR, INDEX, TENSOR3, MATRIX, MATRIX))
-def linearly_implicit_tick(x, v, links, rest, k, b, mass, inv_mass, gravity, surface, external,
-                           p_WP, v_WP, p_WT, radius, k_c, onset, d_hc, mu, slip_speed, h,
-                           tolerance,
-                           max_iterations, node_work, u, link_work):
+def linearly_implicit_tick(x, v, links, offsets, blocks, ends, rest, k, b, mass, inv_mass,
+                           gravity, surface, external, p_WP, v_WP, p_WT, radius, k_c, onset,
+                           d_hc, mu, slip_speed, h, tolerance, max_iterations, node_work, u,
+                           link_work):
     """Advance x, v (in place) by one linearly implicit Euler step of h (s).
 
     ``node_work``, ``u`` and ``link_work`` are work space from
@@ -340,7 +442,7 @@ def linearly_implicit_tick(x, v, links, rest, k, b, mass, inv_mass, gravity, sur
                                         node_work[4], node_work[5], node_work[6], node_work[7])
     m_links = links.shape[0]
     c_iso, c_axial, stiff_axial = link_work[0], link_work[1], link_work[2]
-    link_forces(x, v, links, rest, k, b, f)
+    link_forces(x, v, links, offsets, blocks, ends, rest, k, b, f)
     wrench, touching = add_probe_forces(x, v, surface, p_WP, v_WP, p_WT, radius, k_c, onset,
                                         d_hc, mu, slip_speed, mass, h, f)
     # rhs = h F + h^2 dF/dx v, zero at fixed masses.
@@ -402,9 +504,9 @@ def linearly_implicit_tick(x, v, links, rest, k, b, mass, inv_mass, gravity, sur
 
 
 @kernel(TICK_ARGUMENTS, nogil=True)
-def tick_from(masses_in, masses_out, probe, links, rest, k, b, mass, inv_mass, gravity, surface,
-              external, constants, implicit, substeps, cg_max_iterations, forces, node_work, u,
-              link_work):
+def tick_from(masses_in, masses_out, probe, links, offsets, blocks, ends, rest, k, b, mass,
+              inv_mass, gravity, surface, external, constants, implicit, substeps,
+              cg_max_iterations, forces, node_work, u, link_work):
     """``masses_out`` = one tick from ``masses_in`` ([x; v], 6 n). ``probe`` is
     [p_WP, v_WP, p_WT] (9); ``constants`` the probe's radius, stiffness, onset,
     dissipation, friction, slip speed, then the tick and the CG tolerance."""
@@ -414,15 +516,17 @@ def tick_from(masses_in, masses_out, probe, links, rest, k, b, mass, inv_mass, g
     v = masses_out[3 * n:].reshape((n, 3))
     if implicit:
         linearly_implicit_tick(
-            x, v, links, rest, k, b, mass, inv_mass, gravity, surface, external, probe[0:3],
-            probe[3:6], probe[6:9], constants[0], constants[1], constants[2], constants[3],
-            constants[4], constants[5], constants[6], constants[7], cg_max_iterations,
+            x, v, links, offsets, blocks, ends, rest, k, b, mass, inv_mass, gravity, surface,
+            external, probe[0:3], probe[3:6], probe[6:9], constants[0], constants[1],
+            constants[2], constants[3], constants[4], constants[5], constants[6], constants[7],
+            cg_max_iterations,
             node_work, u, link_work)
     else:
         symplectic_euler_tick(
-            x, v, links, rest, k, b, mass, inv_mass, gravity, surface, external, probe[0:3],
-            probe[3:6], probe[6:9], constants[0], constants[1], constants[2], constants[3],
-            constants[4], constants[5], constants[6], substeps, forces)
+            x, v, links, offsets, blocks, ends, rest, k, b, mass, inv_mass, gravity, surface,
+            external, probe[0:3], probe[3:6], probe[6:9], constants[0], constants[1],
+            constants[2], constants[3], constants[4], constants[5], constants[6], substeps,
+            forces)
 
 
 # The DeformableSurface system's state vector is [x; v; X_WT; V_WT] (6 n + 13).

@@ -99,7 +99,7 @@ class LatticeWorker:
         self._pending = False  # a request not yet taken
         node_work, u, link_work = implicit_workspace(num_masses, len(model.links))
         self._arguments = (
-            self._masses_in, self._masses_out, self._probe, model.links, model.rest_lengths_m,
+            self._masses_in, self._masses_out, self._probe, *model.topology, model.rest_lengths_m,
             model.stiffness_n_per_m, model.damping_n_s_per_m, model.mass_kg,
             model.inv_mass_per_kg, model.gravity_m_s2, model.surface, np.zeros((num_masses, 3)),
             np.asarray(constants, dtype=float), implicit, int(substeps), int(cg_max_iterations),

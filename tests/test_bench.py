@@ -67,3 +67,30 @@ def test_the_one_system_loop_refuses_a_scene_with_a_hand():
     from maglev_haptics.analysis.loop_floor import floor_loop_us
     with pytest.raises(ValueError, match="scenario.hand is set: the one-system loop"):
         floor_loop_us(load_scenario("peg_in_hole"))
+
+
+def test_every_figure_carries_the_machines_yardsticks(monkeypatch):
+    results = {
+        "machine": {"takeoff_floor_us": 66.4, "lattice_masses_per_us": 10.96,
+                    "lattice_masses": 5474},
+        "scenarios": {"takeoff_hover_land": {
+            "instrument": "two_magnet", "simulated_s": 1.0, "realtime_factor": 8.0,
+            "wall_us_per_1ms_tick": 125.0, "physics_floor": {"total_us": 66.4},
+            "tick_over_floor": 1.88}},
+        "one_system_loop": {"takeoff_hover_land": {"us_per_tick": 114.0,
+                                                   "physics_floor_us": 66.4}},
+        "systems_us": {"controller": 12.0}, "wrench_matrix_us": {}, "allocation": {},
+        "stereo": {}, "analysis": {}, "lattice": {"sizes": []}}
+    monkeypatch.setattr(bench, "format_stereo_report", lambda _: "Stereo:\n  views 3.0 us")
+    monkeypatch.setattr(bench, "format_lattice_report", lambda _: "Lattice:\n  5474 600 us")
+    report = bench.format_report(results)
+    tag = "[takeoff floor 66 us, lattice 11.0 masses/us]"
+    figures = [line for line in report.splitlines()
+               if line.startswith("  ") and any(ch.isdigit() for ch in line)]
+    assert figures and all(line.endswith(tag) for line in figures)
+    assert report.splitlines()[-1] == f"Machine yardsticks: {tag} (5474 masses)"
+
+
+def test_the_yardsticks_say_only_what_was_measured():
+    assert bench.machine_yardsticks({}) == ""
+    assert bench.machine_yardsticks({"takeoff_floor_us": 70.0}) == "  [takeoff floor 70 us]"

@@ -8,7 +8,7 @@ import scipy.sparse.linalg
 
 from maglev_haptics.systems.lattice_construction import build_lattice
 from maglev_haptics.systems.lattice_dynamics import (
-    ProbeContact, add_probe_forces, implicit_workspace, lattice_energy,
+    LINK_BLOCK, ProbeContact, add_probe_forces, implicit_workspace, lattice_energy,
     lattice_model, linearly_implicit_tick, max_stable_link_stiffness, probe_point,
     symplectic_euler_tick)
 
@@ -48,7 +48,7 @@ class Run:
 
     def step(self, probe_centre=FAR, probe_velocity=np.zeros(3), probe=ProbeContact()):
         m = self.model
-        common = (self.x, self.v, m.links, m.rest_lengths_m, m.stiffness_n_per_m,
+        common = (self.x, self.v, *m.topology, m.rest_lengths_m, m.stiffness_n_per_m,
                   m.damping_n_s_per_m, m.mass_kg, m.inv_mass_per_kg, m.gravity_m_s2,
                   m.surface, self.external, np.asarray(probe_centre, float),
                   np.asarray(probe_velocity, float), np.zeros(3), probe.radius_m,
@@ -258,3 +258,87 @@ def test_a_still_probe_pressed_in_settles_without_chatter(integrator):
     last = forces[-200:, 2]
     assert last.mean() > 0.01  # pressed (N)
     assert np.ptp(last) < 1e-4 * last.mean()  # and still: no tick-to-tick alternation
+
+
+def numpy_link_forces(x, v, links, rest, k, b):
+    """Every link's spring-damper force on each mass (N), written plainly in numpy
+    (the module docstring's formula), apart from the blocked kernel under test."""
+    d = x[links[:, 1]] - x[links[:, 0]]
+    length = np.linalg.norm(d, axis=1)
+    u = d / length[:, None]
+    closing = np.einsum("ij,ij->i", u, v[links[:, 1]] - v[links[:, 0]])
+    force = (k * (length - rest) + b * closing)[:, None] * u
+    f = np.zeros_like(x)
+    np.add.at(f, links[:, 0], force)
+    np.add.at(f, links[:, 1], -force)
+    return f
+
+
+@pytest.mark.parametrize("substeps", [1, 3])
+def test_a_tick_matches_a_plain_numpy_step_to_1e_12(substeps):
+    # The shipped scene's kind of lattice (bumpy, so columns differ), scrambled link order
+    # and direction: lattice_model sorts them for the blocked kernel.
+    lattice = small_lattice(nx=9, ny=8, bumpy=True)
+    rng = np.random.default_rng(40)
+    order = rng.permutation(lattice.num_links)
+    links = lattice.links[order]
+    flip = rng.random(len(links)) < 0.5
+    links[flip] = links[flip][:, ::-1]
+    run = Run(lattice, k=40.0, b=0.05, substeps=substeps, gravity=(0.0, 0.0, -9.81))
+    run.model = lattice_model(links, lattice.rest_lengths_m[order], lattice.fixed,
+                              lattice.surface, node_mass_kg=NODE_MASS_KG,
+                              link_stiffness_n_per_m=40.0, link_damping_n_s_per_m=0.05,
+                              gravity_m_s2=(0.0, 0.0, -9.81))
+    free = ~lattice.fixed[:, None]
+    run.x += np.where(free, 5e-5 * rng.standard_normal(run.x.shape), 0.0)
+    run.v += np.where(free, 5e-3 * rng.standard_normal(run.v.shape), 0.0)
+    x, v = run.x.copy(), run.v.copy()
+    v_start = v.copy()
+    m = run.model
+    node = centre_surface_vertex(lattice)
+    probe = ProbeContact()
+    p_WP = x[node] + [0.0003, -0.0002, probe.radius_m - 0.0012]
+    p_WT = p_WP + [0.0, 0.0, 0.03]
+    v_WP = np.array([0.01, 0.0, -0.02])
+    common = (*m.topology, m.rest_lengths_m, m.stiffness_n_per_m, m.damping_n_s_per_m,
+              m.mass_kg, m.inv_mass_per_kg, m.gravity_m_s2, m.surface, run.external, p_WP,
+              v_WP, p_WT, probe.radius_m, probe.stiffness_n_per_m, probe.onset_depth_m,
+              probe.dissipation_s_per_m, probe.friction, probe.slip_speed_m_s, TICK_S)
+    wrench, touching = symplectic_euler_tick(run.x, run.v, *common, substeps, run.forces)
+    assert touching > 0
+    h_s = TICK_S / substeps
+    expected_wrench = None
+    for _ in range(substeps):
+        f = numpy_link_forces(x, v, m.links, m.rest_lengths_m, m.stiffness_n_per_m,
+                              m.damping_n_s_per_m)
+        w, _ = add_probe_forces(x, v, m.surface, p_WP, v_WP, p_WT, probe.radius_m,
+                                probe.stiffness_n_per_m, probe.onset_depth_m,
+                                probe.dissipation_s_per_m, probe.friction,
+                                probe.slip_speed_m_s, m.mass_kg, h_s, f)
+        expected_wrench = w if expected_wrench is None else expected_wrench
+        total = m.mass_kg[:, None] * m.gravity_m_s2 + run.external + f
+        v = np.where(free, v + h_s * m.inv_mass_per_kg[:, None] * total, v)
+        x = np.where(free, x + h_s * v, x)
+    assert np.abs(run.x - x).max() <= 1e-12 * np.abs(x).max()
+    assert np.abs(run.v - v).max() <= 1e-12 * np.abs(v).max()
+    # The change a tick makes, not only the state, to 1e-12 of its size.
+    assert np.abs(run.v - v).max() <= 1e-12 * np.abs(v - v_start).max()
+    np.testing.assert_allclose(wrench, expected_wrench, rtol=1e-12, atol=0.0)
+
+
+def test_lattice_model_orders_links_by_their_first_mass_in_blocks():
+    lattice = small_lattice(nx=9, ny=8, bumpy=True)
+    links = lattice.links[::-1, ::-1]  # reversed and each written second-first
+    m = lattice_model(links, lattice.rest_lengths_m[::-1], lattice.fixed, lattice.surface,
+                      node_mass_kg=NODE_MASS_KG, link_stiffness_n_per_m=40.0,
+                      link_damping_n_s_per_m=0.05)
+    assert np.all(m.links[:, 0] < m.links[:, 1]) and np.all(np.diff(m.links[:, 0]) >= 0)
+    np.testing.assert_array_equal(m.link_ends, m.links[:, 1])
+    for i in range(lattice.num_masses):
+        assert np.all(m.links[m.link_offsets[i]:m.link_offsets[i + 1], 0] == i)
+    per_block = np.diff(m.link_offsets[m.link_blocks])
+    assert per_block.max() <= LINK_BLOCK and m.link_blocks[-1] == lattice.num_masses
+    # Each link kept its own rest length.
+    rest = {tuple(sorted(map(int, link))): r
+            for link, r in zip(links, lattice.rest_lengths_m[::-1])}
+    assert all(rest[tuple(map(int, link))] == r for link, r in zip(m.links, m.rest_lengths_m))
