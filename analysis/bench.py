@@ -347,7 +347,7 @@ def format_report(results: Dict) -> str:
                          f"  at {r['priority']}")
     machine = results.get("machine", {})
     if machine:
-        lines.append("Machine yardsticks:" + tag.removeprefix("  ") + (
+        lines.append("Machine yardsticks: " + tag.removeprefix("  ") + (
             f" ({machine['lattice_masses']} masses)" if "lattice_masses" in machine else ""))
     lines = "\n".join(lines).split("\n")  # the sections' own multi-line blocks too
     return "\n".join(_with_yardsticks(lines, tag))
