@@ -96,6 +96,9 @@ def recorded_pose(log: Dict[str, np.ndarray]):
 def _optional_arrays(data) -> Dict[str, np.ndarray]:
     """The hand's, the scene's and the stereo display's logs, where the scenario has them."""
     arrays = {}
+    if "markers_sample_time_s" in data:  # a calibration flight's
+        arrays["markers_measured"] = data["markers_measured"]
+        arrays["markers_sample_time_s"] = data["markers_sample_time_s"][:, 0]
     if "handle_gripped" in data:
         arrays["handle_gripped"] = data["handle_gripped"][:, 0]
     if "hand_state" in data:

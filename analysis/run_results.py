@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Dict, Optional
 
 import numpy as np
+
 from maglev_haptics.analysis.haptic_metrics import haptic_summary
 from maglev_haptics.analysis.run_log import RunLogWriter
 from maglev_haptics.analysis.run_metrics import for_people, log_arrays, summarize
@@ -21,9 +22,11 @@ from maglev_haptics.analysis.stereo_metrics import plot_colocation, stereo_summa
 from maglev_haptics.analysis.stereo_video import StereoVideoWriter
 from maglev_haptics.diagrams.meshcat_lifetime import start_meshcat
 from maglev_haptics.diagrams.runner import realtime_report
-from maglev_haptics.diagrams.scenario import Scenario
+from maglev_haptics.diagrams.scenario import Scenario, scenario_yaml
 from maglev_haptics.diagrams.scenario_run import fly_scenario
 from maglev_haptics.hardware.thermal import coil_thermal
+
+SCENARIO_FILE = "scenario.yaml"  # the scenario as it ran, every field (a run folder's)
 
 
 @dataclass
@@ -49,6 +52,7 @@ def run_scenario(scenario: Scenario, *, label: str, out_dir: Optional[Path] = No
     thermal = coil_thermal(scenario.device)
     if out_dir is not None:  # an earlier run's, which a run that fails would leave as its own
         (Path(out_dir) / "summary.json").unlink(missing_ok=True)
+        (Path(out_dir) / SCENARIO_FILE).unlink(missing_ok=True)
     log_writer = None
 
     def start_log(built):
@@ -116,6 +120,7 @@ def run_scenario(scenario: Scenario, *, label: str, out_dir: Optional[Path] = No
         out_dir = Path(out_dir)
         out_dir.mkdir(parents=True, exist_ok=True)
         (out_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+        (out_dir / SCENARIO_FILE).write_text(scenario_yaml(scenario))
         plot_run(log, out_dir, title=label,
                  current_limit_a=scenario.device.amplifier.current_limit_a)
         if scenario.haptics is not None:

@@ -223,6 +223,9 @@ def AddLogging(builder: DiagramBuilder, *, scenario: Scenario, station: Station,
         "fault_bits": supervisor.GetOutputPort("fault_bits"),
         "coil_power": supervisor.GetOutputPort("coil_power"),
     }
+    if scenario.calibration is not None:  # the tracker's own samples, for a calibration
+        for name in ("markers_measured", "markers_sample_time_s"):
+            logged_ports[name] = station.GetOutputPort(name)
     if scenario.hand is not None:
         logged_ports["handle_gripped"] = station.GetOutputPort("handle_gripped")
     if scenario.hand is not None and simulated:

@@ -57,6 +57,24 @@ def check_script_length(steps) -> None:
 
 
 @dataclass
+class CalibrationFlight:
+    """A flight of ``maglev calibrate plan``: its log keeps what a fit reads (the
+    tracker's samples as the station gives them, ``markers_measured`` in the tracker's
+    frame and ``markers_sample_time_s``), and the instrument may carry a known payload
+    (hung by the user; added by a simulated station)."""
+
+    flight: str = ""  # the plan's name for it (registration, holds, steps, payload)
+    payload_kg: float = 0.0  # a known mass hung on the instrument (kg)
+    payload_p_I_m: List[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])  # where, in I (m)
+
+    def validate(self, path: str, device: DeviceConfig) -> None:
+        mass_kg = device.instrument_spec().mass_kg
+        require(0.0 <= self.payload_kg <= 0.5 * mass_kg, f"{path}.payload_kg", self.payload_kg,
+                f"must be between 0 and half the instrument's mass ({0.5 * mass_kg:g} kg)")
+        vector(f"{path}.payload_p_I_m", self.payload_p_I_m, 3)
+
+
+@dataclass
 class MotionScript:
     """Rest on the glass, ramp the force up, fly the waypoints, land, ramp down."""
 
@@ -154,6 +172,8 @@ class Scenario:
     # The station: simulated in this diagram, or whatever answers on LCM
     # (``maglev device-sim`` or a lab's drivers; diagrams/lcm_station.py).
     station: Union[SimStation, LcmStation] = field(default_factory=SimStation)
+    # A flight of ``maglev calibrate plan``; null: an ordinary run.
+    calibration: Optional[CalibrationFlight] = None
     # The device supervisor's watchdogs (systems/device_supervisor.py).
     watchdog: WatchdogConfig = field(default_factory=WatchdogConfig)
     # Faults injected into the simulated station (systems/fault_injection.py).
@@ -236,6 +256,8 @@ class Scenario:
                 (f"{label}: stereo.head.waypoints[{i}].{name}", getattr(w, name))
                 for i, w in enumerate(head.waypoints) for name in ("move_s", "hold_s")])
         self.station.validate(label, self)
+        if self.calibration is not None:
+            self.calibration.validate(f"{label}: calibration", self.device)
 
 
 OVERLAY = "--scenario-text"  # what an error in a layer over the file's scenario names

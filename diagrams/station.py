@@ -226,10 +226,14 @@ def MakeStation(scenario: Scenario, *, magnetics, config=None) -> Station:
 
 def station_device(scenario: Scenario, config=None):
     """The device a simulated station simulates: its ``SimStation.device`` (the
-    scenario's overlaid, ``diagrams/scenario.py``), else the scenario's."""
+    scenario's overlaid, ``diagrams/scenario.py``), else the scenario's; with a
+    calibration flight's payload hung on it."""
     config = config or scenario.station
     device = getattr(config, "device", None)
-    return scenario.device if device is None else device
+    device = scenario.device if device is None else device
+    flight = scenario.calibration
+    return device if flight is None else device.with_payload(flight.payload_kg,
+                                                             flight.payload_p_I_m)
 
 
 def _simulated_station(scenario: Scenario, device, magnetics) -> Diagram:

@@ -345,6 +345,18 @@ class DeviceConfig:
                         f"must be {count} numbers (one per {name.split('_')[0]}) in "
                         f"[{MODEL_SCALE_RANGE[0]}, {MODEL_SCALE_RANGE[1]}], or null for 1.0 each")
 
+    def with_payload(self, payload_kg: float, p_IP_m) -> "DeviceConfig":
+        """This device carrying a point mass ``payload_kg`` (kg) at p_IP_m (m, in I): its
+        mass and centre of mass combined."""
+        if payload_kg == 0.0:
+            return self
+        mass_kg = self.instrument_spec().mass_kg
+        total_kg = mass_kg + payload_kg
+        com = (mass_kg * np.asarray(self.instrument_com_offset_m, dtype=float)
+               + payload_kg * np.asarray(p_IP_m, dtype=float)) / total_kg
+        return dataclasses.replace(self, instrument_mass_kg=total_kg,
+                                   instrument_com_offset_m=[float(v) for v in com])
+
     def model_scales(self) -> tuple:
         """(magnet scales (n_magnets,), coil scales (n_coils,)): the wrench model's
         per-magnet and per-coil factors, ones where the config leaves them null."""
