@@ -1,5 +1,5 @@
 """The ``maglev`` command line: run, device-sim, driver, diagram, bench, faults, sweep,
-analyze (docs/architecture.md). It stands at the package's root, above every folder,
+analyze, calibrate (docs/architecture.md). It stands at the package's root, above every folder,
 since it dispatches to all of them (analysis included); no folder imports it.
 
 Only the standard library and the light scenario-file helpers are imported here: every
@@ -756,6 +756,117 @@ def _add_analyze_parser(commands) -> None:
     analyze.set_defaults(func=_cmd_analyze)
 
 
+def _cmd_calibrate(args) -> int:
+    return {"plan": _calibrate_plan, "fit": _calibrate_fit, "check": _calibrate_check}[
+        args.step](args)
+
+
+def _calibrate_plan(args) -> int:
+    from maglev_haptics.analysis.calibration_plan import (
+        FLIGHTS_FILE, MARKS_IMAGE, PAYLOAD_KG, flight_seconds, write_plan)
+
+    out = _writable_folder(Path(args.out))
+    flights = write_plan(out, args.instrument)
+    total_s = sum(flight_seconds(flight) for flight in flights.values())
+    plan_file = out / FLIGHTS_FILE
+    print(f"wrote {plan_file} and {out / MARKS_IMAGE.format(flight='<flight>')}: "
+          f"{len(flights)} flights, {total_s:.0f} s of flight in all")
+    print("Fly each one, the instrument first resting on its mark (show its image full "
+          "screen on the display):")
+    for name in flights:
+        step = (f"   (hang the {PAYLOAD_KG * 1e3:g} g payload centred under the instrument "
+                "first)" if name == "payload" else "")
+        print(f"  maglev run {plan_file} --name {name} --no-meshcat --out runs/{name}{step}")
+    print("On a device over LCM add --station lcm; to try it on a simulated device unlike the "
+          "model add --scenario-text '{station: !SimStation {device: {...}}}'.")
+    fitted = " ".join(f"runs/{name}" for name in flights if name != "check")
+    print(f"Then: maglev calibrate fit {fitted} --out lab_device.yaml")
+    print("      maglev calibrate check runs/check --device lab_device.yaml")
+    return 0
+
+
+def _calibrate_fit(args) -> int:
+    from maglev_haptics.analysis.calibration_fit import fit_device, overlay_text
+    from maglev_haptics.analysis.calibration_report import (
+        PLOT_FILE, REPORT_FILE, calibration_report, format_summary, plot_calibration)
+    from maglev_haptics.analysis.run_metrics import for_people
+
+    out = Path(args.out)
+    if out.suffix not in (".yaml", ".yml"):
+        raise ValueError(f"--out {out}: must name the overlay's .yaml file")
+    calibration = fit_device(args.runs, rest_height_m=args.rest_height_m)
+    report = for_people(calibration_report(calibration))
+    folder = _writable_folder(out.parent)
+    out.write_text(f"# maglev calibrate fit: the {calibration.instrument} instrument's device "
+                   f"from {len(args.runs)} flights\n" + overlay_text(calibration.device))
+    (folder / REPORT_FILE).write_text(json.dumps(report, indent=2))
+    plot_calibration(calibration, folder / PLOT_FILE)
+    print(format_summary(report))
+    print(f"wrote {out}, {folder / REPORT_FILE}, {folder / PLOT_FILE}")
+    print(f"Fly with it: maglev run levitate --scenario-text \"$(cat {out})\"")
+    return 0
+
+
+def _calibrate_check(args) -> int:
+    from maglev_haptics.analysis.calibration_check import check_calibration
+    from maglev_haptics.analysis.run_metrics import for_people
+
+    source = str(args.device)
+    text = read_text_file(Path(args.device), source)
+    result = for_people(check_calibration(args.run, text, source,
+                                          rest_height_m=args.rest_height_m))
+    if args.json:
+        print(json.dumps(result, indent=2))
+        return 0
+    rows = (("co-location error on the screen", "colocation_error_mm", "mm"),
+            ("", "colocation_error_px", "px"),
+            ("wrench residual at the holds", "force_residual_rms_n", "N"),
+            ("", "torque_residual_rms_nm", "N m"),
+            ("felt-force error", "felt_force_error_mn_per_n", "mN per N rendered"),
+            ("hover current error", "hover_current_error_percent", "%"))
+    print(f"{result['flight']} ({result['fitted']['holds']} holds): nominal -> fitted")
+    for label, key, unit in rows:
+        print(f"  {label:34s} {result['nominal'][key]:>10.4g} -> {result['fitted'][key]:<10.4g}"
+              f" {unit}")
+    return 0
+
+
+def _add_calibrate_parser(commands) -> None:
+    calibrate = commands.add_parser(
+        "calibrate", formatter_class=FORMATTER,
+        help="fit the device model to a device's own flights (plan, fit, check)",
+        description="Calibrate the device model against a device (or a simulated one): plan "
+        "the identification flights, fly them with maglev run, fit the device's own numbers "
+        "to their logs, check the fit on a flight it did not see.",
+        epilog=_epilog("""
+            maglev calibrate plan --out calibration
+            maglev calibrate fit runs/holds_1 runs/holds_2 runs/holds_3 runs/holds_4 runs/steps runs/payload --out lab_device.yaml
+            maglev calibrate check runs/check --device lab_device.yaml
+            """, with_scenarios=False))
+    steps = calibrate.add_subparsers(dest="step", required=True)
+    plan = steps.add_parser("plan", formatter_class=FORMATTER,
+                            help="write the identification flights and their rest marks")
+    plan.add_argument("--instrument", choices=("two_magnet", "four_magnet"), default="two_magnet")
+    plan.add_argument("--out", required=True, help="folder for the flights and mark images")
+    fit = steps.add_parser("fit", formatter_class=FORMATTER,
+                           help="fit the device to the flights' run folders")
+    fit.add_argument("runs", nargs="+", help="the --out folders of the plan's flights "
+                     "(all but check)")
+    fit.add_argument("--out", required=True, help="the device overlay to write (.yaml); the "
+                     "report and plot go beside it")
+    check = steps.add_parser("check", formatter_class=FORMATTER,
+                             help="how well a fitted device predicts a flight it did not see")
+    check.add_argument("run", help="the check flight's run folder")
+    check.add_argument("--device", required=True, help="the overlay maglev calibrate fit wrote")
+    check.add_argument("--json", action="store_true", help="print the whole result as JSON")
+    for parser in (fit, check):
+        parser.add_argument("--rest-height-m", type=_finite_number, default=None,
+                            help="height of I above the glass while the instrument rests "
+                            "(m); default the model's, pressed into the glass by its soft "
+                            "contact")
+    calibrate.set_defaults(func=_cmd_calibrate)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog="maglev", formatter_class=FORMATTER,
@@ -776,6 +887,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_faults_parser(commands)
     _add_sweep_parser(commands)
     _add_analyze_parser(commands)
+    _add_calibrate_parser(commands)
     parser.command_parsers = commands.choices
     return parser
 

@@ -22,6 +22,7 @@ and the coils' common scale are one product (the coils' geometric mean is held a
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from functools import cached_property
@@ -30,6 +31,8 @@ from typing import Dict, List, Sequence
 
 import numpy as np
 import scipy.optimize
+from scipy.integrate import cumulative_trapezoid
+from pydrake.common.schema import Transform
 from pydrake.math import RigidTransform, RollPitchYaw, RotationMatrix
 from scipy.ndimage import uniform_filter1d
 from scipy.signal import savgol_filter
@@ -344,8 +347,12 @@ def fit_latency(flights: Sequence[Flight], X_WT: RigidTransform, magnetics: Magn
     currents make through the model (integrated), both high-passed, over a scan of delays.
 
     A log's row of currents is the acceleration at its time (the plant's step is
-    centred on it), so a sample's currents are the row nearest its capture time.
-    Returns the delay as the log's times show it (``latency_s``)."""
+    centred on it): a sample's currents are interpolated to its capture time.
+
+    Returns ``logged_latency_s``, the delay as the log's times show it, and
+    ``latency_s``, the twin's ``tracker.latency_s`` that reproduces it: the simulated
+    tracker reads the plant's state held over the tick after its sample's time, on
+    average half a tick (h / 2) later, so the twin's latency is the logged one + h / 2."""
     steps = [flight for flight in flights if flight.name == "steps"]
     if not steps:
         raise CalibrationError("no steps flight among the run folders: the latency needs the "
@@ -361,13 +368,17 @@ def fit_latency(flights: Sequence[Flight], X_WT: RigidTransform, magnetics: Magn
     model = np.array([magnetics.wrench_matrix_from(p - device.p_WA, R)[0:3]
                       for p, R in zip(p_WI, R_WI)])
     tick_t, currents = flight.log["t"], flight.log["coil_currents"]
+    tick_s = float(np.median(np.diff(tick_t)))
     weight = np.array([0.0, 0.0, -GRAVITY_M_S2])
 
     def error(latency_s):
-        rows = np.clip(np.searchsorted(tick_t, t_s - latency_s), 1, len(tick_t) - 1)
-        rows -= (t_s - latency_s) - tick_t[rows - 1] < tick_t[rows] - (t_s - latency_s)
-        acceleration = np.einsum("skj,sj->sk", model, currents[rows])
-        velocity = np.cumsum(acceleration / mass_kg + weight, axis=0) * period_s
+        rows = np.clip((t_s - latency_s - tick_t[0]) / tick_s, 0, len(tick_t) - 2)
+        before = rows.astype(int)
+        after = (rows - before)[:, None]
+        held = currents[before] * (1 - after) + currents[before + 1] * after
+        acceleration = np.einsum("skj,sj->sk", model, held)
+        velocity = cumulative_trapezoid(acceleration / mass_kg + weight, dx=period_s, axis=0,
+                                        initial=0.0)
         predicted = _high_passed(savgol_filter(velocity, VELOCITY_WINDOW, 2, axis=0), high_pass)
         return float(np.mean((measured[inside] - predicted[inside]) ** 2))
 
@@ -380,10 +391,93 @@ def fit_latency(flights: Sequence[Flight], X_WT: RigidTransform, magnetics: Magn
     e0, e1, e2 = errors[best - 1:best + 2]
     step = LATENCY_SCAN_S[1] - LATENCY_SCAN_S[0]
     latency = LATENCY_SCAN_S[best] + step * 0.5 * (e0 - e2) / (e0 - 2 * e1 + e2)
-    return {"latency_s": float(latency), "scan_s": LATENCY_SCAN_S, "scan_error": errors,
+    return {"logged_latency_s": float(latency), "latency_s": float(latency + tick_s / 2),
+            "scan_s": LATENCY_SCAN_S, "scan_error": errors,
             "rms_velocity_m_s": math.sqrt(errors[best])}
 
 
 def _high_passed(values: np.ndarray, samples: int) -> np.ndarray:
     """``values`` less their moving mean over ``samples``: an integration's drift gone."""
     return values - uniform_filter1d(values, samples, axis=0)
+
+
+@dataclass
+class Calibration:
+    """What ``fit_device`` found: the fitted device and how it was found."""
+
+    instrument: str
+    nominal: DeviceConfig  # the model the flights flew with
+    device: DeviceConfig  # the nominal with the fitted numbers
+    registration: Dict
+    wrench: WrenchFit
+    latency: Dict
+    rest_height_m: float
+    holds: int
+    flights: List[str]
+
+
+def fit_device(folders: Sequence, rest_height_m: float = None, progress=print) -> Calibration:
+    """Fit the device of the flights in run ``folders`` (``maglev calibrate plan``'s);
+    CalibrationError for folders that do not make a calibration. ``rest_height_m``: the
+    height of I resting on the glass (m); default the model's settled one."""
+    if not folders:
+        raise CalibrationError("no run folder given: give the --out folders of the plan's flights")
+    flights = [read_flight(folder) for folder in folders]
+    instrument = check_same_instrument(flights)
+    if any(flight.name == "check" for flight in flights):
+        raise CalibrationError(
+            "the check flight is among the folders: keep it out of the fit, for maglev "
+            "calibrate check to test the fit on poses it did not see")
+    nominal = flights[0].scenario.device
+    if rest_height_m is None:
+        rest_height_m = settled_rest_height_m(flights[0].scenario)
+    progress(f"registration from {len(flights)} rest marks")
+    registration = fit_registration(flights, rest_height_m)
+    holds = [hold for flight in flights for hold in still_holds(flight, registration["X_WT"])]
+    progress(f"wrench model, mass and centre of mass from {len(holds)} still holds")
+    wrench = fit_wrench_model(holds, load_magnetics(nominal), nominal)
+    fitted = dataclasses.replace(
+        nominal, magnet_strength_scales=[float(v) for v in wrench.magnet_scales],
+        coil_force_scales=[float(v) for v in wrench.coil_scales],
+        instrument_mass_kg=wrench.mass_kg,
+        instrument_com_offset_m=[float(v) for v in wrench.com_I_m])
+    progress("tracker latency from the steps")
+    latency = fit_latency(flights, registration["X_WT"], load_magnetics(fitted), fitted,
+                          wrench.mass_kg)
+    tracker = dataclasses.replace(nominal.tracker, latency_s=latency["latency_s"],
+                                  X_WT=drake_transform(registration["X_WT"]))
+    return Calibration(instrument=instrument, nominal=nominal,
+                       device=dataclasses.replace(fitted, tracker=tracker),
+                       registration=registration, wrench=wrench, latency=latency,
+                       rest_height_m=rest_height_m, holds=len(holds),
+                       flights=[str(flight.folder) for flight in flights])
+
+
+def drake_transform(X: RigidTransform) -> Transform:
+    """``X`` in Drake's schema (translation, roll-pitch-yaw in degrees)."""
+    value = Transform()
+    value.translation = X.translation()
+    value.set_rotation_rpy_deg(np.degrees(RollPitchYaw(X.rotation()).vector()))
+    return value
+
+
+def overlay_text(device: DeviceConfig) -> str:
+    """The fitted numbers as a ``device:`` overlay (``maglev run --scenario-text``, a
+    scenario file's ``device``, ``station: !SimStation {device: ...}``)."""
+    X_WT = device.tracker.pose_WT()
+    rpy_deg = np.degrees(RollPitchYaw(X_WT.rotation()).vector())
+
+    def numbers(values, digits=6):
+        return "[" + ", ".join(f"{float(v):.{digits}g}" for v in values) + "]"
+
+    return "\n".join([
+        "device:",
+        f"  instrument_mass_kg: {device.instrument_mass_kg:.6g}",
+        f"  instrument_com_offset_m: {numbers(device.instrument_com_offset_m, 4)}",
+        f"  magnet_strength_scales: {numbers(device.magnet_strength_scales)}",
+        f"  coil_force_scales: {numbers(device.coil_force_scales)}",
+        "  tracker:",
+        f"    latency_s: {device.tracker.latency_s:.6g}",
+        f"    X_WT: {{translation: {numbers(X_WT.translation(), 5)}, "
+        f"rotation: !Rpy {{deg: {numbers(rpy_deg, 5)}}}}}",
+        ""])
