@@ -43,7 +43,7 @@ from maglev_haptics.analysis.run_results import SCENARIO_FILE
 from maglev_haptics.diagrams.motion import flight_plan
 from maglev_haptics.diagrams.scenario import Scenario, ScenarioError, scenario_from_yaml
 from maglev_haptics.hardware.constants import GRAVITY_M_S2
-from maglev_haptics.hardware.device import DeviceConfig
+from maglev_haptics.hardware.device import MAX_COM_OFFSET_M, MODEL_SCALE_RANGE, DeviceConfig
 from maglev_haptics.hardware.magnetics import MagneticsModel, load_magnetics
 from maglev_haptics.systems.pose_estimator import MarkerModel, fit_pose
 from maglev_haptics.systems.rotations import rotation_from_quaternion
@@ -55,6 +55,7 @@ HOLD_STILL_M = 2e-4  # a hold whose position wanders more than this (std, m) is 
 TORQUE_LEVER_M = 0.02  # torque residuals divided by this count as forces (N)
 GAUGE_WEIGHT = 100.0  # the row holding the coils' geometric mean at 1
 MIN_HOLDS = 12
+USED_CURRENT_A = 0.02  # a coil that never carries this much in a hold is not weighed (A)
 MIN_PAYLOAD_HOLDS = 2
 MIN_REST_MARKS = 2
 # A parameter whose 95 % interval is wider than this is not identified.
@@ -269,7 +270,10 @@ class WrenchFit:
 
 def fit_wrench_model(holds: Sequence[Hold], magnetics: MagneticsModel,
                      device: DeviceConfig) -> WrenchFit:
-    """Magnet strengths, coil scales, mass and centre of mass from the holds."""
+    """Magnet strengths, coil scales, mass and centre of mass from the holds.
+
+    A coil no hold drives (USED_CURRENT_A) is left out of the fit at 1.0 and said so;
+    the others' geometric mean is held at 1 (the gauge)."""
     n_payload = sum(hold.payload_kg > 0 for hold in holds)
     if len(holds) < MIN_HOLDS or n_payload < MIN_PAYLOAD_HOLDS:
         raise CalibrationError(
@@ -280,53 +284,69 @@ def fit_wrench_model(holds: Sequence[Hold], magnetics: MagneticsModel,
     shares = np.array([magnetics.magnet_wrench_matrices(h.p_WI - device.p_WA, h.R_WI)
                        for h in holds])  # (holds, magnets, 6, coils)
     currents = np.array([h.currents_a for h in holds])
+    used = np.flatnonzero(np.abs(currents).max(axis=0) >= USED_CURRENT_A)
+    n_u = len(used)
     nominal_mass = device.instrument_spec().mass_kg
     scale = np.array([1, 1, 1, 1 / TORQUE_LEVER_M, 1 / TORQUE_LEVER_M, 1 / TORQUE_LEVER_M])
 
+    def unpacked(x):
+        """(magnet scales, all coil scales, mass, com) of the parameters x."""
+        coils = np.ones(n_c)
+        coils[used] = np.exp(x[n_m:n_m + n_u])
+        return np.exp(x[0:n_m]), coils, x[n_m + n_u], x[n_m + n_u + 1:]
+
     def wrench_errors(x):
-        s, c = np.exp(x[0:n_m]), np.exp(x[n_m:n_m + n_c])
-        mass, com = x[n_m + n_c], x[n_m + n_c + 1:]
+        s, c, mass, com = unpacked(x)
         coil_wrench = np.einsum("m,hmkj,j,hj->hk", s, shares, c, currents)
         gravity = np.array([gravity_wrench(mass, com, h.R_WI, h.payload_kg, h.payload_p_I_m)
                             for h in holds])
         return coil_wrench + gravity
 
     def residuals(x):
-        gauge = GAUGE_WEIGHT * np.mean(x[n_m:n_m + n_c])
+        gauge = GAUGE_WEIGHT * np.mean(x[n_m:n_m + n_u])
         return np.concatenate(((wrench_errors(x) * scale).ravel(), [gauge]))
 
-    x0 = np.concatenate((np.zeros(n_m + n_c), [nominal_mass], np.zeros(3)))
-    result = scipy.optimize.least_squares(residuals, x0, method="lm", x_scale="jac")
+    x0 = np.concatenate((np.zeros(n_m + n_u), [nominal_mass], np.zeros(3)))
+    log_range = np.log(MODEL_SCALE_RANGE)  # bounded where the schema is
+    lower = np.concatenate((np.full(n_m + n_u, log_range[0]), [0.5 * nominal_mass],
+                            np.full(3, -MAX_COM_OFFSET_M)))
+    upper = np.concatenate((np.full(n_m + n_u, log_range[1]), [2.0 * nominal_mass],
+                            np.full(3, MAX_COM_OFFSET_M)))
+    result = scipy.optimize.least_squares(residuals, x0, bounds=(lower, upper), x_scale="jac")
     if not result.success or not np.all(np.isfinite(result.x)):
         raise CalibrationError(f"the wrench fit did not converge ({result.message}): check "
                                "that the flights flew their holds (summary.json)")
-    half = 1.96 * np.sqrt(np.diag(_covariance(result)))
+    half = 1.96 * np.sqrt(np.abs(np.diag(_covariance(result))))
     x = result.x.copy()
+    coil_half = np.full(n_c, np.inf)
+    coil_half[used] = half[n_m:n_m + n_u]
     not_identified = []
     coil_positions = magnetics.p_ACj + device.p_WA
     for j in range(n_c):
-        if half[n_m + j] > NOT_IDENTIFIED["scale"]:
+        if coil_half[j] > NOT_IDENTIFIED["scale"]:
             x_j, y_j, _ = coil_positions[j]
             not_identified.append(
-                f"coil_force_scales[{j}] (+-{100 * half[n_m + j]:.1f} %): the holds barely use "
+                f"coil_force_scales[{j}] (+-{100 * coil_half[j]:.1f} %): the holds barely use "
                 f"coil {j}; a hold above it, pose [{x_j:.3f}, {y_j:.3f}, 0.014, 0, 0, 0], "
                 "would identify it; written as 1.0")
-            x[n_m + j] = 0.0
-    if half[n_m + n_c] > NOT_IDENTIFIED["mass_kg"] * nominal_mass:
-        not_identified.append(f"instrument_mass_kg (+-{half[n_m + n_c]:.4f} kg): fly the "
+            if j in used:
+                x[n_m + int(np.flatnonzero(used == j)[0])] = 0.0
+    if half[n_m + n_u] > NOT_IDENTIFIED["mass_kg"] * nominal_mass:
+        not_identified.append(f"instrument_mass_kg (+-{half[n_m + n_u]:.4f} kg): fly the "
                               "payload flight with a heavier payload; written as the nominal")
-        x[n_m + n_c] = nominal_mass
+        x[n_m + n_u] = nominal_mass
     for k, axis in enumerate("xyz"):
-        if half[n_m + n_c + 1 + k] > NOT_IDENTIFIED["com_m"]:
+        if half[n_m + n_u + 1 + k] > NOT_IDENTIFIED["com_m"]:
             not_identified.append(
-                f"instrument_com_offset_m[{k}] (+-{1e3 * half[n_m + n_c + 1 + k]:.2f} mm): "
+                f"instrument_com_offset_m[{k}] (+-{1e3 * half[n_m + n_u + 1 + k]:.2f} mm): "
                 f"the holds tilt too little to weigh it along {axis}; written as 0")
-            x[n_m + n_c + 1 + k] = 0.0
+            x[n_m + n_u + 1 + k] = 0.0
+    magnet_scales, coil_scales, mass_kg, com = unpacked(x)
     return WrenchFit(
-        magnet_scales=np.exp(x[0:n_m]), coil_scales=np.exp(x[n_m:n_m + n_c]),
-        mass_kg=float(x[n_m + n_c]), com_I_m=x[n_m + n_c + 1:],
-        intervals={"magnet_scales": half[0:n_m], "coil_scales": half[n_m:n_m + n_c],
-                   "mass_kg": half[n_m + n_c], "com_I_m": half[n_m + n_c + 1:]},
+        magnet_scales=magnet_scales, coil_scales=coil_scales, mass_kg=float(mass_kg),
+        com_I_m=np.array(com),
+        intervals={"magnet_scales": half[0:n_m], "coil_scales": coil_half,
+                   "mass_kg": half[n_m + n_u], "com_I_m": half[n_m + n_u + 1:]},
         residuals_before=wrench_errors(x0), residuals_after=wrench_errors(x),
         not_identified=not_identified)
 

@@ -311,17 +311,15 @@ def load_scenario(name_or_path: str, name: Optional[str] = None,
 def _with_simulated_device(scenario: Scenario, mappings, label: str) -> Scenario:
     """``scenario`` whose ``station: !SimStation {device: ...}`` is the scenario's
     ``device`` with each layer's station device (``mappings``: the file's scenario,
-    then each overlay, as parsed) laid on it in turn; a layer that sets the station
-    without a device starts again from the scenario's."""
+    then each overlay, as parsed) laid on it in turn."""
     if not isinstance(scenario.station, SimStation) or scenario.station.device is None:
         return scenario
-    device_layers = []
+    device = scenario.device
     for mapping in mappings:
         station = mapping.get("station") if isinstance(mapping, dict) else None
-        if isinstance(station, dict):
-            device_layers = device_layers + [station["device"]] if "device" in station else []
-    device = scenario.device
-    for layer in device_layers:
+        layer = station.get("device") if isinstance(station, dict) else None
+        if not isinstance(layer, dict):
+            continue
         refused = [key for key in layer if key not in DEVICE_TRUTH_FIELDS]
         if refused:
             raise ScenarioError(

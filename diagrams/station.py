@@ -8,8 +8,8 @@ Diagram, named ``station``, has the same ports either way:
 
 - inputs ``coil_currents_commanded`` (n_coils, A) and ``coil_power`` (1: the
   amplifiers' supply, the device's enable line; 0 cuts every coil's current);
-- outputs ``markers_measured`` (3 * n_markers, m, NaN when hidden: the newest
-  tracker sample), ``markers_sample_time_s`` (1: when it was published, s; over LCM
+- outputs ``markers_measured`` (3 * n_markers, m in the tracker's frame T, NaN when
+  hidden: the newest tracker sample), ``markers_sample_time_s`` (1: when it was published, s; over LCM
   when it was read), ``markers_sample_count`` (1: its frame number, from 1),
   ``coil_currents`` (n_coils, A, what flows), ``coil_currents_age_s`` (1: how old
   they are, s; 0 simulated, the link's age over LCM), ``instrument_state`` (13, the

@@ -48,8 +48,8 @@ class DeviceVisualizer(LeafSystem):
 
     Coils are drawn as cylinders under the display (their tops at z = p_WA z),
     coloured by current (red +, blue -, saturated at the limit); a triad marks
-    the commanded pose and another the measured one; the measured markers are
-    small spheres; an orange rod from the measured instrument origin shows the
+    the commanded pose and another the measured one; the measured markers (in the
+    tracker's frame T, drawn in W through ``tracker.X_WT``) are small spheres; an orange rod from the measured instrument origin shows the
     force rendered on the user's hand (FORCE_SCALE_M_PER_N).
     """
 
@@ -60,6 +60,7 @@ class DeviceVisualizer(LeafSystem):
         # Close up, the virtual scene lies among the coils (under the glass): see through them.
         self._coil_opacity = 0.25 if close_view else 1.0
         self._limit_a = device.amplifier.current_limit_a
+        self._X_WT = device.tracker.pose_WT()  # the markers come in the tracker's frame T
         n_markers = len(device.instrument_spec().p_IK_m)
         self._currents = self.DeclareVectorInputPort("coil_currents", device.n_coils)
         self._setpoint = self.DeclareVectorInputPort("setpoint", 12)
@@ -110,7 +111,7 @@ class DeviceVisualizer(LeafSystem):
                 meshcat.SetProperty(f"{MARKERS_PATH}/{k}", "visible", visible)
                 self._shown_visible[k] = visible
             if visible:
-                meshcat.SetTransform(f"{MARKERS_PATH}/{k}", RigidTransform(p))
+                meshcat.SetTransform(f"{MARKERS_PATH}/{k}", RigidTransform(self._X_WT @ p))
 
 
 def force_rod_transform(p_WI, f_W) -> np.ndarray:
