@@ -356,7 +356,9 @@ def tracker_samples(flight: Flight, X_WT: RigidTransform) -> tuple:
     once."""
     times = flight.log["markers_sample_time_s"]
     p_WI, R_WI, seen = poses_in_W(flight, X_WT)
-    rows = np.flatnonzero((np.diff(times, prepend=-np.inf) > 0) & np.isfinite(times) & seen)
+    published = np.isfinite(times) & seen
+    rows = np.flatnonzero(published)
+    rows = rows[np.diff(times[rows], prepend=-np.inf) > 0]
     return times[rows], p_WI[rows], R_WI[rows]
 
 
