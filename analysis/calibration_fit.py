@@ -31,6 +31,7 @@ from typing import Dict, List, Sequence
 
 import numpy as np
 import scipy.optimize
+import scipy.sparse
 from scipy.integrate import cumulative_trapezoid
 from pydrake.common.schema import Transform
 from pydrake.math import RigidTransform, RollPitchYaw, RotationMatrix
@@ -45,6 +46,7 @@ from maglev_haptics.diagrams.scenario import Scenario, ScenarioError, scenario_f
 from maglev_haptics.hardware.constants import GRAVITY_M_S2
 from maglev_haptics.hardware.device import MAX_COM_OFFSET_M, MODEL_SCALE_RANGE, DeviceConfig
 from maglev_haptics.hardware.magnetics import MagneticsModel, load_magnetics
+from maglev_haptics.hardware.thermal import coil_thermal, step_temperatures_c, winding_resistance_ohm
 from maglev_haptics.systems.pose_estimator import MarkerModel, fit_pose
 from maglev_haptics.systems.rotations import rotation_from_quaternion
 
@@ -63,6 +65,8 @@ NOT_IDENTIFIED = {"scale": 0.02, "mass_kg": 0.01, "com_m": 1e-3}
 VELOCITY_WINDOW = 15  # tracker samples in the Savitzky-Golay window (~17 ms at 860 Hz)
 VELOCITY_HIGH_PASS_S = 0.35  # the moving mean taken off both velocities (s)
 LATENCY_SCAN_S = np.arange(-0.002, 0.008, 5e-5)  # delays tried (s)
+REPORT_STEP_S = 0.01  # the thermal fit's step: a device's report period (s)
+WARMED_K = 1.0  # a coil that warmed less than this in every flight is not weighed (K)
 
 
 class CalibrationError(ValueError):
@@ -433,6 +437,7 @@ class Calibration:
     registration: Dict
     wrench: WrenchFit
     latency: Dict
+    thermal: Dict  # fit_thermal's, or None where the device reported no temperatures
     rest_height_m: float
     holds: int
     flights: List[str]
@@ -468,10 +473,17 @@ def fit_device(folders: Sequence, rest_height_m: float = None, progress=print) -
                           wrench.mass_kg)
     tracker = dataclasses.replace(nominal.tracker, latency_s=latency["latency_s"],
                                   X_WT=drake_transform(registration["X_WT"]))
-    return Calibration(instrument=instrument, nominal=nominal,
-                       device=dataclasses.replace(fitted, tracker=tracker),
+    fitted = dataclasses.replace(fitted, tracker=tracker)
+    progress("each coil's thermal resistance and capacity from its reported temperatures")
+    thermal = fit_thermal(flights, nominal)
+    if thermal is not None:
+        fitted = dataclasses.replace(fitted, thermal=dataclasses.replace(
+            nominal.thermal,
+            thermal_resistances_k_per_w=[float(v) for v in thermal["resistances_k_per_w"]],
+            heat_capacities_j_per_k=[float(v) for v in thermal["capacities_j_per_k"]]))
+    return Calibration(instrument=instrument, nominal=nominal, device=fitted,
                        registration=registration, wrench=wrench, latency=latency,
-                       rest_height_m=rest_height_m, holds=len(holds),
+                       thermal=thermal, rest_height_m=rest_height_m, holds=len(holds),
                        flights=[str(flight.folder) for flight in flights])
 
 
@@ -492,6 +504,11 @@ def overlay_text(device: DeviceConfig) -> str:
     def numbers(values, digits=6):
         return "[" + ", ".join(f"{float(v):.{digits}g}" for v in values) + "]"
 
+    thermal = device.thermal
+    thermal_lines = [] if thermal.thermal_resistances_k_per_w is None else [
+        "  thermal:",
+        f"    thermal_resistances_k_per_w: {numbers(thermal.thermal_resistances_k_per_w, 5)}",
+        f"    heat_capacities_j_per_k: {numbers(thermal.heat_capacities_j_per_k, 5)}"]
     return "\n".join([
         "device:",
         f"  instrument_mass_kg: {device.instrument_mass_kg:.6g}",
@@ -502,4 +519,83 @@ def overlay_text(device: DeviceConfig) -> str:
         f"    latency_s: {device.tracker.latency_s:.6g}",
         f"    X_WT: {{translation: {numbers(X_WT.translation(), 5)}, "
         f"rotation: !Rpy {{deg: {numbers(rpy_deg, 5)}}}}}",
+        *thermal_lines,
         ""])
+
+
+def fit_thermal(flights: Sequence[Flight], nominal: DeviceConfig) -> Dict:
+    """Each coil's thermal resistance R_th [K/W] and heat capacity C [J/K] from the
+    temperatures the device reported against the currents that flowed: the thermal
+    model's exact RC step (``hardware/thermal.py``) every REPORT_STEP_S from each
+    flight's first report, the current held over each step, fitted per coil (scipy's
+    least squares; the coils are independent, so the Jacobian is two diagonals).
+
+    A coil that warmed by less than WARMED_K in every flight is not identified and
+    keeps the nominal values. Returns resistances, capacities, their 95 % intervals
+    and the not-identified lines; None where no flight logged reported temperatures."""
+    model = coil_thermal(nominal)
+    n = nominal.n_coils
+    series = []
+    for flight in flights:
+        reported = flight.log["coil_temperature_reported_c"]
+        t = flight.log["t"]
+        rows = np.flatnonzero(np.all(np.isfinite(reported), axis=1))
+        if len(rows) < 2:
+            continue
+        tick_s = float(np.median(np.diff(t)))
+        every = max(1, int(round(REPORT_STEP_S / tick_s)))
+        rows = rows[::every]
+        series.append((flight.log["coil_currents"][rows[:-1]], reported[rows],
+                       float(np.median(np.diff(t[rows])))))
+    if not series:
+        return None
+    warmed = np.max([np.max(temps - temps[0], axis=0) for _, temps, _ in series], axis=0)
+    fitted = np.flatnonzero(warmed >= WARMED_K)
+    C0, R0 = model.per_coil(n)
+
+    def simulated(x):
+        capacity, resistance = C0.copy(), R0.copy()
+        capacity[fitted], resistance[fitted] = np.exp(x[:len(fitted)]), np.exp(x[len(fitted):])
+        out = []
+        for currents, temps, step_s in series:
+            temperature = temps[0].copy()
+            path = [temperature.copy()]
+            for current in currents:
+                step_temperatures_c(temperature, np.ascontiguousarray(current), step_s,
+                                    model.ambient_c, capacity, resistance,
+                                    model.resistance_ref_ohm, model.alpha_per_k,
+                                    float(winding_resistance_ohm(model, model.ambient_c)))
+                path.append(temperature.copy())
+            out.append(np.array(path)[:, fitted] - temps[:, fitted])
+        return np.concatenate(out)
+
+    result = {"resistances_k_per_w": R0.copy(), "capacities_j_per_k": C0.copy(),
+              "resistance_95": np.full(n, np.inf), "capacity_95": np.full(n, np.inf),
+              "warmed_k": warmed, "not_identified": []}
+    if len(fitted):
+        rows = sum(len(temps) for _, temps, _ in series)
+        block = scipy.sparse.kron(scipy.sparse.coo_array(np.ones((rows, 1))),
+                                  scipy.sparse.eye_array(len(fitted)))
+        sparsity = scipy.sparse.hstack([block, block])
+        x0 = np.log(np.concatenate((C0[fitted], R0[fitted])))
+        fit = scipy.optimize.least_squares(lambda x: simulated(x).ravel(), x0,
+                                           jac_sparsity=sparsity, x_scale="jac")
+        half = 1.96 * np.sqrt(np.abs(np.diag(_covariance(_dense(fit)))))
+        result["capacities_j_per_k"][fitted] = np.exp(fit.x[:len(fitted)])
+        result["resistances_k_per_w"][fitted] = np.exp(fit.x[len(fitted):])
+        result["capacity_95"][fitted] = half[:len(fitted)]
+        result["resistance_95"][fitted] = half[len(fitted):]
+    cold = np.flatnonzero(warmed < WARMED_K)
+    if len(cold):
+        result["not_identified"].append(
+            f"device.thermal of coils {', '.join(str(j) for j in cold)}: each warmed by "
+            f"{warmed[cold].max():.2f} K at most (under {WARMED_K} K); longer holds above "
+            "them would identify them; written as the nominal")
+    return result
+
+
+def _dense(result):
+    """``result`` with its Jacobian as a dense array (``_covariance`` takes one)."""
+    if scipy.sparse.issparse(result.jac):
+        result.jac = result.jac.toarray()
+    return result

@@ -54,6 +54,15 @@ def calibration_report(calibration: Calibration) -> Dict:
                          "interval_95": {"translation_m": registration["translation_95_m"].tolist(),
                                          "rpy_deg": registration["rotation_95_deg"].tolist()}},
     }
+    thermal = calibration.thermal
+    if thermal is not None:
+        parameters["thermal.thermal_resistances_k_per_w"] = {
+            "nominal": nominal.thermal.thermal_resistance_k_per_w,
+            "fitted": thermal["resistances_k_per_w"].tolist(),
+            "interval_95": thermal["resistance_95"].tolist()}
+        parameters["thermal.heat_capacities_j_per_k"] = {
+            "fitted": thermal["capacities_j_per_k"].tolist(),
+            "interval_95": thermal["capacity_95"].tolist()}
     before, after = wrench.residuals_before, wrench.residuals_after
     return {
         "instrument": calibration.instrument,
@@ -69,13 +78,13 @@ def calibration_report(calibration: Calibration) -> Dict:
             "registration_rms_m": registration["residual_rms_m"],
             "latency_velocity_rms_m_s": latency["rms_velocity_m_s"],
         },
-        "not_identified": wrench.not_identified,
+        "not_identified": wrench.not_identified + (
+            ["device.thermal: the flights logged no coil temperatures from the device"]
+            if thermal is None else thermal["not_identified"]),
         "not_separable": [GAUGE_NOTE],
         "left_out": [
             "the instrument's inertia (the holds are still; the steps' rotations would "
-            "weigh it against the fitted torque model)",
-            "the coils' thermal resistances and capacities (device.thermal: the simulated "
-            "station reports no coil temperatures to fit them to)"],
+            "weigh it against the fitted torque model)"],
     }
 
 
@@ -101,6 +110,13 @@ def format_summary(report: Dict) -> str:
         f"{np.linalg.norm(r['torque_rms_nm']['nominal']) * 1e3:.3f} -> "
         f"{np.linalg.norm(r['torque_rms_nm']['fitted']) * 1e3:.4f} mN m (RMS)",
     ]
+    if "thermal.thermal_resistances_k_per_w" in p:
+        fitted = [v for v, half in zip(p["thermal.thermal_resistances_k_per_w"]["fitted"],
+                                       p["thermal.thermal_resistances_k_per_w"]["interval_95"])
+                  if half is not None and np.isfinite(half)]
+        if fitted:
+            lines.append(f"coil thermal resistances {min(fitted):.3g}..{max(fitted):.3g} K/W "
+                         f"({len(fitted)} coils warmed enough to weigh)")
     lines += [f"not identified: {line}" for line in report["not_identified"]]
     return "\n".join(lines)
 

@@ -10,7 +10,7 @@ from scipy.spatial.transform import Rotation
 
 from maglev_haptics.diagrams.motion import FlightPlan
 from maglev_haptics.hardware.thermal import (
-    coil_thermal, continuous_current_limit_a, steady_state_temperature_c, winding_resistance_ohm)
+    coil_thermal, steady_state_temperature_c, weakest_coil_current_limit_a, winding_resistance_ohm)
 from maglev_haptics.systems.haptic_supervisor import HAPTIC
 from maglev_haptics.systems.rotations import rotation_matrix, rotations_of_quaternions
 
@@ -99,6 +99,7 @@ def _optional_arrays(data) -> Dict[str, np.ndarray]:
     if "markers_sample_time_s" in data:  # a calibration flight's
         arrays["markers_measured"] = data["markers_measured"]
         arrays["markers_sample_time_s"] = data["markers_sample_time_s"][:, 0]
+        arrays["coil_temperature_reported_c"] = data["coil_temperature_reported_c"]
     if "handle_gripped" in data:
         arrays["handle_gripped"] = data["handle_gripped"][:, 0]
     if "hand_state" in data:
@@ -251,7 +252,7 @@ def summarize(log: Dict[str, np.ndarray], plan: FlightPlan, *, rest_height_m: fl
         "max_coil_current_a": float(np.max(np.abs(log["coil_currents"]))),
         "max_power_w": float(np.max(log["coil_power_w"])),
         "max_coil_temperature_c": float(np.max(log["coil_temperature_c"])),
-        "continuous_current_limit_a": continuous_current_limit_a(thermal),
+        "continuous_current_limit_a": weakest_coil_current_limit_a(thermal),
         "holds": holds,
         "hover_position_error_rms_mm": max((h["position_error_rms_mm"] for h in holds), default=None),
         "hover_angle_error_rms_deg": max((h["angle_error_rms_deg"] for h in holds), default=None),

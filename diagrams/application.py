@@ -223,8 +223,8 @@ def AddLogging(builder: DiagramBuilder, *, scenario: Scenario, station: Station,
         "fault_bits": supervisor.GetOutputPort("fault_bits"),
         "coil_power": supervisor.GetOutputPort("coil_power"),
     }
-    if scenario.calibration is not None:  # the tracker's own samples, for a calibration
-        for name in ("markers_measured", "markers_sample_time_s"):
+    if scenario.calibration is not None:  # what a calibration fits the device to
+        for name in ("markers_measured", "markers_sample_time_s", "coil_temperature_reported_c"):
             logged_ports[name] = station.GetOutputPort(name)
     if scenario.hand is not None:
         logged_ports["handle_gripped"] = station.GetOutputPort("handle_gripped")

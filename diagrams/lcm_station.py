@@ -231,6 +231,13 @@ def station_channels(scenario, lease: LeaseClient) -> list:
         channels.append(inbound(DEVICE_STATUS, device_status_t, 1,
                                 lambda message, _: np.array([float(message.handle_gripped)]),
                                 check_status, initial_value=np.zeros(1)))
+    elif scenario.calibration is not None:  # a calibration flight's coil temperatures
+        channels.append(ReceivedChannel(
+            port="coil_temperature_reported_c", channel=channel(station, DEVICE_STATUS),
+            message_type=device_status_t, size=n_coils,
+            decode=lambda message, _: np.array(message.coil_temperature_c, dtype=float),
+            check=lambda message: check_status(message, limits),
+            initial_value=np.full(n_coils, np.nan)))
     if scenario.stereo is not None:
         channels.append(inbound(GLASSES, glasses_t, GLASSES_MEASUREMENT_SIZE,
                                 glasses_measurement_from_message, check_glasses,
@@ -245,7 +252,8 @@ def MakeLcmStation(scenario) -> "LcmStationInterface":
     ``markers_sample_time_s`` (when they were read, s), ``markers_sample_count`` (the
     tracker's frame number the message carried), ``coil_currents``,
     ``coil_currents_age_s`` (how old the newest measured currents are, s), with a hand
-    in the scenario ``handle_gripped``, with the stereo display ``glasses_measured``.
+    in the scenario ``handle_gripped``, with the stereo display ``glasses_measured``, on a
+    calibration flight ``coil_temperature_reported_c`` (the device's status).
     Its ``receiver`` checks and counts the messages it read, refused and lost on each
     channel; building it waits up to ``wait_for_station_s`` for the station's markers.
     Its first tick asks for the device's lease (``lease``, a LeaseClient), and it sends

@@ -258,6 +258,9 @@ class Scenario:
         self.station.validate(label, self)
         if self.calibration is not None:
             self.calibration.validate(f"{label}: calibration", self.device)
+            require(self.hand is None and self.haptics is None, f"{label}: calibration",
+                    self.calibration.flight, "a calibration flight flies the instrument "
+                    "alone: hand and haptics must be null")
 
 
 OVERLAY = "--scenario-text"  # what an error in a layer over the file's scenario names

@@ -23,6 +23,10 @@ With a hand in the scenario (the simulated user), also:
   and ``hand_wrench_on_instrument_W`` (6: [f; tau] in W about I's origin, N,
   N*m; simulation only).
 
+A calibration flight's (``scenario.calibration``) also outputs
+``coil_temperature_reported_c`` (n_coils, deg C): each coil's temperature as the
+device reports it (the simulated device's own thermal model; over LCM its status).
+
 With the stereo display in the scenario, the user's head and the glasses' tracker:
 
 - outputs ``glasses_measured`` (9: [capture time, qw, qx, qy, qz, x, y, z, ok]
@@ -51,6 +55,8 @@ from maglev_haptics.diagrams.lcm_station import LcmStation, LcmStationInterface,
 from maglev_haptics.diagrams.scenario import Scenario, ScenarioError
 from maglev_haptics.diagrams.station_interface import Station
 from maglev_haptics.hardware.magnetics import load_magnetics
+from maglev_haptics.hardware.thermal import coil_thermal
+from maglev_haptics.systems.coil_thermal import CoilTemperatures
 from maglev_haptics.plant_models import PACKAGE_XML
 from maglev_haptics.systems.fault_injection import (
     CorruptSample, LatencySpike, Shove, Shoves, StuckAmplifier, StuckAmplifiers)
@@ -63,7 +69,8 @@ from maglev_haptics.systems.stereo_renderer import AddStereoRenderer
 DISPLAY_MODEL_URL = "package://maglev_haptics/display.sdf"
 DISPLAY_MODEL_THICKNESS_M = 0.010
 DRAKE_SDF_NAMESPACE = "http://drake.mit.edu"
-HAND_GRIP_PERIOD_S = 0.01  # the hand closes or opens on the handle within 10 ms (s)
+HAND_GRIP_PERIOD_S = 0.01
+REPORTED_TEMPERATURE_PERIOD_S = 0.01  # a simulated device's coil temperatures: 100 Hz (s)  # the hand closes or opens on the handle within 10 ms (s)
 
 
 def amplifier_lag_coefficient(bandwidth_hz: float, period_s: float) -> float:
@@ -301,6 +308,12 @@ def _simulated_station(scenario: Scenario, device, magnetics) -> Diagram:
     builder.ExportOutput(scene_graph.get_query_output_port(), "query_object")
     if hand is not None:
         _add_hand(builder, scenario, plant, hand, body, actuation_force=placement.get_output_port())
+    if scenario.calibration is not None:  # the device reports its coils' temperatures
+        reported = builder.AddNamedSystem("coil_temperatures", CoilTemperatures(
+            model=coil_thermal(device), n_coils=device.n_coils,
+            period_s=REPORTED_TEMPERATURE_PERIOD_S))
+        builder.Connect(amplifiers.get_output_port(), reported.get_input_port())
+        builder.ExportOutput(reported.get_output_port(), "coil_temperature_reported_c")
     if scenario.stereo is not None:
         _add_head(builder, scenario)
         if scenario.haptics is None:  # with a scene, the display draws the scene's world

@@ -136,7 +136,7 @@ def _time_allowed(coils: _Coils, A, wrench, temperature_c, hold_s: float) -> flo
     (the horizon is returned when they carry it that long); steps of 1/200 of the time constant (the
     update is exact for held currents)."""
     horizon_s = max(MAX_EXTENSION_S, hold_s)
-    step_s = coils.thermal.time_constant_s / 200
+    step_s = float(np.min(coils.thermal.time_constant_s)) / 200
     t = 0.0
     while t < horizon_s:
         temperature_c, limited = coils.step(A, wrench, temperature_c, step_s)

@@ -262,6 +262,10 @@ class ThermalSpec:
     # 6.5 ohm imply for the 25/10/30 mm winding (0.43 mm wire).
     copper_fill_factor: float = 0.65
     heat_capacity_j_per_k: Optional[float] = None  # None: copper mass x its specific heat [J/K]
+    # Each coil's own (n_coils each, as a calibration measures them); None: the scalar
+    # fields above for every coil [K/W], [J/K].
+    thermal_resistances_k_per_w: Optional[List[float]] = None
+    heat_capacities_j_per_k: Optional[List[float]] = None
     resistance_reference_temperature_c: float = 20.0  # where CoilSpec.resistance_ohm holds [deg C]
     resistance_temperature_coefficient_per_k: float = 0.00393  # copper [1/K]
 
@@ -334,6 +338,14 @@ class DeviceConfig:
                 and np.linalg.norm(offset) <= MAX_COM_OFFSET_M, f"{path}.instrument_com_offset_m",
                 self.instrument_com_offset_m,
                 f"must be [x, y, z] in I (m), at most {MAX_COM_OFFSET_M} m from I's origin")
+        for name in ("thermal_resistances_k_per_w", "heat_capacities_j_per_k"):
+            values = getattr(self.thermal, name)
+            if values is not None:
+                array_values = np.asarray(values, dtype=float)
+                require(array_values.shape == (array.n_coils,) and np.all(array_values > 0)
+                        and np.all(np.isfinite(array_values)), f"{path}.thermal.{name}", values,
+                        f"must be {array.n_coils} positive numbers (one per coil), or null for "
+                        "the scalar field")
         n_magnets = len(default_instrument(self.instrument).p_IM_m)
         for name, count in (("magnet_strength_scales", n_magnets),
                             ("coil_force_scales", array.n_coils)):

@@ -24,7 +24,7 @@ from scipy.optimize import linprog
 from maglev_haptics.hardware.constants import GRAVITY_M_S2
 from maglev_haptics.hardware.device import DeviceConfig
 from maglev_haptics.hardware.magnetics import MagneticsModel, load_magnetics
-from maglev_haptics.hardware.thermal import coil_thermal, continuous_current_limit_a
+from maglev_haptics.hardware.thermal import coil_thermal, weakest_coil_current_limit_a
 
 LIMIT_KINDS = ("peak", "thermal")
 # The six axis directions +x, +y, +z, -x, -y, -z.
@@ -101,12 +101,12 @@ def weight_wrench(config: DeviceConfig) -> np.ndarray:
 
 def coil_current_limit_a(config: DeviceConfig, limit: str) -> float:
     """Per-coil current bound [A]: the amplifier's peak, or for ``"thermal"``
-    the continuous thermal limit (never above the peak)."""
+    the continuous thermal limit of the weakest coil (never above the peak)."""
     peak = _check_limit(config.amplifier.current_limit_a)
     if limit == "peak":
         return peak
     if limit == "thermal":
-        return min(peak, continuous_current_limit_a(coil_thermal(config)))
+        return min(peak, weakest_coil_current_limit_a(coil_thermal(config)))
     raise ValueError(f"limit = {limit!r}: must be one of {', '.join(LIMIT_KINDS)}")
 
 

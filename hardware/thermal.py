@@ -15,11 +15,14 @@ the defaults) no steady state exists: the winding runs away. Every function
 below uses this closed form, so the sampled update is exact when the current
 is held over the sample period (the amplifiers hold it between ticks).
 Coils are thermally independent: R_th is the effective value of a coil among
-equally loaded neighbours.
+equally loaded neighbours. C and R_th are one number for every coil, or one each
+(``thermal_resistances_k_per_w``, ``heat_capacities_j_per_k``): every function
+broadcasts them against the coils' axis (the last).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -28,7 +31,7 @@ import numpy as np
 from numba.extending import register_jitable
 
 from maglev_haptics.hardware.device import CoilSpec, DeviceConfig, ThermalSpec
-from maglev_haptics.hardware.kernels import SCALAR, VECTOR, kernel
+from maglev_haptics.hardware.kernels import MATRIX, SCALAR, VECTOR, kernel
 
 COPPER_DENSITY_KG_M3 = 8960.0
 COPPER_SPECIFIC_HEAT_J_PER_KG_K = 385.0
@@ -38,8 +41,8 @@ COPPER_SPECIFIC_HEAT_J_PER_KG_K = 385.0
 class CoilThermal:
     """The parameters of one coil's thermal RC, derived from a DeviceConfig."""
 
-    heat_capacity_j_per_k: float  # C [J/K]
-    thermal_resistance_k_per_w: float  # R_th to ambient [K/W]
+    heat_capacity_j_per_k: float | tuple  # C [J/K]; a tuple: each coil's
+    thermal_resistance_k_per_w: float | tuple  # R_th to ambient [K/W]; a tuple: each coil's
     resistance_ref_ohm: float  # winding resistance at the reference temperature [ohm]
     reference_temperature_c: float  # [deg C]
     alpha_per_k: float  # resistance temperature coefficient [1/K]
@@ -47,9 +50,16 @@ class CoilThermal:
     max_c: float  # largest allowed winding temperature [deg C]
 
     @property
-    def time_constant_s(self) -> float:
-        """R_th C [s]: the cooling time constant (and heating's at small currents)."""
-        return self.heat_capacity_j_per_k * self.thermal_resistance_k_per_w
+    def time_constant_s(self):
+        """R_th C [s]: the cooling time constant (and heating's at small currents); each
+        coil's where they differ."""
+        return np.asarray(self.heat_capacity_j_per_k) * np.asarray(self.thermal_resistance_k_per_w)
+
+    def per_coil(self, n_coils: int) -> tuple:
+        """(C (n_coils,) [J/K], R_th (n_coils,) [K/W]): each coil's."""
+        return tuple(np.ascontiguousarray(np.broadcast_to(np.asarray(value, dtype=float),
+                                                          (n_coils,)))
+                     for value in (self.heat_capacity_j_per_k, self.thermal_resistance_k_per_w))
 
 
 def winding_volume_m3(coil: CoilSpec) -> float:
@@ -85,9 +95,13 @@ def coil_thermal(config: DeviceConfig) -> CoilThermal:
         raise ValueError(
             f"device.thermal.max_winding_temperature_c = {thermal.max_winding_temperature_c!r}: "
             f"must exceed ambient_temperature_c = {thermal.ambient_temperature_c!r}")
+    capacities, resistances = thermal.heat_capacities_j_per_k, thermal.thermal_resistances_k_per_w
     result = CoilThermal(
-        heat_capacity_j_per_k=coil_heat_capacity_j_per_k(coil, thermal),
-        thermal_resistance_k_per_w=float(thermal.thermal_resistance_k_per_w),
+        heat_capacity_j_per_k=(coil_heat_capacity_j_per_k(coil, thermal) if capacities is None
+                               else tuple(float(v) for v in capacities)),
+        thermal_resistance_k_per_w=(float(thermal.thermal_resistance_k_per_w)
+                                    if resistances is None
+                                    else tuple(float(v) for v in resistances)),
         resistance_ref_ohm=float(coil.resistance_ohm),
         reference_temperature_c=float(thermal.resistance_reference_temperature_c),
         alpha_per_k=float(thermal.resistance_temperature_coefficient_per_k),
@@ -108,8 +122,8 @@ def winding_resistance_ohm(model: CoilThermal, temperature_c):
 def _rate_and_drive(model: CoilThermal, current_a):
     """(lambda [1/s], P_amb / C [K/s]) of the linear ODE for a held current [A]."""
     squared = np.square(np.asarray(current_a, dtype=float))
-    c = model.heat_capacity_j_per_k
-    rate = (1 / model.thermal_resistance_k_per_w
+    c = np.asarray(model.heat_capacity_j_per_k)
+    rate = (1 / np.asarray(model.thermal_resistance_k_per_w)
             - squared * model.resistance_ref_ohm * model.alpha_per_k) / c
     return rate, squared * winding_resistance_ohm(model, model.ambient_c) / c
 
@@ -122,15 +136,20 @@ def steady_state_temperature_c(model: CoilThermal, current_a):
     return model.ambient_c + rise
 
 
-def continuous_current_limit_a(model: CoilThermal, steady_c=None) -> float:
+def continuous_current_limit_a(model: CoilThermal, steady_c=None):
     """I_cont [A]: the largest constant current whose steady state is T_max (or
-    ``steady_c`` [deg C]).
+    ``steady_c`` [deg C]); each coil's where their R_th differ.
 
     At steady state I^2 R(T) = (T - T_amb) / R_th, exactly.
     """
     steady_c = model.max_c if steady_c is None else steady_c
-    heat_w = (steady_c - model.ambient_c) / model.thermal_resistance_k_per_w
-    return math.sqrt(heat_w / float(winding_resistance_ohm(model, steady_c)))
+    heat_w = (steady_c - model.ambient_c) / np.asarray(model.thermal_resistance_k_per_w)
+    return np.sqrt(heat_w / float(winding_resistance_ohm(model, steady_c)))[()]
+
+
+def weakest_coil_current_limit_a(model: CoilThermal) -> float:
+    """The smallest coil's ``continuous_current_limit_a`` [A]."""
+    return float(np.min(continuous_current_limit_a(model)))
 
 
 def temperature_after_c(model: CoilThermal, temperature_c, current_a, duration_s):
@@ -140,23 +159,27 @@ def temperature_after_c(model: CoilThermal, temperature_c, current_a, duration_s
     it is the exact discrete update T[k+1] = f(T[k], I[k]) for currents held
     over each period. Arrays broadcast (e.g. 27 coils at once).
     """
-    return _temperature_after_c(temperature_c, current_a, duration_s, *winding_numbers(model))
+    return _temperature_after_c(temperature_c, current_a, duration_s, model.ambient_c,
+                                np.asarray(model.heat_capacity_j_per_k),
+                                np.asarray(model.thermal_resistance_k_per_w),
+                                model.resistance_ref_ohm, model.alpha_per_k,
+                                float(winding_resistance_ohm(model, model.ambient_c)))
 
 
-def winding_numbers(model: CoilThermal) -> tuple:
-    """The numbers ``winding_temperature_after_c`` takes after the duration: T_amb
-    [deg C], C [J/K], R_th [K/W], R_ref [ohm], alpha [1/K], R(T_amb) [ohm]."""
-    return (model.ambient_c, model.heat_capacity_j_per_k, model.thermal_resistance_k_per_w,
-            model.resistance_ref_ohm, model.alpha_per_k,
-            float(winding_resistance_ohm(model, model.ambient_c)))
+def winding_numbers(model: CoilThermal, n_coils: int) -> tuple:
+    """The numbers ``step_temperatures_c`` takes after the duration for ``n_coils``:
+    T_amb [deg C], each coil's C [J/K] and R_th [K/W], R_ref [ohm], alpha [1/K],
+    R(T_amb) [ohm]."""
+    return (model.ambient_c, *model.per_coil(n_coils), model.resistance_ref_ohm,
+            model.alpha_per_k, float(winding_resistance_ohm(model, model.ambient_c)))
 
 
 @register_jitable
 def winding_temperature_after_c(temperature_c, current_a, duration_s, ambient_c,
                                 heat_capacity_j_per_k, thermal_resistance_k_per_w,
                                 resistance_ref_ohm, alpha_per_k, ambient_resistance_ohm):
-    """``temperature_after_c`` of one winding, the model's numbers as ``winding_numbers``
-    gives them."""
+    """``temperature_after_c`` of one winding, with its C [J/K] and R_th [K/W] and the
+    model's other numbers."""
     squared = current_a * current_a
     rate = (1 / thermal_resistance_k_per_w - squared * resistance_ref_ohm * alpha_per_k) \
         / heat_capacity_j_per_k  # lambda [1/s]
@@ -173,16 +196,18 @@ _temperature_after_c = numba.vectorize(
     cache=True)(winding_temperature_after_c)
 
 
-@kernel((VECTOR, VECTOR, SCALAR, SCALAR, SCALAR, SCALAR, SCALAR, SCALAR, SCALAR))
+@kernel((VECTOR, VECTOR, SCALAR, SCALAR, VECTOR, VECTOR, SCALAR, SCALAR, SCALAR))
 def step_temperatures_c(temperature_c, current_a, duration_s, ambient_c, heat_capacity_j_per_k,
                         thermal_resistance_k_per_w, resistance_ref_ohm, alpha_per_k,
                         ambient_resistance_ohm):
     """Each winding's temperature [deg C] in ``temperature_c``, in place, after
-    ``duration_s`` [s] at its held current [A] (``winding_temperature_after_c``)."""
+    ``duration_s`` [s] at its held current [A] (``winding_temperature_after_c``), each
+    with its own C and R_th (``winding_numbers``)."""
     for j in range(temperature_c.size):
         temperature_c[j] = winding_temperature_after_c(
-            temperature_c[j], current_a[j], duration_s, ambient_c, heat_capacity_j_per_k,
-            thermal_resistance_k_per_w, resistance_ref_ohm, alpha_per_k, ambient_resistance_ohm)
+            temperature_c[j], current_a[j], duration_s, ambient_c, heat_capacity_j_per_k[j],
+            thermal_resistance_k_per_w[j], resistance_ref_ohm, alpha_per_k,
+            ambient_resistance_ohm)
 
 
 def time_to_temperature_s(model: CoilThermal, temperature_c, current_a, target_c=None):
@@ -215,7 +240,8 @@ class ThermalBudget:
     held, would not take the winding past ``target_c`` [deg C] within ``horizon_s``
     [s], and never above ``current_limit_a`` [A]. At and above ``target_c`` it is
     the current that holds the winding at ``target_c``. Tabulated over temperature
-    (``bound_a[k]`` at ``lowest_c + k * step_c``), read by ``current_bounds_a``."""
+    (``bound_a[j, k]`` at ``lowest_c + k * step_c``: one row for every coil, or coil
+    j's), read by ``current_bounds_a``."""
 
     horizon_s: float
     target_c: float
@@ -228,7 +254,22 @@ class ThermalBudget:
 def thermal_budget(model: CoilThermal, *, horizon_s: float, margin_c: float,
                    current_limit_a: float, points: int = 512) -> ThermalBudget:
     """The budget that keeps each winding ``margin_c`` [K] under its limit, tabulated
-    from 50 K below ambient to the target (bisection on ``time_to_temperature_s``)."""
+    from 50 K below ambient to the target (bisection on ``time_to_temperature_s``);
+    a row for each coil where their C or R_th differ."""
+    if np.ndim(model.heat_capacity_j_per_k) or np.ndim(model.thermal_resistance_k_per_w):
+        n = max(len(np.atleast_1d(v)) for v in (model.heat_capacity_j_per_k,
+                                                model.thermal_resistance_k_per_w))
+        rows = [_budget_row(dataclasses.replace(model, heat_capacity_j_per_k=float(c),
+                                                thermal_resistance_k_per_w=float(r)),
+                            horizon_s, margin_c, current_limit_a, points)
+                for c, r in zip(*model.per_coil(n))]
+        return dataclasses.replace(rows[0], bound_a=np.vstack([row.bound_a for row in rows]))
+    return _budget_row(model, horizon_s, margin_c, current_limit_a, points)
+
+
+def _budget_row(model: CoilThermal, horizon_s: float, margin_c: float, current_limit_a: float,
+                points: int) -> ThermalBudget:
+    """``thermal_budget`` of a model whose coils are alike: one row."""
     target_c = model.max_c - margin_c
     if not target_c > model.ambient_c:
         raise ValueError(f"controller.thermal_margin_c = {margin_c!r}: must leave the target "
@@ -248,20 +289,22 @@ def thermal_budget(model: CoilThermal, *, horizon_s: float, margin_c: float,
     bound[-1] = min(steady, current_limit_a)
     return ThermalBudget(horizon_s=float(horizon_s), target_c=target_c,
                          current_limit_a=float(current_limit_a), lowest_c=lowest_c,
-                         step_c=float(temperature_c[1] - temperature_c[0]), bound_a=bound)
+                         step_c=float(temperature_c[1] - temperature_c[0]),
+                         bound_a=bound[np.newaxis, :])
 
 
-@kernel((VECTOR, SCALAR, SCALAR, VECTOR))
+@kernel((VECTOR, SCALAR, SCALAR, MATRIX))
 def _interpolated(x, lowest, step, table):
-    """``table`` (at lowest + k step) linearly interpolated at each of ``x``, held
-    at its ends."""
+    """Row j of ``table`` (at lowest + k step; its one row for every j if it has one)
+    linearly interpolated at each x[j], held at its ends."""
     result = np.empty(x.size)
-    last = table.size - 1
+    last = table.shape[1] - 1
     for j in range(x.size):
+        row = min(j, table.shape[0] - 1)
         position = min(max((x[j] - lowest) / step, 0.0), float(last))
         k = min(int(position), last - 1)
         fraction = position - k
-        result[j] = (1.0 - fraction) * table[k] + fraction * table[k + 1]
+        result[j] = (1.0 - fraction) * table[row, k] + fraction * table[row, k + 1]
     return result
 
 

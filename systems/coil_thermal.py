@@ -27,7 +27,7 @@ class CoilTemperatures(LeafSystem):
 
     def __init__(self, *, model: CoilThermal, n_coils: int, period_s: float):
         super().__init__()
-        self._numbers = winding_numbers(model)
+        self._numbers = winding_numbers(model, n_coils)
         self._period_s = float(period_s)
         self._currents = self.DeclareVectorInputPort("coil_currents", n_coils)
         self._temperature = self.DeclareDiscreteState(

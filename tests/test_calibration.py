@@ -14,13 +14,15 @@ from pydrake.multibody.plant import AddMultibodyPlantSceneGraph
 from pydrake.systems.framework import DiagramBuilder
 
 from maglev_haptics.analysis.calibration_fit import (
-    CalibrationError, Hold, fit_wrench_model, gravity_wrench, overlay_text)
+    CalibrationError, Flight, Hold, fit_thermal, fit_wrench_model, gravity_wrench, overlay_text)
 from maglev_haptics.analysis.run_results import run_scenario
 from maglev_haptics.cli import main
 from maglev_haptics.diagrams.scenario import ScenarioError, load_scenario, scenario_yaml
 from maglev_haptics.diagrams.station import add_station_models
 from maglev_haptics.hardware.device import DeviceConfig
 from maglev_haptics.hardware.magnetics import load_magnetics
+from maglev_haptics.hardware.thermal import (
+    coil_thermal, current_bounds_a, step_temperatures_c, thermal_budget, winding_numbers)
 from maglev_haptics.systems.haptic_supervisor import HAPTIC
 
 TRACKER_OFF = ("X_WT: {translation: [0.0012, -0.0008, 0.0005], "
@@ -31,12 +33,22 @@ def _coil_scales(seed=7):
     return [round(float(v), 4) for v in 1 + np.random.default_rng(seed).uniform(-0.03, 0.03, 27)]
 
 
+def _thermal(seed=9):
+    """Each coil's R_th (K/W) and C (J/K), +-10 % about the nominal's."""
+    rng = np.random.default_rng(seed)
+    return ([round(float(v), 4) for v in 2.5 * (1 + rng.uniform(-0.1, 0.1, 27))],
+            [round(float(v), 3) for v in 27.7 * (1 + rng.uniform(-0.1, 0.1, 27))])
+
+
 def device_text(latency_s=0.0022):
     """A device within the issue's ranges, as a simulated station's overlay."""
+    resistances, capacities = _thermal()
     return ("{station: !SimStation {device: {instrument_mass_kg: 0.133, "
             "instrument_com_offset_m: [0.00015, -0.00009, 0.00006], "
             f"coil_force_scales: {_coil_scales()}, magnet_strength_scales: [1.035, 0.965], "
-            f"tracker: {{latency_s: {latency_s}, {TRACKER_OFF}}}}}}}}}")
+            f"tracker: {{latency_s: {latency_s}, {TRACKER_OFF}}}, "
+            f"thermal: {{thermal_resistances_k_per_w: {resistances}, "
+            f"heat_capacities_j_per_k: {capacities}}}}}}}}}")
 
 
 @pytest.mark.parametrize("text, fragment", [
@@ -51,6 +63,8 @@ def device_text(latency_s=0.0022):
      "station.device.instrument: a simulated station's device may differ from the "
      "scenario's only in"),
     ("{calibration: {payload_kg: 0.1}}", "calibration.payload_kg = 0.1: must be between 0 and"),
+    ("{device: {thermal: {thermal_resistances_k_per_w: [2.5, -1]}}}",
+     "device.thermal.thermal_resistances_k_per_w = [2.5, -1.0]: must be 27 positive numbers"),
 ])
 def test_bad_device_truth_is_one_line_naming_the_field(text, fragment):
     with pytest.raises(ScenarioError) as error:
@@ -292,6 +306,12 @@ def test_the_whole_cycle_calibrates_a_device_unlike_the_model(tmp_path, capsys):
     assert check["fitted"]["colocation_error_mm"] < 0.2 < check["nominal"]["colocation_error_mm"]
     assert check["fitted"]["hover_current_error_percent"] < 1 < check["nominal"][
         "hover_current_error_percent"]
+    report = json.loads((tmp_path / "fit" / "calibration_report.json").read_text())
+    fitted_r = np.array(report["parameters"]["thermal.thermal_resistances_k_per_w"]["fitted"])
+    weighed = np.isfinite(np.array(report["parameters"]["thermal.thermal_resistances_k_per_w"]
+                                   ["interval_95"], dtype=float))
+    assert weighed.sum() >= 10  # the coils the flights warm by a kelvin or more
+    np.testing.assert_allclose(fitted_r[weighed], np.array(_thermal()[0])[weighed], rtol=0.05)
 
     # The twin (the fitted device simulated) against the device, flying peg_in_hole.
     device_hover, device_stiffness = _peg(device_text())
@@ -320,3 +340,49 @@ def _peg(device_overlay):
     pressing = (log["tool_in_contact"] > 0.5) & (depth > 2e-4) & (log["haptic_mode"] == HAPTIC)
     felt = -log["hand_wrench_on_instrument_W"][pressing, 2]
     return hover, float(np.polyfit(depth[pressing], felt, 1)[0])
+
+
+def test_per_coil_thermal_numbers_equal_to_the_scalar_give_the_same_model():
+    nominal = DeviceConfig()
+    same = dataclasses.replace(nominal, thermal=dataclasses.replace(
+        nominal.thermal, thermal_resistances_k_per_w=[2.5] * 27,
+        heat_capacities_j_per_k=[float(coil_thermal(nominal).heat_capacity_j_per_k)] * 27))
+    temperatures = {}
+    for name, device in (("scalar", nominal), ("per coil", same)):
+        model = coil_thermal(device)
+        t = np.full(27, 40.0)
+        step_temperatures_c(t, np.linspace(-3, 3, 27), 0.01, *winding_numbers(model, 27))
+        budget = thermal_budget(model, horizon_s=10.0, margin_c=5.0, current_limit_a=4.0)
+        temperatures[name] = (t, current_bounds_a(budget, np.linspace(20, 95, 27)))
+    for a, b in zip(*temperatures.values()):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_the_thermal_fit_recovers_each_warmed_coils_resistance_and_capacity():
+    """Reported temperatures of a device whose coils differ, under currents that warm
+    some coils and leave the others cold."""
+    nominal = DeviceConfig()
+    resistances, capacities = _thermal()
+    truth = coil_thermal(dataclasses.replace(nominal, thermal=dataclasses.replace(
+        nominal.thermal, thermal_resistances_k_per_w=resistances,
+        heat_capacities_j_per_k=capacities)))
+    rng = np.random.default_rng(4)
+    flights = []
+    for k in range(3):
+        steps = 2000  # 20 s at 10 ms
+        currents = np.zeros((steps, 27))
+        currents[:, :20] = np.repeat(rng.uniform(-2.5, 2.5, (20, 20)), 100, axis=0)
+        temperature = np.full(27, 25.0 + k)
+        reported = [temperature.copy()]
+        for current in currents[:-1]:
+            step_temperatures_c(temperature, np.ascontiguousarray(current), 0.01,
+                                *winding_numbers(truth, 27))
+            reported.append(temperature.copy())
+        log = {"t": np.arange(steps) * 0.01, "coil_currents": currents,
+               "coil_temperature_reported_c": np.array(reported)}
+        flights.append(Flight("holds", None, None, log))
+    fit = fit_thermal(flights, nominal)
+    np.testing.assert_allclose(fit["resistances_k_per_w"][:20], resistances[:20], rtol=1e-3)
+    np.testing.assert_allclose(fit["capacities_j_per_k"][:20], capacities[:20], rtol=1e-3)
+    assert fit["resistances_k_per_w"][20] == 2.5  # cold: the nominal, and said
+    assert fit["not_identified"][0].startswith("device.thermal of coils 20, 21, 22")

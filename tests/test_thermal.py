@@ -111,7 +111,7 @@ def test_station_step_in_place_is_the_sampled_update():
     currents = rng.uniform(-4.0, 4.0, 27)
     currents[0] = 0.0  # no heat: the rate's small-x branch
     expected = temperature_after_c(MODEL, temperatures, currents, 0.01)
-    step_temperatures_c(temperatures, currents, 0.01, *winding_numbers(MODEL))
+    step_temperatures_c(temperatures, currents, 0.01, *winding_numbers(MODEL, len(temperatures)))
     np.testing.assert_array_equal(temperatures, expected)
 
 
