@@ -22,7 +22,8 @@ PRESENT = {"always": lambda s: True,
            "with a hand": lambda s: s.hand is not None,
            "with the stereo display": lambda s: s.stereo is not None,
            "with the stereo display and no haptic scene":
-               lambda s: s.stereo is not None and s.haptics is None}
+               lambda s: s.stereo is not None and s.haptics is None,
+           "on a calibration flight": lambda s: s.calibration is not None}
 
 
 def station_diagram(scenario: Scenario):
@@ -73,23 +74,27 @@ def built_ports(system) -> set:
                for i in range(system.num_output_ports())})
 
 
-def shipped(name: str, label: str = None, *, stereo: bool = False) -> Scenario:
-    scenario = load_scenario(name, label) if label else load_scenario(name)
-    return with_stereo(scenario, label or name) if stereo else scenario
+def shipped(name: str, label: str = None, *, stereo=False) -> Scenario:
+    """A shipped scenario; ``stereo``: True with the stereo display, "calibration" as a
+    calibration flight."""
+    scenario = load_scenario(name, label, "{calibration: {flight: holds}}"
+                             if stereo == "calibration" else "{}")
+    return with_stereo(scenario, label or name) if stereo is True else scenario
 
 
 # Together they meet every 'present' condition: none; a hand and a haptic scene; the
 # stereo display with no scene; the stereo display with a scene.
 SIMULATED = [("levitate", None, False), ("peg_in_hole", None, False),
-             ("stereo_display", "head_sweep", False), ("peg_in_hole", None, True)]
+             ("stereo_display", "head_sweep", False), ("peg_in_hole", None, True),
+             ("levitate", None, "calibration")]
 # On LCM the stereo display needs a haptic scene.
 ON_LCM = [("levitate", None, False), ("peg_in_hole", None, False),
-          ("peg_in_hole", None, True)]
+          ("peg_in_hole", None, True), ("levitate", None, "calibration")]
 
 
 def case_id(case) -> str:
-    name, label, stereo = case
-    return (label or name) + ("+stereo" if stereo else "")
+    name, label, extra = case
+    return (label or name) + {False: "", True: "+stereo", "calibration": "+calibration"}[extra]
 
 
 @pytest.mark.parametrize("case", SIMULATED, ids=case_id)
