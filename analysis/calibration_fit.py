@@ -284,6 +284,9 @@ def fit_wrench_model(holds: Sequence[Hold], magnetics: MagneticsModel,
             f"{len(holds)} still holds ({n_payload} with a payload): the fit needs at least "
             f"{MIN_HOLDS}, {MIN_PAYLOAD_HOLDS} of them carrying the payload: fly the plan's "
             "holds_* flights and its payload flight")
+    if not all(np.all(np.isfinite(h.currents_a)) and np.all(np.isfinite(h.p_WI)) for h in holds):
+        raise CalibrationError("a hold's currents or pose are not finite numbers: the logs "
+                               "are damaged; fly those flights again")
     n_m, n_c = len(magnetics.p_IM), magnetics.n_coils
     shares = np.array([magnetics.magnet_wrench_matrices(h.p_WI - device.p_WA, h.R_WI)
                        for h in holds])  # (holds, magnets, 6, coils)

@@ -223,12 +223,14 @@ def _fake_run(folder, scenario, seconds=1.0):
     (["nothing"], "not a run folder (scenario.yaml missing)"),
     (["holds", "four"], "the flights are of different instruments"),
     (["holds"], "the registration needs 2"),
+    (["holds", "check"], "the check flight is among the folders"),
 ])
 def test_calibrate_fit_refuses_in_one_line_and_writes_nothing(tmp_path, capsys, runs, fragment):
     _fake_run(tmp_path / "ordinary", load_scenario("levitate"))
     _fake_run(tmp_path / "holds", load_scenario("levitate", None, "{calibration: {flight: holds}}"))
     _fake_run(tmp_path / "four", load_scenario("levitate", "four_magnet_tilt",
                                                "{calibration: {flight: holds}}"))
+    _fake_run(tmp_path / "check", load_scenario("levitate", None, "{calibration: {flight: check}}"))
     (tmp_path / "nothing").mkdir()
     out = tmp_path / "fit" / "lab_device.yaml"
     code = main(["calibrate", "fit", *[str(tmp_path / r) for r in runs], "--out", str(out)])
