@@ -835,12 +835,13 @@ def _add_calibrate_parser(commands) -> None:
     calibrate = commands.add_parser(
         "calibrate", formatter_class=FORMATTER,
         help="fit the device model to a device's own flights (plan, fit, check)",
-        description="Calibrate the device model against a device (or a simulated one): plan "
-        "the identification flights, fly them with maglev run, fit the device's own numbers "
-        "to their logs, check the fit on a flight it did not see.",
+        description="Calibrate the device model against a device (or a simulated one): plan\n"
+        "the identification flights, fly them with maglev run, fit the device's own numbers\n"
+        "to their logs, check the fit on a flight it did not see (README, \"Calibrate your\n"
+        "device\"). Exit codes: 0 done; 2 bad input, or flights that do not make a fit.",
         epilog=_epilog("""
             maglev calibrate plan --out calibration
-            maglev calibrate fit runs/holds_1 runs/holds_2 runs/holds_3 runs/holds_4 runs/steps runs/payload --out lab_device.yaml
+            maglev calibrate fit runs/holds_* runs/steps runs/payload --out lab_device.yaml
             maglev calibrate check runs/check --device lab_device.yaml
             """, with_scenarios=False))
     steps = calibrate.add_subparsers(dest="step", required=True)
