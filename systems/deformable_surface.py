@@ -147,12 +147,9 @@ class DeformableSurface(LeafSystem):
         x, v, tool = self._split(new)
         if self._use_worker and self._worker is None:
             self._start_worker()
-        ahead = None if self._worker is None else self._worker.result_for(current)
-        if ahead is None:
+        if self._worker is None or not self._worker.result_into(current, new):
             self._step(x, v, tool)
-        else:
-            new[:6 * self._n] = ahead
         tool[0:7] = self._X_WT.Eval(context)
         tool[7:13] = self._V_WT.Eval(context)
         if self._worker is not None:
-            self._worker.request(new, probe_arguments(tool, self._p_TP))
+            self._worker.request(new, self._p_TP)

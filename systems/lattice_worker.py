@@ -13,11 +13,14 @@ Protocol, on ``control`` (int64): [0] stop flag, [1] the sequence number of the
 last request, [2] that of the last finished step, [3] 1 while the paced loop runs
 at real-time priority (``hardware/realtime_priority.py``), which the worker then
 shares, polling by sleeping RT_POLL_US rather than yielding (a SCHED_FIFO thread
-that never sleeps is throttled by the kernel for 50 ms a second). The main thread writes the
-inputs only while the worker is idle ([1] == [2]) and then bumps [1]; the worker
-polls [1], steps, and sets [2]. x86 keeps stores in order, and an opaque libc
-call before [2] is set keeps the compiler from moving the result's stores after
-it. During a run a request comes every tick and the worker polls by yielding
+that never sleeps is throttled by the kernel for 50 ms a second), [4] which of the
+two mass buffers holds the request's input (the other gets the result). The main
+thread writes the inputs only while the worker is idle ([1] == [2]) and then bumps
+[1]; the worker polls [1], steps, and sets [2]. A tick that took the worker's result
+asks for the next from that result: the buffers swap roles and no state is copied
+in; the update checks the state against the input with one compiled compare. x86
+keeps stores in order, and an opaque libc call before [2] is set keeps the
+compiler from moving the result's stores after it. During a run a request comes every tick and the worker polls by yielding
 its core (``sched_yield``: no timer slack, and other processes go first); idle
 for FAST_POLLS looks it sleeps IDLE_POLL_US between them, and after
 IDLE_EXIT_POLLS of those (~0.5 s) it ends (a pydrake diagram keeps its Python
@@ -32,16 +35,17 @@ import weakref
 import numpy as np
 from numba import types
 
-from maglev_haptics.hardware.kernels import INDEX_VECTOR, kernel
+from maglev_haptics.hardware.kernels import FLAG, INDEX_VECTOR, READONLY_VECTOR, VECTOR, kernel
 from maglev_haptics.hardware.realtime_priority import (
     RT_POLL_US, add_follower, is_realtime, set_thread_priority)
 from maglev_haptics.systems.lattice_dynamics import (
-    TICK_ARGUMENTS, LatticeModel, implicit_workspace, tick_from)
+    TICK_ARGUMENTS, LatticeModel, implicit_workspace, probe_point, tick_from)
 
 FAST_POLLS = 20000  # looks by yielding (~5-10 ms idle) before the worker sleeps between them
 IDLE_POLL_US = 1000  # (us)
 IDLE_EXIT_POLLS = 500  # and after this many slow looks (~0.5 s) it ends
-_STOP, _REQUESTED, _DONE, _POLL_BY_SLEEPING = 0, 1, 2, 3
+_STOP, _REQUESTED, _DONE, _POLL_BY_SLEEPING, _INPUT = 0, 1, 2, 3, 4
+_COMPARE_CHUNK = 512  # numbers compared between looks for a difference
 
 _libc = ctypes.CDLL(None)
 _usleep = _libc.usleep
@@ -55,9 +59,11 @@ _sched_yield.restype = ctypes.c_int
 # Not cached (numba cannot cache code that calls a ctypes function), so kept small:
 # the tick it calls comes compiled from the cache. That tick lives with the kernels
 # it calls: numba's cache goes stale only when the function's own file changes.
-@kernel((INDEX_VECTOR, types.Tuple(TICK_ARGUMENTS)), cache=False, nogil=True)
-def _serve(control, arguments):
-    """Run ``tick_from(*arguments)`` for every request until the stop flag is set."""
+@kernel((INDEX_VECTOR, types.Tuple(TICK_ARGUMENTS), types.Tuple(TICK_ARGUMENTS)),
+        cache=False, nogil=True)
+def _serve(control, forward, backward):
+    """Run ``tick_from(*forward)`` (``backward``: its two mass buffers swapped, where
+    control[_INPUT] is 1) for every request until the stop flag is set."""
     done = control[_DONE]
     idle = 0
     while control[_STOP] == 0:
@@ -74,10 +80,44 @@ def _serve(control, arguments):
                 _sched_yield()
             continue
         idle = 0
-        tick_from(*arguments)
+        if control[_INPUT] == 0:
+            tick_from(*forward)
+        else:
+            tick_from(*backward)
         _usleep(0)  # a compiler barrier: the result is stored before it is announced
         control[_DONE] = sequence
         done = sequence
+
+
+@kernel((READONLY_VECTOR, VECTOR, VECTOR), (VECTOR, VECTOR, VECTOR))
+def _is_state(state, masses, tool):
+    """state == [masses; tool] exactly (as np.array_equal), the tool's first; a chunk
+    at a time, so the compare vectorizes and stops soon after a difference."""
+    split = masses.shape[0]
+    for i in range(tool.shape[0]):
+        if state[split + i] != tool[i]:
+            return False
+    for start in range(0, split, _COMPARE_CHUNK):
+        differs = False
+        for i in range(start, min(start + _COMPARE_CHUNK, split)):
+            differs |= state[i] != masses[i]
+        if differs:
+            return False
+    return True
+
+
+@kernel((VECTOR, VECTOR, VECTOR, VECTOR, VECTOR, FLAG))
+def _store_request(state, p_TP, masses, tool, probe, copy_masses):
+    """[masses; tool] = state (the masses only where ``copy_masses``), and probe =
+    [p_WP, v_WP, p_WT] at that tool state."""
+    split = masses.shape[0]
+    if copy_masses:
+        masses[:] = state[:split]
+    tool[:] = state[split:]
+    p_WP, v_WP = probe_point(tool[0:7], tool[7:13], p_TP)
+    probe[0:3] = p_WP
+    probe[3:6] = v_WP
+    probe[6:9] = tool[4:7]
 
 
 def _stop(control: np.ndarray) -> None:
@@ -90,20 +130,22 @@ class LatticeWorker:
     def __init__(self, model: LatticeModel, num_masses: int, constants, *, implicit: bool,
                  substeps: int, cg_max_iterations: int):
         """``constants``: as ``tick_from`` takes them (8)."""
-        self._control = np.zeros(4, dtype=np.int64)
-        # The request's state, [x; v] (6 n) and the tool's (13), and the step's result.
-        self._masses_in = np.zeros(6 * num_masses)
+        self._control = np.zeros(5, dtype=np.int64)
+        # Two buffers of [x; v] (6 n): a request's input in one ([_INPUT]), the step's
+        # result in the other; the request's tool state (13) and probe point (9).
+        self._masses = (np.zeros(6 * num_masses), np.zeros(6 * num_masses))
         self._tool_in = np.zeros(13)
-        self._masses_out = np.zeros(6 * num_masses)
         self._probe = np.zeros(9)
         self._pending = False  # a request not yet taken
+        self._filled = None  # the array result_into last wrote the result into
         node_work, u, link_work = implicit_workspace(num_masses, len(model.links))
-        self._arguments = (
-            self._masses_in, self._masses_out, self._probe, *model.topology, model.rest_lengths_m,
-            model.stiffness_n_per_m, model.damping_n_s_per_m, model.mass_kg,
-            model.inv_mass_per_kg, model.gravity_m_s2, model.surface, np.zeros((num_masses, 3)),
-            np.asarray(constants, dtype=float), implicit, int(substeps), int(cg_max_iterations),
-            np.zeros((num_masses, 3)), node_work, u, link_work)
+        rest = (self._probe, *model.topology, model.rest_lengths_m,
+                model.stiffness_n_per_m, model.damping_n_s_per_m, model.mass_kg,
+                model.inv_mass_per_kg, model.gravity_m_s2, model.surface,
+                np.zeros((num_masses, 3)), np.asarray(constants, dtype=float), implicit,
+                int(substeps), int(cg_max_iterations), np.zeros((num_masses, 3)), node_work, u,
+                link_work)
+        self._arguments = ((*self._masses, *rest), (*self._masses[::-1], *rest))
         self._thread = None
         weakref.finalize(self, _stop, self._control)
         add_follower(self._follow_loop)
@@ -124,33 +166,41 @@ class LatticeWorker:
         self._control[_DONE] = self._control[_REQUESTED]
         # Started by a loop at real-time priority, it has that priority: it must sleep.
         self._control[_POLL_BY_SLEEPING] = is_realtime()
-        self._thread = threading.Thread(target=_serve, args=(self._control, self._arguments),
+        self._thread = threading.Thread(target=_serve, args=(self._control, *self._arguments),
                                         daemon=True, name="lattice-worker")
         self._thread.start()
 
-    def request(self, state: np.ndarray, probe) -> bool:
-        """Start a tick from ``state`` ([x; v; tool], 6 n + 13) with ``probe``
-        [p_WP, v_WP, p_WT]. False, and nothing started, while the worker is busy."""
+    def request(self, state: np.ndarray, p_TP: np.ndarray) -> bool:
+        """Start a tick from ``state`` ([x; v; tool], 6 n + 13), the probe's centre at
+        ``p_TP`` (m) in the tool's frame. False, and nothing started, while the worker
+        is busy. Where ``state`` is the array ``result_into`` just wrote the result
+        into (its masses unchanged since: only the tool's part may be), the worker
+        steps on from its own copy of that result, and nothing of the masses is copied."""
         self._ensure_running()
         if not self.idle():
             return False
-        split = len(self._masses_in)
-        self._masses_in[:] = state[:split]
-        self._tool_in[:] = state[split:]
-        self._probe[:] = probe
+        continues = state is self._filled
+        self._filled = None
+        if continues:  # the last result is the next input: the buffers swap roles
+            self._control[_INPUT] = 1 - self._control[_INPUT]
+        _store_request(state, p_TP, self._masses[self._control[_INPUT]], self._tool_in,
+                       self._probe, not continues)
         self._pending = True
         self._control[_REQUESTED] += 1
         return True
 
-    def result_for(self, state: np.ndarray):
-        """[x; v] (6 n) one tick after exactly ``state``, waiting for the worker if it
-        is on it; None if it was not asked for that state."""
-        split = len(self._masses_in)
-        if not (self._pending and np.array_equal(self._tool_in, state[split:])
-                and np.array_equal(self._masses_in, state[:split])):
-            return None
+    def result_into(self, state: np.ndarray, out: np.ndarray) -> bool:
+        """out[:6 n] = [x; v] one tick after exactly ``state``, waiting for the worker
+        if it is on it; False, and ``out`` untouched, if it was not asked for that state."""
+        self._filled = None
+        source = self._control[_INPUT]
+        if not (self._pending and _is_state(state, self._masses[source], self._tool_in)):
+            return False
         self._pending = False
         while not self.idle():  # the worker is within a tick of done
             if not self._thread.is_alive():
-                return None  # it ended before it saw the request
-        return self._masses_out
+                return False  # it ended before it saw the request
+        result = self._masses[1 - source]
+        out[:len(result)] = result
+        self._filled = out
+        return True
