@@ -20,12 +20,12 @@ thread writes the inputs only while the worker is idle ([1] == [2]) and then bum
 asks for the next from that result: the buffers swap roles and no state is copied
 in; the update checks the state against the input with one compiled compare. x86
 keeps stores in order, and an opaque libc call before [2] is set keeps the
-compiler from moving the result's stores after it. During a run a request comes every tick and the worker polls by yielding
-its core (``sched_yield``: no timer slack, and other processes go first); idle
-for FAST_POLLS looks it sleeps IDLE_POLL_US between them, and after
-IDLE_EXIT_POLLS of those (~0.5 s) it ends (a pydrake diagram keeps its Python
-systems alive, so a worker must not outlive its use); the next request starts
-a new one.
+compiler from moving the result's stores after it. During a run a request comes
+every tick and the worker polls by yielding its core (``sched_yield``: no timer
+slack, and other processes go first); idle for FAST_POLLS looks it sleeps
+IDLE_POLL_US between them, and after IDLE_EXIT_POLLS of those (~0.5 s) it ends (a
+pydrake diagram keeps its Python systems alive, so a worker must not outlive its
+use); the next request starts a new one.
 """
 
 import ctypes
