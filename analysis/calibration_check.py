@@ -107,9 +107,12 @@ def check_calibration(folder, overlay_text: str, source: str,
                       rest_height_m: float = None) -> Dict:
     """The check of the fitted overlay against flight ``folder``, nominal beside fitted."""
     flight = read_flight(folder)
-    device = fitted_device(overlay_text, flight, source)
-    if rest_height_m is None:
-        rest_height_m = settled_rest_height_m(flight.scenario)
-    return {"flight": str(folder), "instrument": device.instrument,
-            "nominal": model_errors(flight, flight.scenario.device, rest_height_m),
-            "fitted": model_errors(flight, device, rest_height_m)}
+    result = {"flight": str(folder)}
+    for name, device in (("nominal", flight.scenario.device),
+                         ("fitted", fitted_device(overlay_text, flight, source))):
+        # Where each model rests the instrument: its contact pressed by its mass.
+        height_m = rest_height_m if rest_height_m is not None else settled_rest_height_m(
+            flight.scenario, device.instrument_spec().mass_kg)
+        result[name] = model_errors(flight, device, height_m)
+    result["instrument"] = flight.scenario.device.instrument
+    return result

@@ -136,16 +136,18 @@ def tracker_poses(flight: Flight) -> tuple:
     return p, R, seen
 
 
-def settled_rest_height_m(scenario: Scenario) -> float:
+def settled_rest_height_m(scenario: Scenario, mass_kg: float = None) -> float:
     """The height (m) of I above the glass where the station's model lets the
-    instrument settle, coils off: below ``rest_height_m`` by what its point contact
-    presses (a device's hard pads press microns: ``--rest-height-m``)."""
+    instrument (of ``mass_kg``, default its kind's) settle, coils off: below
+    ``rest_height_m`` by what its point contact presses (a device's hard pads press
+    microns: ``--rest-height-m``)."""
     from pydrake.systems.analysis import Simulator
     from pydrake.systems.framework import DiagramBuilder
 
     from maglev_haptics.diagrams.station import MakeStation
 
-    rest = Scenario(device=DeviceConfig(instrument=scenario.device.instrument))
+    rest = Scenario(device=DeviceConfig(instrument=scenario.device.instrument,
+                                        instrument_mass_kg=mass_kg))
     station = MakeStation(rest, magnetics=load_magnetics(rest.device))
     builder = DiagramBuilder()
     builder.AddSystem(station.system)
@@ -459,13 +461,15 @@ def fit_device(folders: Sequence, rest_height_m: float = None, progress=print) -
             "the check flight is among the folders: keep it out of the fit, for maglev "
             "calibrate check to test the fit on poses it did not see")
     nominal = flights[0].scenario.device
-    if rest_height_m is None:
+    given = rest_height_m is not None
+    if not given:
         rest_height_m = settled_rest_height_m(flights[0].scenario)
-    progress(f"registration from {len(flights)} rest marks")
-    registration = fit_registration(flights, rest_height_m)
-    holds = [hold for flight in flights for hold in still_holds(flight, registration["X_WT"])]
-    progress(f"wrench model, mass and centre of mass from {len(holds)} still holds")
-    wrench = fit_wrench_model(holds, load_magnetics(nominal), nominal)
+    registration, holds, wrench = _registration_and_wrench(flights, nominal, rest_height_m,
+                                                           progress)
+    if not given:  # the model's contact presses with the weight: again at the fitted mass
+        rest_height_m = settled_rest_height_m(flights[0].scenario, wrench.mass_kg)
+        registration, holds, wrench = _registration_and_wrench(flights, nominal,
+                                                               rest_height_m, progress)
     fitted = dataclasses.replace(
         nominal, magnet_strength_scales=[float(v) for v in wrench.magnet_scales],
         coil_force_scales=[float(v) for v in wrench.coil_scales],
@@ -488,6 +492,16 @@ def fit_device(folders: Sequence, rest_height_m: float = None, progress=print) -
                        registration=registration, wrench=wrench, latency=latency,
                        thermal=thermal, rest_height_m=rest_height_m, holds=len(holds),
                        flights=[str(flight.folder) for flight in flights])
+
+
+def _registration_and_wrench(flights, nominal: DeviceConfig, rest_height_m: float,
+                             progress) -> tuple:
+    """(registration, holds, WrenchFit) of the flights, resting at ``rest_height_m``."""
+    progress(f"registration from {len(flights)} rest marks")
+    registration = fit_registration(flights, rest_height_m)
+    holds = [hold for flight in flights for hold in still_holds(flight, registration["X_WT"])]
+    progress(f"wrench model, mass and centre of mass from {len(holds)} still holds")
+    return registration, holds, fit_wrench_model(holds, load_magnetics(nominal), nominal)
 
 
 def drake_transform(X: RigidTransform) -> Transform:
