@@ -42,7 +42,7 @@ from scipy.spatial.transform import Rotation
 from maglev_haptics.analysis.run_log import load_run_log
 from maglev_haptics.analysis.run_results import SCENARIO_FILE
 from maglev_haptics.diagrams.motion import flight_plan
-from maglev_haptics.diagrams.scenario import Scenario, ScenarioError, scenario_from_yaml
+from maglev_haptics.diagrams.scenario import Scenario, scenario_from_yaml
 from maglev_haptics.hardware.constants import GRAVITY_M_S2
 from maglev_haptics.hardware.device import MAX_COM_OFFSET_M, MODEL_SCALE_RANGE, DeviceConfig
 from maglev_haptics.hardware.magnetics import MagneticsModel, load_magnetics
