@@ -200,6 +200,7 @@ class LatticeWorker:
         while not self.idle():  # the worker is within a tick of done
             if not self._thread.is_alive():
                 return False  # it ended before it saw the request
+            _sched_yield()  # a process on the other core must not keep the worker waiting
         result = self._masses[1 - source]
         out[:len(result)] = result
         self._filled = out
