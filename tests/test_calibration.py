@@ -17,13 +17,16 @@ from maglev_haptics.analysis.calibration_fit import (
     CalibrationError, Flight, Hold, fit_thermal, fit_wrench_model, gravity_wrench, overlay_text)
 from maglev_haptics.analysis.run_results import run_scenario
 from maglev_haptics.cli import main
+from maglev_haptics.diagrams.lcm_station import LcmStation
 from maglev_haptics.diagrams.scenario import ScenarioError, load_scenario, scenario_yaml
-from maglev_haptics.diagrams.station import add_station_models
+from maglev_haptics.diagrams.station import MakeStation, add_station_models
 from maglev_haptics.hardware.device import DeviceConfig
+from maglev_haptics.hardware.link.lcm_link import publish
 from maglev_haptics.hardware.magnetics import load_magnetics
 from maglev_haptics.hardware.thermal import (
     coil_thermal, current_bounds_a, step_temperatures_c, thermal_budget, winding_numbers)
 from maglev_haptics.systems.haptic_supervisor import HAPTIC
+from maglev_haptics.systems.station_messages import status_message
 
 TRACKER_OFF = ("X_WT: {translation: [0.0012, -0.0008, 0.0005], "
                "rotation: !Rpy {deg: [0.4, -0.3, 0.7]}}")
@@ -388,3 +391,21 @@ def test_the_thermal_fit_recovers_each_warmed_coils_resistance_and_capacity():
     np.testing.assert_allclose(fit["capacities_j_per_k"][:20], capacities[:20], rtol=1e-3)
     assert fit["resistances_k_per_w"][20] == 2.5  # cold: the nominal, and said
     assert fit["not_identified"][0].startswith("device.thermal of coils 20, 21, 22")
+
+
+def test_over_lcm_a_calibration_flight_reads_the_coil_temperatures_the_device_reports():
+    """The application's station on LCM turns the device's status into
+    ``coil_temperature_reported_c`` on a calibration flight (the port the fit reads)."""
+    scenario = dataclasses.replace(  # an in-memory bus (the schema allows UDP only)
+        load_scenario("levitate", None, "{calibration: {flight: holds}}"),
+        station=LcmStation(url="memq://", command_url="memq://", channel_prefix="CAL_"))
+    station = MakeStation(scenario, magnetics=load_magnetics(scenario.device))
+    receiver = station.receiver
+    context = receiver.CreateDefaultContext()
+    reported = receiver.GetOutputPort("coil_temperature_reported_c")
+    assert np.all(np.isnan(reported.Eval(context)))  # nothing reported yet
+    temperatures = np.linspace(25.0, 51.0, 27)
+    publish(receiver._lcm, "CAL_DEVICE_STATUS", status_message(1, 0.0, False, 0, temperatures))
+    context.SetTime(0.002)
+    context.SetDiscreteState(receiver.EvalUniquePeriodicDiscreteUpdate(context))
+    np.testing.assert_array_equal(reported.Eval(context), temperatures)
