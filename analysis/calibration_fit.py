@@ -39,6 +39,7 @@ from scipy.ndimage import uniform_filter1d
 from scipy.signal import savgol_filter
 from scipy.spatial.transform import Rotation
 
+from maglev_haptics.analysis.calibration_plan import HOLD_SETTLE_S
 from maglev_haptics.analysis.run_log import load_run_log
 from maglev_haptics.analysis.run_results import SCENARIO_FILE
 from maglev_haptics.diagrams.motion import flight_plan
@@ -51,15 +52,14 @@ from maglev_haptics.systems.pose_estimator import MarkerModel, fit_pose
 from maglev_haptics.systems.rotations import rotation_from_quaternion
 
 REST_FROM_S = 0.3  # the rest window starts here, the instrument settled on its mark (s)
-REST_BEFORE_TAKEOFF_S = 0.05  # and ends this long before the force ramp (s)
-HOLD_SETTLE_S = 0.6  # skipped at each hold's start (s)
+REST_ENDS_BEFORE_TAKEOFF_S = 0.05  # and ends this long before the force ramp (s)
 HOLD_STILL_M = 2e-4  # a hold whose position wanders more than this (std, m) is not still
 TORQUE_LEVER_M = 0.02  # torque residuals divided by this count as forces (N)
 GAUGE_WEIGHT = 100.0  # the row holding the coils' geometric mean at 1
-MIN_HOLDS = 12
-USED_CURRENT_A = 0.02  # a coil that never carries this much in a hold is not weighed (A)
+MIN_HOLDS = 12  # still holds a fit needs, of which MIN_PAYLOAD_HOLDS with the payload
 MIN_PAYLOAD_HOLDS = 2
-MIN_REST_MARKS = 2
+MIN_REST_MARKS = 2  # flights rested on a mark, for the registration
+USED_CURRENT_A = 0.02  # a coil that never carries this much in a hold is not weighed (A)
 # A parameter whose 95 % interval is wider than this is not identified.
 NOT_IDENTIFIED = {"scale": 0.02, "mass_kg": 0.01, "com_m": 1e-3}
 VELOCITY_WINDOW = 15  # tracker samples in the Savitzky-Golay window (~17 ms at 860 Hz)
@@ -162,7 +162,7 @@ def settled_rest_height_m(scenario: Scenario, mass_kg: float = None) -> float:
 
 def _rest_window(flight: Flight, seen: np.ndarray) -> np.ndarray:
     t = flight.log["t"]
-    end_s = flight.scenario.motion.takeoff_at_s - REST_BEFORE_TAKEOFF_S
+    end_s = flight.scenario.motion.takeoff_at_s - REST_ENDS_BEFORE_TAKEOFF_S
     return (t >= REST_FROM_S) & (t <= end_s) & seen
 
 

@@ -29,10 +29,10 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-from pydrake.common.yaml import yaml_dump  # noqa: E402
+from pydrake.common.yaml import yaml_dump, yaml_load_typed  # noqa: E402
 
-from maglev_haptics.diagrams.motion import check_pose_reachable  # noqa: E402
-from maglev_haptics.diagrams.scenario import ScenarioError  # noqa: E402
+from maglev_haptics.diagrams.motion import check_pose_reachable, flight_plan  # noqa: E402
+from maglev_haptics.diagrams.scenario import MotionScript, ScenarioError  # noqa: E402
 from maglev_haptics.hardware.device import DeviceConfig  # noqa: E402
 from maglev_haptics.hardware.magnetics import load_magnetics  # noqa: E402
 
@@ -40,13 +40,13 @@ FLIGHTS_FILE = "calibration_flights.yaml"
 MARKS_IMAGE = "mark_{flight}.png"  # one a flight: its rest mark, where the display shows it
 REST_BEFORE_TAKEOFF_S = 1.5  # resting on its mark before the force ramp (s): the registration
 HOLD_S = 1.2  # each still pose (s): the first HOLD_SETTLE_S settle, the rest is averaged
-HOLD_SETTLE_S = 0.6
+HOLD_SETTLE_S = 0.6  # (s)
 MOVE_S = 0.6  # between holds (s)
 STEP_MOVE_S = 0.12  # a step's minimum-jerk move (s): accelerations of ~1.5 m/s^2 at 4 mm
-STEP_HOLD_S = 0.15
+STEP_HOLD_S = 0.15  # (s)
 STEP_SIZES = (0.004, 0.004, 0.004, 0.08, 0.08, 0.15)  # x, y, z (m), roll, pitch, yaw (rad)
-STEP_REPEATS = 4
-HOVER_Z_M = 0.018
+STEP_REPEATS = 4  # steps out and back in each degree of freedom
+HOVER_Z_M = 0.018  # the steps' centre (m)
 PAYLOAD_KG = 0.020  # a 20 g calibration weight
 PAYLOAD_P_I_M = (0.0, 0.0, 0.0)  # hung centred under I's origin (m, in I)
 # Where the instrument rests before each flight: [x, y, yaw] in W (m, m, rad).
@@ -138,9 +138,11 @@ def calibration_flights(instrument: str) -> Dict[str, dict]:
 
 
 def flight_seconds(flight: dict) -> float:
-    """A flight's length (s): rest, takeoff, waypoints, landing (the defaults')."""
-    waypoints = flight["motion"]["waypoints"]
-    return REST_BEFORE_TAKEOFF_S + 0.2 + sum(w["move_s"] + w["hold_s"] for w in waypoints) + 2.2
+    """A flight's length (s): its motion script's, rest to ramp-down."""
+    motion = yaml_load_typed(schema=MotionScript, data=yaml_dump(flight["motion"]))
+    rest_height_m = DeviceConfig(instrument=flight["device"]["instrument"]).instrument_spec() \
+        .rest_height_m
+    return flight_plan(motion, rest_height_m).end_s
 
 
 def write_plan(out_dir: Path, instrument: str) -> Dict[str, dict]:
