@@ -54,6 +54,7 @@ from maglev_haptics.systems.rotations import rotation_from_quaternion
 REST_FROM_S = 0.3  # the rest window starts here, the instrument settled on its mark (s)
 REST_ENDS_BEFORE_TAKEOFF_S = 0.05  # and ends this long before the force ramp (s)
 HOLD_STILL_M = 2e-4  # a hold whose position wanders more than this (std, m) is not still
+HOLD_NEAR_M = 0.005  # a hold counts within this of its commanded position (m)
 TORQUE_LEVER_M = 0.02  # torque residuals divided by this count as forces (N)
 GAUGE_WEIGHT = 100.0  # the row holding the coils' geometric mean at 1
 MIN_HOLDS = 12  # still holds a fit needs, of which MIN_PAYLOAD_HOLDS with the payload
@@ -108,6 +109,12 @@ def read_flight(folder) -> Flight:
     if "markers_measured" not in log:
         raise CalibrationError(f"{folder}: its log has no tracker samples (markers_measured): "
                                "fly it again with this version's plan")
+    latched = np.flatnonzero(log["fault_bits"] != 0)
+    if len(latched):
+        raise CalibrationError(
+            f"{folder}: the flight latched a fault at {log['t'][latched[0]]:.3f} s (its "
+            "summary.json says which): fly it again (over LCM on a host that stalls, at "
+            "--realtime 0.5 on both sides)")
     return Flight(scenario.calibration.flight, folder, scenario, log)
 
 
@@ -242,8 +249,11 @@ def still_holds(flight: Flight, X_WT: RigidTransform) -> List[Hold]:
     t, log = flight.log["t"], flight.log
     p_WI, R_WI, seen = poses_in_W(flight, X_WT)
     holds = []
+    # Flying, where the flight holds it: the coils powered, near the commanded pose.
+    flying = (log["coil_power"] > 0.5) & (np.linalg.norm(
+        log["p_WI_measured"] - log["p_WI_desired"], axis=1) < HOLD_NEAR_M)
     for start_s, end_s in plan.holds:
-        rows = (t >= start_s + HOLD_SETTLE_S) & (t <= end_s) & seen
+        rows = (t >= start_s + HOLD_SETTLE_S) & (t <= end_s) & seen & flying
         if rows.sum() < 100 or np.max(np.std(p_WI[rows], axis=0)) > HOLD_STILL_M:
             continue
         holds.append(Hold(flight.name, p_WI[rows].mean(axis=0), _mean_rotation(R_WI[rows]),

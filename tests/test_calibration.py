@@ -218,7 +218,8 @@ def _fake_run(folder, scenario, seconds=1.0):
     t = np.arange(0, seconds, 0.001)
     np.savez(folder / "log.npz", t=t, coil_currents=np.zeros((len(t), 27)),
              markers_measured=np.full((len(t), 9), np.nan),
-             markers_sample_time_s=t, tracking_ok=np.zeros(len(t)))
+             markers_sample_time_s=t, tracking_ok=np.zeros(len(t)),
+             fault_bits=np.zeros(len(t), dtype=np.int64) + (2 if "lost" in folder.name else 0))
 
 
 @pytest.mark.parametrize("runs, fragment", [
@@ -227,6 +228,7 @@ def _fake_run(folder, scenario, seconds=1.0):
     (["holds", "four"], "the flights are of different instruments"),
     (["holds"], "the registration needs 2"),
     (["holds", "check"], "the check flight is among the folders"),
+    (["holds", "lost"], "lost: the flight latched a fault at 0.000 s"),
 ])
 def test_calibrate_fit_refuses_in_one_line_and_writes_nothing(tmp_path, capsys, runs, fragment):
     _fake_run(tmp_path / "ordinary", load_scenario("levitate"))
@@ -234,6 +236,7 @@ def test_calibrate_fit_refuses_in_one_line_and_writes_nothing(tmp_path, capsys, 
     _fake_run(tmp_path / "four", load_scenario("levitate", "four_magnet_tilt",
                                                "{calibration: {flight: holds}}"))
     _fake_run(tmp_path / "check", load_scenario("levitate", None, "{calibration: {flight: check}}"))
+    _fake_run(tmp_path / "lost", load_scenario("levitate", None, "{calibration: {flight: holds}}"))
     (tmp_path / "nothing").mkdir()
     out = tmp_path / "fit" / "lab_device.yaml"
     code = main(["calibrate", "fit", *[str(tmp_path / r) for r in runs], "--out", str(out)])
