@@ -17,13 +17,13 @@ from __future__ import annotations
 from typing import Dict
 
 import numpy as np
-from pydrake.common.yaml import yaml_dump, yaml_load_typed
 from pydrake.math import RotationMatrix
 
 from maglev_haptics.analysis.calibration_fit import (
     CalibrationError, Flight, _rest_window, gravity_wrench, read_flight, settled_rest_height_m,
     still_holds)
-from maglev_haptics.diagrams.scenario_diagnosis import load_typed, parse_mapping
+from maglev_haptics.diagrams.scenario import layered_device
+from maglev_haptics.diagrams.scenario_diagnosis import parse_mapping
 from maglev_haptics.hardware.device import DeviceConfig
 from maglev_haptics.hardware.magnetics import load_magnetics
 
@@ -40,11 +40,7 @@ def fitted_device(overlay_text: str, flight: Flight, source: str) -> DeviceConfi
     if layer.get("instrument", nominal.instrument) != nominal.instrument:
         raise CalibrationError(f"{source}: an overlay for the {layer['instrument']} instrument; "
                                f"{flight.folder} flew the {nominal.instrument}")
-    device = load_typed(DeviceConfig, f"{source}: device", layer,
-                        lambda: yaml_load_typed(schema=DeviceConfig, data=yaml_dump(layer),
-                                                defaults=nominal),
-                        lambda cut: yaml_load_typed(schema=DeviceConfig, data=yaml_dump(cut),
-                                                    defaults=nominal))
+    device = layered_device(nominal, layer, f"{source}: device")
     try:
         device.validate(f"{source}: device")
     except ValueError as error:

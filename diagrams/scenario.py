@@ -329,12 +329,18 @@ def _with_simulated_device(scenario: Scenario, mappings, label: str) -> Scenario
                 f"{label}: station.device.{refused[0]}: a simulated station's device may "
                 f"differ from the scenario's only in {', '.join(DEVICE_TRUTH_FIELDS)} (the "
                 "plant, the coils and the tracker); set the rest in the scenario's device")
-        device = load_typed(DeviceConfig, f"{label}: station.device", layer,
-                            lambda: yaml_load_typed(schema=DeviceConfig, data=yaml_dump(layer),
-                                                    defaults=device),
-                            lambda cut: yaml_load_typed(schema=DeviceConfig,
-                                                        data=yaml_dump(cut), defaults=device))
+        device = layered_device(device, layer, f"{label}: station.device")
     return dataclasses.replace(scenario, station=SimStation(device=device))
+
+
+def layered_device(device: DeviceConfig, layer: dict, source: str) -> DeviceConfig:
+    """``device`` with the parsed YAML mapping ``layer`` laid on it, as Drake layers a
+    scenario; a ScenarioError naming ``source`` and the field for what it refuses."""
+    return load_typed(DeviceConfig, source, layer,
+                      lambda: yaml_load_typed(schema=DeviceConfig, data=yaml_dump(layer),
+                                              defaults=device),
+                      lambda cut: yaml_load_typed(schema=DeviceConfig, data=yaml_dump(cut),
+                                                  defaults=device))
 
 
 def _models_resolved(scenario: Scenario, here: Path) -> Scenario:
