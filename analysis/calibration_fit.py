@@ -47,7 +47,8 @@ from maglev_haptics.diagrams.scenario import Scenario, scenario_from_yaml
 from maglev_haptics.hardware.constants import GRAVITY_M_S2
 from maglev_haptics.hardware.device import MAX_COM_OFFSET_M, MODEL_SCALE_RANGE, DeviceConfig
 from maglev_haptics.hardware.magnetics import MagneticsModel, load_magnetics
-from maglev_haptics.hardware.thermal import coil_thermal, step_temperatures_c, winding_resistance_ohm
+from maglev_haptics.hardware.thermal import (
+    coil_thermal, step_temperatures_c, winding_resistance_ohm)
 from maglev_haptics.systems.pose_estimator import MarkerModel, fit_pose
 from maglev_haptics.systems.rotations import rotation_from_quaternion
 

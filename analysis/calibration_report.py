@@ -96,7 +96,8 @@ def format_summary(report: Dict) -> str:
     reg = p["tracker.X_WT"]
     lines = [
         f"mass {mass['fitted'] * 1e3:.2f} g (nominal {mass['nominal'] * 1e3:.2f}, "
-        f"+-{mass['interval_95'] * 1e3:.2f}); centre of mass [{', '.join(f'{v:.3f}' for v in com)}] mm",
+        f"+-{mass['interval_95'] * 1e3:.2f}); centre of mass "
+        f"[{', '.join(f'{v:.3f}' for v in com)}] mm",
         "magnet strengths " + ", ".join(f"{v:.4f}" for v in p["magnet_strength_scales"]["fitted"])
         + "; coil scales " + f"{min(p['coil_force_scales']['fitted']):.4f}"
         + f"..{max(p['coil_force_scales']['fitted']):.4f}",

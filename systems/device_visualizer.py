@@ -49,8 +49,9 @@ class DeviceVisualizer(LeafSystem):
     Coils are drawn as cylinders under the display (their tops at z = p_WA z),
     coloured by current (red +, blue -, saturated at the limit); a triad marks
     the commanded pose and another the measured one; the measured markers (in the
-    tracker's frame T, drawn in W through ``tracker.X_WT``) are small spheres; an orange rod from the measured instrument origin shows the
-    force rendered on the user's hand (FORCE_SCALE_M_PER_N).
+    tracker's frame T, drawn in W through ``tracker.X_WT``) are small spheres; an orange
+    rod from the measured instrument origin shows the force rendered on the user's hand
+    (FORCE_SCALE_M_PER_N).
     """
 
     def __init__(self, *, meshcat: Meshcat, device, period_s: float = 1 / 30,

@@ -92,10 +92,10 @@ def _measure(t, instrument_state, p_IK, latency_s, noise_m, quantization_m, drop
     draws normal (n, 3) and uniform (n,), the occlusion table of _occlusion_table
     and, where ``in_T``, the pose X_TW (R_TW, p_TW [m]) of W in the tracker's frame."""
     q_WI = extrapolate_pose(instrument_state[:7], instrument_state[7:13], -latency_s)
-    p_WK = marker_positions_W(q_WI, p_IK)
+    p_TK = marker_positions_W(q_WI, p_IK)  # T is W unless in_T
     if in_T:
-        p_WK = p_WK @ R_TW.T + p_TW
-    p_WK = quantize(p_WK + noise_m * normal, quantization_m)
+        p_TK = p_TK @ R_TW.T + p_TW
+    p_TK = quantize(p_TK + noise_m * normal, quantization_m)
     t_capture = t - latency_s
     for k in range(len(p_IK)):
         hidden = uniform[k] < dropout_probability
@@ -103,7 +103,7 @@ def _measure(t, instrument_state, p_IK, latency_s, noise_m, quantization_m, drop
             if occlusion_hides[j, k] and occlusion_start[j] <= t_capture < occlusion_end[j]:
                 hidden = True
         for i in range(3):
-            p_TK_out[3 * k + i] = np.nan if hidden else p_WK[k, i]
+            p_TK_out[3 * k + i] = np.nan if hidden else p_TK[k, i]
 
 
 class SampleNoise:
@@ -237,20 +237,20 @@ class MarkerSensorLaw(LeafSystem):
 
     def measure(self, t: float, instrument_state: np.ndarray) -> np.ndarray:
         """The (3 n,) sample published at time t [s] for the current state (13,)."""
-        p_WK = np.empty(self._n)
-        self._measure_into(t, np.ascontiguousarray(instrument_state, dtype=float), p_WK)
-        return p_WK
+        p_TK = np.empty(self._n)
+        self._measure_into(t, np.ascontiguousarray(instrument_state, dtype=float), p_TK)
+        return p_TK
 
-    def _measure_into(self, t, instrument_state, p_WK_out):
+    def _measure_into(self, t, instrument_state, p_TK_out):
         # Writes in place so the record is filled without a copy.
         sample = round(t * self.rate_hz)
         normal, uniform = self._noise.draw(sample)
         _measure(t, instrument_state, self._p_IK, self._latency_s, self._noise_m,
                  self._quantization_m, self._dropout, normal, uniform,
                  self._occlusion_start, self._occlusion_end, self._occlusion_hides,
-                 self._in_T, self._R_TW, self._p_TW, p_WK_out)
+                 self._in_T, self._R_TW, self._p_TW, p_TK_out)
         if self._corruptions:
-            corrupt(sample, p_WK_out, self._corruptions, self.rate_hz)
+            corrupt(sample, p_TK_out, self._corruptions, self.rate_hz)
 
     def _calc_record(self, context, output):
         held = self._held.EvalBasicVector(context).value()
