@@ -38,7 +38,7 @@ from maglev_haptics.systems.coil_thermal import CoilTemperatures
 from maglev_haptics.systems.device_supervisor import (
     DeviceSupervisor, WatchLimits, hold_motion, make_motion)
 from maglev_haptics.systems.device_visualizer import DeviceVisualizer
-from maglev_haptics.systems.lattice_visualizer import JELLY_RGBA, LatticeVisualizer, surface_faces
+from maglev_haptics.systems.surface_visualizer import JELLY_RGBA, SurfaceVisualizer, surface_faces
 from maglev_haptics.systems.meshcat_hand import MeshcatHandInput
 from maglev_haptics.systems.levitation_controller import LevitationController
 from maglev_haptics.systems.pose_estimator import PoseEstimator
@@ -306,9 +306,14 @@ def AddVisualization(builder: DiagramBuilder, *, scenario: Scenario, meshcat: Me
     elif scene.surface is not None:
         # The lattice is no geometry of the scene plant: it draws itself.
         config = scenario.haptics.scene
-        surface_visualizer = builder.AddNamedSystem("lattice_visualizer", LatticeVisualizer(
-            meshcat=meshcat, lattice=scene.lattice, p_TP_m=config.tool_offset_m,
-            probe_radius_m=config.probe.radius_m, period_s=frame_period_s))
+        lattice = scene.lattice
+        top = lattice.positions_m[lattice.surface.ravel()]
+        surface_visualizer = builder.AddNamedSystem("lattice_visualizer", SurfaceVisualizer(
+            meshcat=meshcat, faces=surface_faces(lattice.surface, lattice.surface_triangles),
+            num_vertices=lattice.surface.size, p_TP_m=config.tool_offset_m,
+            probe_radius_m=config.probe.radius_m,
+            camera_target_m=[np.mean(lattice.x_m), np.mean(lattice.y_m), np.mean(top[:, 2])],
+            period_s=frame_period_s))
         frame_publishers.append(surface_visualizer)
         for name in ("surface_positions_m", "wrench_on_tool_W"):
             builder.Connect(scene.surface.GetOutputPort(name),

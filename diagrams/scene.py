@@ -10,6 +10,9 @@ checks. ``diagrams/scene_builder.py`` adds them to a diagram.
 - ``ModelScene``: the user's own models (SDFormat, URDF, MJCF, OBJ) placed by
   Drake model directives, and a tool that is a built-in shape or a body of a
   model file (``diagrams/scene_models.py`` turns every kind into Drake models).
+  Its deformable bodies (Drake's ``drake:deformable_properties``) are tissue,
+  stepped by our finite elements and touched by a sphere on the tool
+  (``TissueContact``; ``diagrams/tissue_scene.py``).
 """
 
 from dataclasses import dataclass, field
@@ -20,6 +23,7 @@ from pydrake.multibody.parsing import ModelDirective, ModelDirectives
 
 from maglev_haptics.hardware.config_checks import finite, nonnegative, positive, require, vector
 from maglev_haptics.hardware.constants import GRAVITY_M_S2
+from maglev_haptics.systems.lattice_dynamics import ProbeContact
 
 
 @dataclass
@@ -208,6 +212,49 @@ class SceneTool:
         return TOOL_SHAPES.get(self.shape, []) if self.size_m is None else self.size_m
 
 
+def _tissue_probe() -> ProbeContact:
+    # Stiff against the tissue the tool presses (a few N/m a node at 5 kPa), yet stable
+    # applied over one explicit substep on the lightest surface node.
+    return ProbeContact(radius_m=0.008, stiffness_n_per_m=300.0, onset_depth_m=0.0003,
+                        dissipation_s_per_m=5.0, friction=0.1, slip_speed_m_s=0.002)
+
+
+@dataclass
+class TissueContact:
+    """How the tool touches the scene's deformable bodies (tissue): a sphere on the
+    tool pushing the tissue's surface nodes out (the lattice's probe contact,
+    ``ProbeContact``). The sphere is the built-in sphere tool's own (its radius and
+    ``tool_offset_m``) unless ``probe_offset_m`` places one in T; then
+    ``probe.radius_m`` is its radius. The tissue steps on the other core
+    (``worker_thread``) with the stable substeps its mesh and material need: a
+    material that needs more than ``max_substeps`` a tick is refused."""
+
+    probe: ProbeContact = field(default_factory=_tissue_probe)
+    probe_offset_m: Optional[List[float]] = None  # the sphere's centre in T (m); null: the tool's
+    max_substeps: int = 8  # explicit substeps a tick at most (each a pass over the elements)
+    worker_thread: bool = True  # false: step the tissue in the update itself (same results)
+    gravity_m_s2: List[float] = field(default_factory=lambda: [0.0, 0.0, -GRAVITY_M_S2])
+
+    def validate(self, path: str) -> None:
+        """Range checks; a ValueError names ``path.field``, its value and what is allowed."""
+        self.probe.validate(f"{path}.probe")
+        if self.probe_offset_m is not None:
+            vector(f"{path}.probe_offset_m", self.probe_offset_m, length=3)
+        require(isinstance(self.max_substeps, int) and 1 <= self.max_substeps <= 64,
+                f"{path}.max_substeps", self.max_substeps, "an integer from 1 to 64")
+        vector(f"{path}.gravity_m_s2", self.gravity_m_s2, length=3)
+
+    def sphere(self, tool: "SceneTool", path: str):
+        """(centre in T (3,) m, radius m) of the sphere that touches the tissue; a
+        ValueError if the tool is no built-in sphere and ``probe_offset_m`` is null."""
+        if self.probe_offset_m is not None:
+            return list(self.probe_offset_m), float(self.probe.radius_m)
+        require(not tool.file and tool.shape == "sphere", f"{path}.probe_offset_m", None,
+                "must place the sphere that touches the tissue, in the tool's frame (m), "
+                f"unless the tool is the built-in sphere (it is {tool.file or tool.shape})")
+        return list(tool.tool_offset_m), float(tool.size()[0])
+
+
 @dataclass
 class ModelScene:
     """The user's own models as the scene: Drake model directives (``add_model`` with
@@ -220,11 +267,17 @@ class ModelScene:
 
     Collision geometries that declare no hydroelastic properties get ``contact``'s:
     compliant, except OBJ meshes (rigid: Drake's compliant meshes are tetrahedral
-    ``.vtk`` files; an OBJ declared compliant becomes its convex hull)."""
+    ``.vtk`` files; an OBJ declared compliant becomes its convex hull).
+
+    A model whose link declares ``drake:deformable_properties`` (a tetrahedral
+    ``.vtk`` and a ``drake:wall_boundary_condition``) is tissue: Drake's parser reads
+    it, our finite elements step it at the haptic rate, and ``tissue`` says how the
+    tool touches it (``diagrams/tissue_model.py``, ``diagrams/tissue_scene.py``)."""
 
     directives: List[ModelDirective] = field(default_factory=list)
     tool: SceneTool = field(default_factory=SceneTool)
     contact: ContactProperties = field(default_factory=ContactProperties)
+    tissue: TissueContact = field(default_factory=TissueContact)  # its deformable bodies
 
     def validate(self, path: str = "scene") -> None:
         """Range checks; a ValueError names ``path.field``, its value and what is allowed.
@@ -235,6 +288,7 @@ class ModelScene:
             _validate_directive(directive, f"{path}.directives[{i}]")
         self.tool.validate(f"{path}.tool")
         self.contact.validate(f"{path}.contact")
+        self.tissue.validate(f"{path}.tissue")
 
     # Drake's config types do not pickle; a scene worker gets its directives as YAML.
     def __getstate__(self):

@@ -1,4 +1,4 @@
-"""The deformable surface's Meshcat drawing: face mapping, force rod, publishing."""
+"""A deformable surface's Meshcat drawing: face mapping, force rod, publishing."""
 
 import numpy as np
 import pytest
@@ -9,8 +9,8 @@ from pydrake.systems.primitives import ConstantVectorSource
 from maglev_haptics.diagrams.application import BuildDiagram
 from maglev_haptics.diagrams.scenario import load_scenario
 from maglev_haptics.systems.lattice_construction import build_lattice
-from maglev_haptics.systems.lattice_visualizer import (
-    FORCE_PATH, SURFACE_PATH, WIRE_PATH, LatticeVisualizer, force_rod_transform, surface_faces)
+from maglev_haptics.systems.surface_visualizer import (
+    FORCE_PATH, SURFACE_PATH, WIRE_PATH, SurfaceVisualizer, force_rod_transform, surface_faces)
 
 P_TP_M = np.array([0.0, 0.0, -0.030])  # probe centre in T (m)
 RADIUS_M = 0.0025  # (m)
@@ -63,8 +63,9 @@ def test_force_rod_hidden_when_the_force_is_tiny():
 
 def build(meshcat, lattice, X_WT, wrench):
     builder = DiagramBuilder()
-    visualizer = builder.AddSystem(LatticeVisualizer(
-        meshcat=meshcat, lattice=lattice, p_TP_m=P_TP_M, probe_radius_m=RADIUS_M))
+    visualizer = builder.AddSystem(SurfaceVisualizer(
+        meshcat=meshcat, faces=surface_faces(lattice.surface, lattice.surface_triangles),
+        num_vertices=lattice.surface.size, p_TP_m=P_TP_M, probe_radius_m=RADIUS_M))
     surface = lattice.positions_m[lattice.surface.ravel()]
     for name, value in (("surface_positions_m", surface.ravel()), ("X_WT", X_WT),
                         ("wrench_on_tool_W", wrench)):
