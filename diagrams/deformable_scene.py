@@ -5,8 +5,9 @@ mass-spring-damper lattice built under a heightmap.
 coupling, the supervisor, the log and the plots treat it like the rigid scenes:
 the tool is a free body in its own MultibodyPlant (no collision geometry; its
 weight is off, as for the rigid tools), driven by the coupling's wrench plus
-the lattice's contact wrench; the lattice is a ``DeformableSurface`` system
-stepped at the control period, reading the tool's pose and velocity.
+the lattice's contact wrench; the lattice is a ``DeformableBody`` system stepped
+at the control period by the lattice's tick (``lattice_dynamics``), reading the
+tool's pose and velocity.
 """
 
 from dataclasses import dataclass, field
@@ -23,13 +24,18 @@ from maglev_haptics.diagrams.scene_builder import SceneParts, wrench_to_generali
 from maglev_haptics.hardware.config_checks import finite, nonnegative, positive, require, vector
 from maglev_haptics.hardware.constants import GRAVITY_M_S2
 from maglev_haptics.plant_models.scene_sdf import probe_tool_sdf
-from maglev_haptics.systems.deformable_surface import DeformableSurface as DeformableSurfaceSystem
+from maglev_haptics.systems.deformable_surface import (
+    DeformableBody, DeformableDynamics, probe_constants)
 from maglev_haptics.systems.heightmap import (
     Heightmap, ImageHeightmap, RandomHeightmap, heightmap_heights)
 from maglev_haptics.systems.lattice_construction import Lattice, build_lattice
 from maglev_haptics.systems.lattice_dynamics import (
-    INTEGRATORS, SYMPLECTIC_EULER, ProbeContact, lattice_model, max_stable_link_stiffness)
+    INTEGRATORS, LINEARLY_IMPLICIT, SYMPLECTIC_EULER, TICK_ARGUMENTS, LatticeModel, ProbeContact,
+    implicit_workspace, lattice_model, max_stable_link_stiffness, tick_from)
+from maglev_haptics.systems.step_worker import tick_server
 
+# The worker loop for the lattice's tick (its arguments after masses in, out and probe).
+LATTICE_SERVER = tick_server(tick_from, TICK_ARGUMENTS[3:])
 
 
 @dataclass
@@ -63,7 +69,7 @@ class DeformableSurface:
     cg_tolerance: float = 1e-4  # linearly implicit: relative CG residual
     cg_max_iterations: int = 40  # linearly implicit: CG iteration cap
     # Step the lattice one tick ahead on another core, while the rest of the diagram
-    # computes (``systems/lattice_worker.py``); false: in the update itself. Same results.
+    # computes (``systems/step_worker.py``); false: in the update itself. Same results.
     worker_thread: bool = True
     gravity_m_s2: List[float] = field(default_factory=lambda: [0.0, 0.0, -GRAVITY_M_S2])  # on the lattice
     probe: ProbeContact = field(default_factory=ProbeContact)
@@ -107,6 +113,30 @@ class DeformableSurface:
         vector(f"{path}.tool_offset_m", self.tool_offset_m)
         positive(f"{path}.tool_mass_kg", self.tool_mass_kg)
         nonnegative(f"{path}.min_inertia_kg_m2", self.min_inertia_kg_m2)
+
+
+def lattice_dynamics(model: LatticeModel, *, probe: ProbeContact, period_s: float,
+                     integrator: str, substeps: int = 1, cg_tolerance: float = 1e-4,
+                     cg_max_iterations: int = 40) -> DeformableDynamics:
+    """The lattice ``model`` stepped by ``tick_from`` each ``period_s`` (s) with
+    ``integrator``: symplectic Euler in ``substeps``, or linearly implicit to the
+    relative CG residual ``cg_tolerance`` in at most ``cg_max_iterations``."""
+    implicit = integrator == LINEARLY_IMPLICIT
+    n = len(model.mass_kg)
+    constants = np.append(probe_constants(probe), [period_s, cg_tolerance])
+
+    def tick_arguments():
+        # After the model's arrays: no external forces (N), the constants, the integrator's
+        # flag and counts, then work space of both integrators (forces (N), implicit's).
+        return (*model.topology, model.rest_lengths_m, model.stiffness_n_per_m,
+                model.damping_n_s_per_m, model.mass_kg, model.inv_mass_per_kg,
+                model.gravity_m_s2, model.surface, np.zeros((n, 3)), constants, implicit,
+                int(substeps), int(cg_max_iterations), np.zeros((n, 3)),
+                *implicit_workspace(n, len(model.links)))
+    return DeformableDynamics(
+        node_mass_kg=model.mass_kg, surface_nodes=model.surface, tick=tick_from,
+        tick_arguments=tick_arguments, server=LATTICE_SERVER,
+        first_step_s=period_s if implicit else period_s / substeps, probe=probe)
 
 
 def lattice_grid(scene: DeformableSurface):
@@ -194,16 +224,18 @@ def AddDeformableScene(builder: DiagramBuilder, *, scene: DeformableSurface, tim
     tool_body = plant.GetBodyByName("body", tool)
     plant.SetDefaultFloatingBaseBodyPose(tool_body, X_WT)
 
-    surface = builder.AddNamedSystem("deformable_surface", DeformableSurfaceSystem(
-        model=lattice_model(lattice.links, lattice.rest_lengths_m, lattice.fixed, lattice.surface,
-                            node_mass_kg=scene.node_mass_kg,
-                            link_stiffness_n_per_m=scene.link_stiffness_n_per_m,
-                            link_damping_n_s_per_m=scene.link_damping_n_s_per_m,
-                            gravity_m_s2=scene.gravity_m_s2),
-        positions_m=lattice.positions_m, probe=scene.probe, p_TP_m=scene.tool_offset_m,
-        X_WT_start=X_WT, period_s=time_step_s, integrator=scene.integrator,
-        substeps=scene.substeps, cg_tolerance=scene.cg_tolerance,
-        cg_max_iterations=scene.cg_max_iterations, worker_thread=scene.worker_thread))
+    model = lattice_model(lattice.links, lattice.rest_lengths_m, lattice.fixed, lattice.surface,
+                          node_mass_kg=scene.node_mass_kg,
+                          link_stiffness_n_per_m=scene.link_stiffness_n_per_m,
+                          link_damping_n_s_per_m=scene.link_damping_n_s_per_m,
+                          gravity_m_s2=scene.gravity_m_s2)
+    surface = builder.AddNamedSystem("deformable_surface", DeformableBody(
+        dynamics=lattice_dynamics(model, probe=scene.probe, period_s=time_step_s,
+                                  integrator=scene.integrator, substeps=scene.substeps,
+                                  cg_tolerance=scene.cg_tolerance,
+                                  cg_max_iterations=scene.cg_max_iterations),
+        positions_m=lattice.positions_m, p_TP_m=scene.tool_offset_m, X_WT_start=X_WT,
+        period_s=time_step_s, worker_thread=scene.worker_thread))
     total = builder.AddNamedSystem("scene_tool_wrench_sum", Adder(2, 6))
     gain = builder.AddNamedSystem("scene_tool_wrench", MatrixGain(
         wrench_to_generalized_force(tool_body.floating_velocities_start_in_v(),

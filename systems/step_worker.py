@@ -1,13 +1,16 @@
-"""A core of its own for the lattice: the next tick's step, computed while the rest
-of the diagram runs (the paper ran its physics in a thread of its own too).
+"""A core of its own for a deformable body: the next tick's step, computed while the
+rest of the diagram runs (the paper ran its physics in a thread of its own too).
 
-The ``DeformableSurface`` update at tick k knows everything the update at k+1 will
+The ``DeformableBody`` update at tick k knows everything the update at k+1 will
 need (the state it writes), so it hands that to the worker, which steps a private
-copy of the lattice on the machine's other core, outside Python's GIL, while the
+copy of the body on the machine's other core, outside Python's GIL, while the
 other systems compute. At k+1 the update takes the worker's result if it was
 computed from exactly the state now in the context, and steps synchronously
 otherwise (the first tick, a context changed from outside, a busy worker). The
-result is bit for bit the synchronous step's: the same kernel on the same numbers.
+result is bit for bit the synchronous step's: the same tick kernel on the same
+numbers. Any model's tick ``tick(masses_in, masses_out, probe, *arguments)`` is
+served (masses [x; v], 6 n; probe [p_WP, v_WP, p_WT], 9): ``tick_server`` declares
+the loop that runs it, once per model, when the model's module is imported.
 
 Protocol, on ``control`` (int64): [0] stop flag, [1] the sequence number of the
 last request, [2] that of the last finished step, [3] 1 while the paced loop runs
@@ -38,8 +41,7 @@ from numba import types
 from maglev_haptics.hardware.kernels import FLAG, INDEX_VECTOR, READONLY_VECTOR, VECTOR, kernel
 from maglev_haptics.hardware.realtime_priority import (
     RT_POLL_US, add_follower, is_realtime, set_thread_priority)
-from maglev_haptics.systems.lattice_dynamics import (
-    TICK_ARGUMENTS, LatticeModel, implicit_workspace, probe_point, tick_from)
+from maglev_haptics.systems.lattice_dynamics import probe_point
 
 FAST_POLLS = 20000  # looks by yielding (~5-10 ms idle) before the worker sleeps between them
 IDLE_POLL_US = 1000  # (us)
@@ -56,37 +58,44 @@ _sched_yield.argtypes = []
 _sched_yield.restype = ctypes.c_int
 
 
-# Not cached (numba cannot cache code that calls a ctypes function), so kept small:
-# the tick it calls comes compiled from the cache. That tick lives with the kernels
-# it calls: numba's cache goes stale only when the function's own file changes.
-@kernel((INDEX_VECTOR, types.Tuple(TICK_ARGUMENTS), types.Tuple(TICK_ARGUMENTS)),
-        cache=False, nogil=True)
-def _serve(control, forward, backward):
-    """Run ``tick_from(*forward)`` (``backward``: its two mass buffers swapped, where
-    control[_INPUT] is 1) for every request until the stop flag is set."""
-    done = control[_DONE]
-    idle = 0
-    while control[_STOP] == 0:
-        sequence = control[_REQUESTED]
-        if sequence == done:
-            idle += 1
-            if idle > FAST_POLLS + IDLE_EXIT_POLLS:
-                return
-            if idle > FAST_POLLS:
-                _usleep(IDLE_POLL_US)
-            elif control[_POLL_BY_SLEEPING]:
-                _usleep(RT_POLL_US)
-            else:
-                _sched_yield()
-            continue
+def tick_server(tick, argument_types: tuple):
+    """The worker loop ``serve(control, masses_a, masses_b, probe, arguments)`` for
+    ``tick(masses_in, masses_out, probe, *arguments)``, ``arguments`` of the numba
+    types ``argument_types``: it runs ``tick(masses_a, masses_b, probe, *arguments)``
+    (a and b swapped where control[_INPUT] is 1) for every request until the stop
+    flag is set. Declared with ``kernel``, so ``compile_kernels`` compiles it before
+    the clock starts; call this once per tick, at import."""
+
+    # Not cached (numba cannot cache code that calls a ctypes function), so kept small:
+    # the tick it calls comes compiled from the cache. A tick lives with the kernels it
+    # calls: numba's cache goes stale only when the function's own file changes.
+    @kernel((INDEX_VECTOR, VECTOR, VECTOR, VECTOR, types.Tuple(tuple(argument_types))),
+            cache=False, nogil=True)
+    def serve(control, masses_a, masses_b, probe, arguments):
+        done = control[_DONE]
         idle = 0
-        if control[_INPUT] == 0:
-            tick_from(*forward)
-        else:
-            tick_from(*backward)
-        _usleep(0)  # a compiler barrier: the result is stored before it is announced
-        control[_DONE] = sequence
-        done = sequence
+        while control[_STOP] == 0:
+            sequence = control[_REQUESTED]
+            if sequence == done:
+                idle += 1
+                if idle > FAST_POLLS + IDLE_EXIT_POLLS:
+                    return
+                if idle > FAST_POLLS:
+                    _usleep(IDLE_POLL_US)
+                elif control[_POLL_BY_SLEEPING]:
+                    _usleep(RT_POLL_US)
+                else:
+                    _sched_yield()
+                continue
+            idle = 0
+            if control[_INPUT] == 0:
+                tick(masses_a, masses_b, probe, *arguments)
+            else:
+                tick(masses_b, masses_a, probe, *arguments)
+            _usleep(0)  # a compiler barrier: the result is stored before it is announced
+            control[_DONE] = sequence
+            done = sequence
+    return serve
 
 
 @kernel((READONLY_VECTOR, VECTOR, VECTOR), (VECTOR, VECTOR, VECTOR))
@@ -124,28 +133,24 @@ def _stop(control: np.ndarray) -> None:
     control[_STOP] = 1
 
 
-class LatticeWorker:
-    """The worker thread and its private copy of the lattice (see the module docstring)."""
+class StepWorker:
+    """The worker thread and its private copy of a deformable body (see the module
+    docstring)."""
 
-    def __init__(self, model: LatticeModel, num_masses: int, constants, *, implicit: bool,
-                 substeps: int, cg_max_iterations: int):
-        """``constants``: as ``tick_from`` takes them (8)."""
+    def __init__(self, server, num_nodes: int, tick_arguments: tuple):
+        """``server``: the loop ``tick_server`` declared for the body's tick;
+        ``num_nodes``: n; ``tick_arguments``: the tick's arguments after the probe, the
+        worker's own (no work space shared with another caller of the tick)."""
+        self._server = server
         self._control = np.zeros(5, dtype=np.int64)
         # Two buffers of [x; v] (6 n): a request's input in one ([_INPUT]), the step's
         # result in the other; the request's tool state (13) and probe point (9).
-        self._masses = (np.zeros(6 * num_masses), np.zeros(6 * num_masses))
+        self._masses = (np.zeros(6 * num_nodes), np.zeros(6 * num_nodes))
         self._tool_in = np.zeros(13)
         self._probe = np.zeros(9)
         self._pending = False  # a request not yet taken
         self._filled = None  # the array result_into last wrote the result into
-        node_work, u, link_work = implicit_workspace(num_masses, len(model.links))
-        rest = (self._probe, *model.topology, model.rest_lengths_m,
-                model.stiffness_n_per_m, model.damping_n_s_per_m, model.mass_kg,
-                model.inv_mass_per_kg, model.gravity_m_s2, model.surface,
-                np.zeros((num_masses, 3)), np.asarray(constants, dtype=float), implicit,
-                int(substeps), int(cg_max_iterations), np.zeros((num_masses, 3)), node_work, u,
-                link_work)
-        self._arguments = ((*self._masses, *rest), (*self._masses[::-1], *rest))
+        self._arguments = tuple(tick_arguments)
         self._thread = None
         weakref.finalize(self, _stop, self._control)
         add_follower(self._follow_loop)
@@ -166,8 +171,9 @@ class LatticeWorker:
         self._control[_DONE] = self._control[_REQUESTED]
         # Started by a loop at real-time priority, it has that priority: it must sleep.
         self._control[_POLL_BY_SLEEPING] = is_realtime()
-        self._thread = threading.Thread(target=_serve, args=(self._control, *self._arguments),
-                                        daemon=True, name="lattice-worker")
+        self._thread = threading.Thread(
+            target=self._server, args=(self._control, *self._masses, self._probe, self._arguments),
+            daemon=True, name="step-worker")
         self._thread.start()
 
     def request(self, state: np.ndarray, p_TP: np.ndarray) -> bool:
