@@ -10,7 +10,7 @@ from maglev_haptics.diagrams.application import BuildDiagram
 from maglev_haptics.diagrams.deformable_scene import build_scene_lattice
 from maglev_haptics.diagrams.haptics import interactive_variant
 from maglev_haptics.diagrams.scenario import ScenarioError, load_scenario
-from maglev_haptics.systems.lattice_visualizer import SURFACE_PATH, WIRE_PATH
+from maglev_haptics.systems.surface_visualizer import SURFACE_PATH, WIRE_PATH
 
 FLAT = "{haptics: {scene: !DeformableSurface {heightmap: !SineHeightmap {amplitude_m: [0.0, 0.0]}}}}"
 
