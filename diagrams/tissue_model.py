@@ -1,0 +1,308 @@
+"""Tissue: the deformable bodies of a ``ModelScene``'s model files, read by Drake.
+
+A model file declares a deformable body the Drake way: an SDFormat ``<link>`` with
+``<drake:deformable_properties>`` (Young's modulus, Poisson's ratio, mass density,
+Rayleigh mass and stiffness damping, material model), one ``<collision>`` whose
+``<mesh>`` is a tetrahedral ``.vtk``, a ``<drake:wall_boundary_condition>`` fixing
+the nodes beyond a plane (written in W), and its colour from an ``<empty/>``
+``<visual>``'s ``<diffuse>``. A stiffer inclusion is the ``.vtk``'s cell data
+``youngs_modulus`` (Pa, one value a tetrahedron; see
+``plant_models/tissue_meshes.py`` for why).
+
+``read_scene_tissue`` hands the models that hold deformable bodies (found by
+``holds_tissue``'s look at their files) to Drake's parser in a scratch plant,
+takes each body's reference positions, tetrahedra, material and colour from what
+Drake parsed, and its fixed nodes by Drake's own rule: one 1 ms step from rest
+under gravity leaves exactly the wall's nodes where they were (Drake 1.58 does not
+report the wall condition to Python). Only the cell data is read besides (meshio,
+from the file the body's collision mesh names). The rest of the directives are for
+the rigid scene plant, which then never steps Drake's FEM.
+
+A ValueError, one line naming the directive, model and body, the value and what is
+allowed, for: a surface mesh (triangles, an OBJ) declared deformable; a tetrahedron
+of volume <= 0; no fixed node (the body would fall forever) or no free one; a
+material model other than ``linear_corotated`` (the haptic kernel's element); a
+material out of range; cell data of the wrong length or not > 0; a model that holds
+a deformable body and rigid links too; a tissue placed or named by another
+directive (it is placed by its link's ``<pose>``: Drake fixes the wall's nodes at
+their reference positions, which a directive's pose does not move).
+"""
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import List, NamedTuple
+
+import numpy as np
+from pydrake.multibody.parsing import (
+    LoadModelDirectives, ModelDirective, ModelDirectives, Parser, ProcessModelDirectives)
+from pydrake.multibody.plant import AddMultibodyPlant, MultibodyPlant, MultibodyPlantConfig
+from pydrake.multibody.fem import MaterialModel
+from pydrake.systems.analysis import Simulator
+from pydrake.systems.framework import DiagramBuilder
+
+from maglev_haptics.diagrams.scene_models import _drake_reason
+from maglev_haptics.hardware.config_checks import require
+from maglev_haptics.plant_models import PACKAGE_XML
+from maglev_haptics.plant_models.tissue_meshes import (
+    TISSUE_RGBA, YOUNGS_MODULUS_CELL_DATA, read_cell_youngs_modulus, tetrahedron_volumes)
+
+DEFORMABLE_TAG = "drake:deformable_properties"  # what marks a model file as holding tissue
+SUPPORTED_MATERIAL = "linear_corotated"
+STEP_S = 1e-3  # the scratch plant's step, which finds the fixed nodes (s)
+MATERIAL_NAMES = {MaterialModel.kLinear: "linear", MaterialModel.kLinearCorotated:
+                  "linear_corotated", MaterialModel.kCorotated: "corotated",
+                  MaterialModel.kNeoHookean: "neohookean"}  # as drake:material_model spells them
+# Physical ranges of the body's material (SI); the haptic kernel's stable step is the
+# finite-element system's check.
+POISSONS_RATIO_RANGE = (0.0, 0.5)  # [min, max) (-); 0.5 is incompressible
+
+
+@dataclass(eq=False)
+class TissueBody:
+    """One deformable body as Drake parsed it. Nodes at their reference positions."""
+
+    name: str  # the link's name
+    model: str  # its model instance's name
+    mesh_file: str  # the tetrahedral .vtk its collision names
+    positions_m: np.ndarray  # (n, 3) nodes in W (m)
+    tetrahedra: np.ndarray  # (m, 4) int64 node indices, positively oriented
+    youngs_modulus_pa: np.ndarray  # (m,) per tetrahedron (Pa)
+    poissons_ratio: float  # (-)
+    mass_density_kg_m3: float
+    mass_damping_per_s: float  # Rayleigh alpha: D = alpha M + beta K (1/s)
+    stiffness_damping_s: float  # Rayleigh beta (s)
+    material_model: str  # "linear_corotated"
+    fixed: np.ndarray  # (n,) bool: nodes the wall condition holds
+    rgba: np.ndarray  # (4,) diffuse colour
+
+
+class SceneTissue(NamedTuple):
+    """A scene's deformable bodies and the directives for its rigid plant (the
+    scene's own, less the add_model of each model holding a deformable body)."""
+
+    bodies: List[TissueBody]
+    rigid_directives: List[ModelDirective]
+
+
+def _parser(plant) -> Parser:
+    parser = Parser(plant)
+    parser.package_map().AddPackageXml(str(PACKAGE_XML))
+    return parser
+
+
+def _declares_tissue(parser: Parser, url: str) -> bool:
+    """Whether the model file at ``url`` declares a deformable body (its text names
+    DEFORMABLE_TAG); a file that cannot be read does not (Drake's parse says why)."""
+    try:
+        return DEFORMABLE_TAG in Path(parser.package_map().ResolveUrl(url)).read_text()
+    except (RuntimeError, OSError, UnicodeDecodeError):
+        return False
+
+
+def _tissue_directives(parser: Parser, directives: List[ModelDirective], path: str) -> list:
+    """Indices of the add_model directives whose files declare deformable bodies; a
+    ValueError for one inside an add_directives file (its add_model would be
+    beyond the reach of the rigid scene's directives)."""
+    found = []
+    for i, directive in enumerate(directives):
+        if directive.add_model is not None and _declares_tissue(parser,
+                                                                directive.add_model.file):
+            found.append(i)
+        elif directive.add_directives is not None:
+            nested = directive.add_directives.file
+            try:
+                inner = LoadModelDirectives(parser.package_map().ResolveUrl(nested)).directives
+            except Exception:  # Drake's parse of the scene says why
+                continue
+            if _tissue_directives(parser, inner, f"{path}[{i}].add_directives") or any(
+                    d.add_directives is not None for d in inner) and holds_tissue(inner):
+                raise ValueError(f"{path}[{i}].add_directives.file = {nested!r}: adds a model "
+                                 "with a deformable body; add it by the scene's own add_model")
+    return found
+
+
+def holds_tissue(directives: List[ModelDirective]) -> bool:
+    """Whether any model the directives add (add_directives files included) declares
+    a deformable body; a look at the files' text, no parse."""
+    parser = _parser_without_plant()
+    try:
+        return bool(_tissue_directives(parser, list(directives), "directives"))
+    except ValueError:  # a deformable body inside an add_directives file
+        return True
+
+
+def _parser_without_plant() -> Parser:
+    return _parser(MultibodyPlant(0.0))
+
+
+def read_scene_tissue(directives: List[ModelDirective],
+                      path: str = "scene.directives") -> SceneTissue:
+    """The deformable bodies the directives' models declare, as Drake reads them,
+    and the directives for the rigid plant. A ValueError (one line) names
+    ``path[i]``, the model and body, the value and what is allowed."""
+    directives = list(directives)
+    builder = DiagramBuilder()
+    plant, scene_graph = AddMultibodyPlant(MultibodyPlantConfig(
+        time_step=STEP_S, discrete_contact_approximation="sap"), builder)
+    parser = _parser(plant)
+    tissue = _tissue_directives(parser, directives, path)
+    if not tissue:
+        return SceneTissue([], directives)
+    names = {directives[i].add_model.name: i for i in tissue}
+    for i, directive in enumerate(directives):
+        _check_not_placed(directive, names, f"{path}[{i}]")
+    try:
+        ProcessModelDirectives(ModelDirectives(directives=[directives[i] for i in tissue]),
+                               parser)
+    except Exception as error:  # Drake's parser: RuntimeError, its YAML's ValueError
+        raise ValueError(f"{path}: {_deformable_reason(_drake_reason(error))}") from None
+    plant.Finalize()
+    deformable = plant.deformable_model()
+    bodies = [deformable.GetBody(body_id) for name in names
+              for body_id in deformable.GetBodyIds(plant.GetModelInstanceByName(name))]
+    holding = {plant.GetModelInstanceName(body.model_instance()) for body in bodies}
+    fields = {name: f"{path}[{i}].add_model.file = {directives[i].add_model.file!r}"
+              for name, i in names.items()}
+    for name in holding:
+        rigid = [plant.get_body(index).name()
+                 for index in plant.GetBodyIndices(plant.GetModelInstanceByName(name))]
+        if rigid:
+            raise ValueError(f"{fields[name]}: model {name!r} holds a deformable body and rigid "
+                             f"links ({', '.join(rigid)}); put them in two model files")
+    inspector = scene_graph.model_inspector()
+    read = []
+    for body, (before, after) in zip(bodies, _one_step(builder.Build(), plant, bodies)):
+        model = plant.GetModelInstanceName(body.model_instance())
+        read.append(_tissue_body(inspector, body, model, before, after, fields[model]))
+    rigid_directives = [directive for i, directive in enumerate(directives)
+                        if i not in tissue or directive.add_model.name not in holding]
+    return SceneTissue(read, rigid_directives)
+
+
+def _check_not_placed(directive: ModelDirective, tissue_models: dict, path: str) -> None:
+    """A ValueError if ``directive`` poses a tissue model or names one of its frames."""
+    model = directive.add_model
+    if model is not None and model.name in tissue_models:
+        if model.default_free_body_pose or model.default_joint_positions:
+            raise ValueError(
+                f"{path}.add_model.default_free_body_pose: model {model.name!r} declares a "
+                "deformable body, placed by its link's <pose> in its file (Drake fixes the "
+                "wall's nodes at their reference positions, which this pose does not move)")
+        return
+    named = []
+    if directive.add_weld is not None:
+        named += [("add_weld.parent", directive.add_weld.parent),
+                  ("add_weld.child", directive.add_weld.child)]
+    if directive.add_frame is not None:
+        named.append(("add_frame.X_PF.base_frame", directive.add_frame.X_PF.base_frame))
+    for field, frame in named:
+        if frame and frame.split("::")[0] in tissue_models:
+            raise ValueError(f"{path}.{field} = {frame!r}: model {frame.split('::')[0]!r} "
+                             "declares a deformable body, which has no frame to weld or "
+                             "attach to; it is placed by its link's <pose>")
+
+
+def _deformable_reason(reason: str) -> str:
+    """Drake's parse error, prefixed with what it means where a deformable body's
+    mesh is not tetrahedral."""
+    if "MakeVolumeMeshFromVtk" in reason or "should only contain tetrahedra" in reason:
+        return ("a deformable body's <collision> <mesh> must be a tetrahedral volume mesh "
+                f"(a .vtk of tetra cells), not a surface; Drake: {reason}")
+    return reason
+
+
+def _one_step(diagram, plant, bodies) -> list:
+    """Per body, its nodes' positions (n, 3) in W (m) at rest in the default state
+    and after one step under gravity."""
+    simulator = Simulator(diagram)
+    context = plant.GetMyContextFromRoot(simulator.get_mutable_context())
+    before = [np.array(body.GetPositions(context)).T for body in bodies]
+    simulator.AdvanceTo(STEP_S)
+    return [(q0, np.array(body.GetPositions(context)).T) for body, q0 in zip(bodies, before)]
+
+
+def _tissue_body(inspector, body, model: str, before: np.ndarray, after: np.ndarray,
+                 field: str) -> TissueBody:
+    """TissueBody of Drake's deformable ``body``; ``before`` and ``after`` one step
+    (nodes (n, 3), m); a ValueError names ``field``, the model and the body."""
+    where = f"{field}: model {model!r}, body {body.name()!r}"
+    reference = np.asarray(body.reference_positions()).reshape(-1, 3)
+    if not np.array_equal(before, reference):
+        raise ValueError(f"{where}: its nodes start away from their reference positions: "
+                         "a deformable body is placed by its link's <pose> only")
+    config = body.config()
+    material = MATERIAL_NAMES.get(config.material_model(), str(config.material_model()))
+    if material != SUPPORTED_MATERIAL:
+        raise ValueError(f"{where}: drake:material_model = {material!r}: only "
+                         f"{SUPPORTED_MATERIAL!r} is supported (the haptic kernel's element)")
+    _check_material(where, config)
+    mesh = inspector.GetReferenceMesh(body.geometry_id())
+    tetrahedra = np.array([[t.vertex(i) for i in range(4)] for t in mesh.tetrahedra()],
+                          dtype=np.int64).reshape(-1, 4)
+    mesh_file = inspector.GetShape(body.geometry_id()).source().path()
+    volumes = tetrahedron_volumes(reference, tetrahedra)  # (m^3)
+    bad = np.flatnonzero(~(volumes > 0))
+    if len(bad):
+        raise ValueError(f"{where}: tetrahedron {bad[0]} of {mesh_file} has volume "
+                         f"{volumes[bad[0]]:.3g} m^3 ({len(bad)} of {len(volumes)} inverted or "
+                         "flat): each must be > 0, its 4th node on the side its first three's "
+                         "right-hand normal points to")
+    fixed = (after == before).all(axis=1)
+    if not fixed.any():
+        raise ValueError(f"{where}: no node is fixed: it would fall forever; add a "
+                         "<drake:wall_boundary_condition> whose plane has nodes beyond it")
+    if fixed.all():
+        raise ValueError(f"{where}: the wall condition fixes all {len(fixed)} nodes: nothing "
+                         "would move; put its plane through the body's underside")
+    return TissueBody(
+        name=body.name(), model=model, mesh_file=mesh_file,
+        positions_m=reference, tetrahedra=tetrahedra,
+        youngs_modulus_pa=_cell_youngs_modulus(where, mesh_file, tetrahedra,
+                                               config.youngs_modulus()),
+        poissons_ratio=config.poissons_ratio(), mass_density_kg_m3=config.mass_density(),
+        mass_damping_per_s=config.mass_damping_coefficient(),
+        stiffness_damping_s=config.stiffness_damping_coefficient(),
+        material_model=material, fixed=fixed, rgba=_diffuse(inspector, body.geometry_id()))
+
+
+def _check_material(where: str, config) -> None:
+    """A ValueError naming the field of ``config`` (DeformableBodyConfig) out of range."""
+    low, high = POISSONS_RATIO_RANGE
+    for field, value, ok, allowed in (
+            ("youngs_modulus", config.youngs_modulus(), config.youngs_modulus() > 0,
+             "must be > 0 (Pa)"),
+            ("poissons_ratio", config.poissons_ratio(),
+             low <= config.poissons_ratio() < high, f"must be in [{low:g}, {high:g})"),
+            ("mass_density", config.mass_density(), config.mass_density() > 0,
+             "must be > 0 (kg/m^3)"),
+            ("mass_damping", config.mass_damping_coefficient(),
+             config.mass_damping_coefficient() >= 0, "must be >= 0 (1/s)"),
+            ("stiffness_damping", config.stiffness_damping_coefficient(),
+             config.stiffness_damping_coefficient() >= 0, "must be >= 0 (s)")):
+        require(bool(np.isfinite(value) and ok), f"{where}: drake:{field}", value, allowed)
+
+
+def _cell_youngs_modulus(where: str, mesh_file: str, tetrahedra: np.ndarray,
+                         body_modulus_pa: float) -> np.ndarray:
+    """(m,) Young's modulus per tetrahedron (Pa): the file's cell data
+    YOUNGS_MODULUS_CELL_DATA where it has one, else the body's."""
+    file_tetrahedra, modulus = read_cell_youngs_modulus(mesh_file)
+    if modulus is None:
+        return np.full(len(tetrahedra), float(body_modulus_pa))
+    if len(modulus) != len(tetrahedra) or not np.array_equal(file_tetrahedra, tetrahedra):
+        raise ValueError(f"{where}: {mesh_file}'s cell data {YOUNGS_MODULUS_CELL_DATA!r} has "
+                         f"{len(modulus)} values for {len(file_tetrahedra)} cells; Drake read "
+                         f"{len(tetrahedra)} tetrahedra: it needs one value a tetrahedron")
+    bad = np.flatnonzero(~(np.isfinite(modulus) & (modulus > 0)))
+    require(not len(bad), f"{where}: {mesh_file} cell data "
+            f"{YOUNGS_MODULUS_CELL_DATA}[{bad[0] if len(bad) else 0}]",
+            float(modulus[bad[0]]) if len(bad) else None, "must be a finite number > 0 (Pa)")
+    return modulus
+
+
+def _diffuse(inspector, geometry_id) -> np.ndarray:
+    """(4,) RGBA of the body's <visual> <diffuse>, TISSUE_RGBA if it gives none."""
+    properties = inspector.GetIllustrationProperties(geometry_id)
+    if properties is not None and properties.HasProperty("phong", "diffuse"):
+        return np.array(properties.GetProperty("phong", "diffuse").rgba)
+    return np.array(TISSUE_RGBA)
