@@ -20,18 +20,22 @@ the rigid scene plant, which then never steps Drake's FEM.
 
 A ValueError, one line naming the directive, model and body, the value and what is
 allowed, for: a surface mesh (triangles, an OBJ) declared deformable; a tetrahedron
-of volume <= 0; no fixed node (the body would fall forever) or no free one; a
-material model other than ``linear_corotated`` (the haptic kernel's element); a
-material out of range; cell data of the wrong length or not > 0; a model that holds
-a deformable body and rigid links too; a tissue placed or named by another
-directive (it is placed by its link's ``<pose>``: Drake fixes the wall's nodes at
-their reference positions, which a directive's pose does not move).
+of volume <= 0 (Drake's check, its volume added); no fixed node (the body would fall
+forever) or no free one; a material model other than ``linear_corotated`` (the
+haptic kernel's element); a material out of range (Drake's checks, and a Poisson's
+ratio < 0 or anything not finite); cell data of the wrong length or not > 0; a
+model that holds a deformable body and rigid links too; one added inside an
+add_directives file; a tissue placed or named by another directive (it is placed
+by its link's ``<pose>``: Drake fixes the wall's nodes at their reference
+positions, which a directive's pose does not move).
 """
 
+import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import List, NamedTuple
 
+import meshio
 import numpy as np
 from pydrake.multibody.parsing import (
     LoadModelDirectives, ModelDirective, ModelDirectives, Parser, ProcessModelDirectives)
@@ -114,8 +118,7 @@ def _tissue_directives(parser: Parser, directives: List[ModelDirective], path: s
                 inner = LoadModelDirectives(parser.package_map().ResolveUrl(nested)).directives
             except Exception:  # Drake's parse of the scene says why
                 continue
-            if _tissue_directives(parser, inner, f"{path}[{i}].add_directives") or any(
-                    d.add_directives is not None for d in inner) and holds_tissue(inner):
+            if _tissue_directives(parser, inner, f"{path}[{i}].add_directives"):
                 raise ValueError(f"{path}[{i}].add_directives.file = {nested!r}: adds a model "
                                  "with a deformable body; add it by the scene's own add_model")
     return found
@@ -124,15 +127,11 @@ def _tissue_directives(parser: Parser, directives: List[ModelDirective], path: s
 def holds_tissue(directives: List[ModelDirective]) -> bool:
     """Whether any model the directives add (add_directives files included) declares
     a deformable body; a look at the files' text, no parse."""
-    parser = _parser_without_plant()
     try:
-        return bool(_tissue_directives(parser, list(directives), "directives"))
+        return bool(_tissue_directives(_parser(MultibodyPlant(0.0)), list(directives),
+                                       "directives"))
     except ValueError:  # a deformable body inside an add_directives file
         return True
-
-
-def _parser_without_plant() -> Parser:
-    return _parser(MultibodyPlant(0.0))
 
 
 def read_scene_tissue(directives: List[ModelDirective],
@@ -183,7 +182,7 @@ def _check_not_placed(directive: ModelDirective, tissue_models: dict, path: str)
     """A ValueError if ``directive`` poses a tissue model or names one of its frames."""
     model = directive.add_model
     if model is not None and model.name in tissue_models:
-        if model.default_free_body_pose or model.default_joint_positions:
+        if model.default_free_body_pose:
             raise ValueError(
                 f"{path}.add_model.default_free_body_pose: model {model.name!r} declares a "
                 "deformable body, placed by its link's <pose> in its file (Drake fixes the "
@@ -203,12 +202,20 @@ def _check_not_placed(directive: ModelDirective, tissue_models: dict, path: str)
 
 
 def _deformable_reason(reason: str) -> str:
-    """Drake's parse error, prefixed with what it means where a deformable body's
-    mesh is not tetrahedral."""
-    if "MakeVolumeMeshFromVtk" in reason or "should only contain tetrahedra" in reason:
+    """Drake's parse error, with what it means where a deformable body's mesh is a
+    surface or holds an inverted tetrahedron (then with its volume, m^3)."""
+    if "wrong extension type" in reason or "should only contain tetrahedra" in reason:
         return ("a deformable body's <collision> <mesh> must be a tetrahedral volume mesh "
                 f"(a .vtk of tetra cells), not a surface; Drake: {reason}")
-    return reason
+    inverted = re.search(r"MakeVolumeMeshFromVtk\('([^']*)'\).*The (\d+)-th tetrahedron", reason)
+    if inverted is None:
+        return reason
+    mesh = meshio.read(inverted[1])
+    index = int(inverted[2])
+    volume = tetrahedron_volumes(mesh.points, mesh.cells_dict["tetra"][index:index + 1])[0]
+    return (f"{inverted[1]}: tetrahedron {index} has volume {volume:.3g} m^3: each must be "
+            "> 0, its 4th node on the side its first three's right-hand normal points to "
+            "(an inverted or flat tetrahedron)")
 
 
 def _one_step(diagram, plant, bodies) -> list:
@@ -240,13 +247,6 @@ def _tissue_body(inspector, body, model: str, before: np.ndarray, after: np.ndar
     tetrahedra = np.array([[t.vertex(i) for i in range(4)] for t in mesh.tetrahedra()],
                           dtype=np.int64).reshape(-1, 4)
     mesh_file = inspector.GetShape(body.geometry_id()).source().path()
-    volumes = tetrahedron_volumes(reference, tetrahedra)  # (m^3)
-    bad = np.flatnonzero(~(volumes > 0))
-    if len(bad):
-        raise ValueError(f"{where}: tetrahedron {bad[0]} of {mesh_file} has volume "
-                         f"{volumes[bad[0]]:.3g} m^3 ({len(bad)} of {len(volumes)} inverted or "
-                         "flat): each must be > 0, its 4th node on the side its first three's "
-                         "right-hand normal points to")
     fixed = (after == before).all(axis=1)
     if not fixed.any():
         raise ValueError(f"{where}: no node is fixed: it would fall forever; add a "
@@ -266,20 +266,20 @@ def _tissue_body(inspector, body, model: str, before: np.ndarray, after: np.ndar
 
 
 def _check_material(where: str, config) -> None:
-    """A ValueError naming the field of ``config`` (DeformableBodyConfig) out of range."""
+    """A ValueError naming the field of ``config`` (DeformableBodyConfig) that is not
+    finite, or a Poisson's ratio below 0 (Drake's parser checks signs and that
+    Poisson's ratio is in (-1, 0.5))."""
+    values = {"youngs_modulus": config.youngs_modulus(),
+              "poissons_ratio": config.poissons_ratio(),
+              "mass_density": config.mass_density(),
+              "mass_damping": config.mass_damping_coefficient(),
+              "stiffness_damping": config.stiffness_damping_coefficient()}
+    for field, value in values.items():
+        require(bool(np.isfinite(value)), f"{where}: drake:{field}", value,
+                "must be a finite number")
     low, high = POISSONS_RATIO_RANGE
-    for field, value, ok, allowed in (
-            ("youngs_modulus", config.youngs_modulus(), config.youngs_modulus() > 0,
-             "must be > 0 (Pa)"),
-            ("poissons_ratio", config.poissons_ratio(),
-             low <= config.poissons_ratio() < high, f"must be in [{low:g}, {high:g})"),
-            ("mass_density", config.mass_density(), config.mass_density() > 0,
-             "must be > 0 (kg/m^3)"),
-            ("mass_damping", config.mass_damping_coefficient(),
-             config.mass_damping_coefficient() >= 0, "must be >= 0 (1/s)"),
-            ("stiffness_damping", config.stiffness_damping_coefficient(),
-             config.stiffness_damping_coefficient() >= 0, "must be >= 0 (s)")):
-        require(bool(np.isfinite(value) and ok), f"{where}: drake:{field}", value, allowed)
+    require(low <= values["poissons_ratio"] < high, f"{where}: drake:poissons_ratio",
+            values["poissons_ratio"], f"must be in [{low:g}, {high:g}) for tissue")
 
 
 def _cell_youngs_modulus(where: str, mesh_file: str, tetrahedra: np.ndarray,
