@@ -1,0 +1,672 @@
+"""Finite-element tissue at the haptic rate: Drake's ``linear_corotated`` element on
+linear tetrahedra, stepped by explicit symplectic Euler (numba).
+
+State: node positions ``x`` (n, 3) in W (m) and velocities ``v`` (n, 3) (m/s); fixed
+nodes (``inv_mass`` 0) never move. The state vector's layout is the lattice's
+(``lattice_dynamics``): [x; v] flat (6 n), node by node, then the tool.
+
+The element (Drake's LinearCorotatedModel): tetrahedron e has rest edge matrix
+Dm = [X1 - X0, X2 - X0, X3 - X0] (m) and rest volume V0 = det(Dm) / 6 (m^3); at
+the current edge matrix Ds, F = Ds Dm^-1. R is the rotation of the polar
+decomposition of F0, F at the start of the tick (Drake: at the previous time
+step); the strain eps = sym(R^T F) - I, the first Piola stress P = R (2 mu eps +
+lambda tr(eps) I) (Pa), and the element's nodal forces -V0 P Dm^-T (N): columns
+for corners 1..3, corner 0 minus their sum. mu, lambda (Pa) from each
+tetrahedron's own (E, nu), so an inclusion is a set of tetrahedra with a larger E.
+
+Masses are lumped: rho V0 / 4 of each tetrahedron to each corner (kg). Drake's
+element mass matrix is the one-point-quadrature "consistent" one, rho V0 / 16 in
+every corner pair, whose row sums are these lumped masses: so gravity loads and
+static displacements agree exactly, and only the vibration modes differ a little.
+Rayleigh damping as Drake's DeformableBodyConfig: -alpha m v (alpha, 1/s) and
+-beta K v (beta, s), K the element stiffness at the tick's R; since the elastic
+force is affine in the positions for a fixed R, the stiffness damping is the
+elastic force evaluated at x + beta v, the one pass that computes both.
+
+The probe's contact is ``lattice_dynamics.add_probe_forces`` on the surface nodes,
+evaluated at every substep from that substep's state with the probe held where the
+tick started (as the lattice's ``symplectic_euler_tick`` does); the tool's wrench is
+the first substep's (``state_contact`` computes it from the tick's start state).
+
+Performance: the per-tetrahedron work runs a block of ``TET_BLOCK`` tetrahedra at a
+time: the edge differences gathered into 9 flat rows, the arithmetic in one
+branch-free loop over the block that the compiler vectorizes (the per-tetrahedron
+rest data is stored as 9 rows of length m, read with unit stride), then the forces
+scattered back. The polar decomposition runs once a tick, the same way, a fixed
+number of Newton iterations (deterministic, no branch).
+"""
+
+import math
+import time
+from typing import NamedTuple
+
+import numba
+import numpy as np
+import scipy.sparse
+import scipy.sparse.linalg
+
+from maglev_haptics.hardware.config_checks import finite, nonnegative, require
+from maglev_haptics.hardware.constants import GRAVITY_M_S2
+from maglev_haptics.hardware.kernels import (
+    INDEX, INDEX_MATRIX, INDEX_VECTOR, MATRIX, SCALAR, VECTOR, kernel)
+from maglev_haptics.systems.lattice_dynamics import LINK_MATH, ProbeContact, add_probe_forces
+
+# Tetrahedra per block of the element passes: the block's 9 rows of differences and
+# the 20 rows of rotation and rest data it reads stay in the L1 cache.
+TET_BLOCK = 128
+_TET_ROW = TET_BLOCK + 8  # a row of a block, padded off a power of two
+# The per-tetrahedron rest data, block by block: Dm^-1 (row-major, 9 rows), 2 mu V0
+# and lambda V0, each a row of _TET_ROW (``element_rows``).
+ELEMENT_ROWS = 11
+BLOCK_WORK = 18 * _TET_ROW  # the element passes' work space (numbers)
+# Newton iterations X <- (g X + (g X)^-T) / 2 of the polar decomposition, the first
+# SCALED_POLAR_ITERATIONS with Higham's scaling g, the rest with g = 1 (a scaling
+# costs two square roots and two divisions): from principal stretches in [0.3, 3] they
+# reach the rotation to 1e-10 (tests/test_tissue_fem.py).
+POLAR_ITERATIONS = 5
+SCALED_POLAR_ITERATIONS = 1
+# The fraction of the symplectic Euler stability limit a substep may use (-).
+STABLE_STEP_SAFETY = 0.9
+
+# tissue_tick_from's argument types: masses in and out, probe, then what
+# ``tick_arguments`` returns: tetrahedra, element_rows, mass, inv_mass, gravity,
+# surface, alpha, beta, constants, substeps, then the work space: rotations, blend,
+# forces, block work.
+TISSUE_TICK_ARGUMENTS = (VECTOR, VECTOR, VECTOR, INDEX_MATRIX, VECTOR, VECTOR, VECTOR, VECTOR,
+                         INDEX_VECTOR, SCALAR, SCALAR, VECTOR, INDEX, VECTOR, VECTOR, MATRIX,
+                         VECTOR)
+
+
+class TissueModel(NamedTuple):
+    """The arrays the kernels read; see ``tissue_model``."""
+
+    tetrahedra: np.ndarray  # (m, 4) int64 node indices, each of positive rest volume
+    rest_inverse: np.ndarray  # (m, 3, 3) Dm^-1 (1/m)
+    two_mu_volume: np.ndarray  # (m,) 2 mu V0 (N*m)
+    lambda_volume: np.ndarray  # (m,) lambda V0 (N*m)
+    element_rows: np.ndarray  # the three above in the kernels' blocked layout, flat
+    volume_m3: np.ndarray  # (m,) rest volumes V0
+    youngs_modulus_pa: np.ndarray  # (m,)
+    poissons_ratio: np.ndarray  # (m,)
+    mass_kg: np.ndarray  # (n,) lumped; fixed nodes keep theirs here
+    inv_mass_per_kg: np.ndarray  # (n,); 0 for fixed nodes
+    fixed: np.ndarray  # (n,) bool
+    gravity_m_s2: np.ndarray  # (3,) in W
+    surface: np.ndarray  # (n_s,) int64: the boundary nodes, which the probe touches
+    mass_damping_per_s: float  # Rayleigh alpha (1/s)
+    stiffness_damping_s: float  # Rayleigh beta (s)
+
+    @property
+    def num_nodes(self) -> int:
+        return len(self.mass_kg)
+
+    @property
+    def num_tetrahedra(self) -> int:
+        return len(self.tetrahedra)
+
+
+# --- mesh ---------------------------------------------------------------------------
+
+# The faces of a positively oriented tetrahedron (0, 1, 2, 3), each ordered so that its
+# right-handed normal points out of the tetrahedron.
+_OUTWARD_FACES = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]])
+
+
+def boundary_triangles(tetrahedra):
+    """(triangles (k, 3) int64, surface nodes (n_s,) int64 sorted): the faces that
+    belong to one tetrahedron only, ordered outward (the tetrahedra positively
+    oriented, as ``tissue_model`` requires), and the nodes on them."""
+    tetrahedra = np.asarray(tetrahedra, dtype=np.int64).reshape(-1, 4)
+    faces = tetrahedra[:, _OUTWARD_FACES].reshape(-1, 3)
+    keys = np.sort(faces, axis=1)
+    _, first, counts = np.unique(keys, axis=0, return_index=True, return_counts=True)
+    triangles = faces[np.sort(first[counts == 1])]
+    return np.ascontiguousarray(triangles), np.unique(triangles)
+
+
+def rest_shapes(positions_m, tetrahedra):
+    """(Dm (m, 3, 3) edge matrices (m), volumes (m,) m^3) of the tetrahedra."""
+    corners = np.asarray(positions_m, float)[np.asarray(tetrahedra)]
+    edges = np.transpose(corners[:, 1:] - corners[:, :1], (0, 2, 1))  # columns X_a - X_0
+    return edges, np.linalg.det(edges) / 6.0
+
+
+def _per_tetrahedron(path, value, m):
+    """``value`` (one number or m) as an (m,) array."""
+    values = np.asarray(value, dtype=float)
+    require(values.shape in ((), (m,)), f"{path}.shape", values.shape,
+            f"must be one number or one for each of the {m} tetrahedra")
+    return np.ascontiguousarray(np.broadcast_to(values, (m,)))
+
+
+def _check_each(path, values, ok, allowed):
+    bad = np.flatnonzero(~ok)
+    if len(bad):
+        index = int(bad[0])
+        require(False, f"{path}[{index}]" if values.ndim else path, float(values[index]),
+                allowed)
+
+
+def tissue_model(positions_m, tetrahedra, *, youngs_modulus_pa, poissons_ratio,
+                 mass_density_kg_m3, fixed, mass_damping_per_s: float = 0.0,
+                 stiffness_damping_s: float = 0.0,
+                 gravity_m_s2=(0.0, 0.0, -GRAVITY_M_S2), surface=None) -> TissueModel:
+    """The kernel arrays of a tetrahedral body.
+
+    ``positions_m`` (n, 3) the nodes at rest in W (m); ``tetrahedra`` (m, 4) node
+    indices, each with positive volume (det[X1 - X0, X2 - X0, X3 - X0] > 0, Drake's
+    VolumeMesh order); ``youngs_modulus_pa`` (Pa), ``poissons_ratio`` (-) and
+    ``mass_density_kg_m3`` (kg/m^3) one number for the body or one a tetrahedron;
+    ``fixed`` (n,) bool the nodes that never move (at least three not on one line);
+    Rayleigh ``mass_damping_per_s`` alpha (1/s) and ``stiffness_damping_s`` beta (s);
+    ``surface`` the nodes the probe touches (default: the boundary's).
+
+    A ValueError names the field, the value and what is allowed: an inverted or
+    degenerate tetrahedron by its index and volume."""
+    positions_m = np.ascontiguousarray(positions_m, dtype=float)
+    require(positions_m.ndim == 2 and positions_m.shape[1] == 3 and len(positions_m) >= 4,
+            "positions_m.shape", positions_m.shape, "must be (n, 3) with n >= 4")
+    require(bool(np.isfinite(positions_m).all()), "positions_m", "non-finite",
+            "must be finite numbers (m)")
+    n = len(positions_m)
+    tetrahedra = np.asarray(tetrahedra)
+    require(tetrahedra.ndim == 2 and tetrahedra.shape[1] == 4 and len(tetrahedra) > 0,
+            "tetrahedra.shape", tetrahedra.shape,
+            "must be (m, 4): a tetrahedral mesh (a surface mesh has 3 nodes an element)")
+    require(np.issubdtype(tetrahedra.dtype, np.integer), "tetrahedra.dtype",
+            str(tetrahedra.dtype), "must be integer node indices")
+    tetrahedra = np.ascontiguousarray(tetrahedra, dtype=np.int64)
+    _check_each("tetrahedra", tetrahedra.ravel(), (tetrahedra.ravel() >= 0)
+                & (tetrahedra.ravel() < n), f"must be node indices in [0, {n})")
+    used = np.zeros(n, bool)
+    used[tetrahedra.ravel()] = True
+    unused = np.flatnonzero(~used)
+    require(len(unused) == 0, "positions_m", f"node {unused[:1]} in no tetrahedron",
+            "every node must belong to a tetrahedron")
+    m = len(tetrahedra)
+    edges, volume = rest_shapes(positions_m, tetrahedra)
+    # Degenerate: flatter than 1e-6 of the regular tetrahedron on its longest edge.
+    longest = np.linalg.norm(positions_m[tetrahedra[:, [1, 2, 3, 2, 3, 3]]]
+                             - positions_m[tetrahedra[:, [0, 0, 0, 1, 1, 2]]], axis=2).max(1)
+    _check_each("volume of tetrahedron", volume, volume > 1e-6 * longest ** 3 / (6 * 2 ** 0.5),
+                "must be > 0 (m^3): the tetrahedron is inverted or degenerate")
+    youngs = _per_tetrahedron("youngs_modulus_pa", youngs_modulus_pa, m)
+    nu = _per_tetrahedron("poissons_ratio", poissons_ratio, m)
+    density = _per_tetrahedron("mass_density_kg_m3", mass_density_kg_m3, m)
+    _check_each("youngs_modulus_pa", youngs, np.isfinite(youngs) & (youngs > 0),
+                "must be a finite number > 0 (Pa)")
+    _check_each("poissons_ratio", nu, (nu > 0) & (nu < 0.5), "must be in (0, 0.5)")
+    _check_each("mass_density_kg_m3", density, np.isfinite(density) & (density > 0),
+                "must be a finite number > 0 (kg/m^3)")
+    nonnegative("mass_damping_per_s", mass_damping_per_s)
+    nonnegative("stiffness_damping_s", stiffness_damping_s)
+    gravity = np.asarray(gravity_m_s2, dtype=float)
+    require(gravity.shape == (3,) and all(map(finite, gravity)), "gravity_m_s2",
+            gravity_m_s2, "must be 3 finite numbers (m/s^2)")
+    fixed = np.asarray(fixed)
+    require(fixed.shape == (n,) and fixed.dtype == bool, "fixed", f"shape {fixed.shape}",
+            f"must be ({n},) bool")
+    anchors = positions_m[fixed] - positions_m[fixed][:1]
+    require(int(fixed.sum()) >= 3 and np.linalg.matrix_rank(anchors, tol=1e-9) >= 2,
+            "fixed", f"{int(fixed.sum())} nodes",
+            "must hold at least three nodes not on one line: the body would fall or swing"
+            " forever")
+    mu = youngs / (2.0 * (1.0 + nu))
+    lam = youngs * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
+    mass = np.zeros(n)
+    np.add.at(mass, tetrahedra.ravel(), np.repeat(density * volume / 4.0, 4))
+    if surface is None:
+        _, surface = boundary_triangles(tetrahedra)
+    rest_inverse = np.linalg.inv(edges)
+    rows = np.concatenate((rest_inverse.reshape(m, 9).T, [2.0 * mu * volume],
+                           [lam * volume]))
+    return TissueModel(
+        tetrahedra=tetrahedra, rest_inverse=rest_inverse, two_mu_volume=2.0 * mu * volume,
+        lambda_volume=lam * volume, element_rows=blocked_rows(rows), volume_m3=volume,
+        youngs_modulus_pa=youngs, poissons_ratio=nu, mass_kg=mass,
+        inv_mass_per_kg=np.where(fixed, 0.0, 1.0 / mass), fixed=fixed.copy(),
+        gravity_m_s2=gravity.copy(),
+        surface=np.ascontiguousarray(np.asarray(surface).ravel(), dtype=np.int64),
+        mass_damping_per_s=float(mass_damping_per_s),
+        stiffness_damping_s=float(stiffness_damping_s))
+
+
+def blocked_rows(rows) -> np.ndarray:
+    """(k, m) per-tetrahedron rows in the kernels' layout, flat: block by block of
+    TET_BLOCK tetrahedra, its k rows of _TET_ROW each (zero padded)."""
+    rows = np.asarray(rows, dtype=float)
+    k, m = rows.shape
+    blocks = -(-m // TET_BLOCK)
+    out = np.zeros((blocks, k, _TET_ROW))
+    padded = np.zeros((k, blocks * TET_BLOCK))
+    padded[:, :m] = rows
+    out[:, :, :TET_BLOCK] = padded.reshape(k, blocks, TET_BLOCK).transpose(1, 0, 2)
+    return out.ravel()
+
+
+def unblocked_rows(flat, k: int, m: int) -> np.ndarray:
+    """The (k, m) rows of a ``blocked_rows`` layout."""
+    blocks = -(-m // TET_BLOCK)
+    out = np.asarray(flat).reshape(blocks, k, _TET_ROW)[:, :, :TET_BLOCK]
+    return out.transpose(1, 0, 2).reshape(k, -1)[:, :m]
+
+
+# --- element kernels ----------------------------------------------------------------
+#
+# The kernels index flat arrays with the constant row length _TET_ROW: a block's rows
+# are then constant offsets from one pointer, so the compiler proves the rows apart
+# and vectorizes without run-time overlap checks (with each row its own array, the
+# 29 rows needed more checks than LLVM will emit, and the loops stayed scalar).
+
+@numba.njit(cache=True, fastmath=LINK_MATH, error_model="numpy", inline="always")
+def _gather_edges(y, tetrahedra, e0, count, d):
+    """d[(3 (a - 1) + k) _TET_ROW + c] = y[corner a, k] - y[corner 0, k] of tetrahedron
+    e0 + c (y flat, 3 a node): the columns of its edge matrix."""
+    for c in range(count):
+        i0 = 3 * tetrahedra[e0 + c, 0]
+        for a in range(1, 4):
+            ia = 3 * tetrahedra[e0 + c, a]
+            for k in range(3):
+                d[(3 * (a - 1) + k) * _TET_ROW + c] = y[ia + k] - y[i0 + k]
+
+
+@numba.njit(cache=True, fastmath=LINK_MATH, error_model="numpy", inline="always")
+def _element_arithmetic(d, rotations, element_rows, block, count):
+    """d's rows 3 (a - 1) + k = the elastic force (N) on corner a (1..3) along k of
+    each tetrahedron of ``block``, from its edge matrix in the same rows: -V0 R S Dm^-T
+    with S = 2 mu eps + lambda tr(eps) I, eps = sym(R^T Ds Dm^-1) - I. No branch:
+    it vectorizes."""
+    W = _TET_ROW
+    r0 = block * 9 * W
+    e0 = block * ELEMENT_ROWS * W
+    for c in range(count):
+        r00, r01, r02 = rotations[r0 + c], rotations[r0 + W + c], rotations[r0 + 2 * W + c]
+        r10, r11, r12 = (rotations[r0 + 3 * W + c], rotations[r0 + 4 * W + c],
+                         rotations[r0 + 5 * W + c])
+        r20, r21, r22 = (rotations[r0 + 6 * W + c], rotations[r0 + 7 * W + c],
+                         rotations[r0 + 8 * W + c])
+        b00, b01, b02 = (element_rows[e0 + c], element_rows[e0 + W + c],
+                         element_rows[e0 + 2 * W + c])
+        b10, b11, b12 = (element_rows[e0 + 3 * W + c], element_rows[e0 + 4 * W + c],
+                         element_rows[e0 + 5 * W + c])
+        b20, b21, b22 = (element_rows[e0 + 6 * W + c], element_rows[e0 + 7 * W + c],
+                         element_rows[e0 + 8 * W + c])
+        # The edge matrix Ds, column j = edge j, row k = coordinate k.
+        s00, s10, s20 = d[c], d[W + c], d[2 * W + c]
+        s01, s11, s21 = d[3 * W + c], d[4 * W + c], d[5 * W + c]
+        s02, s12, s22 = d[6 * W + c], d[7 * W + c], d[8 * W + c]
+        # Q = R^T Ds: the edges in the tetrahedron's rotated frame.
+        q00 = r00 * s00 + r10 * s10 + r20 * s20
+        q01 = r00 * s01 + r10 * s11 + r20 * s21
+        q02 = r00 * s02 + r10 * s12 + r20 * s22
+        q10 = r01 * s00 + r11 * s10 + r21 * s20
+        q11 = r01 * s01 + r11 * s11 + r21 * s21
+        q12 = r01 * s02 + r11 * s12 + r21 * s22
+        q20 = r02 * s00 + r12 * s10 + r22 * s20
+        q21 = r02 * s01 + r12 * s11 + r22 * s21
+        q22 = r02 * s02 + r12 * s12 + r22 * s22
+        # G = Q Dm^-1 = R^T F.
+        g00 = q00 * b00 + q01 * b10 + q02 * b20
+        g01 = q00 * b01 + q01 * b11 + q02 * b21
+        g02 = q00 * b02 + q01 * b12 + q02 * b22
+        g10 = q10 * b00 + q11 * b10 + q12 * b20
+        g11 = q10 * b01 + q11 * b11 + q12 * b21
+        g12 = q10 * b02 + q11 * b12 + q12 * b22
+        g20 = q20 * b00 + q21 * b10 + q22 * b20
+        g21 = q20 * b01 + q21 * b11 + q22 * b21
+        g22 = q20 * b02 + q21 * b12 + q22 * b22
+        # -V0 S from the strain sym(G) - I.
+        shear = -element_rows[e0 + 9 * W + c]
+        dilation = -element_rows[e0 + 10 * W + c] * (g00 + g11 + g22 - 3.0)
+        t00 = shear * (g00 - 1.0) + dilation
+        t11 = shear * (g11 - 1.0) + dilation
+        t22 = shear * (g22 - 1.0) + dilation
+        t01 = shear * 0.5 * (g01 + g10)
+        t02 = shear * 0.5 * (g02 + g20)
+        t12 = shear * 0.5 * (g12 + g21)
+        # T = -V0 S Dm^-T: column a - 1 for corner a.
+        w00 = t00 * b00 + t01 * b01 + t02 * b02
+        w01 = t00 * b10 + t01 * b11 + t02 * b12
+        w02 = t00 * b20 + t01 * b21 + t02 * b22
+        w10 = t01 * b00 + t11 * b01 + t12 * b02
+        w11 = t01 * b10 + t11 * b11 + t12 * b12
+        w12 = t01 * b20 + t11 * b21 + t12 * b22
+        w20 = t02 * b00 + t12 * b01 + t22 * b02
+        w21 = t02 * b10 + t12 * b11 + t22 * b12
+        w22 = t02 * b20 + t12 * b21 + t22 * b22
+        # The forces R T, corner by corner.
+        d[c] = r00 * w00 + r01 * w10 + r02 * w20
+        d[W + c] = r10 * w00 + r11 * w10 + r12 * w20
+        d[2 * W + c] = r20 * w00 + r21 * w10 + r22 * w20
+        d[3 * W + c] = r00 * w01 + r01 * w11 + r02 * w21
+        d[4 * W + c] = r10 * w01 + r11 * w11 + r12 * w21
+        d[5 * W + c] = r20 * w01 + r21 * w11 + r22 * w21
+        d[6 * W + c] = r00 * w02 + r01 * w12 + r02 * w22
+        d[7 * W + c] = r10 * w02 + r11 * w12 + r12 * w22
+        d[8 * W + c] = r20 * w02 + r21 * w12 + r22 * w22
+
+
+@numba.njit(cache=True, fastmath=LINK_MATH, error_model="numpy", inline="always")
+def _scatter_forces(tetrahedra, e0, count, d, f):
+    """f (flat) += the forces in d's rows 0..8 on corners 1..3 and minus their sum on
+    corner 0."""
+    W = _TET_ROW
+    for c in range(count):
+        i0 = 3 * tetrahedra[e0 + c, 0]
+        i1 = 3 * tetrahedra[e0 + c, 1]
+        i2 = 3 * tetrahedra[e0 + c, 2]
+        i3 = 3 * tetrahedra[e0 + c, 3]
+        for k in range(3):
+            f1, f2, f3 = d[k * W + c], d[(3 + k) * W + c], d[(6 + k) * W + c]
+            f[i1 + k] += f1
+            f[i2 + k] += f2
+            f[i3 + k] += f3
+            f[i0 + k] -= f1 + f2 + f3
+
+
+@numba.njit(cache=True, fastmath=LINK_MATH, error_model="numpy")
+def add_elastic_forces(y, tetrahedra, element_rows, rotations, work, f):
+    """f (flat, 3 n) += every element's force (N) at node positions y (flat, m) with
+    the rotations (``element_rotations``) held; ``work`` is BLOCK_WORK numbers."""
+    m = tetrahedra.shape[0]
+    for block in range((m + TET_BLOCK - 1) // TET_BLOCK):
+        e0 = block * TET_BLOCK
+        count = min(TET_BLOCK, m - e0)
+        _gather_edges(y, tetrahedra, e0, count, work)
+        _element_arithmetic(work, rotations, element_rows, block, count)
+        _scatter_forces(tetrahedra, e0, count, work, f)
+
+
+@numba.njit(cache=True, fastmath=LINK_MATH, error_model="numpy", inline="always")
+def _deformation_gradients(d, element_rows, block, count):
+    """d's rows 9 + 3 k + l = F[k, l] = (Ds Dm^-1)[k, l] of the block's tetrahedra,
+    from their edge matrices in rows 0..8."""
+    W = _TET_ROW
+    e0 = block * ELEMENT_ROWS * W
+    for c in range(count):
+        b00, b01, b02 = (element_rows[e0 + c], element_rows[e0 + W + c],
+                         element_rows[e0 + 2 * W + c])
+        b10, b11, b12 = (element_rows[e0 + 3 * W + c], element_rows[e0 + 4 * W + c],
+                         element_rows[e0 + 5 * W + c])
+        b20, b21, b22 = (element_rows[e0 + 6 * W + c], element_rows[e0 + 7 * W + c],
+                         element_rows[e0 + 8 * W + c])
+        s00, s10, s20 = d[c], d[W + c], d[2 * W + c]
+        s01, s11, s21 = d[3 * W + c], d[4 * W + c], d[5 * W + c]
+        s02, s12, s22 = d[6 * W + c], d[7 * W + c], d[8 * W + c]
+        d[9 * W + c] = s00 * b00 + s01 * b10 + s02 * b20
+        d[10 * W + c] = s00 * b01 + s01 * b11 + s02 * b21
+        d[11 * W + c] = s00 * b02 + s01 * b12 + s02 * b22
+        d[12 * W + c] = s10 * b00 + s11 * b10 + s12 * b20
+        d[13 * W + c] = s10 * b01 + s11 * b11 + s12 * b21
+        d[14 * W + c] = s10 * b02 + s11 * b12 + s12 * b22
+        d[15 * W + c] = s20 * b00 + s21 * b10 + s22 * b20
+        d[16 * W + c] = s20 * b01 + s21 * b11 + s22 * b21
+        d[17 * W + c] = s20 * b02 + s21 * b12 + s22 * b22
+
+
+@numba.njit(cache=True, fastmath=LINK_MATH, error_model="numpy", inline="always")
+def _newton_polar_step(d, count, scaled):
+    """X <- (g X + (g X)^-T) / 2 on the matrices in d's rows 9..17, g = sqrt(|X^-1| /
+    |X|) where ``scaled`` (Frobenius norms: Higham's scaling, which brings a
+    stretched X in fast), else 1."""
+    W = _TET_ROW
+    x0 = 9 * W
+    for c in range(count):
+        x00, x01, x02 = d[x0 + c], d[x0 + W + c], d[x0 + 2 * W + c]
+        x10, x11, x12 = d[x0 + 3 * W + c], d[x0 + 4 * W + c], d[x0 + 5 * W + c]
+        x20, x21, x22 = d[x0 + 6 * W + c], d[x0 + 7 * W + c], d[x0 + 8 * W + c]
+        # The cofactor matrix: X^-T = C / det X.
+        c00 = x11 * x22 - x12 * x21
+        c01 = x12 * x20 - x10 * x22
+        c02 = x10 * x21 - x11 * x20
+        c10 = x02 * x21 - x01 * x22
+        c11 = x00 * x22 - x02 * x20
+        c12 = x01 * x20 - x00 * x21
+        c20 = x01 * x12 - x02 * x11
+        c21 = x02 * x10 - x00 * x12
+        c22 = x00 * x11 - x01 * x10
+        det = x00 * c00 + x01 * c01 + x02 * c02
+        if scaled:  # the same for the whole loop: it is taken out of it
+            norm_x = (x00 * x00 + x01 * x01 + x02 * x02 + x10 * x10 + x11 * x11 + x12 * x12
+                      + x20 * x20 + x21 * x21 + x22 * x22)
+            norm_c = (c00 * c00 + c01 * c01 + c02 * c02 + c10 * c10 + c11 * c11 + c12 * c12
+                      + c20 * c20 + c21 * c21 + c22 * c22)
+            # g^2 = |C| / (|det| |X|); the two halves: g X / 2 and C / (2 g det).
+            g = math.sqrt(math.sqrt(norm_c / norm_x) / abs(det))
+        else:
+            g = 1.0
+        a = 0.5 * g
+        b = 0.5 / (g * det)
+        d[x0 + c] = a * x00 + b * c00
+        d[x0 + W + c] = a * x01 + b * c01
+        d[x0 + 2 * W + c] = a * x02 + b * c02
+        d[x0 + 3 * W + c] = a * x10 + b * c10
+        d[x0 + 4 * W + c] = a * x11 + b * c11
+        d[x0 + 5 * W + c] = a * x12 + b * c12
+        d[x0 + 6 * W + c] = a * x20 + b * c20
+        d[x0 + 7 * W + c] = a * x21 + b * c21
+        d[x0 + 8 * W + c] = a * x22 + b * c22
+
+
+@numba.njit(cache=True, fastmath=LINK_MATH, error_model="numpy")
+def element_rotations(x, tetrahedra, element_rows, work, rotations):
+    """rotations (flat, ``rotation_rows``) = the rotation R of the polar decomposition
+    F = R S of every element at node positions x (flat, m): POLAR_ITERATIONS Newton
+    steps from F. ``work`` is BLOCK_WORK numbers."""
+    m = tetrahedra.shape[0]
+    W = _TET_ROW
+    for block in range((m + TET_BLOCK - 1) // TET_BLOCK):
+        e0 = block * TET_BLOCK
+        count = min(TET_BLOCK, m - e0)
+        _gather_edges(x, tetrahedra, e0, count, work)
+        _deformation_gradients(work, element_rows, block, count)
+        for iteration in range(POLAR_ITERATIONS):
+            _newton_polar_step(work, count, iteration < SCALED_POLAR_ITERATIONS)
+        out = block * 9 * W
+        for r in range(9 * W):
+            rotations[out + r] = work[9 * W + r]
+
+
+# --- the tick -----------------------------------------------------------------------
+
+@numba.njit(cache=True, error_model="numpy")
+def _symplectic_substep(x, v, f, inv_mass, gravity, alpha, h_s):
+    """v += h_s (f / m + g - alpha v), then x += h_s v, at the free nodes (flat
+    arrays); a select, not a branch, keeps the fixed ones."""
+    for i in range(inv_mass.shape[0]):
+        free = inv_mass[i] != 0.0
+        for k in range(3):
+            j = 3 * i + k
+            moved = v[j] + h_s * (inv_mass[i] * f[j] + gravity[k] - alpha * v[j])
+            v[j] = moved if free else v[j]
+            x[j] = x[j] + h_s * v[j] if free else x[j]
+
+
+@kernel(TISSUE_TICK_ARGUMENTS, nogil=True)
+def tissue_tick_from(masses_in, masses_out, probe, tetrahedra, element_rows, mass, inv_mass,
+                     gravity, surface, alpha, beta, constants, substeps, rotations, blend,
+                     forces, work):
+    """``masses_out`` = one tick from ``masses_in`` ([x; v], 6 n) in ``substeps``
+    symplectic Euler substeps. ``probe`` is [p_WP, v_WP, p_WT] (9); ``constants`` the
+    probe's radius, stiffness, onset, dissipation, friction, slip speed, then the
+    tick h (s). ``rotations``, ``blend`` (3 n), ``forces`` (n, 3) and ``work`` are
+    work space (``tick_arguments`` makes them)."""
+    n = masses_in.shape[0] // 6
+    masses_out[:] = masses_in
+    x = masses_out[:3 * n]
+    v = masses_out[3 * n:]
+    x3 = x.reshape((n, 3))
+    v3 = v.reshape((n, 3))
+    f = forces.reshape(3 * n)
+    h_s = constants[6] / substeps
+    element_rotations(x, tetrahedra, element_rows, work, rotations)
+    for _ in range(substeps):
+        # The stiffness damping: the elastic force at x + beta v.
+        for j in range(3 * n):
+            blend[j] = x[j] + beta * v[j]
+        f[:] = 0.0
+        add_elastic_forces(blend, tetrahedra, element_rows, rotations, work, f)
+        add_probe_forces(x3, v3, surface, probe[0:3], probe[3:6], probe[6:9], constants[0],
+                         constants[1], constants[2], constants[3], constants[4], constants[5],
+                         mass, h_s, forces)
+        _symplectic_substep(x, v, f, inv_mass, gravity, alpha, h_s)
+
+
+def tick_arguments(model: TissueModel, probe: ProbeContact, period_s: float, substeps: int):
+    """The arguments of ``tissue_tick_from`` after ``probe``, fresh work space
+    included: ``tissue_tick_from(masses_in, masses_out, probe, *arguments)``."""
+    n, m = model.num_nodes, model.num_tetrahedra
+    constants = np.array([probe.radius_m, probe.stiffness_n_per_m, probe.onset_depth_m,
+                          probe.dissipation_s_per_m, probe.friction, probe.slip_speed_m_s,
+                          float(period_s)])
+    return (model.tetrahedra, model.element_rows, model.mass_kg, model.inv_mass_per_kg,
+            model.gravity_m_s2, model.surface, model.mass_damping_per_s,
+            model.stiffness_damping_s, constants, int(substeps), rotation_work(m),
+            np.zeros(3 * n), np.zeros((n, 3)), np.zeros(BLOCK_WORK))
+
+
+def rotation_work(num_tetrahedra: int) -> np.ndarray:
+    """Room for every element's rotation in the kernels' blocked layout."""
+    return np.zeros(-(-num_tetrahedra // TET_BLOCK) * 9 * _TET_ROW)
+
+
+def elastic_forces(model: TissueModel, positions_m, velocities_m_s=None, reference_m=None):
+    """(n, 3) the elastic and stiffness-damping forces (N) at ``positions_m`` (n, 3)
+    moving at ``velocities_m_s`` (default still), the rotations taken at
+    ``reference_m`` (default the positions themselves): for tests and analysis."""
+    x = np.ascontiguousarray(positions_m, dtype=float).ravel()
+    reference = x if reference_m is None else np.ascontiguousarray(reference_m, float).ravel()
+    v = np.zeros_like(x) if velocities_m_s is None else np.asarray(velocities_m_s, float).ravel()
+    rotations = rotation_work(model.num_tetrahedra)
+    work = np.zeros(BLOCK_WORK)
+    element_rotations(reference, model.tetrahedra, model.element_rows, work, rotations)
+    f = np.zeros_like(x)
+    add_elastic_forces(x + model.stiffness_damping_s * v, model.tetrahedra, model.element_rows,
+                       rotations, work, f)
+    return f.reshape(-1, 3)
+
+
+def polar_rotations(model: TissueModel, positions_m) -> np.ndarray:
+    """(m, 3, 3) each element's rotation R at ``positions_m`` (n, 3), as the tick
+    computes it."""
+    rotations = rotation_work(model.num_tetrahedra)
+    element_rotations(np.ascontiguousarray(positions_m, dtype=float).ravel(), model.tetrahedra,
+                      model.element_rows, np.zeros(BLOCK_WORK), rotations)
+    return unblocked_rows(rotations, 9, model.num_tetrahedra).T.reshape(-1, 3, 3)
+
+
+# --- linearization and stability ----------------------------------------------------
+
+def linear_stiffness_matrix(model: TissueModel, positions_m=None) -> scipy.sparse.csr_matrix:
+    """K (N/m), 3 n x 3 n over every node (fixed ones included): the tangent of the
+    elastic forces with each element's rotation held at its value at ``positions_m``
+    (n, 3) (default the rest positions' rotations, R = I): Drake's linear_corotated
+    stiffness. Per element, with g_a the gradient of corner a's shape function (1/m),
+    K_ab = R V0 (mu (g_a . g_b) I + mu g_b g_a^T + lambda g_a g_b^T) R^T."""
+    inverse = model.rest_inverse  # rows g_1, g_2, g_3
+    gradients = np.concatenate((-inverse.sum(axis=1, keepdims=True), inverse), axis=1)
+    mu_v = 0.5 * model.two_mu_volume
+    lam_v = model.lambda_volume
+    dots = np.einsum("eai,ebi->eab", gradients, gradients)
+    blocks = (mu_v[:, None, None, None, None] * dots[:, :, :, None, None] * np.eye(3)
+              + mu_v[:, None, None, None, None] * np.einsum("ebi,eaj->eabij", gradients,
+                                                            gradients)
+              + lam_v[:, None, None, None, None] * np.einsum("eai,ebj->eabij", gradients,
+                                                             gradients))
+    if positions_m is not None:
+        R = polar_rotations(model, positions_m)
+        blocks = np.einsum("eik,eabkl,ejl->eabij", R, blocks, R)
+    rows = 3 * model.tetrahedra[:, :, None, None, None] + np.arange(3)[:, None]
+    cols = 3 * model.tetrahedra[:, None, :, None, None] + np.arange(3)[None, :]
+    rows, cols = np.broadcast_arrays(rows, cols, blocks)[:2]
+    size = 3 * model.num_nodes
+    return scipy.sparse.coo_matrix((blocks.ravel(), (rows.ravel(), cols.ravel())),
+                                   shape=(size, size)).tocsr()
+
+
+def free_coordinates(model: TissueModel) -> np.ndarray:
+    """The indices (into 3 n) of the free nodes' coordinates."""
+    return (3 * np.flatnonzero(~model.fixed)[:, None] + np.arange(3)).ravel()
+
+
+def highest_angular_frequency(model: TissueModel,
+                              probe_stiffness_n_per_m: float = 0.0) -> float:
+    """w_max (rad/s): the largest of the undamped free nodes' sqrt(eig(M^-1 K)) at
+    rest, lumped M; K with the probe's per-vertex stiffness (N/m) added on every
+    surface node in every direction, a bound on any contact's."""
+    free = free_coordinates(model)
+    scale = 1.0 / np.sqrt(np.repeat(model.mass_kg, 3)[free])
+    contact = np.zeros(model.num_nodes)
+    contact[model.surface] = probe_stiffness_n_per_m
+    K = (linear_stiffness_matrix(model)
+         + scipy.sparse.diags(np.repeat(contact, 3)))[free][:, free]
+    A = scipy.sparse.diags(scale) @ K @ scipy.sparse.diags(scale)
+    largest = scipy.sparse.linalg.eigsh(A, k=1, which="LA", return_eigenvectors=False,
+                                        tol=1e-6)[0]
+    return math.sqrt(max(float(largest), 0.0))
+
+
+def stable_step_s(angular_frequency: float, alpha: float, beta: float) -> float:
+    """The largest symplectic Euler step (s) stable for a mode of angular frequency
+    w (rad/s) under Rayleigh damping: with zeta = beta w / 2 + alpha / (2 w),
+    h < (2 / w) (sqrt(1 + zeta^2) - zeta)."""
+    w = angular_frequency
+    zeta = 0.5 * beta * w + 0.5 * alpha / w
+    return (2.0 / w) * (math.sqrt(1.0 + zeta * zeta) - zeta)
+
+
+def stable_substeps(model: TissueModel, period_s: float, *, probe_stiffness_n_per_m=0.0,
+                    safety: float = STABLE_STEP_SAFETY) -> int:
+    """The number of equal substeps of a ``period_s`` (s) tick that keeps symplectic
+    Euler stable on this mesh and material: each substep at most ``safety`` times the
+    stable step of the highest mode (``stable_step_s``). The probe's contact counts
+    as its per-vertex stiffness (N/m) on every surface node along every axis at once:
+    a contact on fewer nodes, along their normals, only lowers w_max (the contact's
+    damping is capped so that it never destabilizes, ``add_probe_forces``)."""
+    w_max = highest_angular_frequency(model, probe_stiffness_n_per_m)
+    step = stable_step_s(w_max, model.mass_damping_per_s, model.stiffness_damping_s)
+    return max(1, math.ceil(period_s / (safety * step)))
+
+
+def lowest_modes(model: TissueModel, count: int = 1):
+    """(angular frequencies (count,) rad/s, mode shapes (3 n, count)) of the free
+    nodes at rest, undamped: K phi = w^2 M phi with the lumped masses."""
+    free = free_coordinates(model)
+    K = linear_stiffness_matrix(model)[free][:, free]
+    M = scipy.sparse.diags(np.repeat(model.mass_kg, 3)[free])
+    values, vectors = scipy.sparse.linalg.eigsh(K.tocsc(), k=count, M=M.tocsc(), sigma=0.0)
+    shapes = np.zeros((3 * model.num_nodes, count))
+    shapes[free] = vectors
+    return np.sqrt(np.maximum(values, 0.0)), shapes
+
+
+# --- timing -------------------------------------------------------------------------
+
+def tick_timing(model: TissueModel, positions_m, *, probe: ProbeContact = None,
+                period_s: float = 1e-3, substeps: int = 1, ticks: int = 200):
+    """(microseconds a tick, tetrahedra a microsecond of one substep's element pass)
+    of ``tissue_tick_from`` on this core, the median of ``ticks`` ticks from
+    ``positions_m`` (n, 3) at rest under gravity, the probe away: for ``maglev bench``."""
+    arguments = tick_arguments(model, probe or ProbeContact(), period_s, substeps)
+    n = model.num_nodes
+    state = np.zeros(6 * n)
+    state[:3 * n] = np.asarray(positions_m, float).ravel()
+    other = np.empty_like(state)
+    far = np.array([0.0, 0.0, 10.0, 0.0, 0.0, 0.0, 0.0, 0.0, 10.0])
+    tissue_tick_from(state, other, far, *arguments)
+    durations = []
+    for _ in range(ticks):
+        start = time.perf_counter()
+        tissue_tick_from(state, other, far, *arguments)
+        durations.append(time.perf_counter() - start)
+        state, other = other, state
+    tick_us = 1e6 * float(np.median(durations))
+    rotations, work = arguments[10], arguments[13]
+    f = np.zeros(3 * n)
+    x = state[:3 * n].copy()
+    passes = []
+    for _ in range(ticks):
+        start = time.perf_counter()
+        add_elastic_forces(x, model.tetrahedra, model.element_rows, rotations, work, f)
+        passes.append(time.perf_counter() - start)
+    return tick_us, model.num_tetrahedra / (1e6 * float(np.median(passes)))
