@@ -139,12 +139,13 @@ def _per_tetrahedron(path, value, m):
     return np.ascontiguousarray(np.broadcast_to(values, (m,)))
 
 
-def _check_each(path, values, ok, allowed):
+def _check_each(path, values, ok, allowed, indexed=True):
+    """The first value where ``ok`` is false refused: ``path[index] = value`` (or
+    ``path = value`` where not ``indexed``: one number given for all)."""
     bad = np.flatnonzero(~ok)
     if len(bad):
         index = int(bad[0])
-        require(False, f"{path}[{index}]" if values.ndim else path, float(values[index]),
-                allowed)
+        require(False, f"{path}[{index}]" if indexed else path, float(values[index]), allowed)
 
 
 def tissue_model(positions_m, tetrahedra, *, youngs_modulus_pa, poissons_ratio,
@@ -194,10 +195,11 @@ def tissue_model(positions_m, tetrahedra, *, youngs_modulus_pa, poissons_ratio,
     nu = _per_tetrahedron("poissons_ratio", poissons_ratio, m)
     density = _per_tetrahedron("mass_density_kg_m3", mass_density_kg_m3, m)
     _check_each("youngs_modulus_pa", youngs, np.isfinite(youngs) & (youngs > 0),
-                "must be a finite number > 0 (Pa)")
-    _check_each("poissons_ratio", nu, (nu > 0) & (nu < 0.5), "must be in (0, 0.5)")
+                "must be a finite number > 0 (Pa)", np.ndim(youngs_modulus_pa) > 0)
+    _check_each("poissons_ratio", nu, (nu > 0) & (nu < 0.5), "must be in (0, 0.5)",
+                np.ndim(poissons_ratio) > 0)
     _check_each("mass_density_kg_m3", density, np.isfinite(density) & (density > 0),
-                "must be a finite number > 0 (kg/m^3)")
+                "must be a finite number > 0 (kg/m^3)", np.ndim(mass_density_kg_m3) > 0)
     nonnegative("mass_damping_per_s", mass_damping_per_s)
     nonnegative("stiffness_damping_s", stiffness_damping_s)
     gravity = np.asarray(gravity_m_s2, dtype=float)

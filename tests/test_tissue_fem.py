@@ -1,0 +1,213 @@
+"""The finite-element tissue kernels: the element's physics (rest, rigid motions,
+a uniaxial patch, momentum, damping), the stable substep count, bad meshes, the
+tick's contact, and agreement with Drake's own DeformableModel and with Hertz."""
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from maglev_haptics.plant_models.tissue_meshes import box_tetrahedra
+from maglev_haptics.systems.lattice_dynamics import ProbeContact, state_contact
+from maglev_haptics.systems.tissue_fem import (
+    boundary_triangles, elastic_forces, highest_angular_frequency, linear_stiffness_matrix,
+    polar_rotations, stable_step_s, stable_substeps, tick_arguments, tissue_model,
+    tissue_tick_from)
+
+TICK_S = 1e-3
+FAR_PROBE = np.array([0.0, 0.0, 10.0, 0.0, 0.0, 0.0, 0.0, 0.0, 10.0])  # [p_WP, v_WP, p_WT]
+ROTATION = Rotation.from_rotvec([0.3, 1.2, -0.7]).as_matrix()
+
+
+def slab(size_m=(0.04, 0.04, 0.02), counts=(4, 4, 2), youngs_pa=5e3, nu=0.45, alpha=0.0,
+         beta=0.0, gravity=(0.0, 0.0, 0.0)):
+    """(positions (n, 3), model) of a box, its underside at z = 0 fixed."""
+    points, tetrahedra = box_tetrahedra(size_m, counts)
+    model = tissue_model(points, tetrahedra, youngs_modulus_pa=youngs_pa, poissons_ratio=nu,
+                         mass_density_kg_m3=1000.0, fixed=points[:, 2] < 1e-9,
+                         mass_damping_per_s=alpha, stiffness_damping_s=beta,
+                         gravity_m_s2=gravity)
+    return points, model
+
+
+def run_ticks(model, positions, velocities, ticks, substeps, tick_s=TICK_S, probe=FAR_PROBE,
+              contact=ProbeContact()):
+    """The state [x; v] after ``ticks`` ticks of tissue_tick_from."""
+    arguments = tick_arguments(model, contact, tick_s, substeps)
+    state = np.concatenate((np.ravel(positions), np.ravel(velocities)))
+    other = np.empty_like(state)
+    for _ in range(ticks):
+        tissue_tick_from(state, other, probe, *arguments)
+        state, other = other, state
+    return state
+
+
+def test_no_force_at_rest_or_after_any_rigid_motion():
+    points, model = slab()
+    scale = np.abs(elastic_forces(model, points * [1.01, 1.0, 1.0])).max()
+    assert np.abs(elastic_forces(model, points)).max() < 1e-12 * scale
+    moved = points @ ROTATION.T + [0.1, -0.2, 0.3]
+    assert np.abs(elastic_forces(model, moved)).max() < 1e-10 * scale
+    np.testing.assert_allclose(polar_rotations(model, moved),
+                               np.broadcast_to(ROTATION, (model.num_tetrahedra, 3, 3)),
+                               atol=1e-14)
+
+
+@pytest.mark.parametrize("stretches", [(3.0, 0.577, 1.2), (0.3, 1.5, 1.0), (1.02, 0.99, 1.0)])
+def test_polar_rotation_under_large_rotation_and_stretch(stretches):
+    points, model = slab()
+    deformed = (points * stretches) @ ROTATION.T
+    np.testing.assert_allclose(polar_rotations(model, deformed),
+                               np.broadcast_to(ROTATION, (model.num_tetrahedra, 3, 3)),
+                               atol=1e-10)
+
+
+def test_uniaxial_patch_gives_the_analytic_stress():
+    length, width, youngs, nu, strain = 0.05, 0.01, 7e3, 0.3, 1e-4
+    points, tetrahedra = box_tetrahedra((length, width, width), (5, 2, 2))
+    points[:, 0] += length / 2  # the bar from x = 0 to L
+    model = tissue_model(points, tetrahedra, youngs_modulus_pa=youngs, poissons_ratio=nu,
+                         mass_density_kg_m3=1000.0, fixed=points[:, 0] < 1e-9)
+    # Uniaxial stress along x: the sides contract by nu times the strain.
+    centre = np.array([0.0, 0.0, width / 2])
+    stretched = points + strain * (points - centre) * [1.0, -nu, -nu]
+    f = elastic_forces(model, stretched)
+    end = np.isclose(points[:, 0], length)
+    interior = ~end & (points[:, 0] > 1e-9)
+    expected = youngs * width * width * strain  # (N), pulling the end back
+    assert f[end, 0].sum() == pytest.approx(-expected, rel=1e-9)
+    assert np.abs(f[end, 1:].sum(axis=0)).max() < 1e-9 * expected
+    assert np.abs(f[interior]).max() < 1e-9 * expected
+
+
+def test_internal_forces_conserve_momentum_and_match_the_stiffness():
+    points, model = slab(beta=0.01)
+    rng = np.random.default_rng(1)
+    deformed = points + 2e-3 * rng.normal(size=points.shape)
+    velocities = rng.normal(size=points.shape)
+    f = elastic_forces(model, deformed, velocities)
+    assert np.abs(f.sum(axis=0)).max() < 1e-12 * np.abs(f).max()
+    # The elastic forces of the rotation at their own F exert no net torque (the
+    # stiffness damping, linear in v about the held R, need not).
+    f = elastic_forces(model, deformed)
+    p_WO = deformed - deformed.mean(axis=0)
+    scale = np.abs(f).max() * np.abs(p_WO).max()
+    assert np.abs(np.cross(p_WO, f).sum(axis=0)).max() < 1e-12 * scale
+    # With the rotations held at rest, the force is -K (u + beta v).
+    small = 1e-7 * rng.normal(size=points.shape)
+    K = linear_stiffness_matrix(model)
+    f = elastic_forces(model, points + small, 1e-3 * small, reference_m=points)
+    np.testing.assert_allclose(f.ravel(), -K @ (small + 0.01 * 1e-3 * small).ravel(),
+                               atol=1e-12 * np.abs(f).max())
+
+
+def energy(model, state, points):
+    """Kinetic plus linear elastic energy (J) of a state near rest."""
+    n = model.num_nodes
+    u = state[:3 * n] - points.ravel()
+    v = state[3 * n:]
+    return (0.5 * np.repeat(model.mass_kg, 3) @ (v * v)
+            + 0.5 * u @ (linear_stiffness_matrix(model) @ u))
+
+
+@pytest.mark.parametrize("alpha, beta", [(20.0, 0.0), (0.0, 2e-4)])
+def test_damping_dissipates(alpha, beta):
+    points, model = slab(alpha=alpha, beta=beta)
+    undamped = slab()[1]
+    substeps = stable_substeps(model, TICK_S)
+    kick = np.where(model.fixed[:, None], 0.0,
+                    np.random.default_rng(2).normal(size=points.shape) * 1e-3)
+    start = energy(model, np.concatenate((points.ravel(), kick.ravel())), points)
+    damped = run_ticks(model, points, kick, 200, substeps)
+    free = run_ticks(undamped, points, kick, 200, substeps)
+    # Symplectic Euler keeps a nearby energy: the undamped one only fluctuates.
+    assert energy(undamped, free, points) == pytest.approx(start, rel=0.3)
+    assert energy(model, damped, points) < 0.3 * start
+
+
+def test_stable_substeps_holds_and_a_longer_step_blows_up():
+    points, model = slab(youngs_pa=30e3, alpha=5.0, beta=1e-4)
+    w_max = highest_angular_frequency(model)
+    limit = stable_step_s(w_max, model.mass_damping_per_s, model.stiffness_damping_s)
+    substeps = stable_substeps(model, TICK_S)
+    assert TICK_S / substeps <= 0.9 * limit < TICK_S / (substeps - 1)
+    kick = np.where(model.fixed[:, None], 0.0,
+                    np.random.default_rng(3).normal(size=points.shape) * 1e-6)
+
+    def growth(step_s):
+        state = run_ticks(model, points + kick, np.zeros_like(points), 2000, 1, tick_s=step_s)
+        return np.abs(state[:3 * model.num_nodes] - points.ravel()).max() / 1e-6
+
+    assert growth(0.99 * limit) < 10.0
+    assert not growth(1.1 * limit) < 1e6  # grown a millionfold, or overflowed to nan
+
+
+def test_probe_stiffness_adds_substeps_on_light_surface_nodes():
+    _, model = slab(youngs_pa=5e3)
+    assert (stable_substeps(model, TICK_S, probe_stiffness_n_per_m=4000.0)
+            > stable_substeps(model, TICK_S))
+
+
+def test_inverted_and_degenerate_tetrahedra_and_bad_material_are_refused():
+    points, tetrahedra = box_tetrahedra((0.02, 0.02, 0.02), (2, 2, 2))
+    fixed = points[:, 2] < 1e-9
+    common = dict(youngs_modulus_pa=5e3, poissons_ratio=0.45, mass_density_kg_m3=1000.0,
+                  fixed=fixed)
+    inverted = tetrahedra.copy()
+    inverted[7] = inverted[7][[0, 2, 1, 3]]
+    with pytest.raises(ValueError, match=r"volume of tetrahedron\[7\] = -.*inverted"):
+        tissue_model(points, inverted, **common)
+    flat = points.copy()
+    flat[tetrahedra[0, 3]] = flat[tetrahedra[0, :3]].mean(axis=0)
+    with pytest.raises(ValueError, match=r"tetrahedron\[0\]"):
+        tissue_model(flat, tetrahedra, **common)
+    with pytest.raises(ValueError, match=r"tetrahedra.shape .*surface mesh"):
+        tissue_model(points, tetrahedra[:, :3], **common)
+    with pytest.raises(ValueError, match=r"poissons_ratio = 0.5"):
+        tissue_model(points, tetrahedra, **{**common, "poissons_ratio": 0.5})
+    with pytest.raises(ValueError, match=r"youngs_modulus_pa\[3\] = -1"):
+        tissue_model(points, tetrahedra, **{**common, "youngs_modulus_pa": np.r_[
+            [5e3] * 3, -1.0, [5e3] * (len(tetrahedra) - 4)]})
+    with pytest.raises(ValueError, match=r"fixed = .*fall"):
+        tissue_model(points, tetrahedra, **{**common, "fixed": np.zeros(len(points), bool)})
+
+
+def test_boundary_triangles_are_outward_and_cover_the_box():
+    points, tetrahedra = box_tetrahedra((0.03, 0.02, 0.01), (3, 2, 2))
+    triangles, surface = boundary_triangles(tetrahedra)
+    corners = points[triangles]
+    normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    outward = corners.mean(axis=1) - points.mean(axis=0)
+    assert (np.einsum("ij,ij->i", normal, outward) > 0).all()
+    assert 0.5 * np.linalg.norm(normal, axis=1).sum() == pytest.approx(
+        2 * (0.03 * 0.02 + 0.03 * 0.01 + 0.02 * 0.01))
+    inside = ((np.abs(points[:, 0]) < 0.015 - 1e-9) & (np.abs(points[:, 1]) < 0.01 - 1e-9)
+              & (points[:, 2] > 1e-9) & (points[:, 2] < 0.01 - 1e-9))
+    np.testing.assert_array_equal(surface, np.flatnonzero(~inside))
+
+
+def test_tick_is_deterministic_and_the_tool_gets_the_first_substeps_contact():
+    points, model = slab(alpha=20.0, beta=2e-4, gravity=(0.0, 0.0, -9.81))
+    contact = ProbeContact()
+    substeps = stable_substeps(model, TICK_S, probe_stiffness_n_per_m=contact.stiffness_n_per_m)
+    # The probe 1 mm into the top's middle, moving down, the tool 30 mm above it.
+    top = points[:, 2].max()
+    p_WP = np.array([0.001, 0.0, top + contact.radius_m - 0.001])
+    probe = np.concatenate((p_WP, [0.0, 0.0, -0.01], p_WP + [0.0, 0.0, 0.03]))
+    masses = np.concatenate((points.ravel(), np.zeros(points.size)))
+    arguments = tick_arguments(model, contact, TICK_S, substeps)
+    first, second = np.empty_like(masses), np.empty_like(masses)
+    tissue_tick_from(masses, first, probe, *arguments)
+    tissue_tick_from(masses, second, probe, *arguments)
+    np.testing.assert_array_equal(first, second)
+    tool = np.r_[1.0, 0.0, 0.0, 0.0, probe[6:9], 0.0, 0.0, 0.0, probe[3:6]]
+    constants = arguments[8][:6]
+    wrench, touching = state_contact(np.concatenate((masses, tool)), model.surface,
+                                     p_WP - probe[6:9], constants, model.mass_kg,
+                                     TICK_S / substeps)
+    assert touching > 0 and wrench[2] > 0.0  # the tissue pushes the tool up
+    # and the probe pushed the touched nodes down within the tick.
+    n = model.num_nodes
+    assert first[3 * n:].reshape(n, 3)[model.surface, 2].min() < -1e-4
+
+
+# --- checked against Drake and Hertz ---------------------------------------------------
