@@ -233,10 +233,7 @@ def _tissue_body(inspector, body, model: str, before: np.ndarray, after: np.ndar
     """TissueBody of Drake's deformable ``body``; ``before`` and ``after`` one step
     (nodes (n, 3), m); a ValueError names ``field``, the model and the body."""
     where = f"{field}: model {model!r}, body {body.name()!r}"
-    reference = np.asarray(body.reference_positions()).reshape(-1, 3)
-    if not np.array_equal(before, reference):
-        raise ValueError(f"{where}: its nodes start away from their reference positions: "
-                         "a deformable body is placed by its link's <pose> only")
+    reference = np.asarray(body.reference_positions()).reshape(-1, 3)  # (m)
     config = body.config()
     material = MATERIAL_NAMES.get(config.material_model(), str(config.material_model()))
     if material != SUPPORTED_MATERIAL:
@@ -294,9 +291,9 @@ def _cell_youngs_modulus(where: str, mesh_file: str, tetrahedra: np.ndarray,
                          f"{len(modulus)} values for {len(file_tetrahedra)} cells; Drake read "
                          f"{len(tetrahedra)} tetrahedra: it needs one value a tetrahedron")
     bad = np.flatnonzero(~(np.isfinite(modulus) & (modulus > 0)))
-    require(not len(bad), f"{where}: {mesh_file} cell data "
-            f"{YOUNGS_MODULUS_CELL_DATA}[{bad[0] if len(bad) else 0}]",
-            float(modulus[bad[0]]) if len(bad) else None, "must be a finite number > 0 (Pa)")
+    if len(bad):
+        raise ValueError(f"{where}: {mesh_file} cell data {YOUNGS_MODULUS_CELL_DATA}[{bad[0]}] "
+                         f"= {float(modulus[bad[0]])!r}: must be a finite number > 0 (Pa)")
     return modulus
 
 
