@@ -150,18 +150,19 @@ def read_scene_tissue(directives: List[ModelDirective],
     names = {directives[i].add_model.name: i for i in tissue}
     for i, directive in enumerate(directives):
         _check_not_placed(directive, names, f"{path}[{i}]")
-    try:
-        ProcessModelDirectives(ModelDirectives(directives=[directives[i] for i in tissue]),
-                               parser)
-    except Exception as error:  # Drake's parser: RuntimeError, its YAML's ValueError
-        raise ValueError(f"{path}: {_deformable_reason(_drake_reason(error))}") from None
+    fields = {name: f"{path}[{i}].add_model.file = {directives[i].add_model.file!r}"
+              for name, i in names.items()}
+    for name, i in names.items():  # one at a time, so that an error names its directive
+        try:
+            ProcessModelDirectives(ModelDirectives(directives=[directives[i]]), parser)
+        except Exception as error:  # Drake's parser: RuntimeError, its YAML's ValueError
+            raise ValueError(f"{fields[name]}: model {name!r}: "
+                             f"{_deformable_reason(_drake_reason(error))}") from None
     plant.Finalize()
     deformable = plant.deformable_model()
     bodies = [deformable.GetBody(body_id) for name in names
               for body_id in deformable.GetBodyIds(plant.GetModelInstanceByName(name))]
     holding = {plant.GetModelInstanceName(body.model_instance()) for body in bodies}
-    fields = {name: f"{path}[{i}].add_model.file = {directives[i].add_model.file!r}"
-              for name, i in names.items()}
     for name in holding:
         rigid = [plant.get_body(index).name()
                  for index in plant.GetBodyIndices(plant.GetModelInstanceByName(name))]

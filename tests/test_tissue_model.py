@@ -173,6 +173,7 @@ def test_surface_mesh_refused(tmp_path):
                                       "f 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n")
     message = refusal(small_model(tmp_path, None, "tri.obj"))
     assert "tetrahedral volume mesh" in message and "tri.obj" in message
+    assert message.startswith("scene.directives[0].add_model.file = ")
     meshio.write(str(tmp_path / "tri.vtk"), meshio.read(str(tmp_path / "tri.obj")))
     assert "tetrahedral volume mesh" in refusal(small_model(tmp_path, None, "tri.vtk"))
 
