@@ -44,7 +44,8 @@ from pydrake.geometry import (
     Ellipsoid, HalfSpace, Mesh, ProximityProperties, ReadObjToTriangleSurfaceMesh, Role,
     RoleAssign, SceneGraph, Sphere)
 from pydrake.multibody.parsing import (
-    AddModel, ModelDirective, ModelDirectives, Parser, ProcessModelDirectives)
+    AddModel, LoadModelDirectives, ModelDirective, ModelDirectives, Parser,
+    ProcessModelDirectives)
 from pydrake.multibody.plant import CoulombFriction, MultibodyPlant
 
 from maglev_haptics.diagrams.scene import (
@@ -56,6 +57,7 @@ from maglev_haptics.plant_models.scene_sdf import (
     ANCHOR_RGBA, BALL_RGBA, BLOCK_RGBA, PADDLE_RGBA, PEG_RGBA, TABLE_SLAB_M, Part, box_geometry,
     model_sdf, sphere_geometry)
 
+DEFORMABLE_TAG = "drake:deformable_properties"  # what marks a model file as holding tissue
 SMALLEST_VOLUME_M3 = 1e-12  # a collision mesh enclosing less has no inside to press (m^3)
 TOOL_MODEL = "tool"  # a generated tool's model instance; its link is "body"
 
@@ -126,8 +128,8 @@ def scene_models(scene: SceneConfig) -> SceneModels:
     if isinstance(scene, ModelScene):
         tool = scene.tool
         if tool.file:
-            return SceneModels(None, tool.file, tool.body, list(scene.directives), {})
-        return SceneModels(tool_sdf(scene), "", "body", list(scene.directives), {})
+            return SceneModels(None, tool.file, tool.body, rigid_directives(scene.directives), {})
+        return SceneModels(tool_sdf(scene), "", "body", rigid_directives(scene.directives), {})
     if isinstance(scene, PegInHole):
         generated = {"block": block_sdf(scene)}
     else:
@@ -154,10 +156,69 @@ def resolve_here(scene: ModelScene, folder: Path) -> ModelScene:
         scene.tool, file=resolved(scene.tool.file)))
 
 
-def _drake_reason(error: Exception) -> str:
+def drake_reason(error: Exception) -> str:
     """Drake's message as one line, without its "error: " prefix."""
     line = next((line for line in str(error).splitlines() if line.strip()), type(error).__name__)
     return line.strip().removeprefix("error: ").removeprefix("ERROR: ")
+
+
+def scene_parser(plant: MultibodyPlant) -> Parser:
+    """A parser into ``plant`` that knows ``package://maglev_haptics/``."""
+    parser = Parser(plant)
+    parser.package_map().AddPackageXml(str(PACKAGE_XML))
+    return parser
+
+
+def _declares_tissue(parser: Parser, url: str) -> bool:
+    """Whether the model file at ``url`` declares a deformable body (its text names
+    DEFORMABLE_TAG); a file that cannot be read does not (Drake's parse says why)."""
+    try:
+        return DEFORMABLE_TAG in Path(parser.package_map().ResolveUrl(url)).read_text()
+    except (RuntimeError, OSError, UnicodeDecodeError):
+        return False
+
+
+def tissue_directive_indices(parser: Parser, directives: List[ModelDirective], path: str) -> list:
+    """Indices of the add_model directives whose files declare deformable bodies; a
+    ValueError for one inside an add_directives file (its add_model would be
+    beyond the reach of the rigid scene's directives)."""
+    found = []
+    for i, directive in enumerate(directives):
+        if directive.add_model is not None and _declares_tissue(parser,
+                                                                directive.add_model.file):
+            found.append(i)
+        elif directive.add_directives is not None:
+            nested = directive.add_directives.file
+            try:
+                inner = LoadModelDirectives(parser.package_map().ResolveUrl(nested)).directives
+            except Exception:  # Drake's parse of the scene says why
+                continue
+            if tissue_directive_indices(parser, inner, f"{path}[{i}].add_directives"):
+                raise ValueError(f"{path}[{i}].add_directives.file = {nested!r}: adds a model "
+                                 "with a deformable body; add it by the scene's own add_model")
+    return found
+
+
+def holds_tissue(directives: List[ModelDirective]) -> bool:
+    """Whether any model the directives add (add_directives files included) declares
+    a deformable body; a look at the files' text, no parse."""
+    try:
+        return bool(tissue_directive_indices(scene_parser(MultibodyPlant(0.0)), list(directives),
+                                       "directives"))
+    except ValueError:  # a deformable body inside an add_directives file
+        return True
+
+
+def rigid_directives(directives: List[ModelDirective]) -> List[ModelDirective]:
+    """``directives`` less the add_model of each model file that declares a deformable
+    body (``diagrams/tissue_model.py`` reads those): what the rigid scene plant gets,
+    so that it never steps Drake's own finite elements."""
+    try:
+        tissue = tissue_directive_indices(scene_parser(MultibodyPlant(0.0)), list(directives),
+                                          "directives")
+    except ValueError:  # a deformable body inside an add_directives file: Drake's parse refuses
+        return list(directives)
+    return [directive for i, directive in enumerate(directives) if i not in tissue]
 
 
 def _frame_field(directives: List[ModelDirective], reason: str) -> str:
@@ -209,8 +270,7 @@ def add_scene_models(plant: MultibodyPlant, scene_graph: SceneGraph, scene: Scen
     ValueError names ``path``'s field, the model and geometry, and why Drake cannot
     use it."""
     models = scene_models(scene)
-    parser = Parser(plant)
-    parser.package_map().AddPackageXml(str(PACKAGE_XML))
+    parser = scene_parser(plant)
     with tempfile.TemporaryDirectory(prefix="maglev_scene_") as folder:
         for name, text in models.generated.items():
             (Path(folder) / f"{name}.sdf").write_text(text)
@@ -223,7 +283,7 @@ def add_scene_models(plant: MultibodyPlant, scene_graph: SceneGraph, scene: Scen
         try:
             infos = ProcessModelDirectives(ModelDirectives(directives=models.directives), parser)
         except Exception as error:  # Drake's parser: RuntimeError, its YAML's ValueError
-            reason = _drake_reason(error)
+            reason = drake_reason(error)
             raise ValueError(f"{path}.directives{_frame_field(models.directives, reason)}: "
                              f"{_frames_of_model(plant, reason)}") from None
     # Each model named by the add_model that added it (nested directive files: theirs).
@@ -267,7 +327,7 @@ def _add_tool(plant: MultibodyPlant, parser: Parser, models: SceneModels, scene,
             instance = parser.AddModelsFromUrl(models.tool_url)[0]
         except Exception as error:
             raise ValueError(f"{path}.tool.file = {models.tool_url!r}: "
-                             f"{_drake_reason(error)}") from None
+                             f"{drake_reason(error)}") from None
     plant.set_gravity_enabled(instance, False)
     bodies = [plant.get_body(index).name() for index in plant.GetBodyIndices(instance)]
     if models.tool_body not in bodies:
@@ -310,7 +370,7 @@ def _check_obj_model(parser: Parser, model: AddModel, path: str) -> None:
     try:
         filename = parser.package_map().ResolveUrl(model.file)
     except Exception as error:  # a missing file, an unknown package
-        raise ValueError(f"{path}: model {model.name!r}: {_drake_reason(error)}") from None
+        raise ValueError(f"{path}: model {model.name!r}: {drake_reason(error)}") from None
     problem = _mesh_problem(Mesh(filename), touched=True)
     if problem:
         raise ValueError(f"{path}: model {model.name!r} ({model.file}): {problem}")
@@ -328,7 +388,7 @@ def _mesh_problem(shape, touched: bool) -> str:
         problem = obj_surface_problem(shape.source().path()) if touched else ""
         volume = CalcVolume(shape)  # (m^3)
     except Exception as error:  # Drake's reader: a missing or unreadable file
-        return _drake_reason(error)
+        return drake_reason(error)
     if not problem and not volume > SMALLEST_VOLUME_M3:
         problem = (f"it encloses {volume:.3g} m^3 ("
                    + ("its faces are wound inwards" if volume < 0 else "a flat surface") + ")")
@@ -497,7 +557,7 @@ def _scratch_plant(scene: ModelScene, path: str):
     try:
         plant.Finalize()
     except Exception as error:
-        raise ValueError(f"{path}: {_drake_reason(error)}") from None
+        raise ValueError(f"{path}: {drake_reason(error)}") from None
     return plant, scene_graph, added
 
 

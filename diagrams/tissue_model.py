@@ -32,25 +32,23 @@ positions, which a directive's pose does not move).
 
 import re
 from dataclasses import dataclass
-from pathlib import Path
 from typing import List, NamedTuple
 
 import meshio
 import numpy as np
 from pydrake.multibody.parsing import (
-    LoadModelDirectives, ModelDirective, ModelDirectives, Parser, ProcessModelDirectives)
-from pydrake.multibody.plant import AddMultibodyPlant, MultibodyPlant, MultibodyPlantConfig
+    ModelDirective, ModelDirectives, ProcessModelDirectives)
+from pydrake.multibody.plant import AddMultibodyPlant, MultibodyPlantConfig
 from pydrake.multibody.fem import MaterialModel
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 
-from maglev_haptics.diagrams.scene_models import _drake_reason
+from maglev_haptics.diagrams.scene_models import (
+    drake_reason, scene_parser, tissue_directive_indices)
 from maglev_haptics.hardware.config_checks import require
-from maglev_haptics.plant_models import PACKAGE_XML
 from maglev_haptics.plant_models.tissue_meshes import (
     TISSUE_RGBA, YOUNGS_MODULUS_CELL_DATA, read_cell_youngs_modulus, tetrahedron_volumes)
 
-DEFORMABLE_TAG = "drake:deformable_properties"  # what marks a model file as holding tissue
 SUPPORTED_MATERIAL = "linear_corotated"
 STEP_S = 1e-3  # the scratch plant's step, which finds the fixed nodes (s)
 MATERIAL_NAMES = {MaterialModel.kLinear: "linear", MaterialModel.kLinearCorotated:
@@ -88,52 +86,6 @@ class SceneTissue(NamedTuple):
     rigid_directives: List[ModelDirective]
 
 
-def _parser(plant) -> Parser:
-    parser = Parser(plant)
-    parser.package_map().AddPackageXml(str(PACKAGE_XML))
-    return parser
-
-
-def _declares_tissue(parser: Parser, url: str) -> bool:
-    """Whether the model file at ``url`` declares a deformable body (its text names
-    DEFORMABLE_TAG); a file that cannot be read does not (Drake's parse says why)."""
-    try:
-        return DEFORMABLE_TAG in Path(parser.package_map().ResolveUrl(url)).read_text()
-    except (RuntimeError, OSError, UnicodeDecodeError):
-        return False
-
-
-def _tissue_directives(parser: Parser, directives: List[ModelDirective], path: str) -> list:
-    """Indices of the add_model directives whose files declare deformable bodies; a
-    ValueError for one inside an add_directives file (its add_model would be
-    beyond the reach of the rigid scene's directives)."""
-    found = []
-    for i, directive in enumerate(directives):
-        if directive.add_model is not None and _declares_tissue(parser,
-                                                                directive.add_model.file):
-            found.append(i)
-        elif directive.add_directives is not None:
-            nested = directive.add_directives.file
-            try:
-                inner = LoadModelDirectives(parser.package_map().ResolveUrl(nested)).directives
-            except Exception:  # Drake's parse of the scene says why
-                continue
-            if _tissue_directives(parser, inner, f"{path}[{i}].add_directives"):
-                raise ValueError(f"{path}[{i}].add_directives.file = {nested!r}: adds a model "
-                                 "with a deformable body; add it by the scene's own add_model")
-    return found
-
-
-def holds_tissue(directives: List[ModelDirective]) -> bool:
-    """Whether any model the directives add (add_directives files included) declares
-    a deformable body; a look at the files' text, no parse."""
-    try:
-        return bool(_tissue_directives(_parser(MultibodyPlant(0.0)), list(directives),
-                                       "directives"))
-    except ValueError:  # a deformable body inside an add_directives file
-        return True
-
-
 def read_scene_tissue(directives: List[ModelDirective],
                       path: str = "scene.directives") -> SceneTissue:
     """The deformable bodies the directives' models declare, as Drake reads them,
@@ -143,8 +95,8 @@ def read_scene_tissue(directives: List[ModelDirective],
     builder = DiagramBuilder()
     plant, scene_graph = AddMultibodyPlant(MultibodyPlantConfig(
         time_step=STEP_S, discrete_contact_approximation="sap"), builder)
-    parser = _parser(plant)
-    tissue = _tissue_directives(parser, directives, path)
+    parser = scene_parser(plant)
+    tissue = tissue_directive_indices(parser, directives, path)
     if not tissue:
         return SceneTissue([], directives)
     names = {directives[i].add_model.name: i for i in tissue}
@@ -157,7 +109,7 @@ def read_scene_tissue(directives: List[ModelDirective],
             ProcessModelDirectives(ModelDirectives(directives=[directives[i]]), parser)
         except Exception as error:  # Drake's parser: RuntimeError, its YAML's ValueError
             raise ValueError(f"{fields[name]}: model {name!r}: "
-                             f"{_deformable_reason(_drake_reason(error))}") from None
+                             f"{_deformable_reason(drake_reason(error))}") from None
     plant.Finalize()
     deformable = plant.deformable_model()
     bodies = [deformable.GetBody(body_id) for name in names

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 from pydrake.multibody.parsing import LoadModelDirectivesFromString
 
-from maglev_haptics.diagrams.tissue_model import holds_tissue, read_scene_tissue
+from maglev_haptics.diagrams.scene_models import holds_tissue
+from maglev_haptics.diagrams.tissue_model import read_scene_tissue
 from maglev_haptics.plant_models import tissue_meshes as tm
 
 TABLE_SDF = Path(tm.__file__).parents[1] / "scenarios" / "models" / "table.sdf"
