@@ -46,8 +46,12 @@ _KUHN_AXIS_ORDERS = list(itertools.permutations(range(3)))
 # (the deformable surface's mean is 15 mm down, where a probe 30 mm below the
 # instrument reaches with the instrument ~19 mm above the glass). (m)
 SCENE_SURFACE_Z_M = -0.015
-SLAB_SIZE_M = (0.100, 0.080, 0.030)  # x, y, z (m)
-SLAB_CELLS = (15, 12, 6)  # cubes along x, y, z: 6,480 tetrahedra, 1,456 nodes
+SLAB_SIZE_M = (0.070, 0.060, 0.030)  # x, y, z (m)
+SLAB_CELLS = (14, 12, 6)  # cubes along x, y, z: 6,048 tetrahedra
+# Where the tissue's middle lies in W (m): off the display's centre along +x, so an
+# instrument resting 40 mm left of the centre holds its probe clear of the tissue
+# (a probe hangs below its rest height, under the tissue's top) before it flies over.
+TISSUE_CENTRE_XY_M = (0.015, 0.0)
 LUMP_RADIUS_M = 0.008
 LUMP_DEPTH_M = 0.010  # from the slab's top down to the lump's top (m)
 TISSUE_YOUNGS_MODULUS_PA = 5.0e3
@@ -290,8 +294,8 @@ def write_shipped(folder: Path = TISSUE_FOLDER,
             ("organ", organ(organ_cells), TissueMaterial(), ORGAN_FIXED_HEIGHT_M, ORGAN_RGBA)):
         write_vtk(folder / f"{name}.vtk", mesh)
         (folder / f"{name}.sdf").write_text(tissue_sdf(
-            name, name, f"{name}.vtk", (0.0, 0.0, floor_z), material,
-            (0.0, 0.0, floor_z + fixed_height), rgba))
+            name, name, f"{name}.vtk", (*TISSUE_CENTRE_XY_M, floor_z), material,
+            (*TISSUE_CENTRE_XY_M, floor_z + fixed_height), rgba))
         written += [folder / f"{name}.vtk", folder / f"{name}.sdf"]
     return written
 

@@ -57,7 +57,7 @@ def test_shipped_slab_fixed_bottom_and_lump(shipped):
     np.testing.assert_array_equal(np.unique(slab.youngs_modulus_pa),
                                   [tm.TISSUE_YOUNGS_MODULUS_PA, tm.LUMP_YOUNGS_MODULUS_PA])
     centroids = slab.positions_m[slab.tetrahedra].mean(axis=1)
-    centre = [0.0, 0.0, top_z - tm.LUMP_DEPTH_M - tm.LUMP_RADIUS_M]
+    centre = [*tm.TISSUE_CENTRE_XY_M, top_z - tm.LUMP_DEPTH_M - tm.LUMP_RADIUS_M]
     np.testing.assert_array_equal(
         stiff, np.linalg.norm(centroids - centre, axis=1) < tm.LUMP_RADIUS_M)
     lump_nodes = slab.positions_m[np.unique(slab.tetrahedra[stiff])]
