@@ -34,9 +34,11 @@ from maglev_haptics.diagrams.scenario import Scenario
 from maglev_haptics.diagrams.scene import ModelScene
 from maglev_haptics.diagrams.scene_builder import AddScene, SceneParts, measure_step_cost_s
 from maglev_haptics.diagrams.scene_models import (
-    model_scene_warnings, step_cost_levers, tool_grip_inverse_mass_per_kg)
+    holds_tissue, model_scene_warnings, step_cost_levers, tool_grip_inverse_mass_per_kg)
 from maglev_haptics.diagrams.station import (
     hand_start_pose, hand_start_transform, rest_transform)
+from maglev_haptics.diagrams.tissue_model import read_scene_tissue
+from maglev_haptics.diagrams.tissue_scene import AddTissue
 from maglev_haptics.hardware.limits import device_limits
 from maglev_haptics.systems.haptic_coupling import (
     CouplingConfig, HapticCoupling, resolved_rotational_gains)
@@ -159,6 +161,11 @@ def AddHaptics(builder, *, scenario: Scenario, magnetics, station, estimator, co
                          use_sampled_output_ports=False,
                          contact_sample_period_s=CONTACT_SAMPLE_PERIOD_S,
                          X_WI_start=X_WI_start, stepping=haptics.scene_stepping)
+        if isinstance(haptics.scene, ModelScene) and holds_tissue(haptics.scene.directives):
+            tissue = read_scene_tissue(haptics.scene.directives, "haptics.scene.directives")
+            scene = AddTissue(builder, scene=haptics.scene, bodies=tissue.bodies, parts=scene,
+                              time_step_s=period_s, X_WT_start=X_WI_start @ scene.X_IT,
+                              rigid_contact=bool(tissue.rigid_directives))
     config = resolved_coupling_config(scenario, magnetics)
     coupling = builder.AddNamedSystem("haptic_coupling", HapticCoupling(
         config=config, period_s=period_s, X_IT=scene.X_IT,

@@ -73,8 +73,8 @@ bottom lands exactly on the table, which takes round numbers in a noiseless test
 """
 
 import time
-from dataclasses import dataclass
-from typing import Optional
+from dataclasses import dataclass, field
+from typing import List, Optional
 
 import numpy as np
 from pydrake.geometry import DefaultProximityProperties, SceneGraph, SceneGraphConfig
@@ -119,6 +119,8 @@ class SceneParts:
     # The RemoteScene system when a worker process steps the plant: ``plant`` is then
     # a copy outside the diagram that only poses ``scene_graph``'s geometry.
     worker: Optional[object] = None
+    # A model scene's tissue bodies (``tissue_scene.Tissue``), each its own system.
+    tissue: List[object] = field(default_factory=list)
 
 
 
