@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 from typing import Dict, List, Optional
 
 import numpy as np
-from pydrake.geometry import Meshcat, MeshcatVisualizer, MeshcatVisualizerParams, Role
+from pydrake.geometry import Meshcat, MeshcatVisualizer, MeshcatVisualizerParams, Rgba, Role
 from pydrake.multibody.meshcat import ContactVisualizer, ContactVisualizerParams
 from pydrake.systems.framework import Diagram, DiagramBuilder, LeafSystem, OutputPort
 from pydrake.systems.primitives import (
@@ -38,7 +38,8 @@ from maglev_haptics.systems.coil_thermal import CoilTemperatures
 from maglev_haptics.systems.device_supervisor import (
     DeviceSupervisor, WatchLimits, hold_motion, make_motion)
 from maglev_haptics.systems.device_visualizer import DeviceVisualizer
-from maglev_haptics.systems.surface_visualizer import JELLY_RGBA, SurfaceVisualizer, surface_faces
+from maglev_haptics.systems.surface_visualizer import (
+    JELLY_RGBA, SurfaceVisualizer, surface_faces, wire_rgba_of)
 from maglev_haptics.systems.meshcat_hand import MeshcatHandInput
 from maglev_haptics.systems.levitation_controller import LevitationController
 from maglev_haptics.systems.pose_estimator import PoseEstimator
@@ -193,6 +194,11 @@ def AddStereo(builder: DiagramBuilder, *, scenario: Scenario, station: Station, 
                 surface_faces(lattice.surface, lattice.surface_triangles).T,
                 (JELLY_RGBA.r(), JELLY_RGBA.g(), JELLY_RGBA.b(), JELLY_RGBA.a())),
                 haptics.scene.surface.GetOutputPort("surface_positions_m"))
+        elif haptics.scene.tissue:
+            # The stereo renderer lays one deformable surface over the scene: the first.
+            tissue = haptics.scene.tissue[0]
+            surface = (SurfaceLayer(tissue.faces.T, tuple(tissue.body.rgba)),
+                       tissue.system.GetOutputPort("surface_positions_m"))
     else:
         virtual_world = station.GetOutputPort("rendered_world")
     return AddStereoDisplay(builder, scenario=scenario, station=station,
@@ -319,6 +325,23 @@ def AddVisualization(builder: DiagramBuilder, *, scenario: Scenario, meshcat: Me
             builder.Connect(scene.surface.GetOutputPort(name),
                             surface_visualizer.GetInputPort(name))
         builder.Connect(scene.X_WT_output, surface_visualizer.GetInputPort("X_WT"))
+    config = scenario.haptics.scene
+    for i, tissue in enumerate(scene.tissue):
+        # Tissue is no geometry of the scene plant either: each body draws itself.
+        p_TP, radius_m = config.tissue.sphere(config.tool, "haptics.scene.tissue")
+        rgba = Rgba(*tissue.body.rgba)
+        nodes = tissue.body.positions_m
+        top = [*nodes[:, 0:2].mean(axis=0), nodes[:, 2].max()]  # the first body's, looked at
+        visualizer = builder.AddNamedSystem(f"{tissue.system.get_name()}_visualizer",
+                                            SurfaceVisualizer(
+            meshcat=meshcat, faces=tissue.faces, num_vertices=len(tissue.model.surface),
+            p_TP_m=p_TP, probe_radius_m=radius_m, rgba=rgba, wire_rgba=wire_rgba_of(rgba),
+            path=f"/tissue/{tissue.body.model}", camera_target_m=top if i == 0 else None,
+            period_s=frame_period_s))
+        frame_publishers.append(visualizer)
+        for name in ("surface_positions_m", "wrench_on_tool_W"):
+            builder.Connect(tissue.system.GetOutputPort(name), visualizer.GetInputPort(name))
+        builder.Connect(scene.X_WT_output, visualizer.GetInputPort("X_WT"))
     return frame_publishers
 
 
