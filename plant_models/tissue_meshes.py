@@ -48,9 +48,9 @@ _KUHN_AXIS_ORDERS = list(itertools.permutations(range(3)))
 SCENE_SURFACE_Z_M = -0.015
 SLAB_SIZE_M = (0.070, 0.060, 0.030)  # x, y, z (m)
 SLAB_CELLS = (14, 12, 6)  # cubes along x, y, z: 6,048 tetrahedra
-# Where the tissue's middle lies in W (m): off the display's centre along +x, so an
-# instrument resting 40 mm left of the centre holds its probe clear of the tissue
-# (a probe hangs below its rest height, under the tissue's top) before it flies over.
+# Where the tissue's middle lies in W (m): off the display's centre along +x, so the
+# instrument takes off beside it (40 mm left of the centre in the shipped scenarios)
+# and the hand carries the probe over it, as the paper's deformable surface does.
 TISSUE_CENTRE_XY_M = (0.015, 0.0)
 LUMP_RADIUS_M = 0.008
 LUMP_DEPTH_M = 0.010  # from the slab's top down to the lump's top (m)
