@@ -41,6 +41,7 @@ from maglev_haptics.analysis.lattice_bench import (
 from maglev_haptics.analysis.loop_floor import floor_loop_us, hover_transform
 from maglev_haptics.analysis.stereo_bench import format_stereo_report, stereo_costs
 from maglev_haptics.analysis.timing import leaf_system_costs, time_per_call_us
+from maglev_haptics.analysis.tissue_bench import tissue_costs
 from maglev_haptics.diagrams.application import BuildDiagram
 from maglev_haptics.diagrams.runner import simulate
 from maglev_haptics.diagrams.scenario import SCENARIO_DIR, load_scenario, scenario_names
@@ -62,6 +63,7 @@ LEVITATE_FILE = SCENARIO_DIR / "levitate.yaml"
 HAPTIC_FILES = [SCENARIO_DIR / f"{name}.yaml" for name in (
     "hanging_ball", "paddle_ball", "peg_in_hole", "gear_trace", "push_block", "door",
     "deformable_surface", "stereo_display")]
+TISSUE_FILE = SCENARIO_DIR / "palpate_inclusion.yaml"  # every scenario of it is benched
 FLOOR_LOOP_SCENARIOS = ("takeoff_hover_land", "four_magnet_tilt")  # one per instrument
 HOVER_TIME_S = 1.5  # operating point for the per-system costs (s into takeoff_hover_land)
 FLOOR_TOOL_PUSH_N = 1.0  # the peg is pushed down this hard onto the block (N)
@@ -125,11 +127,11 @@ def scene_step_cost_us(scenario, n_steps: int = 1000) -> float:
     return _step_cost_us(builder, n_steps, period_s)
 
 
-def physics_floor_us(scenario, lattice_tick_us: Optional[float]) -> Dict[str, float]:
+def physics_floor_us(scenario, other_core_tick_us: Optional[float]) -> Dict[str, float]:
     """What one tick of ``scenario`` costs in the plants and the compiled kernels
     alone (us): the station plant hovering, the scene plant in contact, the two
     6 x n wrench matrices (true pose, estimated pose) and one allocation. The
-    lattice's tick runs on the other core and is listed, not added."""
+    lattice's or the tissue's tick runs on the other core and is listed, not added."""
     floor = {"station_plant_us": plant_step_cost_us(scenario, hovering=True)}
     if scenario.haptics is not None and not isinstance(scenario.haptics.scene, DeformableSurface):
         floor["scene_plant_us"] = scene_step_cost_us(scenario)
@@ -138,15 +140,15 @@ def physics_floor_us(scenario, lattice_tick_us: Optional[float]) -> Dict[str, fl
     floor["allocation_us"] = allocation_cost_us(config)[
         scenario.controller.allocation]["within_limits_us"]
     floor["total_us"] = sum(floor.values())
-    if lattice_tick_us is not None:
-        floor["lattice_tick_other_core_us"] = lattice_tick_us
+    if other_core_tick_us is not None:
+        floor["other_core_tick_us"] = other_core_tick_us
     return floor
 
 
 def floor_us(floor: Dict[str, float]) -> float:
-    """The tick's floor (us): the serial physics, or the lattice's tick on the other core
-    where that is longer."""
-    return max(floor["total_us"], floor.get("lattice_tick_other_core_us", 0.0))
+    """The tick's floor (us): the serial physics, or the lattice's or the tissue's tick on
+    the other core where that is longer."""
+    return max(floor["total_us"], floor.get("other_core_tick_us", 0.0))
 
 
 def allocation_cost_us(config: DeviceConfig, n: int = 2000) -> Dict[str, Dict[str, float]]:
@@ -212,6 +214,8 @@ def run_benchmarks(duration_s: Optional[float] = None, progress: bool = True,
                      "machine": {}}
     scenarios = [(LEVITATE_FILE, name) for name in scenario_names(LEVITATE_FILE)]
     scenarios += [(path, scenario_names(path)[0]) for path in HAPTIC_FILES]
+    scenarios += [(TISSUE_FILE, name) for name in scenario_names(TISSUE_FILE)]
+    results["tissue"] = {}
     for path, name in scenarios:
         scenario = load_scenario(str(path), name)
         built = BuildDiagram(scenario)
@@ -223,12 +227,20 @@ def run_benchmarks(duration_s: Optional[float] = None, progress: bool = True,
         wall_s = float(np.median(walls_s))
         tick_us = 1e6 * wall_s * built.tick_s / sim_s
         lattice = built.haptics.scene.lattice if built.haptics is not None else None
-        floor = physics_floor_us(scenario, None if lattice is None else lattice_costs(
-            scenario.haptics.scene)[f"symplectic_euler_{scenario.haptics.scene.substeps}_us"])
+        other_core_us = None if lattice is None else lattice_costs(
+            scenario.haptics.scene)[f"symplectic_euler_{scenario.haptics.scene.substeps}_us"]
+        if built.haptics is not None and built.haptics.scene.tissue:
+            simulator, _, _ = simulate(built, 0.05, progress=False)
+            tissue = tissue_costs(built, simulator.get_context())
+            results["tissue"][name] = tissue
+            other_core_us = sum(body["kernel_tick_us"] for body in tissue.values())
+            results["machine"]["tissue_tetrahedra_per_us"] = min(
+                body["tetrahedra_per_us"] for body in tissue.values())
+        floor = physics_floor_us(scenario, other_core_us)
         if lattice is not None:
             results["machine"]["lattice_masses"] = lattice.num_masses
             results["machine"]["lattice_masses_per_us"] = (
-                lattice.num_masses / floor["lattice_tick_other_core_us"])
+                lattice.num_masses / floor["other_core_tick_us"])
         results["scenarios"][name] = {
             "instrument": scenario.device.instrument,
             "simulated_s": sim_s,
@@ -296,6 +308,8 @@ def machine_yardsticks(machine: Dict) -> str:
         parts.append(f"takeoff floor {machine['takeoff_floor_us']:.0f} us")
     if "lattice_masses_per_us" in machine:
         parts.append(f"lattice {machine['lattice_masses_per_us']:.1f} masses/us")
+    if "tissue_tetrahedra_per_us" in machine:
+        parts.append(f"tissue {machine['tissue_tetrahedra_per_us']:.1f} tetrahedra/us")
     return "  [" + ", ".join(parts) + "]" if parts else ""
 
 
@@ -338,6 +352,15 @@ def format_report(results: Dict) -> str:
         f"{name} {seconds:.1f}" for name, seconds in results["analysis"].items())
         or "not run (--quick)"))
     lines.append(format_lattice_report(results["lattice"]))
+    if results.get("tissue"):
+        lines.append("Tissue, finite elements on the other core: the kernel's tick alone, the "
+                     "system's tick (stepped on this core), one element pass's tetrahedra/us:")
+        for name, bodies in results["tissue"].items():
+            for body, r in bodies.items():
+                lines.append(f"  {name:<20}{body:<30}{r['tetrahedra']:>6} tets "
+                             f"{r['substeps']} substeps  kernel {r['kernel_tick_us']:.0f} us  "
+                             f"system {r['system_tick_us']:.0f} us  "
+                             f"{r['tetrahedra_per_us']:.1f} tets/us")
     if "paced" in results:
         lines.append("Paced at 1x, Meshcat off: missed slots, compute p50 / p99 / max (us):")
         for name, r in results["paced"].items():

@@ -46,6 +46,7 @@ class Tissue:
     body: TissueBody
     model: TissueModel
     substeps: int  # symplectic Euler substeps a tick
+    probe: ProbeContact  # the sphere's contact with it, its radius the sphere's
     system: DeformableBody
     faces: np.ndarray  # (3, T) int32: the boundary's triangles over surface_positions_m's rows
 
@@ -146,8 +147,8 @@ def AddTissue(builder: DiagramBuilder, *, scene: ModelScene, bodies: List[Tissue
         builder.Connect(parts.X_WT_output, system.GetInputPort("X_WT"))
         builder.Connect(parts.V_WT_output, system.GetInputPort("V_WT"))
         triangles, _ = boundary_triangles(body.tetrahedra)
-        tissues.append(Tissue(body=body, model=model, substeps=substeps, system=system,
-                              faces=surface_faces(model.surface, triangles)))
+        tissues.append(Tissue(body=body, model=model, substeps=substeps, probe=probe,
+                              system=system, faces=surface_faces(model.surface, triangles)))
     wrenches = [tissue.system.GetOutputPort("wrench_on_tool_W") for tissue in tissues]
     flags = [tissue.system.GetOutputPort("in_contact") for tissue in tissues]
     coupling = builder.AddNamedSystem("tissue_tool_wrench_sum", Adder(len(tissues) + 1, 6))

@@ -1,32 +1,36 @@
-"""The benchmark's physics floor: the plants and wrench kernels of a tick, alone."""
+"""The benchmark's physics floor: the plants and wrench kernels of a tick, alone; the
+tissue's kernel and system."""
 
 import pytest
 
 from maglev_haptics.analysis import bench
 from maglev_haptics.analysis.bench import floor_us, physics_floor_us
+from maglev_haptics.analysis.tissue_bench import tissue_costs
+from maglev_haptics.diagrams.application import BuildDiagram
+from maglev_haptics.diagrams.runner import simulate
 from maglev_haptics.diagrams.scenario import load_scenario
 
 
 def test_floor_of_a_rigid_scene_adds_its_parts():
-    floor = physics_floor_us(load_scenario("peg_in_hole"), lattice_tick_us=None)
+    floor = physics_floor_us(load_scenario("peg_in_hole"), other_core_tick_us=None)
     parts = ("station_plant_us", "scene_plant_us", "wrench_matrices_us", "allocation_us")
     assert all(floor[name] > 0 for name in parts)
     assert floor["total_us"] == pytest.approx(sum(floor[name] for name in parts))
-    assert "lattice_tick_other_core_us" not in floor
+    assert "other_core_tick_us" not in floor
 
 
 def test_lattice_tick_is_listed_not_added():
-    floor = physics_floor_us(load_scenario("levitate"), lattice_tick_us=400.0)
+    floor = physics_floor_us(load_scenario("levitate"), other_core_tick_us=400.0)
     assert "scene_plant_us" not in floor
-    assert floor["lattice_tick_other_core_us"] == 400.0
+    assert floor["other_core_tick_us"] == 400.0
     assert floor["total_us"] == pytest.approx(
         floor["station_plant_us"] + floor["wrench_matrices_us"] + floor["allocation_us"])
 
 
 def test_the_tick_is_judged_against_the_longer_of_the_serial_floor_and_the_lattice():
     assert floor_us({"total_us": 150.0}) == 150.0
-    assert floor_us({"total_us": 150.0, "lattice_tick_other_core_us": 400.0}) == 400.0
-    assert floor_us({"total_us": 500.0, "lattice_tick_other_core_us": 400.0}) == 500.0
+    assert floor_us({"total_us": 150.0, "other_core_tick_us": 400.0}) == 400.0
+    assert floor_us({"total_us": 500.0, "other_core_tick_us": 400.0}) == 500.0
 
 
 def test_paced_runs_report_every_tick_of_each_scenario(monkeypatch):
@@ -94,3 +98,17 @@ def test_every_figure_carries_the_machines_yardsticks(monkeypatch):
 def test_the_yardsticks_say_only_what_was_measured():
     assert bench.machine_yardsticks({}) == ""
     assert bench.machine_yardsticks({"takeoff_floor_us": 70.0}) == "  [takeoff floor 70 us]"
+
+
+def test_tissue_costs_time_the_kernel_and_the_system():
+    built = BuildDiagram(load_scenario("palpate_inclusion"))
+    simulator, _, _ = simulate(built, 0.01, progress=False)
+    (body, costs), = tissue_costs(built, simulator.get_context()).items()
+    assert body == "slab::palpation_slab"
+    tissue = built.haptics.scene.tissue[0]
+    assert (costs["tetrahedra"], costs["substeps"]) == (tissue.model.num_tetrahedra,
+                                                       tissue.substeps)
+    # A tick is at least its substeps' element passes.
+    pass_us = costs["tetrahedra"] / costs["tetrahedra_per_us"]
+    assert costs["kernel_tick_us"] > costs["substeps"] * pass_us * 0.8
+    assert costs["system_tick_us"] > 0.5 * costs["kernel_tick_us"]
