@@ -6,9 +6,11 @@ import pytest
 from pydrake.systems.analysis import Simulator
 
 from maglev_haptics.analysis.run_results import run_scenario
+from maglev_haptics.cli import main
 from maglev_haptics.diagrams.application import BuildDiagram
 from maglev_haptics.diagrams.haptics import interactive_variant
 from maglev_haptics.diagrams.scenario import ScenarioError, load_scenario
+from maglev_haptics.plant_models.tissue_meshes import TISSUE_RGBA, TissueMaterial, tissue_sdf
 from maglev_haptics.systems.tissue_fem import stable_substeps
 
 SLAB = '{add_model: {name: slab, file: "package://maglev_haptics/tissue/palpation_slab.sdf"}}'
@@ -91,3 +93,22 @@ def test_the_felt_force_rises_over_the_lump():
     assert over_lump.sum() > 100 and over_plain.sum() > 100
     assert np.median(force_n[over_lump]) > 1.2 * np.median(force_n[over_plain])
     assert result.summary["max_coil_current_a"] <= scenario.device.amplifier.current_limit_a
+
+
+def test_a_surface_mesh_declared_deformable_stops_the_run_in_one_line(tmp_path, capsys):
+    (tmp_path / "tri.obj").write_text("v 0 0 0\nv 0.01 0 0\nv 0 0.01 0\nv 0 0 0.01\n"
+                                      "f 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n")
+    (tmp_path / "skin.sdf").write_text(tissue_sdf(
+        "skin", "skin", "tri.obj", (0.015, 0.0, -0.035), TissueMaterial(),
+        (0.015, 0.0, -0.034), TISSUE_RGBA))
+    scenario = tmp_path / "skin.yaml"
+    scenario.write_text(
+        "skin:\n  hand: !ScriptedHand {events: [{at_s: 1.0, grip: true}]}\n"
+        "  haptics:\n    scene: !ModelScene\n      directives:\n"
+        "        - add_model: {name: skin, file: \"file://{here}/skin.sdf\"}\n")
+    out = tmp_path / "out"
+    assert main(["run", str(scenario), "--no-meshcat", "--out", str(out)]) == 2
+    error = capsys.readouterr().err.strip()
+    assert "\n" not in error and "must be a tetrahedral volume mesh" in error
+    assert error.startswith("maglev run: error: haptics.scene.directives[0].add_model.file")
+    assert not out.exists()
