@@ -86,8 +86,8 @@ def test_the_felt_force_rises_over_the_lump():
     result = run_scenario(scenario, label="palpate_inclusion", progress=False)
     log = result.log
     x_mm = 1e3 * log["p_WI_true"][:, 0]
-    pressing = (log["t"] > 6.0) & (log["t"] < 13.5)  # across the lump and back, 3 mm in
-    force_n = -log["f_user"][:, 2]  # the tissue pushes the hand up
+    pressing = log["t"] > 6.2  # 3 mm in: across the lump, back, and over it
+    force_n = log["f_user"][:, 2]  # the tissue pushes the hand up
     over_lump = pressing & (np.abs(x_mm - 15.0) < 3.0)
     over_plain = pressing & (np.abs(x_mm + 5.0) < 3.0)
     assert over_lump.sum() > 100 and over_plain.sum() > 100
