@@ -33,7 +33,11 @@ time: the edge differences gathered into 9 flat rows, the arithmetic in one
 branch-free loop over the block that the compiler vectorizes (the per-tetrahedron
 rest data is stored as 9 rows of length m, read with unit stride), then the forces
 scattered back. The polar decomposition runs once a tick, the same way, a fixed
-number of Newton iterations (deterministic, no branch).
+number of Newton iterations (deterministic, no branch), in float64; it leaves each
+element R and the rest stress of E0 = sym(R^T) - I. The element pass (once a
+substep) computes in float32 from the displacements' edges (strain E0 + sym(R^T Du
+Dm^-1)), so that float32 rounds the strain, not positions it is the small difference
+of; the forces sum in float64. ``elastic_forces`` runs the same kernels in float64.
 """
 
 import math
@@ -48,7 +52,7 @@ import scipy.sparse.linalg
 from maglev_haptics.hardware.config_checks import finite, nonnegative, require
 from maglev_haptics.hardware.constants import GRAVITY_M_S2
 from maglev_haptics.hardware.kernels import (
-    INDEX, INDEX_MATRIX, INDEX_VECTOR, MATRIX, SCALAR, VECTOR, kernel)
+    FLOAT32_VECTOR, INDEX, INDEX_MATRIX, INDEX_VECTOR, MATRIX, SCALAR, VECTOR, kernel)
 from maglev_haptics.systems.lattice_dynamics import LINK_MATH, ProbeContact, add_probe_forces
 
 # Tetrahedra per block of the element passes: the block's 9 rows of differences and
@@ -58,7 +62,19 @@ _TET_ROW = TET_BLOCK + 8  # a row of a block, padded off a power of two
 # The per-tetrahedron rest data, block by block: Dm^-1 (row-major, 9 rows), 2 mu V0
 # and lambda V0, each a row of _TET_ROW (``element_rows``).
 ELEMENT_ROWS = 11
-BLOCK_WORK = 18 * _TET_ROW  # the element passes' work space (numbers)
+BLOCK_WORK = 18 * _TET_ROW  # the rotation pass's work space (numbers)
+# The element pass's own rows, block by block (``pass_rows``): Dm^-1 (9 rows), then
+# -2 mu V0, -mu V0 and -lambda V0; and what the rotation pass leaves it each tick
+# (``element_rotations``): R (9 rows, row-major), then the rest stress -V0 S0 (6 rows:
+# 00, 11, 22, 01, 02, 12) of the strain E0 = sym(R^T) - I that R alone makes.
+PASS_ROWS = 12
+TICK_ROWS = 15
+PASS_WORK = 9 * _TET_ROW  # the element pass's work space (numbers)
+# The element pass's arithmetic (float32: twice the numbers a vector instruction and
+# half the bytes read; tests/test_tissue_fem.py shows the press and the rest shape
+# unchanged). Its strain comes from displacements, not positions, so float32 rounds
+# the strain, not the positions it would be the small difference of.
+PASS_DTYPE = np.float32
 # Newton iterations X <- (g X + (g X)^-T) / 2 of the polar decomposition, the first
 # SCALED_POLAR_ITERATIONS with Higham's scaling g, the rest with g = 1 (a scaling
 # costs two square roots and two divisions): from principal stretches in [0.3, 3] they
@@ -70,11 +86,11 @@ STABLE_STEP_SAFETY = 0.9
 
 # tissue_tick_from's argument types: masses in and out, probe, then what
 # ``tick_arguments`` returns: tetrahedra, element_rows, mass, inv_mass, gravity,
-# surface, alpha, beta, constants, substeps, then the work space: rotations, blend,
-# forces, block work.
+# surface, alpha, beta, constants, substeps, then the work space: tick rows, blend,
+# forces, block work; then the rest positions, the pass rows and the pass's work.
 TISSUE_TICK_ARGUMENTS = (VECTOR, VECTOR, VECTOR, INDEX_MATRIX, VECTOR, VECTOR, VECTOR, VECTOR,
-                         INDEX_VECTOR, SCALAR, SCALAR, VECTOR, INDEX, VECTOR, VECTOR, MATRIX,
-                         VECTOR)
+                         INDEX_VECTOR, SCALAR, SCALAR, VECTOR, INDEX, FLOAT32_VECTOR, VECTOR,
+                         MATRIX, VECTOR, VECTOR, FLOAT32_VECTOR, FLOAT32_VECTOR)
 
 
 class TissueModel(NamedTuple):
@@ -95,6 +111,7 @@ class TissueModel(NamedTuple):
     surface: np.ndarray  # (n_s,) int64: the boundary nodes, which the probe touches
     mass_damping_per_s: float  # Rayleigh alpha (1/s)
     stiffness_damping_s: float  # Rayleigh beta (s)
+    rest_positions_m: np.ndarray  # (n, 3) the nodes at rest in W (m), where Dm was taken
 
     @property
     def num_nodes(self) -> int:
@@ -230,7 +247,7 @@ def tissue_model(positions_m, tetrahedra, *, youngs_modulus_pa, poissons_ratio,
         gravity_m_s2=gravity.copy(),
         surface=np.ascontiguousarray(np.asarray(surface).ravel(), dtype=np.int64),
         mass_damping_per_s=float(mass_damping_per_s),
-        stiffness_damping_s=float(stiffness_damping_s))
+        stiffness_damping_s=float(stiffness_damping_s), rest_positions_m=positions_m.copy())
 
 
 def blocked_rows(rows) -> np.ndarray:
@@ -273,31 +290,31 @@ def _gather_edges(y, tetrahedra, e0, count, d):
 
 
 @numba.njit(cache=True, fastmath=LINK_MATH, error_model="numpy", inline="always")
-def _element_arithmetic(d, rotations, element_rows, block, count):
+def _element_arithmetic(d, tick_rows, pass_rows, block, count):
     """d's rows 3 (a - 1) + k = the elastic force (N) on corner a (1..3) along k of
-    each tetrahedron of ``block``, from its edge matrix in the same rows: -V0 R S Dm^-T
-    with S = 2 mu eps + lambda tr(eps) I, eps = sym(R^T Ds Dm^-1) - I. No branch:
-    it vectorizes."""
+    each tetrahedron of ``block``, from its displacement edge matrix Du (m) in the same
+    rows: -V0 R S Dm^-T with S = 2 mu eps + lambda tr(eps) I and eps = sym(R^T F) - I
+    = E0 + sym(H), H = R^T Du Dm^-1 (F = I + Du Dm^-1). No branch and no constant
+    (which would widen float32 arithmetic to float64): it vectorizes in the rows' type."""
     W = _TET_ROW
-    r0 = block * 9 * W
-    e0 = block * ELEMENT_ROWS * W
+    r0 = block * TICK_ROWS * W
+    e0 = block * PASS_ROWS * W
     for c in range(count):
-        r00, r01, r02 = rotations[r0 + c], rotations[r0 + W + c], rotations[r0 + 2 * W + c]
-        r10, r11, r12 = (rotations[r0 + 3 * W + c], rotations[r0 + 4 * W + c],
-                         rotations[r0 + 5 * W + c])
-        r20, r21, r22 = (rotations[r0 + 6 * W + c], rotations[r0 + 7 * W + c],
-                         rotations[r0 + 8 * W + c])
-        b00, b01, b02 = (element_rows[e0 + c], element_rows[e0 + W + c],
-                         element_rows[e0 + 2 * W + c])
-        b10, b11, b12 = (element_rows[e0 + 3 * W + c], element_rows[e0 + 4 * W + c],
-                         element_rows[e0 + 5 * W + c])
-        b20, b21, b22 = (element_rows[e0 + 6 * W + c], element_rows[e0 + 7 * W + c],
-                         element_rows[e0 + 8 * W + c])
-        # The edge matrix Ds, column j = edge j, row k = coordinate k.
+        r00, r01, r02 = tick_rows[r0 + c], tick_rows[r0 + W + c], tick_rows[r0 + 2 * W + c]
+        r10, r11, r12 = (tick_rows[r0 + 3 * W + c], tick_rows[r0 + 4 * W + c],
+                         tick_rows[r0 + 5 * W + c])
+        r20, r21, r22 = (tick_rows[r0 + 6 * W + c], tick_rows[r0 + 7 * W + c],
+                         tick_rows[r0 + 8 * W + c])
+        b00, b01, b02 = pass_rows[e0 + c], pass_rows[e0 + W + c], pass_rows[e0 + 2 * W + c]
+        b10, b11, b12 = (pass_rows[e0 + 3 * W + c], pass_rows[e0 + 4 * W + c],
+                         pass_rows[e0 + 5 * W + c])
+        b20, b21, b22 = (pass_rows[e0 + 6 * W + c], pass_rows[e0 + 7 * W + c],
+                         pass_rows[e0 + 8 * W + c])
+        # The displacement edge matrix Du, column j = edge j, row k = coordinate k.
         s00, s10, s20 = d[c], d[W + c], d[2 * W + c]
         s01, s11, s21 = d[3 * W + c], d[4 * W + c], d[5 * W + c]
         s02, s12, s22 = d[6 * W + c], d[7 * W + c], d[8 * W + c]
-        # Q = R^T Ds: the edges in the tetrahedron's rotated frame.
+        # Q = R^T Du: the edges' displacements in the tetrahedron's rotated frame.
         q00 = r00 * s00 + r10 * s10 + r20 * s20
         q01 = r00 * s01 + r10 * s11 + r20 * s21
         q02 = r00 * s02 + r10 * s12 + r20 * s22
@@ -307,25 +324,26 @@ def _element_arithmetic(d, rotations, element_rows, block, count):
         q20 = r02 * s00 + r12 * s10 + r22 * s20
         q21 = r02 * s01 + r12 * s11 + r22 * s21
         q22 = r02 * s02 + r12 * s12 + r22 * s22
-        # G = Q Dm^-1 = R^T F.
-        g00 = q00 * b00 + q01 * b10 + q02 * b20
-        g01 = q00 * b01 + q01 * b11 + q02 * b21
-        g02 = q00 * b02 + q01 * b12 + q02 * b22
-        g10 = q10 * b00 + q11 * b10 + q12 * b20
-        g11 = q10 * b01 + q11 * b11 + q12 * b21
-        g12 = q10 * b02 + q11 * b12 + q12 * b22
-        g20 = q20 * b00 + q21 * b10 + q22 * b20
-        g21 = q20 * b01 + q21 * b11 + q22 * b21
-        g22 = q20 * b02 + q21 * b12 + q22 * b22
-        # -V0 S from the strain sym(G) - I.
-        shear = -element_rows[e0 + 9 * W + c]
-        dilation = -element_rows[e0 + 10 * W + c] * (g00 + g11 + g22 - 3.0)
-        t00 = shear * (g00 - 1.0) + dilation
-        t11 = shear * (g11 - 1.0) + dilation
-        t22 = shear * (g22 - 1.0) + dilation
-        t01 = shear * 0.5 * (g01 + g10)
-        t02 = shear * 0.5 * (g02 + g20)
-        t12 = shear * 0.5 * (g12 + g21)
+        # H = Q Dm^-1.
+        h00 = q00 * b00 + q01 * b10 + q02 * b20
+        h01 = q00 * b01 + q01 * b11 + q02 * b21
+        h02 = q00 * b02 + q01 * b12 + q02 * b22
+        h10 = q10 * b00 + q11 * b10 + q12 * b20
+        h11 = q10 * b01 + q11 * b11 + q12 * b21
+        h12 = q10 * b02 + q11 * b12 + q12 * b22
+        h20 = q20 * b00 + q21 * b10 + q22 * b20
+        h21 = q20 * b01 + q21 * b11 + q22 * b21
+        h22 = q20 * b02 + q21 * b12 + q22 * b22
+        # -V0 S: the rest stress of R plus that of sym(H).
+        minus_two_mu_v = pass_rows[e0 + 9 * W + c]
+        minus_mu_v = pass_rows[e0 + 10 * W + c]
+        dilation = pass_rows[e0 + 11 * W + c] * (h00 + h11 + h22)
+        t00 = tick_rows[r0 + 9 * W + c] + minus_two_mu_v * h00 + dilation
+        t11 = tick_rows[r0 + 10 * W + c] + minus_two_mu_v * h11 + dilation
+        t22 = tick_rows[r0 + 11 * W + c] + minus_two_mu_v * h22 + dilation
+        t01 = tick_rows[r0 + 12 * W + c] + minus_mu_v * (h01 + h10)
+        t02 = tick_rows[r0 + 13 * W + c] + minus_mu_v * (h02 + h20)
+        t12 = tick_rows[r0 + 14 * W + c] + minus_mu_v * (h12 + h21)
         # T = -V0 S Dm^-T: column a - 1 for corner a.
         w00 = t00 * b00 + t01 * b01 + t02 * b02
         w01 = t00 * b10 + t01 * b11 + t02 * b12
@@ -367,15 +385,17 @@ def _scatter_forces(tetrahedra, e0, count, d, f):
 
 
 @numba.njit(cache=True, fastmath=LINK_MATH, error_model="numpy")
-def add_elastic_forces(y, tetrahedra, element_rows, rotations, work, f):
-    """f (flat, 3 n) += every element's force (N) at node positions y (flat, m) with
-    the rotations (``element_rotations``) held; ``work`` is BLOCK_WORK numbers."""
+def add_elastic_forces(u, tetrahedra, pass_rows, tick_rows, work, f):
+    """f (flat, 3 n) += every element's force (N) at node displacements u (flat, m)
+    from rest with the rotations (``element_rotations``'s ``tick_rows``) held. The
+    arithmetic in the type of ``pass_rows``, ``tick_rows`` and ``work`` (PASS_WORK
+    numbers), the sums in f's."""
     m = tetrahedra.shape[0]
     for block in range((m + TET_BLOCK - 1) // TET_BLOCK):
         e0 = block * TET_BLOCK
         count = min(TET_BLOCK, m - e0)
-        _gather_edges(y, tetrahedra, e0, count, work)
-        _element_arithmetic(work, rotations, element_rows, block, count)
+        _gather_edges(u, tetrahedra, e0, count, work)
+        _element_arithmetic(work, tick_rows, pass_rows, block, count)
         _scatter_forces(tetrahedra, e0, count, work, f)
 
 
@@ -450,13 +470,45 @@ def _newton_polar_step(d, count, scaled):
         d[x0 + 8 * W + c] = a * x22 + b * c22
 
 
-@numba.njit(cache=True, fastmath=LINK_MATH, error_model="numpy")
-def element_rotations(x, tetrahedra, element_rows, work, rotations):
-    """rotations (flat, ``rotation_rows``) = the rotation R of the polar decomposition
-    F = R S of every element at node positions x (flat, m): POLAR_ITERATIONS Newton
-    steps from F. ``work`` is BLOCK_WORK numbers."""
-    m = tetrahedra.shape[0]
+@numba.njit(cache=True, fastmath=LINK_MATH, error_model="numpy", inline="always")
+def _rotation_rows(d, element_rows, tick_rows, block, count):
+    """The block's tick rows: R from d's rows 9..17, and the rest stress -V0 S0 of
+    E0 = sym(R^T) - I (taken here, in float64: E0 is small, and float32 would keep
+    only its rounding)."""
     W = _TET_ROW
+    x0 = 9 * W
+    out = block * TICK_ROWS * W
+    e0 = block * ELEMENT_ROWS * W
+    for c in range(count):
+        r00, r01, r02 = d[x0 + c], d[x0 + W + c], d[x0 + 2 * W + c]
+        r10, r11, r12 = d[x0 + 3 * W + c], d[x0 + 4 * W + c], d[x0 + 5 * W + c]
+        r20, r21, r22 = d[x0 + 6 * W + c], d[x0 + 7 * W + c], d[x0 + 8 * W + c]
+        tick_rows[out + c] = r00
+        tick_rows[out + W + c] = r01
+        tick_rows[out + 2 * W + c] = r02
+        tick_rows[out + 3 * W + c] = r10
+        tick_rows[out + 4 * W + c] = r11
+        tick_rows[out + 5 * W + c] = r12
+        tick_rows[out + 6 * W + c] = r20
+        tick_rows[out + 7 * W + c] = r21
+        tick_rows[out + 8 * W + c] = r22
+        minus_two_mu_v = -element_rows[e0 + 9 * W + c]
+        minus_mu_v = 0.5 * minus_two_mu_v
+        dilation = -element_rows[e0 + 10 * W + c] * (r00 + r11 + r22 - 3.0)
+        tick_rows[out + 9 * W + c] = minus_two_mu_v * (r00 - 1.0) + dilation
+        tick_rows[out + 10 * W + c] = minus_two_mu_v * (r11 - 1.0) + dilation
+        tick_rows[out + 11 * W + c] = minus_two_mu_v * (r22 - 1.0) + dilation
+        tick_rows[out + 12 * W + c] = minus_mu_v * (r01 + r10)
+        tick_rows[out + 13 * W + c] = minus_mu_v * (r02 + r20)
+        tick_rows[out + 14 * W + c] = minus_mu_v * (r12 + r21)
+
+
+@numba.njit(cache=True, fastmath=LINK_MATH, error_model="numpy")
+def element_rotations(x, tetrahedra, element_rows, work, tick_rows):
+    """tick_rows (flat, TICK_ROWS a block) = the rotation R of the polar decomposition
+    F = R S of every element at node positions x (flat, m), POLAR_ITERATIONS Newton
+    steps from F in float64, and its rest stress. ``work`` is BLOCK_WORK numbers."""
+    m = tetrahedra.shape[0]
     for block in range((m + TET_BLOCK - 1) // TET_BLOCK):
         e0 = block * TET_BLOCK
         count = min(TET_BLOCK, m - e0)
@@ -464,9 +516,7 @@ def element_rotations(x, tetrahedra, element_rows, work, rotations):
         _deformation_gradients(work, element_rows, block, count)
         for iteration in range(POLAR_ITERATIONS):
             _newton_polar_step(work, count, iteration < SCALED_POLAR_ITERATIONS)
-        out = block * 9 * W
-        for r in range(9 * W):
-            rotations[out + r] = work[9 * W + r]
+        _rotation_rows(work, element_rows, tick_rows, block, count)
 
 
 # --- the tick -----------------------------------------------------------------------
@@ -486,13 +536,14 @@ def _symplectic_substep(x, v, f, inv_mass, gravity, alpha, h_s):
 
 @kernel(TISSUE_TICK_ARGUMENTS, nogil=True)
 def tissue_tick_from(masses_in, masses_out, probe, tetrahedra, element_rows, mass, inv_mass,
-                     gravity, surface, alpha, beta, constants, substeps, rotations, blend,
-                     forces, work):
+                     gravity, surface, alpha, beta, constants, substeps, tick_rows, blend,
+                     forces, work, rest, pass_rows, pass_work):
     """``masses_out`` = one tick from ``masses_in`` ([x; v], 6 n) in ``substeps``
     symplectic Euler substeps. ``probe`` is [p_WP, v_WP, p_WT] (9); ``constants`` the
     probe's radius, stiffness, onset, dissipation, friction, slip speed, then the
-    tick h (s). ``rotations``, ``blend`` (3 n), ``forces`` (n, 3) and ``work`` are
-    work space (``tick_arguments`` makes them)."""
+    tick h (s); ``rest`` the nodes at rest (flat, m); ``pass_rows`` the element
+    pass's (``pass_rows``). ``tick_rows``, ``blend`` (3 n), ``forces`` (n, 3),
+    ``work`` and ``pass_work`` are work space (``tick_arguments`` makes them)."""
     n = masses_in.shape[0] // 6
     masses_out[:] = masses_in
     x = masses_out[:3 * n]
@@ -501,60 +552,75 @@ def tissue_tick_from(masses_in, masses_out, probe, tetrahedra, element_rows, mas
     v3 = v.reshape((n, 3))
     f = forces.reshape(3 * n)
     h_s = constants[6] / substeps
-    element_rotations(x, tetrahedra, element_rows, work, rotations)
+    element_rotations(x, tetrahedra, element_rows, work, tick_rows)
     for _ in range(substeps):
-        # The stiffness damping: the elastic force at x + beta v.
+        # The stiffness damping: the elastic force at x + beta v, from its displacement.
         for j in range(3 * n):
-            blend[j] = x[j] + beta * v[j]
+            blend[j] = x[j] + beta * v[j] - rest[j]
         f[:] = 0.0
-        add_elastic_forces(blend, tetrahedra, element_rows, rotations, work, f)
+        add_elastic_forces(blend, tetrahedra, pass_rows, tick_rows, pass_work, f)
         add_probe_forces(x3, v3, surface, probe[0:3], probe[3:6], probe[6:9], constants[0],
                          constants[1], constants[2], constants[3], constants[4], constants[5],
                          mass, h_s, forces)
         _symplectic_substep(x, v, f, inv_mass, gravity, alpha, h_s)
 
 
-def tick_arguments(model: TissueModel, probe: ProbeContact, period_s: float, substeps: int):
+def tick_arguments(model: TissueModel, probe: ProbeContact, period_s: float, substeps: int,
+                   dtype=PASS_DTYPE):
     """The arguments of ``tissue_tick_from`` after ``probe``, fresh work space
-    included: ``tissue_tick_from(masses_in, masses_out, probe, *arguments)``."""
+    included: ``tissue_tick_from(masses_in, masses_out, probe, *arguments)``; the
+    element pass in ``dtype`` (float64 only to compare: ``compile_kernels`` compiles
+    the float32 one before the clock)."""
     n, m = model.num_nodes, model.num_tetrahedra
     constants = np.array([probe.radius_m, probe.stiffness_n_per_m, probe.onset_depth_m,
                           probe.dissipation_s_per_m, probe.friction, probe.slip_speed_m_s,
                           float(period_s)])
     return (model.tetrahedra, model.element_rows, model.mass_kg, model.inv_mass_per_kg,
             model.gravity_m_s2, model.surface, model.mass_damping_per_s,
-            model.stiffness_damping_s, constants, int(substeps), rotation_work(m),
-            np.zeros(3 * n), np.zeros((n, 3)), np.zeros(BLOCK_WORK))
+            model.stiffness_damping_s, constants, int(substeps), tick_row_work(m, dtype),
+            np.zeros(3 * n), np.zeros((n, 3)), np.zeros(BLOCK_WORK),
+            np.ascontiguousarray(model.rest_positions_m.ravel()), pass_rows(model, dtype),
+            np.zeros(PASS_WORK, dtype))
 
 
-def rotation_work(num_tetrahedra: int) -> np.ndarray:
-    """Room for every element's rotation in the kernels' blocked layout."""
-    return np.zeros(-(-num_tetrahedra // TET_BLOCK) * 9 * _TET_ROW)
+def pass_rows(model: TissueModel, dtype=PASS_DTYPE) -> np.ndarray:
+    """The element pass's rows (PASS_ROWS, blocked) in ``dtype``."""
+    half_mu_v = 0.5 * model.two_mu_volume
+    rows = np.concatenate((model.rest_inverse.reshape(-1, 9).T, [-model.two_mu_volume],
+                           [-half_mu_v], [-model.lambda_volume]))
+    return blocked_rows(rows).astype(dtype)
+
+
+def tick_row_work(num_tetrahedra: int, dtype=PASS_DTYPE) -> np.ndarray:
+    """Room for every element's tick rows (TICK_ROWS, blocked) in ``dtype``."""
+    return np.zeros(-(-num_tetrahedra // TET_BLOCK) * TICK_ROWS * _TET_ROW, dtype)
 
 
 def elastic_forces(model: TissueModel, positions_m, velocities_m_s=None, reference_m=None):
     """(n, 3) the elastic and stiffness-damping forces (N) at ``positions_m`` (n, 3)
     moving at ``velocities_m_s`` (default still), the rotations taken at
-    ``reference_m`` (default the positions themselves): for tests and analysis."""
+    ``reference_m`` (default the positions themselves), the element pass in float64:
+    for tests and analysis."""
     x = np.ascontiguousarray(positions_m, dtype=float).ravel()
     reference = x if reference_m is None else np.ascontiguousarray(reference_m, float).ravel()
     v = np.zeros_like(x) if velocities_m_s is None else np.asarray(velocities_m_s, float).ravel()
-    rotations = rotation_work(model.num_tetrahedra)
-    work = np.zeros(BLOCK_WORK)
-    element_rotations(reference, model.tetrahedra, model.element_rows, work, rotations)
+    tick_rows = tick_row_work(model.num_tetrahedra, np.float64)
+    element_rotations(reference, model.tetrahedra, model.element_rows, np.zeros(BLOCK_WORK),
+                      tick_rows)
     f = np.zeros_like(x)
-    add_elastic_forces(x + model.stiffness_damping_s * v, model.tetrahedra, model.element_rows,
-                       rotations, work, f)
+    add_elastic_forces(x + model.stiffness_damping_s * v - model.rest_positions_m.ravel(),
+                       model.tetrahedra, pass_rows(model, np.float64), tick_rows,
+                       np.zeros(PASS_WORK), f)
     return f.reshape(-1, 3)
 
 
 def polar_rotations(model: TissueModel, positions_m) -> np.ndarray:
     """(m, 3, 3) each element's rotation R at ``positions_m`` (n, 3), as the tick
     computes it."""
-    rotations = rotation_work(model.num_tetrahedra)
+    tick_rows = tick_row_work(model.num_tetrahedra, np.float64)
     element_rotations(np.ascontiguousarray(positions_m, dtype=float).ravel(), model.tetrahedra,
-                      model.element_rows, np.zeros(BLOCK_WORK), rotations)
-    return unblocked_rows(rotations, 9, model.num_tetrahedra).T.reshape(-1, 3, 3)
+                      model.element_rows, np.zeros(BLOCK_WORK), tick_rows)
+    return unblocked_rows(tick_rows, TICK_ROWS, model.num_tetrahedra)[:9].T.reshape(-1, 3, 3)
 
 
 # --- linearization and stability ----------------------------------------------------
@@ -663,12 +729,12 @@ def tick_timing(model: TissueModel, positions_m, *, probe: ProbeContact = None,
         durations.append(time.perf_counter() - start)
         state, other = other, state
     tick_us = 1e6 * float(np.median(durations))
-    rotations, work = arguments[10], arguments[13]
+    tick_rows, rest, rows, work = arguments[10], arguments[14], arguments[15], arguments[16]
     f = np.zeros(3 * n)
-    x = state[:3 * n].copy()
+    u = state[:3 * n] - rest
     passes = []
     for _ in range(ticks):
         start = time.perf_counter()
-        add_elastic_forces(x, model.tetrahedra, model.element_rows, rotations, work, f)
+        add_elastic_forces(u, model.tetrahedra, rows, tick_rows, work, f)
         passes.append(time.perf_counter() - start)
     return tick_us, model.num_tetrahedra / (1e6 * float(np.median(passes)))

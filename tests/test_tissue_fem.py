@@ -210,6 +210,43 @@ def test_tick_is_deterministic_and_the_tool_gets_the_first_substeps_contact():
     assert first[3 * n:].reshape(n, 3)[model.surface, 2].min() < -1e-4
 
 
+def test_float32_element_pass_leaves_the_rest_shape_and_the_felt_press_unchanged():
+    """The tick's element pass in float32 against the same tick in float64: the slab
+    settled under gravity, then the probe pressed 3 mm into its top at 10 mm/s: the
+    rest displacements and the force the tool feels agree within 0.1 %."""
+    points, model = slab(counts=(8, 8, 4), alpha=20.0, beta=2e-4, gravity=(0.0, 0.0, -9.81))
+    contact = ProbeContact()
+    substeps = stable_substeps(model, TICK_S, probe_stiffness_n_per_m=contact.stiffness_n_per_m)
+    top = points[:, 2].max()
+    n = model.num_nodes
+    runs = []
+    for dtype in (np.float32, np.float64):
+        arguments = tick_arguments(model, contact, TICK_S, substeps, dtype=dtype)
+        state = np.concatenate((points.ravel(), np.zeros(points.size)))
+        other = np.empty_like(state)
+        for _ in range(300):
+            tissue_tick_from(state, other, FAR_PROBE, *arguments)
+            state, other = other, state
+        rest = state[:3 * n].reshape(n, 3) - points
+        felt = []
+        for tick in range(300):  # from touching the top to 3 mm in
+            p_WP = np.array([0.0, 0.0, top + contact.radius_m - 1e-5 * tick])
+            probe = np.concatenate((p_WP, [0.0, 0.0, -0.01], p_WP + [0.0, 0.0, 0.03]))
+            tool = np.r_[1.0, 0.0, 0.0, 0.0, probe[6:9], 0.0, 0.0, 0.0, probe[3:6]]
+            felt.append(state_contact(np.concatenate((state, tool)), model.surface,
+                                      p_WP - probe[6:9], arguments[8][:6], model.mass_kg,
+                                      TICK_S / substeps)[0][2])
+            tissue_tick_from(state, other, probe, *arguments)
+            state, other = other, state
+        runs.append((rest, np.array(felt)))
+    (rest32, felt32), (rest64, felt64) = runs
+    sag = np.linalg.norm(rest64, axis=1)
+    assert sag.max() > 1e-5  # settled under its weight (m)
+    assert np.linalg.norm(rest32 - rest64, axis=1).max() < 1e-3 * sag.max()
+    assert felt64[-1] > 0.03  # the press is felt (N)
+    assert np.sqrt(np.mean((felt32 - felt64) ** 2)) < 1e-3 * np.sqrt(np.mean(felt64 ** 2))
+
+
 # --- checked against Drake and Hertz ---------------------------------------------------
 
 def drake_slab(folder, *, youngs_pa, alpha, beta, counts=(5, 5, 3), time_step_s=TICK_S):
