@@ -1,0 +1,262 @@
+"""The force a sphere meets pressed slowly into tissue, and the felt stiffness.
+
+The sphere is the scene's probe (``lattice_dynamics.add_probe_forces``: each
+surface node inside it pushed out along the normal from its centre by the penalty
+k_c g(depth), N). It moves straight down over a point (x, y) in W; its depth d (m)
+is measured from the undeformed surface there (the reference mesh's top face
+under the sphere's centre) to the sphere's lowest point, so the centre lies at
+z = z_top + R - d. The tissue starts at rest under its gravity.
+
+Quasi-static: at each depth the tissue is in static equilibrium, found by Newton's
+method on the free nodes' forces, the same forces the haptic kernel integrates
+(``tissue_fem.elastic_forces``: Drake's linear_corotated element, its rotations
+taken at the current positions as the kernel takes them at each tick's start, the
+lumped weights, the probe's penalty at rest). The Newton matrix is the corotated
+linear stiffness at the current rotations (``linear_stiffness_matrix``) plus the
+probe's normal stiffness k_c g'(depth) n n^T on the nodes it touches; it leaves
+out the rotations' own change and the contact's tangential term, so Newton
+converges linearly near the end instead of quadratically, but it converges to the
+kernel's own equilibrium (the residual is exact). The sphere descends in steps of
+at most ``max_step_m`` so that the contact set changes a little a step.
+
+The felt stiffness dF/dd (N/m) at a depth is the central difference of the force
+between the equilibria a small step above and below it: the contact stiffness
+linearized at the pressed state, what the tool meets for small motions there.
+The force F (N) is the push up on the sphere (W's +z component of the contact
+force on the tool), the sum of the nodes' reactions.
+"""
+
+import dataclasses
+from typing import List, NamedTuple, Sequence
+
+import numpy as np
+import scipy.sparse
+import scipy.sparse.linalg
+
+from maglev_haptics.hardware.config_checks import positive, require
+from maglev_haptics.systems.lattice_dynamics import ProbeContact, add_probe_forces
+from maglev_haptics.systems.tissue_fem import (
+    TissueModel, boundary_triangles, elastic_forces, free_coordinates,
+    linear_stiffness_matrix)
+
+# The Newton iteration stops when every free node's force balance is within this
+# fraction of the largest node weight or probe force (-).
+RELATIVE_TOLERANCE = 1e-8
+MAX_NEWTON_ITERATIONS = 60
+# Newton steps with one factored matrix before it is refactored at the current state.
+REFRESH_ITERATIONS = 8
+MAX_PRESS_STEP_M = 2.5e-4  # the sphere descends at most this far between equilibria (m)
+STIFFNESS_STEP_M = 1e-4  # half the span of the central difference of dF/dd (m)
+_PERIOD_S = 1e-3  # the probe law's step (s): it sets only a damping cap, idle at rest
+
+
+class PressedState(NamedTuple):
+    """The tissue in equilibrium with the sphere at one depth."""
+
+    depth_m: float  # below the undeformed surface (m)
+    p_WP_m: np.ndarray  # (3,) the sphere's centre in W (m)
+    positions_m: np.ndarray  # (n, 3) the nodes in W (m)
+    force_n: float  # the push up on the sphere (N)
+    nodes_in_contact: int
+
+
+def surface_top_m(rest_positions_m, tetrahedra, p_xy_m) -> float:
+    """z (m) of the highest upward-facing boundary triangle of the undeformed mesh
+    over the point ``p_xy_m`` (x, y in W, m); a ValueError if none lies over it."""
+    points = np.asarray(rest_positions_m, float)
+    triangles, _ = boundary_triangles(tetrahedra)
+    corners = points[triangles]  # (k, 3, 3)
+    normal_z = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])[:, 2]
+    corners = corners[normal_z > 0]
+    a, b, c = corners[:, 0, :2], corners[:, 1, :2], corners[:, 2, :2]
+    p = np.asarray(p_xy_m, float)[:2]
+    area = _cross_z(b - a, c - a)
+    # Barycentric coordinates of p in each triangle's projection on the xy plane.
+    weight_b = _cross_z(p - a, c - a) / area
+    weight_c = _cross_z(b - a, p - a) / area
+    weight_a = 1.0 - weight_b - weight_c
+    weights = np.column_stack([weight_a, weight_b, weight_c])
+    over = (weights >= -1e-12).all(axis=1)
+    require(bool(over.any()), "p_xy_m", p.tolist(),
+            "must lie over the tissue's top surface (x, y in W, m)")
+    return float(np.max(np.einsum("ka,ka->k", weights[over], corners[over, :, 2])))
+
+
+def _cross_z(u, v):
+    """The z component of u x v for rows of planar vectors (k, 2)."""
+    return u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]
+
+
+def probe_force(model: TissueModel, positions_m, probe: ProbeContact, p_WP_m):
+    """(forces on the nodes (n, 3) N, force on the sphere (3,) N, nodes touching):
+    the probe law at rest (no velocity, so no dissipation or friction)."""
+    x = np.ascontiguousarray(positions_m, float)
+    forces = np.zeros_like(x)
+    still = np.zeros(3)
+    p_WP = np.asarray(p_WP_m, float)
+    wrench, touching = add_probe_forces(
+        x, np.zeros_like(x), model.surface, p_WP, still, p_WP, probe.radius_m,
+        probe.stiffness_n_per_m, probe.onset_depth_m, probe.dissipation_s_per_m,
+        probe.friction, probe.slip_speed_m_s, model.mass_kg, _PERIOD_S, forces)
+    return forces, wrench[:3], touching
+
+
+class _Tangent:
+    """The Newton matrix on the free coordinates: the corotated linear stiffness at
+    the rotations of some positions, factored once (sparse LU), plus the probe's
+    normal stiffness, a rank-one term k_c g'(depth) n n^T per touching node, added
+    by the Woodbury identity with K^-1 of each touched node's three columns kept. So
+    a Newton step costs one solve with the factors, not a factorization."""
+
+    def __init__(self, model: TissueModel, positions_m):
+        self.free = free_coordinates(model)
+        self.where = np.full(3 * model.num_nodes, -1)
+        self.where[self.free] = np.arange(len(self.free))
+        stiffness = linear_stiffness_matrix(model, positions_m)[self.free][:, self.free]
+        self.factors = scipy.sparse.linalg.splu(stiffness.tocsc())
+        self.node_columns = {}  # node -> K^-1 of its three coordinates' unit vectors (f, 3)
+
+    def _columns(self, node: int) -> np.ndarray:
+        if node not in self.node_columns:
+            unit = np.zeros((len(self.free), 3))
+            unit[self.where[3 * node:3 * node + 3], [0, 1, 2]] = 1.0
+            self.node_columns[node] = self.factors.solve(unit)
+        return self.node_columns[node]
+
+    def solve(self, residual, nodes, normals, slopes) -> np.ndarray:
+        """(K + sum_i slopes_i u_i u_i^T)^-1 residual, u_i the unit normal ``normals``
+        (k, 3) placed at node ``nodes[i]``'s coordinates."""
+        base = self.factors.solve(residual)
+        if len(nodes) == 0:
+            return base
+        rows = self.where[3 * np.asarray(nodes)[:, None] + np.arange(3)]  # (k, 3)
+        spread = np.column_stack([self._columns(int(node)) @ normal
+                                  for node, normal in zip(nodes, normals)])  # K^-1 U
+        capacitance = np.diag(1.0 / slopes) + np.einsum("ka,jka->jk", normals,
+                                                        spread[rows].transpose(2, 0, 1))
+        u_base = np.einsum("ka,ka->k", normals, base[rows])
+        return base - spread @ np.linalg.solve(capacitance, u_base)
+
+
+def _probe_normal_stiffness(model: TissueModel, positions_m, probe: ProbeContact, p_WP_m):
+    """(nodes (k,), unit normals (k, 3), slopes (k,) N/m): -d(probe force)/dx along
+    the normals of the surface nodes inside the sphere, k_c g'(depth) n n^T, with
+    g' = depth / onset on the ramp, 1 past it (the normal's own turning left out)."""
+    x = np.asarray(positions_m, float)[model.surface]
+    offset = x - np.asarray(p_WP_m, float)
+    distance = np.linalg.norm(offset, axis=1)
+    inside = (distance < probe.radius_m) & (distance > 0.0)
+    depth = probe.radius_m - distance[inside]
+    slope = probe.stiffness_n_per_m * np.minimum(depth / probe.onset_depth_m, 1.0)
+    return model.surface[inside], offset[inside] / distance[inside, None], slope
+
+
+def static_equilibrium(model: TissueModel, positions_m, probe: ProbeContact, p_WP_m,
+                       tangent: _Tangent = None):
+    """(positions (n, 3) m, force on the sphere (3,) N, nodes touching, the Newton
+    matrix used): the tissue at rest under gravity with the sphere held at
+    ``p_WP_m`` (W, m), by Newton's method from ``positions_m`` (module docstring).
+    ``tangent``: the Newton matrix to start with (default: at ``positions_m``); it is
+    refactored at the current positions whenever REFRESH_ITERATIONS steps have not
+    converged. A RuntimeError if MAX_NEWTON_ITERATIONS do not."""
+    x = np.array(positions_m, dtype=float)
+    tangent = tangent or _Tangent(model, x)
+    free = tangent.free
+    weight = (model.mass_kg[:, None] * model.gravity_m_s2).ravel()
+
+    def residual(y):
+        contact, on_sphere, touching = probe_force(model, y, probe, p_WP_m)
+        total = elastic_forces(model, y).ravel() + weight + contact.ravel()
+        return total[free], on_sphere, touching
+
+    r, on_sphere, touching = residual(x)
+    for iteration in range(1, MAX_NEWTON_ITERATIONS + 1):
+        scale = max(float(np.abs(weight).max()), float(np.linalg.norm(on_sphere)), 1e-12)
+        if np.abs(r).max() <= RELATIVE_TOLERANCE * scale:
+            return x, on_sphere, touching, tangent
+        if iteration % REFRESH_ITERATIONS == 0:
+            tangent = _Tangent(model, x)
+        step = tangent.solve(r, *_probe_normal_stiffness(model, x, probe, p_WP_m))
+        # Backtrack while the step raises the force imbalance (a node entering or
+        # leaving the sphere can overshoot).
+        for _ in range(8):
+            trial = x.copy()
+            trial.ravel()[free] += step
+            r_trial, on_trial, touching_trial = residual(trial)
+            if np.linalg.norm(r_trial) < np.linalg.norm(r):
+                break
+            step = 0.5 * step
+        x, r, on_sphere, touching = trial, r_trial, on_trial, touching_trial
+    raise RuntimeError(f"static_equilibrium: the force imbalance is still "
+                       f"{np.abs(r).max():.3g} N after {MAX_NEWTON_ITERATIONS} Newton steps")
+
+
+def press_states(model: TissueModel, rest_positions_m, probe: ProbeContact, p_xy_m,
+                 depths_m: Sequence[float], *,
+                 max_step_m: float = MAX_PRESS_STEP_M) -> List[PressedState]:
+    """The equilibria of the tissue with the sphere pressed straight down over
+    ``p_xy_m`` (x, y in W, m) to each of ``depths_m`` (m below the undeformed
+    surface there), in the order given. The tissue starts at rest under gravity
+    from ``rest_positions_m`` (n, 3) (its reference nodes in W, m), the sphere
+    above it, and follows the sphere down through the sorted depths."""
+    probe.validate("probe")
+    positive("max_step_m", max_step_m)
+    depths = np.asarray(depths_m, dtype=float).ravel()
+    require(depths.size > 0 and bool(np.isfinite(depths).all()), "depths_m",
+            np.asarray(depths_m).tolist(), "must be finite depths (m), at least one")
+    rest = np.asarray(rest_positions_m, dtype=float)
+    top_z = surface_top_m(rest, model.tetrahedra, p_xy_m)
+
+    def centre(depth):
+        return np.array([p_xy_m[0], p_xy_m[1], top_z + probe.radius_m - depth])
+
+    lowest_rest = min(0.0, float(depths.min()))
+    x, _, _, tangent = static_equilibrium(model, rest, probe,
+                                          centre(lowest_rest - probe.radius_m))
+    states = {}
+    reached = lowest_rest - probe.radius_m
+    for depth in np.unique(depths):
+        # From the depth reached to this one in equal steps no longer than max_step_m.
+        count = max(1, int(np.ceil((depth - reached) / max_step_m)))
+        for stop in np.linspace(reached, depth, count + 1)[1:]:
+            x, on_sphere, touching, tangent = static_equilibrium(model, x, probe,
+                                                                 centre(stop), tangent)
+        reached = depth
+        states[depth] = PressedState(float(depth), centre(depth), x.copy(),
+                                     float(on_sphere[2]), int(touching))
+    return [states[depth] for depth in depths]
+
+
+def press_curve(model: TissueModel, rest_positions_m, probe: ProbeContact, p_xy_m,
+                depths_m: Sequence[float], **options) -> np.ndarray:
+    """The push up on the sphere (N) at each of ``depths_m`` (``press_states``)."""
+    return np.array([state.force_n for state in press_states(
+        model, rest_positions_m, probe, p_xy_m, depths_m, **options)])
+
+
+def contact_stiffness(model: TissueModel, rest_positions_m, probe: ProbeContact, p_xy_m,
+                      depth_m: float, *, step_m: float = STIFFNESS_STEP_M,
+                      **options) -> float:
+    """The felt stiffness dF/dd (N/m) at ``depth_m`` (m below the undeformed surface
+    over ``p_xy_m``): the central difference of ``press_curve`` over depth_m +- step_m,
+    the contact linearized at the pressed state."""
+    positive("step_m", step_m)
+    below, above = press_curve(model, rest_positions_m, probe, p_xy_m,
+                               [depth_m - step_m, depth_m + step_m], **options)
+    return float((above - below) / (2.0 * step_m))
+
+
+def hertz_force(depths_m, radius_m: float, youngs_modulus_pa: float,
+                poissons_ratio: float) -> np.ndarray:
+    """Hertz's force (N) of a rigid sphere of ``radius_m`` (m) pressed ``depths_m``
+    (m) into an elastic half-space: 4/3 E* sqrt(R) d^(3/2), E* = E / (1 - nu^2)."""
+    reduced = youngs_modulus_pa / (1.0 - poissons_ratio ** 2)
+    depths = np.clip(np.asarray(depths_m, dtype=float), 0.0, None)
+    return 4.0 / 3.0 * reduced * np.sqrt(radius_m) * depths ** 1.5
+
+
+def scene_probe(scene, path: str = "haptics.scene") -> ProbeContact:
+    """The probe law a ``ModelScene``'s tissue meets: its ``tissue.probe`` with the
+    radius of the sphere ``tissue.sphere`` places on the tool (m)."""
+    _, radius_m = scene.tissue.sphere(scene.tool, f"{path}.tissue")
+    return dataclasses.replace(scene.tissue.probe, radius_m=radius_m)
