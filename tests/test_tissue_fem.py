@@ -213,7 +213,8 @@ def test_tick_is_deterministic_and_the_tool_gets_the_first_substeps_contact():
 def test_float32_element_pass_leaves_the_rest_shape_and_the_felt_press_unchanged():
     """The tick's element pass in float32 against the same tick in float64: the slab
     settled under gravity, then the probe pressed 3 mm into its top at 10 mm/s: the
-    rest displacements and the force the tool feels agree within 0.1 %."""
+    rest displacements and the force the tool feels agree within 0.1 % (the issue's
+    bar); measured 3e-8 and 5e-8, so the test holds them to 1e-5."""
     points, model = slab(counts=(8, 8, 4), alpha=20.0, beta=2e-4, gravity=(0.0, 0.0, -9.81))
     contact = ProbeContact()
     substeps = stable_substeps(model, TICK_S, probe_stiffness_n_per_m=contact.stiffness_n_per_m)
@@ -242,9 +243,9 @@ def test_float32_element_pass_leaves_the_rest_shape_and_the_felt_press_unchanged
     (rest32, felt32), (rest64, felt64) = runs
     sag = np.linalg.norm(rest64, axis=1)
     assert sag.max() > 1e-5  # settled under its weight (m)
-    assert np.linalg.norm(rest32 - rest64, axis=1).max() < 1e-3 * sag.max()
+    assert np.linalg.norm(rest32 - rest64, axis=1).max() < 1e-5 * sag.max()
     assert felt64[-1] > 0.03  # the press is felt (N)
-    assert np.sqrt(np.mean((felt32 - felt64) ** 2)) < 1e-3 * np.sqrt(np.mean(felt64 ** 2))
+    assert np.sqrt(np.mean((felt32 - felt64) ** 2)) < 1e-5 * np.sqrt(np.mean(felt64 ** 2))
 
 
 # --- checked against Drake and Hertz ---------------------------------------------------
