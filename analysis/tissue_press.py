@@ -108,12 +108,14 @@ class _Tangent:
     by the Woodbury identity with K^-1 of each touched node's three columns kept. So
     a Newton step costs one solve with the factors, not a factorization."""
 
-    def __init__(self, model: TissueModel, positions_m):
-        self.free = free_coordinates(model)
+    def __init__(self, model: TissueModel, positions_m, held_coordinates=()):
+        self.held = held_coordinates
+        self.free = np.setdiff1d(free_coordinates(model), held_coordinates)
         self.where = np.full(3 * model.num_nodes, -1)
         self.where[self.free] = np.arange(len(self.free))
         stiffness = linear_stiffness_matrix(model, positions_m)[self.free][:, self.free]
-        self.factors = scipy.sparse.linalg.splu(stiffness.tocsc())
+        # A symmetric ordering: far less fill than the default COLAMD on a stiffness.
+        self.factors = scipy.sparse.linalg.splu(stiffness.tocsc(), permc_spec="MMD_AT_PLUS_A")
         self.node_columns = {}  # node -> K^-1 of its three coordinates' unit vectors (f, 3)
 
     def _columns(self, node: int) -> np.ndarray:
@@ -152,15 +154,18 @@ def _probe_normal_stiffness(model: TissueModel, positions_m, probe: ProbeContact
 
 
 def static_equilibrium(model: TissueModel, positions_m, probe: ProbeContact, p_WP_m,
-                       tangent: _Tangent = None):
+                       tangent: _Tangent = None, held_coordinates=()):
     """(positions (n, 3) m, force on the sphere (3,) N, nodes touching, the Newton
     matrix used): the tissue at rest under gravity with the sphere held at
     ``p_WP_m`` (W, m), by Newton's method from ``positions_m`` (module docstring).
     ``tangent``: the Newton matrix to start with (default: at ``positions_m``); it is
     refactored at the current positions whenever REFRESH_ITERATIONS steps have not
-    converged. A RuntimeError if MAX_NEWTON_ITERATIONS do not."""
+    converged. A RuntimeError if MAX_NEWTON_ITERATIONS do not. ``held_coordinates``:
+    indices into the 3 n coordinates (node i's axis a at 3 i + a) held where
+    ``positions_m`` has them, besides the fixed nodes' (a symmetry plane's normal ones),
+    where no ``tangent`` (which has its own) is given."""
     x = np.array(positions_m, dtype=float)
-    tangent = tangent or _Tangent(model, x)
+    tangent = tangent or _Tangent(model, x, held_coordinates)
     free = tangent.free
     weight = (model.mass_kg[:, None] * model.gravity_m_s2).ravel()
 
@@ -175,7 +180,7 @@ def static_equilibrium(model: TissueModel, positions_m, probe: ProbeContact, p_W
         if np.abs(r).max() <= RELATIVE_TOLERANCE * scale:
             return x, on_sphere, touching, tangent
         if iteration % REFRESH_ITERATIONS == 0:
-            tangent = _Tangent(model, x)
+            tangent = _Tangent(model, x, tangent.held)
         step = tangent.solve(r, *_probe_normal_stiffness(model, x, probe, p_WP_m))
         # Backtrack while the step raises the force imbalance (a node entering or
         # leaving the sphere can overshoot).
@@ -193,12 +198,15 @@ def static_equilibrium(model: TissueModel, positions_m, probe: ProbeContact, p_W
 
 def press_states(model: TissueModel, rest_positions_m, probe: ProbeContact, p_xy_m,
                  depths_m: Sequence[float], *,
-                 max_step_m: float = MAX_PRESS_STEP_M) -> List[PressedState]:
+                 max_step_m: float = MAX_PRESS_STEP_M,
+                 held_coordinates=()) -> List[PressedState]:
     """The equilibria of the tissue with the sphere pressed straight down over
     ``p_xy_m`` (x, y in W, m) to each of ``depths_m`` (m below the undeformed
     surface there), in the order given. The tissue starts at rest under gravity
     from ``rest_positions_m`` (n, 3) (its reference nodes in W, m), the sphere
-    above it, and follows the sphere down through the sorted depths."""
+    above it, and follows the sphere down through the sorted depths.
+    ``held_coordinates`` as ``static_equilibrium``'s (a symmetry plane's normal
+    coordinates: a quarter of a body pressed where its two planes meet)."""
     probe.validate("probe")
     positive("max_step_m", max_step_m)
     depths = np.asarray(depths_m, dtype=float).ravel()
@@ -212,7 +220,8 @@ def press_states(model: TissueModel, rest_positions_m, probe: ProbeContact, p_xy
 
     lowest_rest = min(0.0, float(depths.min()))
     x, _, _, tangent = static_equilibrium(model, rest, probe,
-                                          centre(lowest_rest - probe.radius_m))
+                                          centre(lowest_rest - probe.radius_m),
+                                          held_coordinates=held_coordinates)
     states = {}
     reached = lowest_rest - probe.radius_m
     for depth in np.unique(depths):
