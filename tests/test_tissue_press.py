@@ -1,0 +1,136 @@
+"""The felt stiffness of tissue: the quasi-static pressing study checked against the
+haptic kernel stepped slowly, against Hertz's contact law, and the shipped slab's
+lump felt against plain tissue."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from maglev_haptics.analysis.tissue_press import (
+    contact_stiffness, hertz_force, press_curve, press_states, probe_force, surface_top_m)
+from maglev_haptics.plant_models.tissue_meshes import (
+    box_tetrahedra, graded_edges, grid_tetrahedra)
+from maglev_haptics.systems.lattice_dynamics import ProbeContact
+from maglev_haptics.systems.tissue_fem import (
+    stable_substeps, tick_arguments, tissue_model, tissue_tick_from)
+
+TICK_S = 1e-3
+YOUNGS_PA, NU = 5e3, 0.45  # the shipped tissue's material
+
+
+def small_slab():
+    """(rest positions (n, 3) m, model): a 40 x 40 x 20 mm slab of 1,536 tetrahedra,
+    5 kPa, its underside at z = 0 fixed, damped as the shipped tissue, under gravity."""
+    points, tetrahedra = box_tetrahedra((0.04, 0.04, 0.02), (8, 8, 4))
+    return points, tissue_model(points, tetrahedra, youngs_modulus_pa=YOUNGS_PA,
+                                poissons_ratio=NU, mass_density_kg_m3=1000.0,
+                                fixed=points[:, 2] < 1e-9, mass_damping_per_s=20.0,
+                                stiffness_damping_s=2e-5)
+
+
+def test_surface_top_is_the_undeformed_top_and_off_the_tissue_is_refused():
+    points, model = small_slab()
+    assert surface_top_m(points, model.tetrahedra, (0.003, -0.007)) == pytest.approx(0.02)
+    with pytest.raises(ValueError, match=r"p_xy_m = \[0.03, 0.0\]: must lie over"):
+        surface_top_m(points, model.tetrahedra, (0.03, 0.0))
+
+
+def test_static_press_matches_the_kernel_stepped_slowly():
+    """The equilibria agree with tissue_tick_from's state after the sphere descends
+    slowly (3 mm/s) and holds still for 0.6 s at each depth (the slab's lowest mode,
+    ~20 Hz, damped at alpha 20 1/s: its amplitude falls e^-6 in 0.6 s)."""
+    points, model = small_slab()
+    probe = ProbeContact(radius_m=0.008, stiffness_n_per_m=300.0)
+    depths = np.array([1.5e-3, 3e-3])
+    static = press_states(model, points, probe, (0.0, 0.0), depths)
+    substeps = stable_substeps(model, TICK_S, probe_stiffness_n_per_m=300.0)
+    arguments = tick_arguments(model, probe, TICK_S, substeps)
+    state = np.concatenate((points.ravel(), np.zeros(points.size)))
+    other = np.empty_like(state)
+    p_WP = np.array([0.0, 0.0, 0.02 + probe.radius_m])
+    speed_m_s = 3e-3
+    kernel_forces = []
+    for depth in depths:
+        target_z = 0.02 + probe.radius_m - depth
+        while True:  # descend, then hold
+            p_WP[2] = max(target_z, p_WP[2] - speed_m_s * TICK_S)
+            moving = p_WP[2] > target_z
+            tissue_tick_from(state, other, np.r_[p_WP, 0.0, 0.0, -speed_m_s * moving, p_WP],
+                             *arguments)
+            state, other = other, state
+            if not moving:
+                break
+        for _ in range(600):
+            tissue_tick_from(state, other, np.r_[p_WP, np.zeros(3), p_WP], *arguments)
+            state, other = other, state
+        _, on_sphere, _ = probe_force(model, state[:points.size].reshape(-1, 3), probe, p_WP)
+        kernel_forces.append(on_sphere[2])
+    forces = [s.force_n for s in static]
+    assert forces[1] > 2 * forces[0] > 0.0
+    np.testing.assert_allclose(kernel_forces, forces, rtol=0.02)
+
+
+@pytest.mark.slow
+def test_force_against_depth_follows_hertz():
+    """A 20 mm sphere pressed into a 200 x 200 x 100 mm slab of 5 kPa tissue (nu 0.45,
+    its underside fixed, no gravity) follows F = 4/3 E* sqrt(R) d^1.5 within 20 %
+    from 0.5 to 3 mm (the contact radius sqrt(R d) 3.2 to 7.7 mm, against the slab's
+    100 mm depth and half width). The quarter of the slab at x, y >= 0 is meshed,
+    its symmetry planes' normal coordinates held, pressed where they meet: 1 mm cubes
+    out to 7 mm, then growing to 36 mm; the probe's penalty 3000 N/m a node over a
+    10 um onset, so that the nodes sink a fraction of a micrometre into the sphere."""
+    radius_m = 0.02
+    edges = np.r_[np.arange(0.0, 0.007, 0.001), graded_edges(0.007, 0.1, 7, 0.06)]
+    points, tetrahedra = grid_tetrahedra(edges, edges, -edges[::-1])
+    model = tissue_model(points, tetrahedra, youngs_modulus_pa=YOUNGS_PA, poissons_ratio=NU,
+                         mass_density_kg_m3=1000.0, fixed=points[:, 2] < -0.1 + 1e-9,
+                         gravity_m_s2=(0.0, 0.0, 0.0))
+    held = np.r_[3 * np.flatnonzero(points[:, 0] == 0.0), 3 * np.flatnonzero(points[:, 1] == 0.0)
+                 + 1]
+    probe = ProbeContact(radius_m=radius_m, stiffness_n_per_m=3000.0, onset_depth_m=1e-5)
+    depths = np.linspace(0.5e-3, 3e-3, 6)
+    quarter = press_curve(model, points, probe, (0.0, 0.0), depths, held_coordinates=held)
+    ratio = 4.0 * quarter / hertz_force(depths, radius_m, YOUNGS_PA, NU)
+    assert np.all(np.abs(ratio - 1.0) < 0.2), ratio
+
+
+def test_hertz_force_is_the_law():
+    # E* = 5000 / (1 - 0.2025) = 6269.6 Pa; 4/3 E* sqrt(0.02) 0.003^1.5 = 0.19426 N.
+    assert hertz_force([0.003, -0.001], 0.02, YOUNGS_PA, NU) == pytest.approx([0.19426, 0.0],
+                                                                               abs=1e-5)
+
+
+@pytest.fixture(scope="module")
+def shipped_slab():
+    """(rest positions, model, the scene's probe) of the shipped palpation slab as
+    palpate_inclusion's scene reads it: its 8 mm sphere, TissueContact's probe law."""
+    from maglev_haptics.diagrams.scenario import load_scenario
+    from maglev_haptics.diagrams.tissue_model import read_scene_tissue
+    from maglev_haptics.diagrams.tissue_scene import kernel_model
+    from maglev_haptics.analysis.tissue_press import scene_probe
+
+    scene = load_scenario("palpate_inclusion").haptics.scene
+    body, = read_scene_tissue(scene.directives).bodies
+    return body.positions_m, kernel_model(body, scene.tissue), scene_probe(scene)
+
+
+def test_the_lump_is_felt_stiffer_than_plain_tissue(shipped_slab):
+    """At 3 mm the felt stiffness over the lump (the slab's middle, x = 15 mm) is at
+    least 1.5 times that over plain tissue where palpate_inclusion's sweep starts,
+    23 mm to its left (x = -8 mm), and 20 mm to its side (y = 20 mm)."""
+    points, model, probe = shipped_slab
+    over_lump = contact_stiffness(model, points, probe, (0.015, 0.0), 3e-3)
+    for plain_xy in ((-0.008, 0.0), (0.015, 0.020)):
+        plain = contact_stiffness(model, points, probe, plain_xy, 3e-3)
+        assert over_lump >= 1.5 * plain > 0.0, (plain_xy, over_lump, plain)
+
+
+def test_contact_stiffness_is_the_slope_of_the_press_curve(shipped_slab):
+    points, model, probe = shipped_slab
+    soft = dataclasses.replace(probe, stiffness_n_per_m=100.0)
+    forces = press_curve(model, points, soft, (0.015, 0.0), [2.9e-3, 3.1e-3])
+    slope = contact_stiffness(model, points, soft, (0.015, 0.0), 3e-3)
+    assert slope == pytest.approx((forces[1] - forces[0]) / 2e-4, rel=1e-6)
+    # A softer probe penalty in series with the tissue: the tool feels less.
+    assert slope < contact_stiffness(model, points, probe, (0.015, 0.0), 3e-3)
