@@ -12,6 +12,19 @@ and the delay from a sample to the force it causes:
 
 The estimator's own filtering (its 50 Hz alpha-beta filter) is left out: the
 coupling's 30 Hz filter dominates it.
+
+A tissue scene (a ``ModelScene`` whose models declare deformable bodies) renders
+the coupling in series with the tissue: the coupling's spring K and damper B pull
+the virtual tool, which presses the tissue with the contact stiffness k_t it meets
+(``tissue_press``: the sphere pressed TISSUE_PRESS_DEPTH_M into the top centre of
+each body, linearized there; the stiffest body counts). The tool's mass between
+them (grams, against a coupling of hundreds of N/m: its mode is far above the
+loop's) is taken as zero, so the tool is in balance between the two and the hand
+feels the series combination, in z: H k_t / (H + k_t) with H the coupling's
+impedance, then the loop's delay. Its passivity is that impedance's; the
+closed-loop stability (a Z-width point stable but not passive) is the loop's with
+the series combination's low-frequency stiffness and damping,
+K k_t / (K + k_t) and B (k_t / (K + k_t))^2.
 """
 
 import math
@@ -24,12 +37,14 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+import scipy.signal  # noqa: E402
 
 from maglev_haptics.analysis.parallel import map_jobs  # noqa: E402
 from maglev_haptics.analysis.run_plots import save_figure  # noqa: E402
 
 from maglev_haptics.analysis.haptic_loop import (  # noqa: E402
     LoopParameters, critical_stiffness, environment_impedance, is_stable)
+from maglev_haptics.analysis import tissue_press  # noqa: E402
 from maglev_haptics.analysis.passivity import passivity_bound, passivity_margin  # noqa: E402
 from maglev_haptics.diagrams.haptics import loop_delay_s  # noqa: E402
 
@@ -88,25 +103,104 @@ def _parameters_dict(p: LoopParameters) -> Dict:
     return {name: getattr(p, name) for name in p.__dataclass_fields__}
 
 
+# --- tissue --------------------------------------------------------------------------
+
+TISSUE_PRESS_DEPTH_M = 3e-3  # the depth at which the tissue's contact is linearized (m)
+
+
+def tissue_contact(scenario) -> Optional[Dict]:
+    """None unless the scenario's scene holds tissue; else the contact stiffness
+    (N/m) the tool meets pressed TISSUE_PRESS_DEPTH_M into each body's top centre
+    (the middle of its nodes' x-y extent, where the shipped slab's lump lies: the
+    stiffest spot, the conservative one for the loop), the stiffest body's for the
+    loop. About 3 s a body."""
+    from maglev_haptics.diagrams.tissue_model import read_scene_tissue
+    from maglev_haptics.diagrams.tissue_scene import kernel_model
+
+    scene = scenario.haptics.scene if scenario.haptics is not None else None
+    if not hasattr(scene, "directives"):
+        return None
+    bodies = read_scene_tissue(scene.directives, "haptics.scene.directives").bodies
+    if not bodies:
+        return None
+    probe = tissue_press.scene_probe(scene)
+    rows = []
+    for body in bodies:
+        lower, upper = body.positions_m.min(axis=0), body.positions_m.max(axis=0)
+        p_xy = 0.5 * (lower[:2] + upper[:2])
+        model = kernel_model(body, scene.tissue)
+        rows.append({
+            "body": f"{body.model}::{body.name}", "press_point_xy_W_m": p_xy.tolist(),
+            "surface_z_m": tissue_press.surface_top_m(body.positions_m, body.tetrahedra, p_xy),
+            "contact_stiffness_n_m": tissue_press.contact_stiffness(
+                model, body.positions_m, probe, p_xy, TISSUE_PRESS_DEPTH_M)})
+    return {"bodies": rows, "press_depth_m": TISSUE_PRESS_DEPTH_M,
+            "probe_radius_m": probe.radius_m,
+            "probe_stiffness_n_per_m_per_node": probe.stiffness_n_per_m,
+            "contact_stiffness_n_m": max(row["contact_stiffness_n_m"] for row in rows)}
+
+
+def felt_loop(p: LoopParameters, tissue_stiffness_n_m: Optional[float]) -> LoopParameters:
+    """``p`` with the coupling's K and B replaced by their series combination with
+    the tissue's contact stiffness k_t (N/m), at low frequency: K k_t / (K + k_t)
+    and B (k_t / (K + k_t))^2; ``p`` itself where there is no tissue."""
+    if tissue_stiffness_n_m is None:
+        return p
+    share = tissue_stiffness_n_m / (p.stiffness + tissue_stiffness_n_m)
+    return replace(p, stiffness=p.stiffness * share, damping=p.damping * share ** 2)
+
+
+def felt_impedance(p: LoopParameters, tissue_stiffness_n_m: Optional[float]):
+    """The rendered environment the hand feels, a ``scipy.signal.dlti`` (force over
+    displacement): ``environment_impedance`` in series with the tissue's contact
+    stiffness k_t (N/m) where there is one, the massless tool between them, the
+    loop's delay after both: k_t N / (k_t D + N) z^-d for the coupling's N / D."""
+    delayed = environment_impedance(p)
+    if tissue_stiffness_n_m is None:
+        return delayed
+    coupling = environment_impedance(replace(p, delay_s=0.0))
+    numerator, denominator = coupling.num, coupling.den
+    delay = [1.0] + [0.0] * (len(delayed.den) - len(denominator))  # z^d
+    return scipy.signal.dlti(
+        tissue_stiffness_n_m * numerator,
+        np.polymul(np.polyadd(tissue_stiffness_n_m * denominator, numerator), delay),
+        dt=p.period_s)
+
+
+def _tissue_fields(tissue: Optional[Dict], p: LoopParameters) -> Dict:
+    """The study's tissue fields: the contact and the felt stiffness and damping."""
+    if tissue is None:
+        return {}
+    felt = felt_loop(p, tissue["contact_stiffness_n_m"])
+    return {"tissue": tissue, "felt_stiffness_n_m": felt.stiffness,
+            "felt_damping_n_s_m": felt.damping}
+
+
 # --- passivity -------------------------------------------------------------------
 
 def passivity_study(scenario) -> Dict:
     """The coupling's passivity margin with the device's own damping (zero for a
     maglev device), the damping it needs over frequency, and whether the hand's
-    damping covers it."""
+    damping covers it. In a tissue scene, the coupling in series with the tissue's
+    contact stiffness (module docstring): the environment the hand feels pressing it."""
     p = loop_parameters(scenario)
-    H = environment_impedance(p)
+    tissue = tissue_contact(scenario)
+    k_t = None if tissue is None else tissue["contact_stiffness_n_m"]
+    H = felt_impedance(p, k_t)
     needed = -passivity_margin(H, 0.0)
     frequencies_hz = np.linspace(1.0, 0.5 / p.period_s, 400)
     bound = passivity_bound(H, 2 * np.pi * frequencies_hz * p.period_s)
-    wall = environment_impedance(replace(p, delay_s=0.0, velocity_filter_hz=math.inf))
+    wall = felt_impedance(replace(p, delay_s=0.0, velocity_filter_hz=math.inf), k_t)
+    felt = felt_loop(p, k_t)
     return {
-        "parameters": _parameters_dict(p),
+        "parameters": _parameters_dict(p), **_tissue_fields(tissue, p),
         "margin_device_only_n_s_m": passivity_margin(H, p.device_damping),
         "damping_needed_n_s_m": needed,
         "margin_with_hand_n_s_m": passivity_margin(H, p.device_damping + p.hand_damping),
         "ideal_wall_damping_needed_n_s_m": -passivity_margin(wall, 0.0),
-        "closed_form_ideal_wall_n_s_m": p.stiffness * p.period_s / 2 + abs(p.damping),
+        # K T / 2 + |B| holds for a spring and damper only, not through the tissue.
+        "closed_form_ideal_wall_n_s_m": (p.stiffness * p.period_s / 2 + abs(p.damping)
+                                         if tissue is None else None),
         "frequencies_hz": frequencies_hz.tolist(),
         "damping_needed_by_frequency_n_s_m": bound.tolist(),
         "meaning": (
@@ -115,7 +209,10 @@ def passivity_study(scenario) -> Dict:
             f"{p.velocity_filter_hz:g} Hz, {1e3 * p.delay_s:.2f} ms delay rounded up to whole "
             f"{1e3 * p.period_s:g} ms periods) is passive only if the hand or the controller "
             f"supplies {needed:.2f} N s/m of damping; the simulated hand's arm gives "
-            f"{p.hand_damping:g} N s/m."),
+            f"{p.hand_damping:g} N s/m." + ("" if tissue is None else
+            f" The tool presses tissue {TISSUE_PRESS_DEPTH_M * 1e3:g} mm deep at its top "
+            f"centre, meeting {k_t:.1f} N/m: in series with the coupling the hand feels "
+            f"{felt.stiffness:.1f} N/m and {felt.damping:.3g} N s/m.")),
     }
 
 
@@ -129,8 +226,12 @@ def plot_passivity(results: Dict, out_dir: Path, title: str) -> Path:
     axes.axhline(p["device_damping"], color="tab:red", ls=":", label="device damping (maglev)")
     axes.set_xlabel("frequency (Hz)")
     axes.set_ylabel("damping (N s/m)")
+    pressing = ("" if "tissue" not in results else
+                f"\npressing tissue (k_t {results['tissue']['contact_stiffness_n_m']:.1f} N/m "
+                f"at {1e3 * results['tissue']['press_depth_m']:g} mm) through the coupling: "
+                f"felt {results['felt_stiffness_n_m']:.1f} N/m")
     axes.set_title(f"{title}: passivity (Colgate and Schenkel), needs "
-                   f"{results['damping_needed_n_s_m']:.2f} N s/m")
+                   f"{results['damping_needed_n_s_m']:.2f} N s/m{pressing}", fontsize=10)
     axes.legend()
     return save_figure(figure, Path(out_dir) / "passivity.png")
 
@@ -156,23 +257,28 @@ def zwidth_study(scenario, settings: ZWidthSettings,
     """Colgate and Brown's Z-width: over a grid of the rendered stiffness K and
     damping B, each point is passive with the device's damping alone, passive with the
     hand's as well, stable in closed loop with the hand (but not passive), or unstable.
-    Region codes: 3 passive (device), 2 passive with the hand, 1 stable, 0 unstable."""
+    Region codes: 3 passive (device), 2 passive with the hand, 1 stable, 0 unstable.
+    In a tissue scene each (K, B) is the coupling's, in series with the tissue's
+    contact stiffness (module docstring)."""
     p = loop_parameters(scenario)
+    tissue = tissue_contact(scenario)
+    k_t = None if tissue is None else tissue["contact_stiffness_n_m"]
     K, B = np.asarray(settings.stiffness_n_m), np.asarray(settings.damping_n_s_m)
     region = np.zeros((len(B), len(K)), dtype=int)
     for i, damping in enumerate(B):
         for j, stiffness in enumerate(K):
             region[i, j] = zwidth_region(replace(p, stiffness=float(stiffness),
-                                                 damping=float(damping)))
+                                                 damping=float(damping)), k_t)
         if progress is not None:
             progress(i + 1, len(B))
     stable_K = [float(K[row >= 1].max()) if (row >= 1).any() else None for row in region]
-    return {"parameters": _parameters_dict(p), "stiffness_n_m": K.tolist(),
+    return {"parameters": _parameters_dict(p), **_tissue_fields(tissue, p),
+            "stiffness_n_m": K.tolist(),
             "damping_n_s_m": B.tolist(), "region": region.tolist(),
             "region_codes": {str(code): name for code, name in enumerate(ZWIDTH_REGIONS)},
             "largest_stable_stiffness_by_damping_n_m": stable_K,
             "scenario_point": {"stiffness_n_m": p.stiffness, "damping_n_s_m": p.damping,
-                               "region": ZWIDTH_REGIONS[zwidth_region(p)]}}
+                               "region": ZWIDTH_REGIONS[zwidth_region(p, k_t)]}}
 
 
 # The Z-width's regions, by their code.
@@ -180,14 +286,18 @@ ZWIDTH_REGIONS = ("unstable", "stable with the hand, not passive",
                   "passive with the hand's damping", "passive with the device's damping alone")
 
 
-def zwidth_region(p) -> int:
-    """The Z-width region code (an index of ZWIDTH_REGIONS) of the loop ``p``."""
-    H = environment_impedance(p)
-    if passivity_margin(H, p.device_damping) > 0:
-        return 3
-    if passivity_margin(H, p.device_damping + p.hand_damping) > 0:
-        return 2
-    return 1 if is_stable(p) else 0
+def zwidth_region(p, tissue_stiffness_n_m: Optional[float] = None) -> int:
+    """The Z-width region code (an index of ZWIDTH_REGIONS) of the loop ``p``, its
+    coupling in series with the tissue's contact stiffness (N/m) if one is given."""
+    H = felt_impedance(p, tissue_stiffness_n_m)
+    # A negative damper in series with the tissue is an unstable environment: never
+    # passive (passivity_margin takes stable ones only).
+    if np.all(np.abs(H.poles) < 1.0):
+        if passivity_margin(H, p.device_damping) > 0:
+            return 3
+        if passivity_margin(H, p.device_damping + p.hand_damping) > 0:
+            return 2
+    return 1 if is_stable(felt_loop(p, tissue_stiffness_n_m)) else 0
 
 
 def plot_zwidth(results: Dict, out_dir: Path, title: str) -> Path:
@@ -204,6 +314,11 @@ def plot_zwidth(results: Dict, out_dir: Path, title: str) -> Path:
     axes.set_xscale("log")
     axes.set_xlabel("rendered stiffness K (N/m)")
     axes.set_ylabel("rendered damping B (N s/m)")
+    if "tissue" in results:
+        # The felt stiffness can never pass the tissue's: the coupling is in series.
+        axes.axvline(results["tissue"]["contact_stiffness_n_m"], color="k", ls=":",
+                     label="tissue contact stiffness k_t (3 mm pressed)")
+        axes.set_xlabel("coupling stiffness K (N/m), in series with the tissue's k_t")
     axes.set_title(f"{title}: Z-width")
     axes.legend(loc="upper left")
     return save_figure(figure, Path(out_dir) / "zwidth.png")
