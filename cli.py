@@ -509,6 +509,8 @@ Studies:
   passivity      Colgate-Schenkel margin of the coupling, and the damping a maglev
                  device must get from the hand or controller
   zwidth         the stiffness-damping range renderable stably and passively
+                 (both, in a tissue scene: the coupling in series with the contact
+                 stiffness the tool meets 3 mm pressed into the tissue's top centre)
   stability-map  largest stable stiffness against damping over sample rates and
                  delays, with closed forms; and the whole loop's onsets, linearized and
                  simulated (minutes; --quick leaves them out)

@@ -134,3 +134,46 @@ def test_contact_stiffness_is_the_slope_of_the_press_curve(shipped_slab):
     assert slope == pytest.approx((forces[1] - forces[0]) / 2e-4, rel=1e-6)
     # A softer probe penalty in series with the tissue: the tool feels less.
     assert slope < contact_stiffness(model, points, probe, (0.015, 0.0), 3e-3)
+
+
+# --- the haptic loop pressing tissue ---------------------------------------------------
+
+def test_felt_impedance_is_the_coupling_in_series_with_the_tissue():
+    from maglev_haptics.analysis.haptic_loop import LoopParameters, environment_impedance
+    from maglev_haptics.analysis.loop_studies import felt_impedance, felt_loop
+
+    p = LoopParameters(stiffness=400.0, damping=5.0)
+    assert felt_impedance(p, None).num.tolist() == environment_impedance(p).num.tolist()
+    felt = felt_loop(p, 100.0)
+    assert felt.stiffness == pytest.approx(80.0) and felt.damping == pytest.approx(5.0 * 0.04)
+    # At a low frequency the series impedance is the felt spring; far stiffer tissue
+    # leaves the coupling's own.
+    _, response = felt_impedance(p, 100.0).freqresp([2 * np.pi * 0.01 * p.period_s])
+    assert abs(response[0]) == pytest.approx(80.0, rel=1e-3)
+    _, stiff = felt_impedance(p, 1e9).freqresp([2 * np.pi * 40.0 * p.period_s])
+    _, coupling = environment_impedance(p).freqresp([2 * np.pi * 40.0 * p.period_s])
+    assert stiff[0] == pytest.approx(coupling[0], rel=1e-5)
+
+
+def test_passivity_and_zwidth_of_a_tissue_scene(tmp_path):
+    """palpate_inclusion's studies say the contact stiffness 3 mm pressed at the
+    slab's top centre (over the lump) and the felt stiffness, less than both the
+    coupling's and the tissue's; a scene without tissue has no such fields."""
+    from maglev_haptics.analysis.loop_studies import (
+        ZWidthSettings, passivity_study, zwidth_study)
+    from maglev_haptics.diagrams.scenario import load_scenario
+
+    scenario = load_scenario("palpate_inclusion")
+    results = passivity_study(scenario)
+    tissue = results["tissue"]
+    assert tissue["bodies"][0]["press_point_xy_W_m"] == pytest.approx([0.015, 0.0])
+    k_t = tissue["contact_stiffness_n_m"]
+    assert 20.0 < k_t < 300.0
+    felt = results["felt_stiffness_n_m"]
+    assert felt == pytest.approx(400.0 * k_t / (400.0 + k_t))
+    assert results["margin_with_hand_n_s_m"] > 0.0
+    grid = ZWidthSettings([100.0, 400.0], [5.0])
+    zwidth = zwidth_study(scenario, grid)
+    assert zwidth["tissue"]["contact_stiffness_n_m"] == pytest.approx(k_t)
+    assert zwidth["scenario_point"]["region"] == "passive with the hand's damping"
+    assert "tissue" not in passivity_study(load_scenario("peg_in_hole"))
