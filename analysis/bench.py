@@ -230,8 +230,7 @@ def run_benchmarks(duration_s: Optional[float] = None, progress: bool = True,
         other_core_us = None if lattice is None else lattice_costs(
             scenario.haptics.scene)[f"symplectic_euler_{scenario.haptics.scene.substeps}_us"]
         if built.haptics is not None and built.haptics.scene.tissue:
-            simulator, _, _ = simulate(built, 0.05, progress=False)
-            tissue = tissue_costs(built, simulator.get_context())
+            tissue = tissue_costs(scenario)
             results["tissue"][name] = tissue
             other_core_us = sum(body["kernel_tick_us"] for body in tissue.values())
             results["machine"]["tissue_tetrahedra_per_us"] = min(

@@ -7,7 +7,6 @@ from maglev_haptics.analysis import bench
 from maglev_haptics.analysis.bench import floor_us, physics_floor_us
 from maglev_haptics.analysis.tissue_bench import tissue_costs
 from maglev_haptics.diagrams.application import BuildDiagram
-from maglev_haptics.diagrams.runner import simulate
 from maglev_haptics.diagrams.scenario import load_scenario
 
 
@@ -101,9 +100,9 @@ def test_the_yardsticks_say_only_what_was_measured():
 
 
 def test_tissue_costs_time_the_kernel_and_the_system():
-    built = BuildDiagram(load_scenario("palpate_inclusion"))
-    simulator, _, _ = simulate(built, 0.01, progress=False)
-    (body, costs), = tissue_costs(built, simulator.get_context()).items()
+    scenario = load_scenario("palpate_inclusion")
+    built = BuildDiagram(scenario)
+    (body, costs), = tissue_costs(scenario).items()
     assert body == "slab::palpation_slab"
     tissue = built.haptics.scene.tissue[0]
     assert (costs["tetrahedra"], costs["substeps"]) == (tissue.model.num_tetrahedra,
@@ -111,4 +110,7 @@ def test_tissue_costs_time_the_kernel_and_the_system():
     # A tick is at least its substeps' element passes.
     pass_us = costs["tetrahedra"] / costs["tetrahedra_per_us"]
     assert costs["kernel_tick_us"] > costs["substeps"] * pass_us * 0.8
-    assert costs["system_tick_us"] > 0.5 * costs["kernel_tick_us"]
+    # The system's synchronous tick is the kernel's and a little more (state copies,
+    # the contact): nothing like a second kernel.
+    assert 0.5 * costs["kernel_tick_us"] < costs["system_tick_us"] < 1.5 * costs[
+        "kernel_tick_us"] + 100.0
