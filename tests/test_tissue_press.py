@@ -37,9 +37,9 @@ def test_surface_top_is_the_undeformed_top_and_off_the_tissue_is_refused():
 
 
 def test_static_press_matches_the_kernel_stepped_slowly():
-    """The equilibria agree with tissue_tick_from's state after the sphere descends
-    slowly (3 mm/s) and holds still for 0.6 s at each depth (the slab's lowest mode,
-    ~20 Hz, damped at alpha 20 1/s: its amplitude falls e^-6 in 0.6 s)."""
+    """The equilibria agree with tissue_tick_from's state (to 1e-5; measured: 1e-7)
+    after the sphere descends slowly (3 mm/s) and holds still for 0.6 s at each depth
+    (the slab's lowest mode, ~20 Hz, damped at alpha 20 1/s: e^-6 in 0.6 s)."""
     points, model = small_slab()
     probe = ProbeContact(radius_m=0.008, stiffness_n_per_m=300.0)
     depths = np.array([1.5e-3, 3e-3])
@@ -68,7 +68,7 @@ def test_static_press_matches_the_kernel_stepped_slowly():
         kernel_forces.append(on_sphere[2])
     forces = [s.force_n for s in static]
     assert forces[1] > 2 * forces[0] > 0.0
-    np.testing.assert_allclose(kernel_forces, forces, rtol=0.02)
+    np.testing.assert_allclose(kernel_forces, forces, rtol=1e-5)
 
 
 @pytest.mark.slow
