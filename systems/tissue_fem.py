@@ -291,6 +291,18 @@ def _gather_edges(y, corners, e0, count, d):
 
 
 @numba.njit(cache=True, fastmath=LINK_MATH, error_model="numpy", inline="always")
+def _product3(a00, a01, a02, a10, a11, a12, a20, a21, a22,
+              b00, b01, b02, b10, b11, b12, b20, b21, b22):
+    """The 3 x 3 product a b, row by row (9 numbers); a transpose is its arguments
+    given column by column."""
+    return (a00 * b00 + a01 * b10 + a02 * b20, a00 * b01 + a01 * b11 + a02 * b21,
+            a00 * b02 + a01 * b12 + a02 * b22, a10 * b00 + a11 * b10 + a12 * b20,
+            a10 * b01 + a11 * b11 + a12 * b21, a10 * b02 + a11 * b12 + a12 * b22,
+            a20 * b00 + a21 * b10 + a22 * b20, a20 * b01 + a21 * b11 + a22 * b21,
+            a20 * b02 + a21 * b12 + a22 * b22)
+
+
+@numba.njit(cache=True, fastmath=LINK_MATH, error_model="numpy", inline="always")
 def _element_arithmetic(d, tick_rows, pass_rows, block, count):
     """d's rows 3 (a - 1) + k = the elastic force (N) on corner a (1..3) along k of
     each tetrahedron of ``block``, from its displacement edge matrix Du (m) in the same
@@ -316,25 +328,13 @@ def _element_arithmetic(d, tick_rows, pass_rows, block, count):
         s01, s11, s21 = d[3 * W + c], d[4 * W + c], d[5 * W + c]
         s02, s12, s22 = d[6 * W + c], d[7 * W + c], d[8 * W + c]
         # Q = R^T Du: the edges' displacements in the tetrahedron's rotated frame.
-        q00 = r00 * s00 + r10 * s10 + r20 * s20
-        q01 = r00 * s01 + r10 * s11 + r20 * s21
-        q02 = r00 * s02 + r10 * s12 + r20 * s22
-        q10 = r01 * s00 + r11 * s10 + r21 * s20
-        q11 = r01 * s01 + r11 * s11 + r21 * s21
-        q12 = r01 * s02 + r11 * s12 + r21 * s22
-        q20 = r02 * s00 + r12 * s10 + r22 * s20
-        q21 = r02 * s01 + r12 * s11 + r22 * s21
-        q22 = r02 * s02 + r12 * s12 + r22 * s22
+        q00, q01, q02, q10, q11, q12, q20, q21, q22 = _product3(
+            r00, r10, r20, r01, r11, r21, r02, r12, r22,
+            s00, s01, s02, s10, s11, s12, s20, s21, s22)
         # H = Q Dm^-1.
-        h00 = q00 * b00 + q01 * b10 + q02 * b20
-        h01 = q00 * b01 + q01 * b11 + q02 * b21
-        h02 = q00 * b02 + q01 * b12 + q02 * b22
-        h10 = q10 * b00 + q11 * b10 + q12 * b20
-        h11 = q10 * b01 + q11 * b11 + q12 * b21
-        h12 = q10 * b02 + q11 * b12 + q12 * b22
-        h20 = q20 * b00 + q21 * b10 + q22 * b20
-        h21 = q20 * b01 + q21 * b11 + q22 * b21
-        h22 = q20 * b02 + q21 * b12 + q22 * b22
+        h00, h01, h02, h10, h11, h12, h20, h21, h22 = _product3(
+            q00, q01, q02, q10, q11, q12, q20, q21, q22,
+            b00, b01, b02, b10, b11, b12, b20, b21, b22)
         # -V0 S: the rest stress of R plus that of sym(H).
         minus_two_mu_v = pass_rows[e0 + 9 * W + c]
         minus_mu_v = pass_rows[e0 + 10 * W + c]
@@ -346,25 +346,14 @@ def _element_arithmetic(d, tick_rows, pass_rows, block, count):
         t02 = tick_rows[r0 + 13 * W + c] + minus_mu_v * (h02 + h20)
         t12 = tick_rows[r0 + 14 * W + c] + minus_mu_v * (h12 + h21)
         # T = -V0 S Dm^-T: column a - 1 for corner a.
-        w00 = t00 * b00 + t01 * b01 + t02 * b02
-        w01 = t00 * b10 + t01 * b11 + t02 * b12
-        w02 = t00 * b20 + t01 * b21 + t02 * b22
-        w10 = t01 * b00 + t11 * b01 + t12 * b02
-        w11 = t01 * b10 + t11 * b11 + t12 * b12
-        w12 = t01 * b20 + t11 * b21 + t12 * b22
-        w20 = t02 * b00 + t12 * b01 + t22 * b02
-        w21 = t02 * b10 + t12 * b11 + t22 * b12
-        w22 = t02 * b20 + t12 * b21 + t22 * b22
-        # The forces R T, corner by corner.
-        d[c] = r00 * w00 + r01 * w10 + r02 * w20
-        d[W + c] = r10 * w00 + r11 * w10 + r12 * w20
-        d[2 * W + c] = r20 * w00 + r21 * w10 + r22 * w20
-        d[3 * W + c] = r00 * w01 + r01 * w11 + r02 * w21
-        d[4 * W + c] = r10 * w01 + r11 * w11 + r12 * w21
-        d[5 * W + c] = r20 * w01 + r21 * w11 + r22 * w21
-        d[6 * W + c] = r00 * w02 + r01 * w12 + r02 * w22
-        d[7 * W + c] = r10 * w02 + r11 * w12 + r12 * w22
-        d[8 * W + c] = r20 * w02 + r21 * w12 + r22 * w22
+        w00, w01, w02, w10, w11, w12, w20, w21, w22 = _product3(
+            t00, t01, t02, t01, t11, t12, t02, t12, t22,
+            b00, b10, b20, b01, b11, b21, b02, b12, b22)
+        # The forces R T, corner by corner: column a - 1 of R T in rows 3 (a - 1) + k.
+        (d[c], d[3 * W + c], d[6 * W + c], d[W + c], d[4 * W + c], d[7 * W + c], d[2 * W + c],
+         d[5 * W + c], d[8 * W + c]) = _product3(
+            r00, r01, r02, r10, r11, r12, r20, r21, r22,
+            w00, w01, w02, w10, w11, w12, w20, w21, w22)
 
 
 @numba.njit(cache=True, fastmath=LINK_MATH, error_model="numpy", inline="always")
@@ -416,15 +405,10 @@ def _deformation_gradients(d, element_rows, block, count):
         s00, s10, s20 = d[c], d[W + c], d[2 * W + c]
         s01, s11, s21 = d[3 * W + c], d[4 * W + c], d[5 * W + c]
         s02, s12, s22 = d[6 * W + c], d[7 * W + c], d[8 * W + c]
-        d[9 * W + c] = s00 * b00 + s01 * b10 + s02 * b20
-        d[10 * W + c] = s00 * b01 + s01 * b11 + s02 * b21
-        d[11 * W + c] = s00 * b02 + s01 * b12 + s02 * b22
-        d[12 * W + c] = s10 * b00 + s11 * b10 + s12 * b20
-        d[13 * W + c] = s10 * b01 + s11 * b11 + s12 * b21
-        d[14 * W + c] = s10 * b02 + s11 * b12 + s12 * b22
-        d[15 * W + c] = s20 * b00 + s21 * b10 + s22 * b20
-        d[16 * W + c] = s20 * b01 + s21 * b11 + s22 * b21
-        d[17 * W + c] = s20 * b02 + s21 * b12 + s22 * b22
+        (d[9 * W + c], d[10 * W + c], d[11 * W + c], d[12 * W + c], d[13 * W + c],
+         d[14 * W + c], d[15 * W + c], d[16 * W + c], d[17 * W + c]) = _product3(
+            s00, s01, s02, s10, s11, s12, s20, s21, s22,
+            b00, b01, b02, b10, b11, b12, b20, b21, b22)
 
 
 @numba.njit(cache=True, fastmath=LINK_MATH, error_model="numpy", inline="always")
