@@ -291,6 +291,15 @@ def _gather_edges(y, corners, e0, count, d):
 
 
 @numba.njit(cache=True, fastmath=LINK_MATH, error_model="numpy", inline="always")
+def _rows9(rows, start, c):
+    """rows[start + k _TET_ROW + c] for k = 0..8: a block's 3 x 3 matrix of element c."""
+    W = _TET_ROW
+    return (rows[start + c], rows[start + W + c], rows[start + 2 * W + c],
+            rows[start + 3 * W + c], rows[start + 4 * W + c], rows[start + 5 * W + c],
+            rows[start + 6 * W + c], rows[start + 7 * W + c], rows[start + 8 * W + c])
+
+
+@numba.njit(cache=True, fastmath=LINK_MATH, error_model="numpy", inline="always")
 def _product3(a00, a01, a02, a10, a11, a12, a20, a21, a22,
               b00, b01, b02, b10, b11, b12, b20, b21, b22):
     """The 3 x 3 product a b, row by row (9 numbers); a transpose is its arguments
@@ -313,20 +322,10 @@ def _element_arithmetic(d, tick_rows, pass_rows, block, count):
     r0 = block * TICK_ROWS * W
     e0 = block * PASS_ROWS * W
     for c in range(count):
-        r00, r01, r02 = tick_rows[r0 + c], tick_rows[r0 + W + c], tick_rows[r0 + 2 * W + c]
-        r10, r11, r12 = (tick_rows[r0 + 3 * W + c], tick_rows[r0 + 4 * W + c],
-                         tick_rows[r0 + 5 * W + c])
-        r20, r21, r22 = (tick_rows[r0 + 6 * W + c], tick_rows[r0 + 7 * W + c],
-                         tick_rows[r0 + 8 * W + c])
-        b00, b01, b02 = pass_rows[e0 + c], pass_rows[e0 + W + c], pass_rows[e0 + 2 * W + c]
-        b10, b11, b12 = (pass_rows[e0 + 3 * W + c], pass_rows[e0 + 4 * W + c],
-                         pass_rows[e0 + 5 * W + c])
-        b20, b21, b22 = (pass_rows[e0 + 6 * W + c], pass_rows[e0 + 7 * W + c],
-                         pass_rows[e0 + 8 * W + c])
+        r00, r01, r02, r10, r11, r12, r20, r21, r22 = _rows9(tick_rows, r0, c)
+        b00, b01, b02, b10, b11, b12, b20, b21, b22 = _rows9(pass_rows, e0, c)
         # The displacement edge matrix Du, column j = edge j, row k = coordinate k.
-        s00, s10, s20 = d[c], d[W + c], d[2 * W + c]
-        s01, s11, s21 = d[3 * W + c], d[4 * W + c], d[5 * W + c]
-        s02, s12, s22 = d[6 * W + c], d[7 * W + c], d[8 * W + c]
+        s00, s10, s20, s01, s11, s21, s02, s12, s22 = _rows9(d, 0, c)
         # Q = R^T Du: the edges' displacements in the tetrahedron's rotated frame.
         q00, q01, q02, q10, q11, q12, q20, q21, q22 = _product3(
             r00, r10, r20, r01, r11, r21, r02, r12, r22,
@@ -396,15 +395,8 @@ def _deformation_gradients(d, element_rows, block, count):
     W = _TET_ROW
     e0 = block * ELEMENT_ROWS * W
     for c in range(count):
-        b00, b01, b02 = (element_rows[e0 + c], element_rows[e0 + W + c],
-                         element_rows[e0 + 2 * W + c])
-        b10, b11, b12 = (element_rows[e0 + 3 * W + c], element_rows[e0 + 4 * W + c],
-                         element_rows[e0 + 5 * W + c])
-        b20, b21, b22 = (element_rows[e0 + 6 * W + c], element_rows[e0 + 7 * W + c],
-                         element_rows[e0 + 8 * W + c])
-        s00, s10, s20 = d[c], d[W + c], d[2 * W + c]
-        s01, s11, s21 = d[3 * W + c], d[4 * W + c], d[5 * W + c]
-        s02, s12, s22 = d[6 * W + c], d[7 * W + c], d[8 * W + c]
+        b00, b01, b02, b10, b11, b12, b20, b21, b22 = _rows9(element_rows, e0, c)
+        s00, s10, s20, s01, s11, s21, s02, s12, s22 = _rows9(d, 0, c)
         (d[9 * W + c], d[10 * W + c], d[11 * W + c], d[12 * W + c], d[13 * W + c],
          d[14 * W + c], d[15 * W + c], d[16 * W + c], d[17 * W + c]) = _product3(
             s00, s01, s02, s10, s11, s12, s20, s21, s22,
