@@ -65,12 +65,23 @@ NEUTRAL_TOLERANCE = 1e-4  # |multiplier| this close to 1 over the period: a neut
 def check_applies(scenario) -> None:
     """StudyNotApplicable for a loop whose state is too big for central differences."""
     from maglev_haptics.diagrams.deformable_scene import DeformableSurface
-    if scenario.haptics is not None and isinstance(scenario.haptics.scene, DeformableSurface):
+    from maglev_haptics.diagrams.scene import ModelScene
+    from maglev_haptics.diagrams.scene_models import holds_tissue
+    if scenario.haptics is None:
+        return
+    scene = scenario.haptics.scene
+    if isinstance(scene, DeformableSurface):
         raise StudyNotApplicable(
             "its lattice has tens of thousands of states: central differences would take two "
             "runs per state; the lattice's own stability is max_stable_link_stiffness's "
             "(systems/lattice_dynamics.py), and the coupling's loop is in `passivity`, "
             "`zwidth` and `stability-map`")
+    if isinstance(scene, ModelScene) and holds_tissue(scene.directives):
+        raise StudyNotApplicable(
+            "its tissue has thousands of states (each node's position and velocity): "
+            "central differences would take two runs per state; the tissue's own stability "
+            "is stable_substeps's (systems/tissue_fem.py), and the coupling's loop with the "
+            "tissue's contact stiffness is in `passivity` and `zwidth`")
 
 
 def operating_point_s(scenario) -> float:

@@ -96,8 +96,9 @@ def _check_workspace(results, tmp_path):
 
 
 # The default suite linearizes one haptic loop with a scripted hand (B, C, D) and the
-# refused deformable scene; `-m slow` covers every scenario.
-QUICK_LINEARIZATIONS = {("linearize", "peg_in_hole"), ("linearize", "deformable_surface")}
+# refused deformable scenes; `-m slow` covers every scenario.
+QUICK_LINEARIZATIONS = {("linearize", "peg_in_hole"), ("linearize", "deformable_surface"),
+                        ("linearize", "palpate_inclusion")}
 
 
 def first_of_each_file(study):
@@ -112,12 +113,16 @@ def first_of_each_file(study):
     *first_of_each_file("linearize"), *first_of_each_file("multirate")])
 def test_loop_linearization_runs_or_says_why(study, file, name, tmp_path, capsys):
     """Every shipped scenario's loop is stable at its operating point, the deformable
-    one is refused with the reason."""
+    ones (the lattice, tissue) are refused with the reason."""
     code = main(["analyze", study, file, "--name", name, "--quick", "--json",
                  "--out", str(tmp_path)])
     if file == "deformable_surface":
         assert code == 2
         assert "tens of thousands of states" in capsys.readouterr().err
+        return
+    if file == "palpate_inclusion":
+        assert code == 2
+        assert "its tissue has thousands of states" in capsys.readouterr().err
         return
     assert code == 0
     results = json.loads((tmp_path / f"{study}.json").read_text())
