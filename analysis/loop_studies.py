@@ -133,7 +133,7 @@ def tissue_contact(scenario) -> Optional[Dict]:
             "body": f"{body.model}::{body.name}", "press_point_xy_W_m": p_xy.tolist(),
             "surface_z_m": tissue_press.surface_top_m(body.positions_m, body.tetrahedra, p_xy),
             "contact_stiffness_n_m": tissue_press.contact_stiffness(
-                model, body.positions_m, probe, p_xy, TISSUE_PRESS_DEPTH_M)})
+                model, probe, p_xy, TISSUE_PRESS_DEPTH_M)})
     return {"bodies": rows, "press_depth_m": TISSUE_PRESS_DEPTH_M,
             "probe_radius_m": probe.radius_m,
             "probe_stiffness_n_per_m_per_node": probe.stiffness_n_per_m,

@@ -41,7 +41,7 @@ def tissue_costs(scenario) -> Dict[str, Dict]:
     costs = {}
     for tissue in built.haptics.scene.tissue:
         kernel_us, tetrahedra_per_us = tick_timing(
-            tissue.model, tissue.body.positions_m, probe=tissue.probe, period_s=built.tick_s,
+            tissue.model, probe=tissue.probe, period_s=built.tick_s,
             substeps=tissue.substeps)
         name = tissue.system.get_name()
         system_us = leaf_system_costs(built, context, n=SYSTEM_UPDATES, only={name})[name]

@@ -196,15 +196,14 @@ def static_equilibrium(model: TissueModel, positions_m, probe: ProbeContact, p_W
                        f"{np.abs(r).max():.3g} N after {MAX_NEWTON_ITERATIONS} Newton steps")
 
 
-def press_states(model: TissueModel, rest_positions_m, probe: ProbeContact, p_xy_m,
+def press_states(model: TissueModel, probe: ProbeContact, p_xy_m,
                  depths_m: Sequence[float], *,
                  max_step_m: float = MAX_PRESS_STEP_M,
                  held_coordinates=()) -> List[PressedState]:
     """The equilibria of the tissue with the sphere pressed straight down over
     ``p_xy_m`` (x, y in W, m) to each of ``depths_m`` (m below the undeformed
     surface there), in the order given. The tissue starts at rest under gravity
-    from ``rest_positions_m`` (n, 3) (its reference nodes in W, m), the sphere
-    above it, and follows the sphere down through the sorted depths.
+    from its reference nodes (``model.rest_positions_m``), the sphere above it, and follows the sphere down through the sorted depths.
     ``held_coordinates`` as ``static_equilibrium``'s (a symmetry plane's normal
     coordinates: a quarter of a body pressed where its two planes meet)."""
     probe.validate("probe")
@@ -212,7 +211,7 @@ def press_states(model: TissueModel, rest_positions_m, probe: ProbeContact, p_xy
     depths = np.asarray(depths_m, dtype=float).ravel()
     require(depths.size > 0 and bool(np.isfinite(depths).all()), "depths_m",
             np.asarray(depths_m).tolist(), "must be finite depths (m), at least one")
-    rest = np.asarray(rest_positions_m, dtype=float)
+    rest = model.rest_positions_m
     top_z = surface_top_m(rest, model.tetrahedra, p_xy_m)
 
     def centre(depth):
@@ -236,21 +235,21 @@ def press_states(model: TissueModel, rest_positions_m, probe: ProbeContact, p_xy
     return [states[depth] for depth in depths]
 
 
-def press_curve(model: TissueModel, rest_positions_m, probe: ProbeContact, p_xy_m,
+def press_curve(model: TissueModel, probe: ProbeContact, p_xy_m,
                 depths_m: Sequence[float], **options) -> np.ndarray:
     """The push up on the sphere (N) at each of ``depths_m`` (``press_states``)."""
     return np.array([state.force_n for state in press_states(
-        model, rest_positions_m, probe, p_xy_m, depths_m, **options)])
+        model, probe, p_xy_m, depths_m, **options)])
 
 
-def contact_stiffness(model: TissueModel, rest_positions_m, probe: ProbeContact, p_xy_m,
+def contact_stiffness(model: TissueModel, probe: ProbeContact, p_xy_m,
                       depth_m: float, *, step_m: float = STIFFNESS_STEP_M,
                       **options) -> float:
     """The felt stiffness dF/dd (N/m) at ``depth_m`` (m below the undeformed surface
     over ``p_xy_m``): the central difference of ``press_curve`` over depth_m +- step_m,
     the contact linearized at the pressed state."""
     positive("step_m", step_m)
-    below, above = press_curve(model, rest_positions_m, probe, p_xy_m,
+    below, above = press_curve(model, probe, p_xy_m,
                                [depth_m - step_m, depth_m + step_m], **options)
     return float((above - below) / (2.0 * step_m))
 

@@ -699,15 +699,15 @@ def lowest_modes(model: TissueModel, count: int = 1):
 
 # --- timing -------------------------------------------------------------------------
 
-def tick_timing(model: TissueModel, positions_m, *, probe: ProbeContact = None,
+def tick_timing(model: TissueModel, *, probe: ProbeContact = None,
                 period_s: float = 1e-3, substeps: int = 1, ticks: int = 200):
     """(microseconds a tick, tetrahedra a microsecond of one substep's element pass)
-    of ``tissue_tick_from`` on this core, the median of ``ticks`` ticks from
-    ``positions_m`` (n, 3) at rest under gravity, the probe away: for ``maglev bench``."""
+    of ``tissue_tick_from`` on this core, the median of ``ticks`` ticks from the
+    model's rest positions under gravity, the probe away: for ``maglev bench``."""
     arguments = tick_arguments(model, probe or ProbeContact(), period_s, substeps)
     n = model.num_nodes
     state = np.zeros(6 * n)
-    state[:3 * n] = np.asarray(positions_m, float).ravel()
+    state[:3 * n] = model.rest_positions_m.ravel()
     other = np.empty_like(state)
     far = np.array([0.0, 0.0, 10.0, 0.0, 0.0, 0.0, 0.0, 0.0, 10.0])
     tissue_tick_from(state, other, far, *arguments)

@@ -43,7 +43,7 @@ def test_static_press_matches_the_kernel_stepped_slowly():
     points, model = small_slab()
     probe = ProbeContact(radius_m=0.008, stiffness_n_per_m=300.0)
     depths = np.array([1.5e-3, 3e-3])
-    static = press_states(model, points, probe, (0.0, 0.0), depths)
+    static = press_states(model, probe, (0.0, 0.0), depths)
     substeps = stable_substeps(model, TICK_S, probe_stiffness_n_per_m=300.0)
     arguments = tick_arguments(model, probe, TICK_S, substeps)
     state = np.concatenate((points.ravel(), np.zeros(points.size)))
@@ -90,7 +90,7 @@ def test_force_against_depth_follows_hertz():
                  + 1]
     probe = ProbeContact(radius_m=radius_m, stiffness_n_per_m=3000.0, onset_depth_m=1e-5)
     depths = np.linspace(0.5e-3, 3e-3, 6)
-    quarter = press_curve(model, points, probe, (0.0, 0.0), depths, held_coordinates=held)
+    quarter = press_curve(model, probe, (0.0, 0.0), depths, held_coordinates=held)
     ratio = 4.0 * quarter / hertz_force(depths, radius_m, YOUNGS_PA, NU)
     assert np.all(np.abs(ratio - 1.0) < 0.2), ratio
 
@@ -103,8 +103,8 @@ def test_hertz_force_is_the_law():
 
 @pytest.fixture(scope="module")
 def shipped_slab():
-    """(rest positions, model, the scene's probe) of the shipped palpation slab as
-    palpate_inclusion's scene reads it: its 8 mm sphere, TissueContact's probe law."""
+    """(model, the scene's probe) of the shipped palpation slab as palpate_inclusion's
+    scene reads it: its 8 mm sphere, TissueContact's probe law."""
     from maglev_haptics.diagrams.scenario import load_scenario
     from maglev_haptics.diagrams.tissue_model import read_scene_tissue
     from maglev_haptics.diagrams.tissue_scene import kernel_model
@@ -112,28 +112,28 @@ def shipped_slab():
 
     scene = load_scenario("palpate_inclusion").haptics.scene
     body, = read_scene_tissue(scene.directives).bodies
-    return body.positions_m, kernel_model(body, scene.tissue), scene_probe(scene)
+    return kernel_model(body, scene.tissue), scene_probe(scene)
 
 
 def test_the_lump_is_felt_stiffer_than_plain_tissue(shipped_slab):
     """At 3 mm the felt stiffness over the lump (the slab's middle, x = 15 mm) is at
     least 1.5 times that over plain tissue where palpate_inclusion's sweep starts,
     23 mm to its left (x = -8 mm), and 20 mm to its side (y = 20 mm)."""
-    points, model, probe = shipped_slab
-    over_lump = contact_stiffness(model, points, probe, (0.015, 0.0), 3e-3)
+    model, probe = shipped_slab
+    over_lump = contact_stiffness(model, probe, (0.015, 0.0), 3e-3)
     for plain_xy in ((-0.008, 0.0), (0.015, 0.020)):
-        plain = contact_stiffness(model, points, probe, plain_xy, 3e-3)
+        plain = contact_stiffness(model, probe, plain_xy, 3e-3)
         assert over_lump >= 1.5 * plain > 0.0, (plain_xy, over_lump, plain)
 
 
 def test_contact_stiffness_is_the_slope_of_the_press_curve(shipped_slab):
-    points, model, probe = shipped_slab
+    model, probe = shipped_slab
     soft = dataclasses.replace(probe, stiffness_n_per_m=100.0)
-    forces = press_curve(model, points, soft, (0.015, 0.0), [2.9e-3, 3.1e-3])
-    slope = contact_stiffness(model, points, soft, (0.015, 0.0), 3e-3)
+    forces = press_curve(model, soft, (0.015, 0.0), [2.9e-3, 3.1e-3])
+    slope = contact_stiffness(model, soft, (0.015, 0.0), 3e-3)
     assert slope == pytest.approx((forces[1] - forces[0]) / 2e-4, rel=1e-6)
     # A softer probe penalty in series with the tissue: the tool feels less.
-    assert slope < contact_stiffness(model, points, probe, (0.015, 0.0), 3e-3)
+    assert slope < contact_stiffness(model, probe, (0.015, 0.0), 3e-3)
 
 
 # --- the haptic loop pressing tissue ---------------------------------------------------
