@@ -15,11 +15,14 @@ Four kinds of numbers:
   system doing the floor's kernels, the least a tick of such a diagram costs;
 - the electromagnetic model (a full 6 x n wrench matrix) and the allocation;
 - the stereo display: view matrices per frame and a rendered frame pair;
-- the offline analysis: the loop studies' wall time on the peg-in-hole scene.
+- the offline analysis: the loop studies' wall time on the peg-in-hole scene;
+- paced (``--paced``): missed slots, each beside the machine alone paced at the
+  run's median compute (``host_pacing``).
 
-Every figure's line ends with the machine's two yardsticks (``machine_yardsticks``):
-takeoff_hover_land's physics floor (us) and the shipped lattice's masses stepped a
-microsecond, so that two machines' numbers can be compared.
+Every figure's line ends with the machine's yardsticks (``machine_yardsticks``):
+takeoff_hover_land's physics floor (us), the shipped lattice's masses and the
+tissue's tetrahedra stepped a microsecond, and the slots the machine alone misses
+paced at half a slot's compute, so that two machines' numbers can be compared.
 """
 
 from __future__ import annotations
@@ -36,6 +39,7 @@ from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import ConstantVectorSource
 from tqdm import tqdm
 
+from maglev_haptics.analysis.host_pacing import HALF_LOAD_S, YARDSTICK_DURATION_S, host_pacing
 from maglev_haptics.analysis.lattice_bench import (
     LATTICE_SIZES, format_lattice_report, lattice_costs, lattice_scaling, plot_lattice_scaling)
 from maglev_haptics.analysis.loop_floor import floor_loop_us, hover_transform
@@ -187,16 +191,20 @@ def allocation_cost_us(config: DeviceConfig, n: int = 2000) -> Dict[str, Dict[st
 
 def paced_runs(duration_s: float, progress: bool = True) -> Dict[str, Dict]:
     """Each of PACED_SCENARIOS paced at 1x for ``duration_s`` (s), Meshcat off: its
-    summary's ``realtime`` block (missed slots, compute percentiles)."""
+    summary's ``realtime`` block (missed slots, compute percentiles), and under
+    ``host_alone`` the same block for the machine alone paced as long at that run's
+    median compute (``host_pacing``): the fewest slots the run could have missed here."""
     from maglev_haptics.analysis.run_results import run_scenario
 
     results = {}
     for file, name in PACED_SCENARIOS:
         scenario = load_scenario(file, name)
         label = file if name is None else f"{file}:{name}"
-        results[label] = run_scenario(scenario, label=label, realtime_rate=1.0,
-                                      duration_s=duration_s, progress=progress
-                                      ).summary["realtime"]
+        realtime = run_scenario(scenario, label=label, realtime_rate=1.0,
+                                duration_s=duration_s, progress=progress).summary["realtime"]
+        realtime["host_alone"] = host_pacing(duration_s, realtime["tick_compute_us_p50"],
+                                             progress=progress, label=f"{label}, host alone")
+        results[label] = realtime
     return results
 
 
@@ -274,6 +282,10 @@ def run_benchmarks(duration_s: Optional[float] = None, progress: bool = True,
         results["lattice"] = lattice_scaling(sizes, progress=lambda _: bar.update(1))
     if paced_s is not None:
         results["paced"] = paced_runs(paced_s, progress=progress)
+    yardstick = host_pacing(YARDSTICK_DURATION_S, 1e6 * HALF_LOAD_S, progress=progress,
+                            label="host alone, half load")
+    results["machine"]["host_half_load_miss_fraction"] = yardstick["miss_fraction"]
+    results["machine"]["host_half_load"] = yardstick
     results["report"] = format_report(results)
     if out_dir is not None:
         out_dir.mkdir(parents=True, exist_ok=True)
@@ -309,6 +321,9 @@ def machine_yardsticks(machine: Dict) -> str:
         parts.append(f"lattice {machine['lattice_masses_per_us']:.1f} masses/us")
     if "tissue_tetrahedra_per_us" in machine:
         parts.append(f"tissue {machine['tissue_tetrahedra_per_us']:.1f} tetrahedra/us")
+    if "host_half_load_miss_fraction" in machine:
+        parts.append(f"host alone misses {100 * machine['host_half_load_miss_fraction']:.2f}% "
+                     "at half load")
     return "  [" + ", ".join(parts) + "]" if parts else ""
 
 
@@ -363,10 +378,12 @@ def format_report(results: Dict) -> str:
     if "paced" in results:
         lines.append("Paced at 1x, Meshcat off: missed slots, compute p50 / p99 / max (us):")
         for name, r in results["paced"].items():
+            host = r["host_alone"]
             lines.append(f"  {name:<32}{r['deadline_misses']:>6} of {r['ticks']:<7}"
                          f"({100 * r['miss_fraction']:.3f}%)  {r['tick_compute_us_p50']:.0f} / "
                          f"{r['tick_compute_us_p99']:.0f} / {r['tick_compute_us_max']:.0f}"
-                         f"  at {r['priority']}")
+                         f"  at {r['priority']}; the host alone at {host['compute_us']:.0f} us "
+                         f"a tick: {host['deadline_misses']} ({100 * host['miss_fraction']:.3f}%)")
     machine = results.get("machine", {})
     if machine:
         lines.append("Machine yardsticks: " + tag.removeprefix("  ") + (

@@ -41,6 +41,10 @@ def test_paced_runs_report_every_tick_of_each_scenario(monkeypatch):
     assert 0 <= report["deadline_misses"] <= 200
     assert report["tick_compute_us_p50"] <= report["tick_compute_us_p99"] \
         <= report["tick_compute_us_max"]
+    # Beside it, the machine alone paced as long at the run's median compute.
+    host = report["host_alone"]
+    assert host["ticks"] == 200 and host["compute_us"] == report["tick_compute_us_p50"]
+    assert host["tick_compute_us_p50"] >= host["compute_us"]
 
 
 @pytest.mark.slow  # the quick bench itself: about 30 s on a quiet 2-core machine
@@ -97,6 +101,8 @@ def test_every_figure_carries_the_machines_yardsticks(monkeypatch):
 def test_the_yardsticks_say_only_what_was_measured():
     assert bench.machine_yardsticks({}) == ""
     assert bench.machine_yardsticks({"takeoff_floor_us": 70.0}) == "  [takeoff floor 70 us]"
+    assert bench.machine_yardsticks({"host_half_load_miss_fraction": 0.0068}) == (
+        "  [host alone misses 0.68% at half load]")
 
 
 def test_tissue_costs_time_the_kernel_and_the_system():
