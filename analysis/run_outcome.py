@@ -25,6 +25,7 @@ from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
+from maglev_haptics.diagrams.lcm_station import silence_sentence
 from maglev_haptics.systems.device_supervisor import (
     FAULT_COIL_OVER_CURRENT, FAULT_COIL_OVER_TEMPERATURE, FAULT_OVER_SPEED,
     FAULT_SENSOR_OUT_OF_RANGE)
@@ -73,11 +74,7 @@ def device_silent_outcome(summary: Dict, label: str) -> Optional[str]:
     silent = (summary.get("station") or {}).get("device_silent")
     if not silent:
         return None
-    channels = ", ".join(name.upper() for name in silent["channels"])
-    return (f"{label}: the device went silent at {silent['at_s']:.3f} s ({channels}: no "
-            f"message for {silent['for_s']:.2f} s, past the lease's {silent['timeout_s']:g} s "
-            f"timeout): the application stopped at {summary['duration_s']:.3f} s; it "
-            "cannot land what it no longer commands")
+    return silence_sentence(silent, label, summary["duration_s"])
 
 
 def instrument_outcome(scenario, summary: Dict, log: Dict[str, np.ndarray],

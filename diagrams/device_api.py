@@ -28,7 +28,11 @@ takeoff and a new desired pose are refused.
 
 The device ticks only inside calls (``takeoff``, ``land``, ``run_for``): with a
 station on LCM, a pause between calls longer than the device's command timeout
-(10 ms) turns its coils off, so keep calling ``run_for`` while hovering.
+(10 ms) turns its coils off, so keep calling ``run_for`` while hovering. A device
+that goes silent on LCM (no answer to the lease for its timeout: its process or
+host gone) ends the call that is ticking with DeviceSilentError within
+WATCH_PERIOD_S of being seen so, as ``maglev run`` stops; every later call but
+``disconnect`` raises it again.
 """
 
 from __future__ import annotations
@@ -44,6 +48,7 @@ from pydrake.systems.analysis import Simulator
 from pydrake.trajectories import PiecewisePolynomial
 
 from maglev_haptics.diagrams.application import BuildDiagram, RunMode
+from maglev_haptics.diagrams.lcm_station import silence_sentence
 from maglev_haptics.diagrams.motion import check_pose_reachable
 from maglev_haptics.diagrams.runner import SHARED_SPIN_S, wait_until
 from maglev_haptics.diagrams.scenario import Scenario, load_scenario
@@ -57,6 +62,7 @@ from maglev_haptics.systems.device_supervisor import (  # noqa: F401 (the API's 
     FAULT_COIL_OVER_CURRENT, FAULT_COIL_OVER_TEMPERATURE, FAULT_OVER_SPEED,
     FAULT_SENSOR_OUT_OF_RANGE, hold_motion, make_motion)
 
+WATCH_PERIOD_S = 0.05  # the device is checked for silence this often while ticking (s)
 HOVER_TOLERANCE_M = 0.5e-3  # takeoff is done within this of the hover pose (m)
 SETTLED_SPEED_M_S = 0.01  # ... moving slower than this (m/s)
 
@@ -71,6 +77,11 @@ class DeviceFaultError(RuntimeError):
 
 class DeviceStateError(RuntimeError):
     """A command the device's state refuses: a pose while the coils carry nothing."""
+
+
+class DeviceSilentError(RuntimeError):
+    """The device on LCM stopped answering (``lcm_station.device_silence``): nothing
+    takes the coils' commands any more, so nothing can be flown or landed from here."""
 
 
 @dataclass
@@ -105,6 +116,7 @@ class MaglevDevice:
         self._tick_callbacks: List[Callable[[TickState], None]] = []
         self._fault_callbacks: List[Callable[[int], None]] = []
         self._simulator = None
+        self._silent: Optional[str] = None  # how the device went silent, once it did
         self.state: Optional[TickState] = None  # after each tick; None until connect()
 
     # --- connection ---------------------------------------------------------
@@ -138,6 +150,7 @@ class MaglevDevice:
         self._estimator, self._station = estimator, station
         self._shares_cores = self._built.station.shares_cores
         self._clock_zero, self._ticks = time.perf_counter(), 0
+        self._silent, self._next_watch_s = None, self._now() + WATCH_PERIOD_S
         self.state = self._read_state()
         lease = self._built.station.lease
         if lease is not None:  # the device's lease before anything else
@@ -149,11 +162,13 @@ class MaglevDevice:
                 raise
 
     def disconnect(self) -> None:
-        """Coils off at once (no landing: land first), and the diagram released."""
-        self._require_connection()
-        self._coils_off()
-        self.set_feedforward_wrench(np.zeros(6))
-        self._tick()
+        """Coils off at once (no landing: land first), and the diagram released; after
+        a device went silent, only released (nothing takes the commands)."""
+        self._require_connection(heard=False)
+        if self._silent is None:
+            self._coils_off()
+            self.set_feedforward_wrench(np.zeros(6))
+            self._tick()
         if self._built.station.lease is not None:
             self._built.station.lease.release()
         self._simulator = None
@@ -316,6 +331,12 @@ class MaglevDevice:
                 callback(self.state.faults)
         for callback in self._tick_callbacks:
             callback(self.state)
+        if self._now() >= self._next_watch_s:
+            self._next_watch_s += WATCH_PERIOD_S
+            silence = self._built.station.silence(self._simulator.get_context())
+            if silence is not None:
+                self._silent = silence_sentence(silence, "MaglevDevice", self._now())
+                raise DeviceSilentError(self._silent)
 
     def _read_state(self) -> TickState:
         estimator_context = self._contexts[self._estimator]
@@ -355,9 +376,13 @@ class MaglevDevice:
             raise DeviceFaultError(f"{what} refused: fault {self.faults:#x} is latched "
                                    "(reset_faults() once it is cleared)")
 
-    def _require_connection(self) -> None:
+    def _require_connection(self, heard: bool = True) -> None:
+        """A RuntimeError unless connected, and (``heard``) a DeviceSilentError once the
+        device went silent."""
         if self._simulator is None:
             raise RuntimeError("the device is not connected: call connect() first")
+        if heard and self._silent is not None:
+            raise DeviceSilentError(f"{self._silent}; call disconnect()")
 
 
 def _vector(name: str, value, size: int) -> np.ndarray:

@@ -330,6 +330,17 @@ def device_silence(newest_arrivals: Dict[str, float], now_s: float, timeout_s: f
             "timeout_s": timeout_s}
 
 
+def silence_sentence(silence: dict, label: str, stopped_s: float) -> str:
+    """One line: ``label``'s device went silent (``device_silence``'s ``silence``),
+    when, on which channels, for how long, and that the application stopped at
+    ``stopped_s`` (s), unable to land what it no longer commands."""
+    channels = ", ".join(name.upper() for name in silence["channels"])
+    return (f"{label}: the device went silent at {silence['at_s']:.3f} s ({channels}: no "
+            f"message for {silence['for_s']:.2f} s, past the lease's {silence['timeout_s']:g} "
+            f"s timeout): the application stopped at {stopped_s:.3f} s; it cannot land what "
+            "it no longer commands")
+
+
 class LcmStationInterface(Station):
     """The station on LCM (``MakeLcmStation``): a device keeps the wall clock, lands
     what flies before a run ends, shares this machine's cores where it is

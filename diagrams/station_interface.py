@@ -20,6 +20,8 @@ none of them asks which kind it has:
   the stuck-amplifier watchdog;
 - ``watch(stop)``: the run's stop, with what the station itself stops a run for
   (a device gone silent);
+- ``silence(context)``: how the device went silent (``device_silence``), or None
+  while it is heard (always, for a simulated one);
 - ``summary(context)``: its block of ``summary.json`` (``station``), or None;
 - ``lease``: the application's end of the device's lease, or None.
 
@@ -57,6 +59,11 @@ class Station:
         """``simulate``'s ``stop``: ``stop(context)``, or True where the station itself
         ends the run."""
         return stop
+
+    def silence(self, context) -> Optional[dict]:
+        """How the device went silent by the root ``context``'s time, or None while it
+        is heard (a simulated station always is)."""
+        return None
 
     def summary(self, context) -> Optional[dict]:
         """Its block of summary.json at the root ``context``'s time, or None."""

@@ -1,6 +1,7 @@
 """The MLHI-style device API: blocking takeoff and landing, commands on the next tick,
 the tick callback, the boundary sphere's fault, estimated coil temperatures."""
 
+import dataclasses
 import json
 import os
 import re
@@ -15,13 +16,14 @@ import numpy as np
 import pytest
 
 from maglev_haptics.diagrams.device_api import (
-    FAULT_SENSOR_OUT_OF_RANGE, DeviceFaultError, DeviceInUseError, DeviceStateError,
-    DeviceTimeoutError, MaglevDevice)
+    FAULT_SENSOR_OUT_OF_RANGE, WATCH_PERIOD_S, DeviceFaultError, DeviceInUseError,
+    DeviceSilentError, DeviceStateError, DeviceTimeoutError, MaglevDevice)
+from maglev_haptics.diagrams.lcm_station import LcmStation
 from maglev_haptics.diagrams.scenario import load_scenario
 from maglev_haptics.hardware.link.lcm_link import publish
 from maglev_haptics.hardware.link.lcm_messages import lease_t
 from maglev_haptics.hardware.link.lease import LeaseClient
-from maglev_haptics.systems.station_messages import currents_message
+from maglev_haptics.systems.station_messages import currents_message, markers_message
 
 REST_Z_M = 0.0067  # the two-magnet instrument's origin resting on the glass (about, m)
 
@@ -264,3 +266,59 @@ def test_connect_is_refused_while_another_application_holds_the_device():
     assert report["commands"]["messages_received"] > 0
     assert report["commands"]["messages_refused"] == 0, report["commands"]["first_refused"]
     assert report["lease"]["grants"] == 1
+
+
+def test_a_device_that_goes_silent_ends_the_call_and_every_later_one_but_disconnect():
+    """Over LCM (an in-memory bus, on which a thread of this test answers as a device
+    would: markers and currents every millisecond, the lease held, answered every
+    0.1 s), the device stops. The run_for that is ticking raises DeviceSilentError once
+    its lease answer is the lease's timeout late, saying when it went silent; every
+    later call raises it again but disconnect, which releases the diagram."""
+    scenario = dataclasses.replace(load_scenario("levitate"), station=LcmStation(
+        url="memq://", command_url="memq://", channel_prefix="SILENT_"))
+    device = MaglevDevice(scenario)
+    answering = threading.Event()
+    answering.set()
+    markers = np.array([0.01, 0.0, 0.0067, -0.01, 0.0, 0.0067, 0.0, 0.01, 0.0067])
+
+    def answer():  # as device-sim would, on the application's own in-memory bus
+        k = 0
+        while answering.is_set():
+            time.sleep(1e-3)
+            station = getattr(getattr(device, "_built", None), "station", None)
+            if station is None:
+                continue
+            k += 1
+            bus, t_s = station.receiver._lcm, 1e-3 * k
+            publish(bus, "SILENT_MARKERS", markers_message(k, t_s, t_s, markers))
+            publish(bus, "SILENT_COIL_CURRENTS", currents_message(k, t_s, np.r_[
+                np.zeros(27), 1.0]))
+            if k % 100 == 1:
+                reply = lease_t()
+                reply.sequence, reply.action = k // 100 + 1, lease_t.HELD
+                reply.session, reply.instrument = station.lease.session, "two_magnet"
+                publish(bus, "SILENT_LEASE", reply)
+
+    device_thread = threading.Thread(target=answer, daemon=True)
+    device_thread.start()
+    try:
+        device.connect()
+        device.run_for(0.3)
+    finally:
+        answering.clear()
+        device_thread.join()
+    stopped_s = device.state.t_s
+    with pytest.raises(DeviceSilentError, match=(
+            r"^MaglevDevice: the device went silent at \d\.\d{3} s \(MARKERS, COIL_CURRENTS, "
+            r"LEASE: no message for 0\.\d\d s, past the lease's 0\.5 s timeout\): the "
+            r"application stopped at \d\.\d{3} s; it cannot land what it no longer commands$")):
+        device.run_for(5.0)
+    # Seen within a watch period of the lease's answer being a timeout late.
+    assert stopped_s + 0.5 <= device.state.t_s <= stopped_s + 0.6 + WATCH_PERIOD_S + 0.01
+    for call in (device.land, lambda: device.run_for(0.1),
+                 lambda: device.set_feedforward_wrench(np.zeros(6))):
+        with pytest.raises(DeviceSilentError, match="call disconnect"):
+            call()
+    device.disconnect()
+    with pytest.raises(RuntimeError, match="not connected"):
+        device.run_for(0.1)
