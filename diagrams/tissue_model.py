@@ -25,9 +25,16 @@ forever) or no free one; a material model other than ``linear_corotated`` (the
 haptic kernel's element); a material out of range (Drake's checks, and a Poisson's
 ratio < 0 or anything not finite); cell data of the wrong length or not > 0; a
 model that holds a deformable body and rigid links too; one added inside an
-add_directives file; a tissue placed or named by another directive (it is placed
-by its link's ``<pose>``: Drake fixes the wall's nodes at their reference
-positions, which a directive's pose does not move).
+add_directives file; a tissue welded or named by another directive (a deformable body
+has no frame), a pose in another frame than W, or one for a body the model does not
+have.
+
+A tissue is placed where its file puts it (its link's ``<pose>``), or where its
+add_model's ``default_free_body_pose`` puts its link (in W, as Drake places a free
+rigid body): the whole body moved rigidly from the file's placement, the wall's nodes
+with it. Drake 1.58 itself pins the wall's nodes at the file's placement and tears a
+posed body, so the body is read at the file's placement (the pose left out) and moved
+after, its fixed nodes found there.
 """
 
 import re
@@ -36,8 +43,9 @@ from typing import List, NamedTuple
 
 import meshio
 import numpy as np
+from pydrake.math import RigidTransform
 from pydrake.multibody.parsing import (
-    ModelDirective, ModelDirectives, ProcessModelDirectives)
+    AddModel, ModelDirective, ModelDirectives, ProcessModelDirectives)
 from pydrake.multibody.plant import AddMultibodyPlant, MultibodyPlantConfig
 from pydrake.multibody.fem import MaterialModel
 from pydrake.systems.analysis import Simulator
@@ -101,12 +109,16 @@ def read_scene_tissue(directives: List[ModelDirective],
         return SceneTissue([], directives)
     names = {directives[i].add_model.name: i for i in tissue}
     for i, directive in enumerate(directives):
-        _check_not_placed(directive, names, f"{path}[{i}]")
+        _check_not_welded(directive, names, f"{path}[{i}]")
     fields = {name: f"{path}[{i}].add_model.file = {directives[i].add_model.file!r}"
               for name, i in names.items()}
+    poses = {name: _directive_poses(directives[i].add_model, f"{path}[{i}].add_model")
+             for name, i in names.items()}
     for name, i in names.items():  # one at a time, so that an error names its directive
+        unposed = ModelDirective(add_model=AddModel(file=directives[i].add_model.file,
+                                                    name=name))
         try:
-            ProcessModelDirectives(ModelDirectives(directives=[directives[i]]), parser)
+            ProcessModelDirectives(ModelDirectives(directives=[unposed]), parser)
         except Exception as error:  # Drake's parser: RuntimeError, its YAML's ValueError
             raise ValueError(f"{fields[name]}: model {name!r}: "
                              f"{_deformable_reason(drake_reason(error))}") from None
@@ -121,26 +133,46 @@ def read_scene_tissue(directives: List[ModelDirective],
         if rigid:
             raise ValueError(f"{fields[name]}: model {name!r} holds a deformable body and rigid "
                              f"links ({', '.join(rigid)}); put them in two model files")
+    for name, posed in poses.items():
+        known = [body.name() for body in bodies
+                 if plant.GetModelInstanceName(body.model_instance()) == name]
+        for body_name in posed:
+            require(body_name in known,
+                    f"{path}[{names[name]}].add_model.default_free_body_pose", body_name,
+                    f"must name a deformable body of model {name!r}: {', '.join(known)}")
     inspector = scene_graph.model_inspector()
     read = []
     for body, (before, after) in zip(bodies, _one_step(builder.Build(), plant, bodies)):
         model = plant.GetModelInstanceName(body.model_instance())
-        read.append(_tissue_body(inspector, body, model, before, after, fields[model]))
+        tissue_body = _tissue_body(inspector, body, model, before, after, fields[model])
+        X_WB = poses[model].get(body.name())
+        if X_WB is not None:  # moved from where the file puts it, its wall's nodes along
+            X_BW_file = inspector.GetPoseInFrame(body.geometry_id()).inverse()
+            tissue_body.positions_m = (X_WB @ X_BW_file).multiply(
+                tissue_body.positions_m.T).T
+        read.append(tissue_body)
     rigid_directives = [directive for i, directive in enumerate(directives)
                         if i not in tissue or directive.add_model.name not in holding]
     return SceneTissue(read, rigid_directives)
 
 
-def _check_not_placed(directive: ModelDirective, tissue_models: dict, path: str) -> None:
-    """A ValueError if ``directive`` poses a tissue model or names one of its frames."""
-    model = directive.add_model
-    if model is not None and model.name in tissue_models:
-        if model.default_free_body_pose:
-            raise ValueError(
-                f"{path}.add_model.default_free_body_pose: model {model.name!r} declares a "
-                "deformable body, placed by its link's <pose> in its file (Drake fixes the "
-                "wall's nodes at their reference positions, which this pose does not move)")
-        return
+def _directive_poses(model: AddModel, path: str) -> dict:
+    """{body name: X_WB} of a tissue's add_model ``model``'s default_free_body_pose
+    (Drake's loader allows only fixed ones); a ValueError names ``path``'s field for a
+    pose in another frame than W, or joint positions."""
+    require(not model.default_joint_positions, f"{path}.default_joint_positions",
+            dict(model.default_joint_positions), "must be empty: a deformable body has no joint")
+    poses = {}
+    for body, pose in model.default_free_body_pose.items():
+        field = f"{path}.default_free_body_pose.{body}"
+        require(pose.base_frame in (None, "", "world"), f"{field}.base_frame", pose.base_frame,
+                "must be world (or left out): a tissue is placed in W")
+        poses[body] = RigidTransform(pose.GetDeterministicValue())
+    return poses
+
+
+def _check_not_welded(directive: ModelDirective, tissue_models: dict, path: str) -> None:
+    """A ValueError if ``directive`` welds or attaches to a tissue model's frame."""
     named = []
     if directive.add_weld is not None:
         named += [("add_weld.parent", directive.add_weld.parent),
@@ -151,7 +183,8 @@ def _check_not_placed(directive: ModelDirective, tissue_models: dict, path: str)
         if frame and frame.split("::")[0] in tissue_models:
             raise ValueError(f"{path}.{field} = {frame!r}: model {frame.split('::')[0]!r} "
                              "declares a deformable body, which has no frame to weld or "
-                             "attach to; it is placed by its link's <pose>")
+                             "attach to; place it by its link's <pose> or its add_model's "
+                             "default_free_body_pose")
 
 
 def _deformable_reason(reason: str) -> str:

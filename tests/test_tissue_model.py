@@ -224,14 +224,11 @@ def test_cell_data_refused(tmp_path):
     assert "youngs_modulus[191] = 0.0" in message
 
 
-def test_mixed_model_and_placement_refused(tmp_path):
+def test_mixed_model_and_weld_refused(tmp_path):
     rigid_link = ("    <link name='handle'><collision name='c'><geometry><sphere><radius>0.01"
                   "</radius></sphere></geometry></collision></link>\n")
     message = refusal(small_model(tmp_path, extra_link=rigid_link))
     assert "rigid links (handle)" in message
-    posed = small_model(tmp_path).replace(
-        "}\n", ", default_free_body_pose: {box: {translation: [0, 0, 0.1]}}}\n")
-    assert "placed by its link's <pose>" in refusal(posed)
     welded = small_model(tmp_path) + "- add_weld: {parent: world, child: box::__model__}\n"
     assert "no frame to weld" in refusal(welded)
 
