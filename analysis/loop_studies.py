@@ -136,7 +136,7 @@ def tissue_contact(scenario) -> Optional[Dict]:
                 model, probe, p_xy, TISSUE_PRESS_DEPTH_M)})
     return {"bodies": rows, "press_depth_m": TISSUE_PRESS_DEPTH_M,
             "probe_radius_m": probe.radius_m,
-            "probe_stiffness_n_per_m_per_node": probe.stiffness_n_per_m,
+            "probe_stiffness_n_per_m3": probe.stiffness_n_per_m3,
             "contact_stiffness_n_m": max(row["contact_stiffness_n_m"] for row in rows)}
 
 

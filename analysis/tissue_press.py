@@ -1,11 +1,11 @@
 """The force a sphere meets pressed slowly into tissue, and the felt stiffness.
 
-The sphere is the scene's probe (``lattice_dynamics.add_probe_forces``: each
-surface node inside it pushed out along the normal from its centre by the penalty
-k_c g(depth), N). It moves straight down over a point (x, y) in W; its depth d (m)
-is measured from the undeformed surface there (the reference mesh's top face
-under the sphere's centre) to the sphere's lowest point, so the centre lies at
-z = z_top + R - d. The tissue starts at rest under its gravity.
+The sphere is the scene's probe (``tissue_fem.add_contact_forces``: the penalty
+pressure k_p g(depth) on the boundary triangles' quadrature points inside it, along
+the normal from its centre, each point's force shared by its triangle's nodes). It
+moves straight down over a point (x, y) in W; its depth d (m) is measured from the
+undeformed surface there (the reference mesh's top face under the sphere's centre)
+to the sphere's lowest point, so the centre lies at z = z_top + R - d. The tissue starts at rest under its gravity.
 
 Quasi-static: at each depth the tissue is in static equilibrium, found by Newton's
 method on the free nodes' forces, the same forces the haptic kernel integrates
@@ -13,8 +13,9 @@ method on the free nodes' forces, the same forces the haptic kernel integrates
 taken at the current positions as the kernel takes them at each tick's start, the
 lumped weights, the probe's penalty at rest). The Newton matrix is the corotated
 linear stiffness at the current rotations (``linear_stiffness_matrix``) plus the
-probe's normal stiffness k_c g'(depth) n n^T on the nodes it touches; it leaves
-out the rotations' own change and the contact's tangential term, so Newton
+probe's normal stiffness, k_p a g'(depth) (b b^T) x (n n^T) of each point inside the
+sphere (area a, barycentric weights b on its triangle's nodes); it leaves out the
+rotations' own change and the normals' turning, so Newton
 converges linearly near the end instead of quadratically, but it converges to the
 kernel's own equilibrium (the residual is exact). The sphere descends in steps of
 at most ``max_step_m`` so that the contact set changes a little a step.
@@ -34,10 +35,9 @@ import scipy.sparse
 import scipy.sparse.linalg
 
 from maglev_haptics.hardware.config_checks import positive, require
-from maglev_haptics.systems.lattice_dynamics import ProbeContact, add_probe_forces
 from maglev_haptics.systems.tissue_fem import (
-    TissueModel, boundary_triangles, elastic_forces, free_coordinates,
-    linear_stiffness_matrix)
+    TissueModel, TissueProbe, add_contact_forces, boundary_triangles, contact_quadrature,
+    elastic_forces, free_coordinates, linear_stiffness_matrix)
 
 # The Newton iteration stops when every free node's force balance is within this
 # fraction of the largest node weight or probe force (-).
@@ -57,7 +57,7 @@ class PressedState(NamedTuple):
     p_WP_m: np.ndarray  # (3,) the sphere's centre in W (m)
     positions_m: np.ndarray  # (n, 3) the nodes in W (m)
     force_n: float  # the push up on the sphere (N)
-    nodes_in_contact: int
+    points_in_contact: int  # the contact's quadrature points inside the sphere
 
 
 def surface_top_m(rest_positions_m, tetrahedra, p_xy_m) -> float:
@@ -87,26 +87,27 @@ def _cross_z(u, v):
     return u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]
 
 
-def probe_force(model: TissueModel, positions_m, probe: ProbeContact, p_WP_m):
-    """(forces on the nodes (n, 3) N, force on the sphere (3,) N, nodes touching):
+def probe_force(model: TissueModel, positions_m, probe: TissueProbe, p_WP_m):
+    """(forces on the nodes (n, 3) N, force on the sphere (3,) N, points touching):
     the probe law at rest (no velocity, so no dissipation or friction)."""
     x = np.ascontiguousarray(positions_m, float)
     forces = np.zeros_like(x)
     still = np.zeros(3)
     p_WP = np.asarray(p_WP_m, float)
-    wrench, touching = add_probe_forces(
-        x, np.zeros_like(x), model.surface, p_WP, still, p_WP, probe.radius_m,
-        probe.stiffness_n_per_m, probe.onset_depth_m, probe.dissipation_s_per_m,
-        probe.friction, probe.slip_speed_m_s, model.mass_kg, _PERIOD_S, forces)
+    wrench, touching = add_contact_forces(
+        x, np.zeros_like(x), model.triangles, model.triangle_rows, contact_quadrature(), p_WP,
+        still, p_WP, probe.radius_m, probe.stiffness_n_per_m3, probe.onset_depth_m,
+        probe.dissipation_s_per_m, probe.friction, probe.slip_speed_m_s, _PERIOD_S, forces)
     return forces, wrench[:3], touching
 
 
 class _Tangent:
     """The Newton matrix on the free coordinates: the corotated linear stiffness at
     the rotations of some positions, factored once (sparse LU), plus the probe's
-    normal stiffness, a rank-one term k_c g'(depth) n n^T per touching node, added
-    by the Woodbury identity with K^-1 of each touched node's three columns kept. So
-    a Newton step costs one solve with the factors, not a factorization."""
+    normal stiffness C on the few coordinates it touches, added by the Woodbury
+    identity, (K + P C P^T)^-1 = K^-1 - K^-1 P (I + C P^T K^-1 P)^-1 C P^T K^-1, with
+    K^-1 of each touched coordinate's unit vector kept. So a Newton step costs one
+    solve with the factors, not a factorization."""
 
     def __init__(self, model: TissueModel, positions_m, held_coordinates=()):
         self.held = held_coordinates
@@ -116,46 +117,65 @@ class _Tangent:
         stiffness = linear_stiffness_matrix(model, positions_m)[self.free][:, self.free]
         # A symmetric ordering: far less fill than the default COLAMD on a stiffness.
         self.factors = scipy.sparse.linalg.splu(stiffness.tocsc(), permc_spec="MMD_AT_PLUS_A")
-        self.node_columns = {}  # node -> K^-1 of its three coordinates' unit vectors (f, 3)
+        self.columns = {}  # coordinate (into 3 n) -> K^-1 of its unit vector (f,)
 
-    def _columns(self, node: int) -> np.ndarray:
-        if node not in self.node_columns:
-            unit = np.zeros((len(self.free), 3))
-            unit[self.where[3 * node:3 * node + 3], [0, 1, 2]] = 1.0
-            self.node_columns[node] = self.factors.solve(unit)
-        return self.node_columns[node]
+    def _spread(self, coordinates) -> np.ndarray:
+        """K^-1 P (f, c): the kept columns of ``coordinates``, the missing solved at once."""
+        missing = [c for c in coordinates if c not in self.columns]
+        if missing:
+            unit = np.zeros((len(self.free), len(missing)))
+            unit[self.where[missing], np.arange(len(missing))] = 1.0
+            for c, column in zip(missing, self.factors.solve(unit).T):
+                self.columns[c] = column
+        return np.column_stack([self.columns[c] for c in coordinates])
 
-    def solve(self, residual, nodes, normals, slopes) -> np.ndarray:
-        """(K + sum_i slopes_i u_i u_i^T)^-1 residual, u_i the unit normal ``normals``
-        (k, 3) placed at node ``nodes[i]``'s coordinates."""
+    def solve(self, residual, coordinates, contact) -> np.ndarray:
+        """(K + P C P^T)^-1 residual, C = ``contact`` (c, c) N/m on ``coordinates``
+        (indices into 3 n; those not free are dropped with their rows and columns)."""
         base = self.factors.solve(residual)
-        if len(nodes) == 0:
+        kept = self.where[coordinates] >= 0
+        coordinates, contact = coordinates[kept], contact[kept][:, kept]
+        if len(coordinates) == 0:
             return base
-        rows = self.where[3 * np.asarray(nodes)[:, None] + np.arange(3)]  # (k, 3)
-        spread = np.column_stack([self._columns(int(node)) @ normal
-                                  for node, normal in zip(nodes, normals)])  # K^-1 U
-        capacitance = np.diag(1.0 / slopes) + np.einsum("ka,jka->jk", normals,
-                                                        spread[rows].transpose(2, 0, 1))
-        u_base = np.einsum("ka,ka->k", normals, base[rows])
-        return base - spread @ np.linalg.solve(capacitance, u_base)
+        spread = self._spread(coordinates)
+        rows = self.where[coordinates]
+        shift = np.linalg.solve(np.eye(len(rows)) + contact @ spread[rows],
+                                contact @ base[rows])
+        return base - spread @ shift
 
 
-def _probe_normal_stiffness(model: TissueModel, positions_m, probe: ProbeContact, p_WP_m):
-    """(nodes (k,), unit normals (k, 3), slopes (k,) N/m): -d(probe force)/dx along
-    the normals of the surface nodes inside the sphere, k_c g'(depth) n n^T, with
-    g' = depth / onset on the ramp, 1 past it (the normal's own turning left out)."""
-    x = np.asarray(positions_m, float)[model.surface]
-    offset = x - np.asarray(p_WP_m, float)
-    distance = np.linalg.norm(offset, axis=1)
-    inside = (distance < probe.radius_m) & (distance > 0.0)
-    depth = probe.radius_m - distance[inside]
-    slope = probe.stiffness_n_per_m * np.minimum(depth / probe.onset_depth_m, 1.0)
-    return model.surface[inside], offset[inside] / distance[inside, None], slope
+def _contact_normal_stiffness(model: TissueModel, positions_m, probe: TissueProbe, p_WP_m):
+    """(coordinates (3 k,) into 3 n, C (3 k, 3 k) N/m): -d(probe force)/dx along the
+    normals on the k nodes of the triangles with points inside the sphere, the sum
+    over those points of k_p a g'(depth) (b b^T) x (n n^T), g' = depth / onset on the
+    ramp, 1 past it (the normals' own turning left out)."""
+    quadrature = contact_quadrature()
+    corners = np.asarray(positions_m, float)[model.triangles]  # (t, 3, 3)
+    offset = np.einsum("qa,tak->tqk", quadrature, corners) - np.asarray(p_WP_m, float)
+    distance = np.linalg.norm(offset, axis=2)
+    triangle, point = np.nonzero((distance < probe.radius_m) & (distance > 0.0))
+    depth = probe.radius_m - distance[triangle, point]
+    slope = (probe.stiffness_n_per_m3 * model.triangle_rows[triangle, 0] / len(quadrature)
+             * np.minimum(depth / probe.onset_depth_m, 1.0))
+    normal = offset[triangle, point] / distance[triangle, point, None]
+    nodes, local = np.unique(model.triangles[triangle], return_inverse=True)
+    local = local.reshape(-1, 3)
+    weights = quadrature[point]  # (p, 3)
+    # Entry (3 local_a + i, 3 local_b + j) of each point: slope b_a b_b n_i n_j.
+    values = (slope[:, None, None, None, None] * weights[:, :, None, None, None]
+              * weights[:, None, :, None, None] * normal[:, None, None, :, None]
+              * normal[:, None, None, None, :])
+    rows = 3 * local[:, :, None, None, None] + np.arange(3)[:, None]
+    cols = 3 * local[:, None, :, None, None] + np.arange(3)[None, :]
+    rows, cols = np.broadcast_arrays(rows, cols, values)[:2]
+    contact = np.zeros((3 * len(nodes), 3 * len(nodes)))
+    np.add.at(contact, (rows.ravel(), cols.ravel()), values.ravel())
+    return (3 * nodes[:, None] + np.arange(3)).ravel(), contact
 
 
-def static_equilibrium(model: TissueModel, positions_m, probe: ProbeContact, p_WP_m,
+def static_equilibrium(model: TissueModel, positions_m, probe: TissueProbe, p_WP_m,
                        tangent: _Tangent = None, held_coordinates=()):
-    """(positions (n, 3) m, force on the sphere (3,) N, nodes touching, the Newton
+    """(positions (n, 3) m, force on the sphere (3,) N, points touching, the Newton
     matrix used): the tissue at rest under gravity with the sphere held at
     ``p_WP_m`` (W, m), by Newton's method from ``positions_m`` (module docstring).
     ``tangent``: the Newton matrix to start with (default: at ``positions_m``); it is
@@ -181,7 +201,7 @@ def static_equilibrium(model: TissueModel, positions_m, probe: ProbeContact, p_W
             return x, on_sphere, touching, tangent
         if iteration % REFRESH_ITERATIONS == 0:
             tangent = _Tangent(model, x, tangent.held)
-        step = tangent.solve(r, *_probe_normal_stiffness(model, x, probe, p_WP_m))
+        step = tangent.solve(r, *_contact_normal_stiffness(model, x, probe, p_WP_m))
         # Backtrack while the step raises the force imbalance (a node entering or
         # leaving the sphere can overshoot).
         for _ in range(8):
@@ -196,7 +216,7 @@ def static_equilibrium(model: TissueModel, positions_m, probe: ProbeContact, p_W
                        f"{np.abs(r).max():.3g} N after {MAX_NEWTON_ITERATIONS} Newton steps")
 
 
-def press_states(model: TissueModel, probe: ProbeContact, p_xy_m,
+def press_states(model: TissueModel, probe: TissueProbe, p_xy_m,
                  depths_m: Sequence[float], *,
                  max_step_m: float = MAX_PRESS_STEP_M,
                  held_coordinates=()) -> List[PressedState]:
@@ -235,14 +255,14 @@ def press_states(model: TissueModel, probe: ProbeContact, p_xy_m,
     return [states[depth] for depth in depths]
 
 
-def press_curve(model: TissueModel, probe: ProbeContact, p_xy_m,
+def press_curve(model: TissueModel, probe: TissueProbe, p_xy_m,
                 depths_m: Sequence[float], **options) -> np.ndarray:
     """The push up on the sphere (N) at each of ``depths_m`` (``press_states``)."""
     return np.array([state.force_n for state in press_states(
         model, probe, p_xy_m, depths_m, **options)])
 
 
-def contact_stiffness(model: TissueModel, probe: ProbeContact, p_xy_m,
+def contact_stiffness(model: TissueModel, probe: TissueProbe, p_xy_m,
                       depth_m: float, *, step_m: float = STIFFNESS_STEP_M,
                       **options) -> float:
     """The felt stiffness dF/dd (N/m) at ``depth_m`` (m below the undeformed surface
@@ -263,7 +283,7 @@ def hertz_force(depths_m, radius_m: float, youngs_modulus_pa: float,
     return 4.0 / 3.0 * reduced * np.sqrt(radius_m) * depths ** 1.5
 
 
-def scene_probe(scene, path: str = "haptics.scene") -> ProbeContact:
+def scene_probe(scene, path: str = "haptics.scene") -> TissueProbe:
     """The probe law a ``ModelScene``'s tissue meets: its ``tissue.probe`` with the
     radius of the sphere ``tissue.sphere`` places on the tool (m)."""
     _, radius_m = scene.tissue.sphere(scene.tool, f"{path}.tissue")

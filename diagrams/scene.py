@@ -23,7 +23,7 @@ from pydrake.multibody.parsing import ModelDirective, ModelDirectives
 
 from maglev_haptics.hardware.config_checks import finite, nonnegative, positive, require, vector
 from maglev_haptics.hardware.constants import GRAVITY_M_S2
-from maglev_haptics.systems.lattice_dynamics import ProbeContact
+from maglev_haptics.systems.tissue_fem import TissueProbe
 
 
 @dataclass
@@ -212,24 +212,18 @@ class SceneTool:
         return TOOL_SHAPES.get(self.shape, []) if self.size_m is None else self.size_m
 
 
-def _tissue_probe() -> ProbeContact:
-    # Stiff against the tissue the tool presses (a few N/m a node at 5 kPa), yet stable
-    # applied over one explicit substep on the lightest surface node.
-    return ProbeContact(radius_m=0.008, stiffness_n_per_m=300.0, onset_depth_m=0.0003,
-                        dissipation_s_per_m=5.0, friction=0.1, slip_speed_m_s=0.002)
-
-
 @dataclass
 class TissueContact:
     """How the tool touches the scene's deformable bodies (tissue): a sphere on the
-    tool pushing the tissue's surface nodes out (the lattice's probe contact,
-    ``ProbeContact``). The sphere is the built-in sphere tool's own (its radius and
+    tool pressing the tissue's boundary triangles, a penalty pressure of
+    ``probe.stiffness_n_per_m3`` (N/m^3: Pa a metre of depth) integrated over them
+    (``TissueProbe``). The sphere is the built-in sphere tool's own (its radius and
     ``tool_offset_m``) unless ``probe_offset_m`` places one in T; then
     ``probe.radius_m`` is its radius. The tissue steps on the other core
     (``worker_thread``) with the stable substeps its mesh and material need: a
     material that needs more than ``max_substeps`` a tick is refused."""
 
-    probe: ProbeContact = field(default_factory=_tissue_probe)
+    probe: TissueProbe = field(default_factory=TissueProbe)  # the shipped scenes' law
     probe_offset_m: Optional[List[float]] = None  # the sphere's centre in T (m); null: the tool's
     max_substeps: int = 8  # explicit substeps a tick at most (each a pass over the elements)
     worker_thread: bool = True  # false: step the tissue in the update itself (same results)

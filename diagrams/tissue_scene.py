@@ -11,7 +11,8 @@ contact flag added to the rigid scene's, so the coupling, the supervisor, the lo
 and the plots treat tissue like any contact.
 
 The substeps a tick come from the mesh and the material (``stable_substeps``: the
-highest mode of the tissue with the probe's stiffness on its surface nodes); a
+highest mode of the tissue with the probe's pressure stiffness times each boundary
+node's share of the area on it); a
 body that needs more than ``tissue.max_substeps`` is refused, naming its stiffest
 material and the stable step.
 """
@@ -29,12 +30,12 @@ from maglev_haptics.diagrams.scene import ModelScene, TissueContact
 from maglev_haptics.diagrams.scene_builder import SceneParts
 from maglev_haptics.diagrams.tissue_model import TissueBody
 from maglev_haptics.systems.deformable_surface import DeformableBody, DeformableDynamics
-from maglev_haptics.systems.lattice_dynamics import ProbeContact
 from maglev_haptics.systems.step_worker import tick_server
 from maglev_haptics.systems.surface_visualizer import surface_faces
 from maglev_haptics.systems.tissue_fem import (
-    TISSUE_TICK_ARGUMENTS, TissueModel, boundary_triangles, stable_step_s, stable_substeps,
-    highest_angular_frequency, tick_arguments, tissue_model, tissue_tick_from)
+    TISSUE_TICK_ARGUMENTS, TissueModel, TissueProbe, contact_quadrature, highest_angular_frequency,
+    stable_step_s, stable_substeps, state_contact, tick_arguments, tissue_model,
+    tissue_tick_from)
 
 TISSUE_SERVER = tick_server(tissue_tick_from, TISSUE_TICK_ARGUMENTS[3:])
 
@@ -46,7 +47,7 @@ class Tissue:
     body: TissueBody
     model: TissueModel
     substeps: int  # symplectic Euler substeps a tick
-    probe: ProbeContact  # the sphere's contact with it, its radius the sphere's
+    probe: TissueProbe  # the sphere's contact with it, its radius the sphere's
     system: DeformableBody
     faces: np.ndarray  # (3, T) int32: the boundary's triangles over surface_positions_m's rows
 
@@ -64,10 +65,10 @@ def tissue_substeps(body: TissueBody, model: TissueModel, contact: TissueContact
                     period_s: float, path: str) -> int:
     """The stable substeps of a ``period_s`` (s) tick for ``model`` touched by the
     scene's probe; a ValueError if more than ``contact.max_substeps``."""
-    probe_n_per_m = contact.probe.stiffness_n_per_m
-    substeps = stable_substeps(model, period_s, probe_stiffness_n_per_m=probe_n_per_m)
+    probe_n_per_m3 = contact.probe.stiffness_n_per_m3
+    substeps = stable_substeps(model, period_s, probe_stiffness_n_per_m3=probe_n_per_m3)
     if substeps > contact.max_substeps:
-        step_s = stable_step_s(highest_angular_frequency(model, probe_n_per_m),
+        step_s = stable_step_s(highest_angular_frequency(model, probe_n_per_m3),
                                model.mass_damping_per_s, model.stiffness_damping_s)
         raise ValueError(
             f"{path}: tissue {body.model}::{body.name} (E up to "
@@ -76,19 +77,26 @@ def tissue_substeps(body: TissueBody, model: TissueModel, contact: TissueContact
             f"{substeps} substeps a {1e3 * period_s:g} ms tick, more than "
             f"haptics.scene.tissue.max_substeps = {contact.max_substeps}; soften the material, "
             "coarsen the mesh (its smallest tetrahedra set the step), lower the probe's "
-            "stiffness_n_per_m or the stiffness damping, or raise max_substeps (each substep "
+            "stiffness_n_per_m3 or the stiffness damping, or raise max_substeps (each substep "
             "is one more pass over the elements a tick)")
     return substeps
 
 
-def tissue_dynamics(model: TissueModel, probe: ProbeContact, period_s: float,
+def tissue_dynamics(model: TissueModel, probe: TissueProbe, period_s: float,
                     substeps: int) -> DeformableDynamics:
     """What ``DeformableBody`` needs to step ``model`` a ``period_s`` (s) tick in
-    ``substeps`` substeps, touched by ``probe``."""
+    ``substeps`` substeps, touched by ``probe``: the wrench on the tool the first
+    substep's contact (``tissue_fem.state_contact``)."""
+    constants, quadrature = probe.constants(), contact_quadrature()
+    first_step_s = period_s / substeps
+
+    def contact(state, p_TP):
+        return state_contact(state, p_TP, model.triangles, model.triangle_rows, quadrature,
+                             constants, first_step_s)
     return DeformableDynamics(
         node_mass_kg=model.mass_kg, surface_nodes=model.surface, tick=tissue_tick_from,
         tick_arguments=lambda: tick_arguments(model, probe, period_s, substeps),
-        server=TISSUE_SERVER, first_step_s=period_s / substeps, probe=probe)
+        server=TISSUE_SERVER, first_step_s=first_step_s, probe=None, state_contact=contact)
 
 
 def probe_start_problem(body: TissueBody, p_WP, radius_m: float) -> Optional[str]:
@@ -146,9 +154,9 @@ def AddTissue(builder: DiagramBuilder, *, scene: ModelScene, bodies: List[Tissue
             period_s=time_step_s, worker_thread=contact.worker_thread))
         builder.Connect(parts.X_WT_output, system.GetInputPort("X_WT"))
         builder.Connect(parts.V_WT_output, system.GetInputPort("V_WT"))
-        triangles, _ = boundary_triangles(body.tetrahedra)
         tissues.append(Tissue(body=body, model=model, substeps=substeps, probe=probe,
-                              system=system, faces=surface_faces(model.surface, triangles)))
+                              system=system,
+                              faces=surface_faces(model.surface, model.triangles)))
     wrenches = [tissue.system.GetOutputPort("wrench_on_tool_W") for tissue in tissues]
     flags = [tissue.system.GetOutputPort("in_contact") for tissue in tissues]
     coupling = builder.AddNamedSystem("tissue_tool_wrench_sum", Adder(len(tissues) + 1, 6))

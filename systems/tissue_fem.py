@@ -23,10 +23,23 @@ Rayleigh damping as Drake's DeformableBodyConfig: -alpha m v (alpha, 1/s) and
 force is affine in the positions for a fixed R, the stiffness damping is the
 elastic force evaluated at x + beta v, the one pass that computes both.
 
-The probe's contact is ``lattice_dynamics.add_probe_forces`` on the surface nodes,
-evaluated at every substep from that substep's state with the probe held where the
-tick started (as the lattice's ``symplectic_euler_tick`` does); the tool's wrench is
-the first substep's (``state_contact`` computes it from the tick's start state).
+The probe's contact (``add_contact_forces``) is a pressure on the boundary's
+triangles, integrated over them: each triangle split into CONTACT_SUBDIVISIONS^2
+equal sub-triangles, a point at each one's centroid carrying its rest area. A point
+inside the sphere is pushed out along the normal from the sphere's centre by the
+lattice's node law per unit area: the penalty pressure k_p g(depth) (Pa, k_p in
+N/m^3, g with the same smoothing onset), Hunt-Crossley dissipation and regularized
+friction on the point's velocity interpolated from its triangle's nodes; the force
+goes to the three nodes by the point's barycentric weights, its opposite to the tool
+at the point. So the force follows the sphere smoothly across the nodes (the node
+law's stepped as each node entered the sphere: ~10 % ripple every 5 mm) and its
+stiffness on a node is k_p times the node's share of the boundary's area. Its
+damping is capped per node at the node's mass over the step, as the node law's: each
+point's at its area times the least mass per area of its triangle's nodes, over h.
+With rest areas the pressure's force is the gradient of an energy: conservative.
+It is evaluated at every substep from that substep's state with the probe held where
+the tick started (as the lattice's ``symplectic_euler_tick`` does); the tool's wrench
+is the first substep's (``state_contact`` computes it from the tick's start state).
 
 Performance: the per-tetrahedron work runs a block of ``TET_BLOCK`` tetrahedra at a
 time: the edge differences gathered into 9 flat rows, the arithmetic in one
@@ -42,6 +55,7 @@ of; the forces sum in float64. ``elastic_forces`` runs the same kernels in float
 
 import math
 import time
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import numba
@@ -49,11 +63,12 @@ import numpy as np
 import scipy.sparse
 import scipy.sparse.linalg
 
-from maglev_haptics.hardware.config_checks import finite, nonnegative, require
+from maglev_haptics.hardware.config_checks import finite, nonnegative, positive, require
 from maglev_haptics.hardware.constants import GRAVITY_M_S2
 from maglev_haptics.hardware.kernels import (
-    FLOAT32_VECTOR, INDEX, INDEX_VECTOR, MATRIX, SCALAR, UINT32_VECTOR, VECTOR, kernel)
-from maglev_haptics.systems.lattice_dynamics import LINK_MATH, ProbeContact, add_probe_forces
+    FLOAT32_VECTOR, INDEX, INDEX_MATRIX, MATRIX, READONLY_VECTOR, SCALAR,
+    UINT32_VECTOR, VECTOR, kernel)
+from maglev_haptics.systems.lattice_dynamics import LINK_MATH, probe_arguments
 
 # Tetrahedra per block of the element passes: the block's 9 rows of differences and
 # the 20 rows of rotation and rest data it reads stay in the L1 cache.
@@ -84,13 +99,56 @@ SCALED_POLAR_ITERATIONS = 1
 # The fraction of the symplectic Euler stability limit a substep may use (-).
 STABLE_STEP_SAFETY = 0.9
 
+# Sub-triangles along each edge of a boundary triangle in the contact's quadrature:
+# CONTACT_SUBDIVISIONS^2 points a triangle. A sweep 3 mm deep over the small slab's 5 mm
+# triangles (tests/test_tissue_press.py) ripples 4.1 % peak to peak with 1, 2.7 % with
+# 2, 2.1 % with 4 (points 1.25 mm apart): the finite elements' own, which 6 leaves.
+CONTACT_SUBDIVISIONS = 4
+
 # tissue_tick_from's argument types: masses in and out, probe, then what
-# ``tick_arguments`` returns: corner offsets, element_rows, mass, inv_mass, gravity,
-# surface, alpha, beta, constants, substeps, then the work space: tick rows, blend,
-# forces, block work; then the rest positions, the pass rows and the pass's work.
-TISSUE_TICK_ARGUMENTS = (VECTOR, VECTOR, VECTOR, UINT32_VECTOR, VECTOR, VECTOR, VECTOR, VECTOR,
-                         INDEX_VECTOR, SCALAR, SCALAR, VECTOR, INDEX, FLOAT32_VECTOR, VECTOR,
-                         MATRIX, VECTOR, VECTOR, FLOAT32_VECTOR, FLOAT32_VECTOR)
+# ``tick_arguments`` returns: corner offsets, element_rows, inv_mass, gravity, the
+# contact's triangles, triangle rows and quadrature, alpha, beta, constants, substeps,
+# then the work space: tick rows, blend, forces, block work; then the rest positions,
+# the pass rows and the pass's work.
+TISSUE_TICK_ARGUMENTS = (VECTOR, VECTOR, VECTOR, UINT32_VECTOR, VECTOR, VECTOR, VECTOR,
+                         INDEX_MATRIX, MATRIX, MATRIX, SCALAR, SCALAR, VECTOR, INDEX,
+                         FLOAT32_VECTOR, VECTOR, MATRIX, VECTOR, VECTOR, FLOAT32_VECTOR,
+                         FLOAT32_VECTOR)
+
+
+@dataclass
+class TissueProbe:
+    """The probe sphere's contact with tissue: a penalty pressure on the boundary's
+    triangles (``add_contact_forces``), the lattice's node law (``ProbeContact``) per
+    unit area. The defaults are the shipped scenes': pressed 3 mm over the shipped
+    slab's lump, the sphere feels 75.9 N/m, the node law's 300 N/m a node felt 72.5
+    (tests/test_tissue_press.py); on the slab's 5 mm nodes (25 mm^2 each) the
+    pressure stiffness is 150 N/m a node."""
+
+    radius_m: float = 0.008  # (m)
+    stiffness_n_per_m3: float = 6e6  # pressure per depth past the onset (Pa/m = N/m^3)
+    onset_depth_m: float = 0.0003  # the stiffness ramps in over this depth (m)
+    dissipation_s_per_m: float = 5.0  # Hunt-Crossley, on the approach speed (s/m)
+    friction: float = 0.1  # Coulomb coefficient (-)
+    slip_speed_m_s: float = 0.002  # friction reaches ~70 % of mu f_n at this slip (m/s)
+
+    def validate(self, path: str = "probe") -> None:
+        """Range checks; a ValueError names ``path.field``, its value and what is allowed."""
+        for name in ("radius_m", "onset_depth_m", "slip_speed_m_s"):
+            positive(f"{path}.{name}", getattr(self, name))
+        for name in ("dissipation_s_per_m", "friction"):
+            nonnegative(f"{path}.{name}", getattr(self, name))
+        # Softer than 1e5 N/m^3 the sphere sinks centimetres under a newton; stiffer
+        # than 1e10 the contact's own stiffness needs tens of substeps on 5 mm nodes.
+        stiffness = self.stiffness_n_per_m3
+        require(finite(stiffness) and 1e5 <= stiffness <= 1e10, f"{path}.stiffness_n_per_m3",
+                stiffness, "must be from 1e5 to 1e10 (N/m^3: pressure (Pa) per metre of depth)")
+
+    def constants(self) -> np.ndarray:
+        """The radius (m), stiffness (N/m^3), onset (m), dissipation (s/m), friction (-)
+        and slip speed (m/s), in the order the contact kernels take them (6,)."""
+        return np.array([self.radius_m, self.stiffness_n_per_m3, self.onset_depth_m,
+                         self.dissipation_s_per_m, self.friction, self.slip_speed_m_s])
 
 
 class TissueModel(NamedTuple):
@@ -109,6 +167,11 @@ class TissueModel(NamedTuple):
     fixed: np.ndarray  # (n,) bool
     gravity_m_s2: np.ndarray  # (3,) in W
     surface: np.ndarray  # (n_s,) int64: the boundary nodes, which the probe touches
+    triangles: np.ndarray  # (k, 3) int64 the boundary's triangles, ordered outward
+    # (k, 2): each triangle's rest area (m^2) and the least mass per area (kg/m^2) of its
+    # nodes (their mass over their share of the boundary's area): the contact's damping cap.
+    triangle_rows: np.ndarray
+    node_area_m2: np.ndarray  # (n,) each node's share of the boundary's area (0 inside)
     mass_damping_per_s: float  # Rayleigh alpha (1/s)
     stiffness_damping_s: float  # Rayleigh beta (s)
     rest_positions_m: np.ndarray  # (n, 3) the nodes at rest in W (m), where Dm was taken
@@ -141,6 +204,28 @@ def boundary_triangles(tetrahedra):
     return np.ascontiguousarray(triangles), np.unique(triangles)
 
 
+def boundary_areas(positions_m, triangles):
+    """(each triangle's area (k,) m^2, each node's share (n,) m^2: a third of each of
+    its triangles', 0 off the boundary)."""
+    corners = np.asarray(positions_m, float)[triangles]
+    area = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0],
+                                         corners[:, 2] - corners[:, 0]), axis=1)
+    node_area = np.zeros(len(positions_m))
+    np.add.at(node_area, triangles.ravel(), np.repeat(area / 3.0, 3))
+    return area, node_area
+
+
+def contact_quadrature(subdivisions: int = CONTACT_SUBDIVISIONS) -> np.ndarray:
+    """(subdivisions^2, 3): the barycentric coordinates of the centroids of a
+    triangle's equal sub-triangles, ``subdivisions`` along each edge; each point
+    carries 1 / subdivisions^2 of the triangle's area."""
+    s = subdivisions
+    points = [((i + 1 / 3) / s, (j + 1 / 3) / s) for i in range(s) for j in range(s - i)]
+    points += [((i + 2 / 3) / s, (j + 2 / 3) / s) for i in range(s) for j in range(s - 1 - i)]
+    b = np.array(points)
+    return np.ascontiguousarray(np.column_stack((1.0 - b.sum(axis=1), b)))
+
+
 def rest_shapes(positions_m, tetrahedra):
     """(Dm (m, 3, 3) edge matrices (m), volumes (m,) m^3) of the tetrahedra."""
     corners = np.asarray(positions_m, float)[np.asarray(tetrahedra)]
@@ -168,7 +253,7 @@ def _check_each(path, values, ok, allowed, indexed=True):
 def tissue_model(positions_m, tetrahedra, *, youngs_modulus_pa, poissons_ratio,
                  mass_density_kg_m3, fixed, mass_damping_per_s: float = 0.0,
                  stiffness_damping_s: float = 0.0,
-                 gravity_m_s2=(0.0, 0.0, -GRAVITY_M_S2), surface=None) -> TissueModel:
+                 gravity_m_s2=(0.0, 0.0, -GRAVITY_M_S2)) -> TissueModel:
     """The kernel arrays of a tetrahedral body.
 
     ``positions_m`` (n, 3) the nodes at rest in W (m); ``tetrahedra`` (m, 4) node
@@ -176,8 +261,8 @@ def tissue_model(positions_m, tetrahedra, *, youngs_modulus_pa, poissons_ratio,
     VolumeMesh order); ``youngs_modulus_pa`` (Pa), ``poissons_ratio`` (-) and
     ``mass_density_kg_m3`` (kg/m^3) one number for the body or one a tetrahedron;
     ``fixed`` (n,) bool the nodes that never move (at least three not on one line);
-    Rayleigh ``mass_damping_per_s`` alpha (1/s) and ``stiffness_damping_s`` beta (s);
-    ``surface`` the nodes the probe touches (default: the boundary's).
+    Rayleigh ``mass_damping_per_s`` alpha (1/s) and ``stiffness_damping_s`` beta (s).
+    The probe touches the boundary's triangles (``boundary_triangles``).
 
     A ValueError names the field, the value and what is allowed: an inverted or
     degenerate tetrahedron by its index and volume."""
@@ -234,8 +319,10 @@ def tissue_model(positions_m, tetrahedra, *, youngs_modulus_pa, poissons_ratio,
     lam = youngs * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
     mass = np.zeros(n)
     np.add.at(mass, tetrahedra.ravel(), np.repeat(density * volume / 4.0, 4))
-    if surface is None:
-        _, surface = boundary_triangles(tetrahedra)
+    triangles, surface = boundary_triangles(tetrahedra)
+    triangle_area, node_area = boundary_areas(positions_m, triangles)
+    # A triangle's nodes' least mass per area of boundary (kg/m^2): the contact's cap.
+    mass_per_area = (mass[triangles] / node_area[triangles]).min(axis=1)
     rest_inverse = np.linalg.inv(edges)
     rows = np.concatenate((rest_inverse.reshape(m, 9).T, [2.0 * mu * volume],
                            [lam * volume]))
@@ -245,7 +332,9 @@ def tissue_model(positions_m, tetrahedra, *, youngs_modulus_pa, poissons_ratio,
         youngs_modulus_pa=youngs, poissons_ratio=nu, mass_kg=mass,
         inv_mass_per_kg=np.where(fixed, 0.0, 1.0 / mass), fixed=fixed.copy(),
         gravity_m_s2=gravity.copy(),
-        surface=np.ascontiguousarray(np.asarray(surface).ravel(), dtype=np.int64),
+        surface=surface, triangles=triangles,
+        triangle_rows=np.ascontiguousarray(np.column_stack((triangle_area, mass_per_area))),
+        node_area_m2=node_area,
         mass_damping_per_s=float(mass_damping_per_s),
         stiffness_damping_s=float(stiffness_damping_s), rest_positions_m=positions_m.copy())
 
@@ -496,6 +585,106 @@ def element_rotations(x, corners, element_rows, work, tick_rows):
         _rotation_rows(work, element_rows, tick_rows, block, count)
 
 
+# --- the probe's contact ------------------------------------------------------------
+
+@numba.njit(cache=True, error_model="numpy")
+def add_contact_forces(x, v, triangles, triangle_rows, quadrature, p_WP, v_WP, p_WT, radius,
+                       k_p, onset, d_hc, mu, slip_speed, h, f):
+    """Add the probe's contact forces on the boundary triangles' nodes into f (n, 3)
+    (N) (module docstring); an f with no rows records nothing. x (n, 3) m, v (n, 3)
+    m/s; ``triangle_rows`` as ``TissueModel``'s; ``quadrature`` as
+    ``contact_quadrature``'s; the probe's centre p_WP (m) moving at v_WP (m/s), the
+    tool's origin p_WT (m); the sphere's radius (m), k_p (N/m^3), onset (m), d_hc
+    (s/m), mu (-), slip speed (m/s), the step h (s) the damping is applied over.
+
+    Returns (wrench on the tool [f; tau] in W about p_WT (N, N*m), points in contact)."""
+    wrench = np.zeros(6)
+    touching = 0
+    points = quadrature.shape[0]
+    for t in range(triangles.shape[0]):
+        a, b, c = triangles[t, 0], triangles[t, 1], triangles[t, 2]
+        # Skip a triangle whose bounding box the sphere misses (most of them).
+        missed = False
+        for k in range(3):
+            low = min(x[a, k], x[b, k], x[c, k])
+            high = max(x[a, k], x[b, k], x[c, k])
+            missed = missed or p_WP[k] < low - radius or p_WP[k] > high + radius
+        if missed:
+            continue
+        area = triangle_rows[t, 0] / points  # a point's share (m^2)
+        stiffness = k_p * area  # (N/m)
+        # Its share of its nodes' mass over h (N s/m): summed over the points about a
+        # node, at most the node's mass over h, so the damping stops, never reverses.
+        damping_cap = area * triangle_rows[t, 1] / h
+        for q in range(points):
+            wa, wb, wc = quadrature[q, 0], quadrature[q, 1], quadrature[q, 2]
+            px = wa * x[a, 0] + wb * x[b, 0] + wc * x[c, 0]
+            py = wa * x[a, 1] + wb * x[b, 1] + wc * x[c, 1]
+            pz = wa * x[a, 2] + wb * x[b, 2] + wc * x[c, 2]
+            nx, ny, nz = px - p_WP[0], py - p_WP[1], pz - p_WP[2]
+            distance = math.sqrt(nx * nx + ny * ny + nz * nz)
+            if distance >= radius or distance == 0.0:
+                continue
+            nx, ny, nz = nx / distance, ny / distance, nz / distance
+            rx = wa * v[a, 0] + wb * v[b, 0] + wc * v[c, 0] - v_WP[0]
+            ry = wa * v[a, 1] + wb * v[b, 1] + wc * v[c, 1] - v_WP[1]
+            rz = wa * v[a, 2] + wb * v[b, 2] + wc * v[c, 2] - v_WP[2]
+            approach = rx * nx + ry * ny + rz * nz
+            depth = radius - distance
+            if depth < onset:
+                squeeze = 0.5 * depth * depth / onset
+            else:
+                squeeze = depth - 0.5 * onset
+            normal = (stiffness * squeeze
+                      - min(stiffness * squeeze * d_hc, damping_cap) * approach)
+            if normal <= 0.0:
+                continue
+            touching += 1
+            tx, ty, tz = rx - approach * nx, ry - approach * ny, rz - approach * nz
+            # At small slip the friction is a damper mu normal / slip_speed: keep it
+            # under the cap.
+            regularization = max(slip_speed, mu * normal / damping_cap)
+            slip = math.sqrt(tx * tx + ty * ty + tz * tz + regularization * regularization)
+            drag = -mu * normal / slip
+            fx = normal * nx + drag * tx
+            fy = normal * ny + drag * ty
+            fz = normal * nz + drag * tz
+            if f.shape[0] > 0:
+                f[a, 0] += wa * fx
+                f[a, 1] += wa * fy
+                f[a, 2] += wa * fz
+                f[b, 0] += wb * fx
+                f[b, 1] += wb * fy
+                f[b, 2] += wb * fz
+                f[c, 0] += wc * fx
+                f[c, 1] += wc * fy
+                f[c, 2] += wc * fz
+            # The opposite force on the tool, applied at the point.
+            ax, ay, az = px - p_WT[0], py - p_WT[1], pz - p_WT[2]
+            wrench[0] -= fx
+            wrench[1] -= fy
+            wrench[2] -= fz
+            wrench[3] -= ay * fz - az * fy
+            wrench[4] -= az * fx - ax * fz
+            wrench[5] -= ax * fy - ay * fx
+    return wrench, touching
+
+
+@kernel((READONLY_VECTOR, VECTOR, INDEX_MATRIX, MATRIX, MATRIX, VECTOR, SCALAR))
+def state_contact(state, p_TP, triangles, triangle_rows, quadrature, constants, h):
+    """(wrench on the tool [f; tau] in W about T's origin, points in contact) for the
+    state vector [x; v; X_WT; V_WT], the probe's centre p_TP (m) in T; ``constants``
+    as ``TissueProbe.constants``; the (sub)step h (s) as the next step applies it."""
+    n = (state.shape[0] - 13) // 6
+    x = state[:3 * n].reshape((n, 3))
+    v = state[3 * n:6 * n].reshape((n, 3))
+    probe = probe_arguments(state[6 * n:], p_TP)
+    return add_contact_forces(x, v, triangles, triangle_rows, quadrature, probe[0:3],
+                              probe[3:6], probe[6:9], constants[0], constants[1],
+                              constants[2], constants[3], constants[4], constants[5], h,
+                              np.zeros((0, 3)))
+
+
 # --- the tick -----------------------------------------------------------------------
 
 @numba.njit(cache=True, error_model="numpy")
@@ -512,15 +701,15 @@ def _symplectic_substep(x, v, f, inv_mass, gravity, alpha, h_s):
 
 
 @kernel(TISSUE_TICK_ARGUMENTS, nogil=True)
-def tissue_tick_from(masses_in, masses_out, probe, corners, element_rows, mass, inv_mass,
-                     gravity, surface, alpha, beta, constants, substeps, tick_rows, blend,
-                     forces, work, rest, pass_rows, pass_work):
+def tissue_tick_from(masses_in, masses_out, probe, corners, element_rows, inv_mass, gravity,
+                     triangles, triangle_rows, quadrature, alpha, beta, constants, substeps,
+                     tick_rows, blend, forces, work, rest, pass_rows, pass_work):
     """``masses_out`` = one tick from ``masses_in`` ([x; v], 6 n) in ``substeps``
-    symplectic Euler substeps. ``probe`` is [p_WP, v_WP, p_WT] (9); ``constants`` the
-    probe's radius, stiffness, onset, dissipation, friction, slip speed, then the
-    tick h (s); ``rest`` the nodes at rest (flat, m); ``pass_rows`` the element
-    pass's (``pass_rows``). ``tick_rows``, ``blend`` (3 n), ``forces`` (n, 3),
-    ``work`` and ``pass_work`` are work space (``tick_arguments`` makes them)."""
+    symplectic Euler substeps. ``probe`` is [p_WP, v_WP, p_WT] (9); ``constants``
+    ``TissueProbe.constants`` then the tick h (s); ``rest`` the nodes at rest (flat,
+    m); ``pass_rows`` the element pass's (``pass_rows``). ``tick_rows``, ``blend``
+    (3 n), ``forces`` (n, 3), ``work`` and ``pass_work`` are work space
+    (``tick_arguments`` makes them)."""
     n = masses_in.shape[0] // 6
     masses_out[:] = masses_in
     x = masses_out[:3 * n]
@@ -536,29 +725,50 @@ def tissue_tick_from(masses_in, masses_out, probe, corners, element_rows, mass, 
             blend[j] = x[j] + beta * v[j] - rest[j]
         f[:] = 0.0
         add_elastic_forces(blend, corners, pass_rows, tick_rows, pass_work, f)
-        add_probe_forces(x3, v3, surface, probe[0:3], probe[3:6], probe[6:9], constants[0],
-                         constants[1], constants[2], constants[3], constants[4], constants[5],
-                         mass, h_s, forces)
+        add_contact_forces(x3, v3, triangles, triangle_rows, quadrature, probe[0:3],
+                           probe[3:6], probe[6:9], constants[0], constants[1], constants[2],
+                           constants[3], constants[4], constants[5], h_s, forces)
         _symplectic_substep(x, v, f, inv_mass, gravity, alpha, h_s)
 
 
-def tick_arguments(model: TissueModel, probe: ProbeContact, period_s: float, substeps: int,
-                   dtype=PASS_DTYPE):
+class TickArguments(NamedTuple):
+    """``tissue_tick_from``'s arguments after the probe, in its order."""
+
+    corners: np.ndarray
+    element_rows: np.ndarray
+    inv_mass: np.ndarray
+    gravity: np.ndarray
+    triangles: np.ndarray
+    triangle_rows: np.ndarray
+    quadrature: np.ndarray
+    alpha: float
+    beta: float
+    constants: np.ndarray
+    substeps: int
+    tick_rows: np.ndarray
+    blend: np.ndarray
+    forces: np.ndarray
+    work: np.ndarray
+    rest: np.ndarray
+    pass_rows: np.ndarray
+    pass_work: np.ndarray
+
+
+def tick_arguments(model: TissueModel, probe: TissueProbe, period_s: float, substeps: int,
+                   dtype=PASS_DTYPE) -> TickArguments:
     """The arguments of ``tissue_tick_from`` after ``probe``, fresh work space
     included: ``tissue_tick_from(masses_in, masses_out, probe, *arguments)``; the
     element pass in ``dtype`` (float64 only to compare: ``compile_kernels`` compiles
     the float32 one before the clock)."""
     n, m = model.num_nodes, model.num_tetrahedra
-    constants = np.array([probe.radius_m, probe.stiffness_n_per_m, probe.onset_depth_m,
-                          probe.dissipation_s_per_m, probe.friction, probe.slip_speed_m_s,
-                          float(period_s)])
-    return (corner_offsets(model.tetrahedra), model.element_rows, model.mass_kg,
-            model.inv_mass_per_kg,
-            model.gravity_m_s2, model.surface, model.mass_damping_per_s,
-            model.stiffness_damping_s, constants, int(substeps), tick_row_work(m, dtype),
-            np.zeros(3 * n), np.zeros((n, 3)), np.zeros(BLOCK_WORK),
-            np.ascontiguousarray(model.rest_positions_m.ravel()), pass_rows(model, dtype),
-            np.zeros(PASS_WORK, dtype))
+    return TickArguments(
+        corner_offsets(model.tetrahedra), model.element_rows, model.inv_mass_per_kg,
+        model.gravity_m_s2, model.triangles, model.triangle_rows, contact_quadrature(),
+        model.mass_damping_per_s, model.stiffness_damping_s,
+        np.append(probe.constants(), float(period_s)), int(substeps),
+        tick_row_work(m, dtype), np.zeros(3 * n), np.zeros((n, 3)), np.zeros(BLOCK_WORK),
+        np.ascontiguousarray(model.rest_positions_m.ravel()), pass_rows(model, dtype),
+        np.zeros(PASS_WORK, dtype))
 
 
 def pass_rows(model: TissueModel, dtype=PASS_DTYPE) -> np.ndarray:
@@ -645,14 +855,15 @@ def free_coordinates(model: TissueModel) -> np.ndarray:
 
 
 def highest_angular_frequency(model: TissueModel,
-                              probe_stiffness_n_per_m: float = 0.0) -> float:
+                              probe_stiffness_n_per_m3: float = 0.0) -> float:
     """w_max (rad/s): the largest of the undamped free nodes' sqrt(eig(M^-1 K)) at
-    rest, lumped M; K with the probe's per-vertex stiffness (N/m) added on every
-    surface node in every direction, a bound on any contact's."""
+    rest, lumped M; K with the probe's pressure stiffness (N/m^3) times each node's
+    share of the boundary's area added on the node in every direction, a bound on any
+    contact's: the contact's stiffness, sum over its points of k_p a_q (b_q b_q^T) x
+    (n_q n_q^T), is under it, as b b^T <= diag(b) for barycentric weights b."""
     free = free_coordinates(model)
     scale = 1.0 / np.sqrt(np.repeat(model.mass_kg, 3)[free])
-    contact = np.zeros(model.num_nodes)
-    contact[model.surface] = probe_stiffness_n_per_m
+    contact = probe_stiffness_n_per_m3 * model.node_area_m2  # (N/m)
     K = (linear_stiffness_matrix(model)
          + scipy.sparse.diags(np.repeat(contact, 3)))[free][:, free]
     A = scipy.sparse.diags(scale) @ K @ scipy.sparse.diags(scale)
@@ -670,17 +881,17 @@ def stable_step_s(angular_frequency: float, alpha: float, beta: float) -> float:
     return (2.0 / w) * (math.sqrt(1.0 + zeta * zeta) - zeta)
 
 
-def stable_substeps(model: TissueModel, period_s: float, *, probe_stiffness_n_per_m=0.0,
+def stable_substeps(model: TissueModel, period_s: float, *, probe_stiffness_n_per_m3=0.0,
                     safety: float = STABLE_STEP_SAFETY) -> int:
     """The number of equal substeps of a ``period_s`` (s) tick that keeps symplectic
     Euler stable on this mesh and material: each substep at most ``safety`` times the
     stable step of the highest mode (``stable_step_s``). The probe's contact counts
-    as its per-vertex stiffness (N/m) on every surface node along every axis at once:
-    a contact on fewer nodes, along their normals, only lowers w_max (the contact's
-    damping is capped so that it never destabilizes, ``add_probe_forces``), but little:
-    the top mode sits on the lightest surface node, sqrt(k_c / m) for it alone (the
-    shipped slab at 5 kPa: that node alone gives a w_max 0.2 % under this one)."""
-    w_max = highest_angular_frequency(model, probe_stiffness_n_per_m)
+    as its pressure stiffness (N/m^3) times each node's share of the boundary's area,
+    on every boundary node along every axis at once (``highest_angular_frequency``):
+    the worst node's ratio of that stiffness to its mass sets it where the contact
+    does (the contact's damping is capped so that it never destabilizes,
+    ``add_contact_forces``)."""
+    w_max = highest_angular_frequency(model, probe_stiffness_n_per_m3)
     step = stable_step_s(w_max, model.mass_damping_per_s, model.stiffness_damping_s)
     return max(1, math.ceil(period_s / (safety * step)))
 
@@ -699,12 +910,12 @@ def lowest_modes(model: TissueModel, count: int = 1):
 
 # --- timing -------------------------------------------------------------------------
 
-def tick_timing(model: TissueModel, *, probe: ProbeContact = None,
+def tick_timing(model: TissueModel, *, probe: TissueProbe = None,
                 period_s: float = 1e-3, substeps: int = 1, ticks: int = 200):
     """(microseconds a tick, tetrahedra a microsecond of one substep's element pass)
     of ``tissue_tick_from`` on this core, the median of ``ticks`` ticks from the
     model's rest positions under gravity, the probe away: for ``maglev bench``."""
-    arguments = tick_arguments(model, probe or ProbeContact(), period_s, substeps)
+    arguments = tick_arguments(model, probe or TissueProbe(), period_s, substeps)
     n = model.num_nodes
     state = np.zeros(6 * n)
     state[:3 * n] = model.rest_positions_m.ravel()
@@ -718,12 +929,12 @@ def tick_timing(model: TissueModel, *, probe: ProbeContact = None,
         durations.append(time.perf_counter() - start)
         state, other = other, state
     tick_us = 1e6 * float(np.median(durations))
-    tick_rows, rest, rows, work = arguments[10], arguments[14], arguments[15], arguments[16]
     f = np.zeros(3 * n)
-    u = state[:3 * n] - rest
+    u = state[:3 * n] - arguments.rest
     passes = []
     for _ in range(ticks):
         start = time.perf_counter()
-        add_elastic_forces(u, arguments[0], rows, tick_rows, work, f)
+        add_elastic_forces(u, arguments.corners, arguments.pass_rows, arguments.tick_rows,
+                           arguments.pass_work, f)
         passes.append(time.perf_counter() - start)
     return tick_us, model.num_tetrahedra / (1e6 * float(np.median(passes)))

@@ -1,17 +1,17 @@
 """The finite-element tissue kernels: the element's physics (rest, rigid motions,
 a uniaxial patch, momentum, damping), the stable substep count, bad meshes, the
-tick's contact, and agreement with Drake's own DeformableModel and with Hertz."""
+tick's contact on the boundary triangles, and agreement with Drake's own
+DeformableModel."""
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
 from maglev_haptics.plant_models.tissue_meshes import box_tetrahedra
-from maglev_haptics.systems.lattice_dynamics import ProbeContact, state_contact
 from maglev_haptics.systems.tissue_fem import (
-    boundary_triangles, elastic_forces, highest_angular_frequency, linear_stiffness_matrix,
-    polar_rotations, stable_step_s, stable_substeps, tick_arguments, tissue_model,
-    tissue_tick_from)
+    TissueProbe, boundary_areas, boundary_triangles, contact_quadrature, elastic_forces,
+    highest_angular_frequency, linear_stiffness_matrix, polar_rotations, stable_step_s,
+    stable_substeps, state_contact, tick_arguments, tissue_model, tissue_tick_from)
 
 TICK_S = 1e-3
 FAR_PROBE = np.array([0.0, 0.0, 10.0, 0.0, 0.0, 0.0, 0.0, 0.0, 10.0])  # [p_WP, v_WP, p_WT]
@@ -30,7 +30,7 @@ def slab(size_m=(0.04, 0.04, 0.02), counts=(4, 4, 2), youngs_pa=5e3, nu=0.45, al
 
 
 def run_ticks(model, positions, velocities, ticks, substeps, tick_s=TICK_S, probe=FAR_PROBE,
-              contact=ProbeContact()):
+              contact=TissueProbe()):
     """The state [x; v] after ``ticks`` ticks of tissue_tick_from."""
     arguments = tick_arguments(model, contact, tick_s, substeps)
     state = np.concatenate((np.ravel(positions), np.ravel(velocities)))
@@ -143,8 +143,23 @@ def test_stable_substeps_holds_and_a_longer_step_blows_up():
 
 def test_probe_stiffness_adds_substeps_on_light_surface_nodes():
     _, model = slab(youngs_pa=5e3)
-    assert (stable_substeps(model, TICK_S, probe_stiffness_n_per_m=4000.0)
+    assert (stable_substeps(model, TICK_S, probe_stiffness_n_per_m3=2e8)
             > stable_substeps(model, TICK_S))
+
+
+def test_contact_quadrature_and_areas_cover_each_triangle():
+    for subdivisions in (1, 2, 4):
+        weights = contact_quadrature(subdivisions)
+        assert weights.shape == (subdivisions ** 2, 3) and (weights > 0).all()
+        np.testing.assert_allclose(weights.sum(axis=1), 1.0)
+        # Symmetric: each corner's weights sum to a third, so linear fields integrate exactly.
+        np.testing.assert_allclose(weights.mean(axis=0), 1.0 / 3.0)
+    points, tetrahedra = box_tetrahedra((0.03, 0.02, 0.01), (3, 2, 2))
+    triangles, surface = boundary_triangles(tetrahedra)
+    area, node_area = boundary_areas(points, triangles)
+    assert area.sum() == pytest.approx(2 * (0.03 * 0.02 + 0.03 * 0.01 + 0.02 * 0.01))
+    assert node_area.sum() == pytest.approx(area.sum())
+    np.testing.assert_array_equal(np.flatnonzero(node_area), surface)
 
 
 def test_inverted_and_degenerate_tetrahedra_and_bad_material_are_refused():
@@ -185,29 +200,57 @@ def test_boundary_triangles_are_outward_and_cover_the_box():
     np.testing.assert_array_equal(surface, np.flatnonzero(~inside))
 
 
+def tool_state(probe):
+    """[X_WT; V_WT] (13) of a tool at probe[6:9], unrotated, moving at probe[3:6]."""
+    return np.r_[1.0, 0.0, 0.0, 0.0, probe[6:9], 0.0, 0.0, 0.0, probe[3:6]]
+
+
 def test_tick_is_deterministic_and_the_tool_gets_the_first_substeps_contact():
+    """The wrench on the tool from the state is exactly the opposite of the contact
+    forces the tick's first substep applies: its force their sum, its torque their
+    moment about the tool's origin (DeformableBody's invariant); with one substep,
+    those forces are the velocities' change against a tick with the probe away."""
     points, model = slab(alpha=20.0, beta=2e-4, gravity=(0.0, 0.0, -9.81))
-    contact = ProbeContact()
-    substeps = stable_substeps(model, TICK_S, probe_stiffness_n_per_m=contact.stiffness_n_per_m)
+    contact = TissueProbe(radius_m=0.004)
     # The probe 1 mm into the top's middle, moving down, the tool 30 mm above it.
     top = points[:, 2].max()
     p_WP = np.array([0.001, 0.0, top + contact.radius_m - 0.001])
     probe = np.concatenate((p_WP, [0.0, 0.0, -0.01], p_WP + [0.0, 0.0, 0.03]))
     masses = np.concatenate((points.ravel(), np.zeros(points.size)))
-    arguments = tick_arguments(model, contact, TICK_S, substeps)
-    first, second = np.empty_like(masses), np.empty_like(masses)
+    arguments = tick_arguments(model, contact, TICK_S, 1)
+    first, second, away = (np.empty_like(masses) for _ in range(3))
     tissue_tick_from(masses, first, probe, *arguments)
     tissue_tick_from(masses, second, probe, *arguments)
     np.testing.assert_array_equal(first, second)
-    tool = np.r_[1.0, 0.0, 0.0, 0.0, probe[6:9], 0.0, 0.0, 0.0, probe[3:6]]
-    constants = arguments[8][:6]
-    wrench, touching = state_contact(np.concatenate((masses, tool)), model.surface,
-                                     p_WP - probe[6:9], constants, model.mass_kg,
-                                     TICK_S / substeps)
-    assert touching > 0 and wrench[2] > 0.0  # the tissue pushes the tool up
-    # and the probe pushed the touched nodes down within the tick.
+    tissue_tick_from(masses, away, FAR_PROBE, *arguments)
     n = model.num_nodes
+    forces = ((first[3 * n:] - away[3 * n:]).reshape(n, 3) * model.mass_kg[:, None] / TICK_S)
+    wrench, touching = state_contact(np.concatenate((masses, tool_state(probe))),
+                                     p_WP - probe[6:9], model.triangles, model.triangle_rows,
+                                     contact_quadrature(), arguments.constants[:6], TICK_S)
+    assert touching > 0 and wrench[2] > 0.0  # the tissue pushes the tool up
+    scale = np.abs(wrench[:3]).max()
+    np.testing.assert_allclose(forces.sum(axis=0), -wrench[:3], atol=1e-9 * scale)
+    moment = np.cross(points - probe[6:9], forces).sum(axis=0)
+    np.testing.assert_allclose(moment, -wrench[3:], atol=1e-9 * scale * 0.03)
+    # The probe pushed the touched nodes down within the tick.
     assert first[3 * n:].reshape(n, 3)[model.surface, 2].min() < -1e-4
+
+
+def test_a_held_probe_does_not_chatter():
+    """A probe held 2 mm in with a dissipation and friction far past the nodes' mass
+    over the substep: the contact's damping, capped at each node's mass over the
+    step, stops the surface instead of reversing it every substep (uncapped, these
+    went to nan, and the shipped law's friction chattered at 7 mm/s)."""
+    points, model = slab(counts=(8, 8, 4), alpha=20.0, beta=2e-5, gravity=(0.0, 0.0, -9.81))
+    contact = TissueProbe(dissipation_s_per_m=1e4, friction=1.0, slip_speed_m_s=1e-4)
+    substeps = stable_substeps(model, TICK_S, probe_stiffness_n_per_m3=contact.stiffness_n_per_m3)
+    p_WP = np.array([0.001, 0.0, points[:, 2].max() + contact.radius_m - 0.002])
+    probe = np.concatenate((p_WP, np.zeros(3), p_WP))
+    state = run_ticks(model, points, np.zeros_like(points), 1000, substeps, probe=probe,
+                      contact=contact)
+    speeds = np.abs(state[3 * model.num_nodes:])
+    assert np.isfinite(speeds).all() and speeds.max() < 1e-5  # settled (m/s)
 
 
 def test_float32_element_pass_leaves_the_rest_shape_and_the_felt_press_unchanged():
@@ -216,8 +259,8 @@ def test_float32_element_pass_leaves_the_rest_shape_and_the_felt_press_unchanged
     rest displacements and the force the tool feels agree within 0.1 % (the issue's
     bar); measured 3e-8 and 5e-8, so the test holds them to 1e-5."""
     points, model = slab(counts=(8, 8, 4), alpha=20.0, beta=2e-4, gravity=(0.0, 0.0, -9.81))
-    contact = ProbeContact()
-    substeps = stable_substeps(model, TICK_S, probe_stiffness_n_per_m=contact.stiffness_n_per_m)
+    contact = TissueProbe()
+    substeps = stable_substeps(model, TICK_S, probe_stiffness_n_per_m3=contact.stiffness_n_per_m3)
     top = points[:, 2].max()
     n = model.num_nodes
     runs = []
@@ -233,9 +276,9 @@ def test_float32_element_pass_leaves_the_rest_shape_and_the_felt_press_unchanged
         for tick in range(300):  # from touching the top to 3 mm in
             p_WP = np.array([0.0, 0.0, top + contact.radius_m - 1e-5 * tick])
             probe = np.concatenate((p_WP, [0.0, 0.0, -0.01], p_WP + [0.0, 0.0, 0.03]))
-            tool = np.r_[1.0, 0.0, 0.0, 0.0, probe[6:9], 0.0, 0.0, 0.0, probe[3:6]]
-            felt.append(state_contact(np.concatenate((state, tool)), model.surface,
-                                      p_WP - probe[6:9], arguments[8][:6], model.mass_kg,
+            felt.append(state_contact(np.concatenate((state, tool_state(probe))),
+                                      p_WP - probe[6:9], model.triangles, model.triangle_rows,
+                                      arguments.quadrature, arguments.constants[:6],
                                       TICK_S / substeps)[0][2])
             tissue_tick_from(state, other, probe, *arguments)
             state, other = other, state

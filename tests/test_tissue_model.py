@@ -77,7 +77,7 @@ def test_shipped_organ_closed_and_fixed_underneath(shipped):
                          mass_damping_per_s=organ.mass_damping_per_s,
                          stiffness_damping_s=organ.stiffness_damping_s)
     probe = TissueContact().probe
-    assert stable_substeps(model, 1e-3, probe_stiffness_n_per_m=probe.stiffness_n_per_m) \
+    assert stable_substeps(model, 1e-3, probe_stiffness_n_per_m3=probe.stiffness_n_per_m3) \
         <= TissueContact().max_substeps
     bottom_z = organ.positions_m[:, 2].min()
     np.testing.assert_array_equal(

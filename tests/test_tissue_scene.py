@@ -37,7 +37,7 @@ def test_the_slab_steps_with_the_substeps_its_mesh_and_material_need():
     assert tissue.system.get_name() == "tissue_slab_palpation_slab"
     scene = load_scenario("palpate_inclusion").haptics.scene
     assert tissue.substeps == stable_substeps(
-        tissue.model, 1e-3, probe_stiffness_n_per_m=scene.tissue.probe.stiffness_n_per_m)
+        tissue.model, 1e-3, probe_stiffness_n_per_m3=scene.tissue.probe.stiffness_n_per_m3)
     assert 1 <= tissue.substeps <= scene.tissue.max_substeps
     assert tissue.model.num_tetrahedra == len(tissue.body.tetrahedra) > 2000
     # The rigid scene plant holds the tool only: Drake never steps the tissue itself.
@@ -69,6 +69,11 @@ def test_meshcat_draws_the_tissue_in_its_colour(meshcat):
     (scene_text("{max_substeps: 1}"),
      r"haptics.scene: tissue slab::palpation_slab .* substeps a 1 ms tick, more than "
      r"haptics.scene.tissue.max_substeps = 1"),
+    # The contact is a pressure: a per-node stiffness (N/m) is refused either way.
+    (scene_text("{probe: {stiffness_n_per_m3: 300.0}}"),
+     r"haptics.scene.tissue.probe.stiffness_n_per_m3 = 300.0: must be from 1e5 to 1e10 \(N/m\^3"),
+    (scene_text("{probe: {stiffness_n_per_m: 300.0}}"),
+     r"haptics.scene.tissue.probe.stiffness_n_per_m: unknown field; TissueProbe has"),
     (scene_text(tool="{shape: peg, size_m: [0.01, 0.01, 0.03]}"),
      r"haptics.scene.tissue.probe_offset_m = None: must place the sphere"),
     # The tool waits where the hand grips: the first hover pose, here low over the slab.
