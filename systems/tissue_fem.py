@@ -603,13 +603,13 @@ def add_contact_forces(x, v, triangles, triangle_rows, quadrature, p_WP, v_WP, p
     points = quadrature.shape[0]
     for t in range(triangles.shape[0]):
         a, b, c = triangles[t, 0], triangles[t, 1], triangles[t, 2]
-        # Skip a triangle whose bounding box the sphere misses (most of them).
-        missed = False
-        for k in range(3):
-            low = min(x[a, k], x[b, k], x[c, k])
-            high = max(x[a, k], x[b, k], x[c, k])
-            missed = missed or p_WP[k] < low - radius or p_WP[k] > high + radius
-        if missed:
+        # Skip a triangle whose bounding box the sphere misses (most of them, most on x).
+        if (p_WP[0] + radius < min(x[a, 0], x[b, 0], x[c, 0])
+                or p_WP[0] - radius > max(x[a, 0], x[b, 0], x[c, 0])
+                or p_WP[1] + radius < min(x[a, 1], x[b, 1], x[c, 1])
+                or p_WP[1] - radius > max(x[a, 1], x[b, 1], x[c, 1])
+                or p_WP[2] + radius < min(x[a, 2], x[b, 2], x[c, 2])
+                or p_WP[2] - radius > max(x[a, 2], x[b, 2], x[c, 2])):
             continue
         area = triangle_rows[t, 0] / points  # a point's share (m^2)
         stiffness = k_p * area  # (N/m)
