@@ -5,7 +5,8 @@ pressure k_p g(depth) on the boundary triangles' quadrature points inside it, al
 the normal from its centre, each point's force shared by its triangle's nodes). It
 moves straight down over a point (x, y) in W; its depth d (m) is measured from the
 undeformed surface there (the reference mesh's top face under the sphere's centre)
-to the sphere's lowest point, so the centre lies at z = z_top + R - d. The tissue starts at rest under its gravity.
+to the sphere's lowest point, so the centre lies at z = z_top + R - d. The tissue
+starts at rest under its gravity.
 
 Quasi-static: at each depth the tissue is in static equilibrium, found by Newton's
 method on the free nodes' forces, the same forces the haptic kernel integrates
@@ -15,10 +16,10 @@ lumped weights, the probe's penalty at rest). The Newton matrix is the corotated
 linear stiffness at the current rotations (``linear_stiffness_matrix``) plus the
 probe's normal stiffness, k_p a g'(depth) (b b^T) x (n n^T) of each point inside the
 sphere (area a, barycentric weights b on its triangle's nodes); it leaves out the
-rotations' own change and the normals' turning, so Newton
-converges linearly near the end instead of quadratically, but it converges to the
-kernel's own equilibrium (the residual is exact). The sphere descends in steps of
-at most ``max_step_m`` so that the contact set changes a little a step.
+rotations' own change and the normals' turning, so Newton converges linearly near
+the end instead of quadratically, but it converges to the kernel's own equilibrium
+(the residual is exact). The sphere descends in steps of at most ``max_step_m`` so
+that the contact set changes a little a step.
 
 The felt stiffness dF/dd (N/m) at a depth is the central difference of the force
 between the equilibria a small step above and below it: the contact stiffness

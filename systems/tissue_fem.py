@@ -166,7 +166,7 @@ class TissueModel(NamedTuple):
     inv_mass_per_kg: np.ndarray  # (n,); 0 for fixed nodes
     fixed: np.ndarray  # (n,) bool
     gravity_m_s2: np.ndarray  # (3,) in W
-    surface: np.ndarray  # (n_s,) int64: the boundary nodes, which the probe touches
+    surface: np.ndarray  # (n_s,) int64: the nodes on the boundary's triangles, drawn
     triangles: np.ndarray  # (k, 3) int64 the boundary's triangles, ordered outward
     # (k, 2): each triangle's rest area (m^2) and the least mass per area (kg/m^2) of its
     # nodes (their mass over their share of the boundary's area): the contact's damping cap.
