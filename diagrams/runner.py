@@ -32,7 +32,9 @@ from tqdm import tqdm
 from maglev_haptics.diagrams.application import MESHCAT_PERIOD_S
 from maglev_haptics.diagrams.motion import IDLE_AFTER_S
 from maglev_haptics.hardware.constants import SAME_INSTANT_S
-from maglev_haptics.hardware.realtime_priority import RT_SPIN_S, is_realtime, realtime_priority
+from maglev_haptics.hardware.realtime_priority import (
+    RT_BUDGET_MARGIN, RT_SPIN_S, is_realtime, leave_realtime, realtime_priority,
+    rt_throttle_share)
 from maglev_haptics.hardware.kernels import compile_kernels
 
 PROGRESS_CHUNK_S = 0.25  # simulated seconds between progress-bar updates
@@ -79,8 +81,9 @@ def realtime_report(times: TickTimes) -> Dict:
     }
 
 
-def wait_until(wall_s: float, spin_s: float) -> None:
-    """Return at ``wall_s`` (time.perf_counter's clock, s), spinning its last ``spin_s``."""
+def wait_until(wall_s: float, spin_s: float) -> float:
+    """Return at ``wall_s`` (time.perf_counter's clock, s), spinning its last ``spin_s``;
+    returns how long it slept before that (s)."""
     # The last ``spin_s`` before the slot is spun, not slept: a core that idles wakes
     # cold. On the 2-core test machine levitate missed 1.7-1.8% of its slots sleeping
     # and 0.08-0.1% spinning the whole wait (15 s runs alternated; another day, 59-71%
@@ -90,7 +93,12 @@ def wait_until(wall_s: float, spin_s: float) -> None:
         time.sleep(ahead_s)
     while time.perf_counter() < wall_s:
         pass
+    return max(0.0, ahead_s)
 
+
+# A real-time loop's sleep is judged over at least this many slots (and at most a
+# second's): long enough for one long tick not to count, short of the throttle's 0.95 s.
+RT_WINDOW_MIN_SLOTS = 500
 
 # A paced process that shares the machine with another (the device's, on LCM) sleeps
 # until this much before each slot, so the other one gets a core (s).
@@ -277,7 +285,8 @@ def advance_paced(simulator, duration_s: float, tick_s: float, ticks: PacedTicks
     progress interval (Meshcat's panel, which stayed empty in Chromium with only the
     visualizers, published from here, to fill it). With ``raise_priority`` the loop runs
     at real-time priority where granted (``realtime_priority``: then it spins at most
-    RT_SPIN_S). The wait for a slot spins for its last ``spin_s`` (s) and sleeps
+    RT_SPIN_S; a loop that slept under RT_BUDGET_MARGIN times the throttle's share of
+    its last second goes back to normal priority, ``ticks.priority`` says when). The wait for a slot spins for its last ``spin_s`` (s) and sleeps
     before that. Returns the gaps' jobs, with what they cost and how late they ran."""
     context = simulator.get_context()
     start_s = context.get_time()
@@ -303,13 +312,32 @@ def advance_paced(simulator, duration_s: float, tick_s: float, ticks: PacedTicks
     between.measure()
     try:
         with realtime_priority(raise_priority) as ticks.priority:
-            if is_realtime():
+            normal_spin_s = spin_s
+            # The sleeps of the last second's slots (s), and their sum, at real-time priority.
+            slept_s, slept_sum_s = np.zeros(max(1, int(round(1.0 / ticks.slot_s)))), 0.0
+            due_s = rt_throttle_share() * slept_s.size * ticks.slot_s  # a second's (s)
+            realtime = is_realtime()
+            if realtime:
                 spin_s = min(spin_s, RT_SPIN_S)
             for k in range(ticks.compute_s.size):
                 if k > 0:  # the first tick runs before the clock starts (module docstring)
                     release = clock_zero + (k - 1) * ticks.slot_s
                     between.fill_gap(context.get_time(), release)
-                    wait_until(release, spin_s)
+                    slept = wait_until(release, spin_s)
+                    if realtime:
+                        slot = k % slept_s.size
+                        slept_sum_s += slept - slept_s[slot]
+                        slept_s[slot] = slept
+                        window = min(k, slept_s.size)  # slots so far, up to a second's
+                        window_due_s = due_s * window / slept_s.size
+                        if (window >= RT_WINDOW_MIN_SLOTS
+                                and slept_sum_s < RT_BUDGET_MARGIN * window_due_s):
+                            realtime, spin_s = False, normal_spin_s
+                            leave_realtime()
+                            ticks.priority += (
+                                f" until {context.get_time() - start_s:.3f} s, then normal: "
+                                f"it slept {1e3 * slept_sum_s:.1f} ms of its last {window} "
+                                f"slots, the real-time throttle's due {1e3 * window_due_s:.1f} ms")
                 begin = time.perf_counter()
                 simulator.AdvanceTo(start_s + (k + 1) * tick_s)
                 end = time.perf_counter()

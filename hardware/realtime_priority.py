@@ -11,7 +11,12 @@ normal priority, 36 and 37 at SCHED_FIFO.
 A SCHED_FIFO thread that never blocks owns its core, and Linux's throttle
 (``/proc/sys/kernel/sched_rt_runtime_us``: 950 ms of each second) then stops it
 for 50 ms: so at real-time priority the loop sleeps until RT_SPIN_S before each
-slot; the helpers it waits on (the scene worker process, the lattice's worker
+slot. A loop whose ticks leave it too little of that sleep cannot stay at
+real-time priority: measured on a 2-core machine, a loop spinning 880 us of each
+1 ms slot slept not at all, met the throttle, stopped 53 ms each second and missed
+63 % of its slots (2.9 % at normal priority). So a loop that slept less than
+RT_BUDGET_MARGIN times the throttle's share (``rt_throttle_share``) over its last
+second goes back to normal priority (``leave_realtime``) for the rest of its run; the helpers it waits on (the scene worker process, the lattice's worker
 thread), told as followers, take up the same priority, and the scene worker sleeps
 between requests and the lattice's worker polls by sleeping RT_POLL_US. Work the
 loop does not wait on (the log's writer thread) runs at BACKGROUND_PRIORITY, just
@@ -45,6 +50,10 @@ RT_SPIN_S = 150e-6
 # A helper thread at real-time priority polls for requests this often (us): no timer
 # slack at SCHED_FIFO, a few microseconds a look.
 RT_POLL_US = 20
+# A real-time loop sleeps at least this many times the throttle's share of a second.
+RT_BUDGET_MARGIN = 1.5
+RT_THROTTLE_FILES = ("/proc/sys/kernel/sched_rt_runtime_us",
+                     "/proc/sys/kernel/sched_rt_period_us")
 
 
 # Told when the loop enters (True) and leaves (False) real-time priority: the helper
@@ -77,6 +86,26 @@ def set_thread_priority(thread_id: int, realtime: bool,
             os.sched_setscheduler(thread_id, os.SCHED_OTHER, os.sched_param(0))
     except (PermissionError, ProcessLookupError):
         pass
+
+
+def rt_throttle_share(throttle_files=RT_THROTTLE_FILES) -> float:
+    """The share of each period (-) the kernel's throttle keeps from real-time
+    threads (1 - runtime / period, read from ``throttle_files``, us): 0.05 by
+    default; 0 where the throttle is off (runtime -1) or cannot be read."""
+    try:
+        runtime_us, period_us = (int(open(path).read()) for path in throttle_files)
+    except (OSError, ValueError):
+        return 0.0
+    if runtime_us < 0 or period_us <= 0:
+        return 0.0
+    return max(0.0, 1.0 - runtime_us / period_us)
+
+
+def leave_realtime() -> None:
+    """The calling thread back at normal priority, and the followers told
+    (``add_follower``); ``realtime_priority``'s exit then restores what it found."""
+    os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    _tell_followers(False)
 
 
 def is_realtime(pid: int = 0) -> bool:

@@ -8,7 +8,7 @@ import pytest
 
 from maglev_haptics.hardware.realtime_priority import (
     LOOP_PRIORITY, add_follower, fifo_permitted, is_realtime, realtime_priority,
-    set_thread_priority)
+    rt_throttle_share, set_thread_priority)
 
 
 needs_fifo = pytest.mark.skipif(not fifo_permitted(),
@@ -67,3 +67,37 @@ def test_followers_are_told_and_their_threads_take_it_up():
     assert not is_realtime(helper.thread.native_id)
     helper.stopped.set()
     helper.thread.join()
+
+
+@pytest.mark.parametrize("runtime_us, period_us, share", [
+    ("950000", "1000000", 0.05), ("-1", "1000000", 0.0), ("1000000", "1000000", 0.0),
+    ("garbled", "1000000", 0.0)])
+def test_the_throttles_share_is_what_the_kernel_keeps(tmp_path, runtime_us, period_us, share):
+    files = (tmp_path / "runtime", tmp_path / "period")
+    files[0].write_text(runtime_us + "\n")
+    files[1].write_text(period_us + "\n")
+    assert rt_throttle_share(files) == pytest.approx(share)
+    assert rt_throttle_share((tmp_path / "missing", files[1])) == 0.0
+
+
+@needs_fifo
+@pytest.mark.parametrize("compute_us, stays", [(300.0, True), (960.0, False)])
+def test_a_loop_with_too_little_sleep_for_the_throttle_goes_back_to_normal(compute_us, stays):
+    """Paced at real-time priority, a loop whose ticks leave it time to sleep keeps it;
+    one that sleeps less than the throttle's due (on Linux's default, 50 ms a second)
+    goes back to normal priority after RT_WINDOW_MIN_SLOTS and says when, rather than
+    be stopped for 50 ms each second."""
+    from maglev_haptics.analysis.host_pacing import host_pacing
+    from maglev_haptics.diagrams.runner import RT_WINDOW_MIN_SLOTS
+
+    if rt_throttle_share() == 0.0:
+        pytest.skip("the kernel's real-time throttle is off here")
+    report = host_pacing(1.5 * RT_WINDOW_MIN_SLOTS * 1e-3, compute_us)
+    if stays:
+        assert report["priority"] == f"SCHED_FIFO {LOOP_PRIORITY}"
+    else:
+        assert report["priority"].startswith(
+            f"SCHED_FIFO {LOOP_PRIORITY} until 0.5") and ", then normal: it slept" in (
+            report["priority"])
+        assert report["longest_stall_ms"] < 50.0  # never stopped by the throttle
+    assert not is_realtime()

@@ -296,7 +296,7 @@ def test_paced_loop_runs_at_real_time_priority_and_sleeps_its_waits(monkeypatch)
     policies = []
     simulator = FakeSimulator(lambda k: policies.append(os.sched_getscheduler(0)) or 50e-6)
     monkeypatch.setattr(runner, "wait_until",
-                        lambda wall_s, spin_s: waits.append(spin_s))
+                        lambda wall_s, spin_s: waits.append(spin_s) or 0.5e-3)
     for priority in (True, False):
         waits.clear()
         policies.clear()
