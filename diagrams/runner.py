@@ -33,8 +33,8 @@ from maglev_haptics.diagrams.application import MESHCAT_PERIOD_S
 from maglev_haptics.diagrams.motion import IDLE_AFTER_S
 from maglev_haptics.hardware.constants import SAME_INSTANT_S
 from maglev_haptics.hardware.realtime_priority import (
-    RT_BUDGET_MARGIN, RT_SPIN_S, is_realtime, leave_realtime, realtime_priority,
-    rt_throttle_share)
+    RT_BUDGET_MARGIN, RT_RETURN_MARGIN, RT_SPIN_S, is_realtime, realtime_priority,
+    rt_throttle_share, set_loop_realtime)
 from maglev_haptics.hardware.kernels import compile_kernels
 
 PROGRESS_CHUNK_S = 0.25  # simulated seconds between progress-bar updates
@@ -83,17 +83,62 @@ def realtime_report(times: TickTimes) -> Dict:
 
 def wait_until(wall_s: float, spin_s: float) -> float:
     """Return at ``wall_s`` (time.perf_counter's clock, s), spinning its last ``spin_s``;
-    returns how long it slept before that (s)."""
+    returns how long it waited (s, 0 if called late)."""
     # The last ``spin_s`` before the slot is spun, not slept: a core that idles wakes
     # cold. On the 2-core test machine levitate missed 1.7-1.8% of its slots sleeping
     # and 0.08-0.1% spinning the whole wait (15 s runs alternated; another day, 59-71%
     # sleeping until 0.3 ms before the slot against 22-37% spinning throughout).
-    ahead_s = wall_s - time.perf_counter() - spin_s
-    if ahead_s > 0:
-        time.sleep(ahead_s)
+    waited_s = wall_s - time.perf_counter()
+    if waited_s - spin_s > 0:
+        time.sleep(waited_s - spin_s)
     while time.perf_counter() < wall_s:
         pass
-    return max(0.0, ahead_s)
+    return max(0.0, waited_s)
+
+
+class RealtimeBudget:
+    """Whether a paced loop of ``slot_s`` (s) slots may run at real-time priority:
+    over its last second's slots (at least RT_WINDOW_MIN_SLOTS), a loop at it sleeps
+    each wait but its last RT_SPIN_S, and must sleep RT_BUDGET_MARGIN times the
+    kernel's throttle's due (``rt_throttle_share``) or be stopped by it; back at
+    normal priority, it returns once its waits would sleep RT_RETURN_MARGIN times
+    that. ``stretches``: [start, end] (s) of each stretch at normal priority."""
+
+    def __init__(self, slot_s: float):
+        self._sleeps_s = np.zeros(max(1, int(round(1.0 / slot_s))))
+        self._sum_s = 0.0
+        self._count = 0
+        self._due_s = rt_throttle_share() * self._sleeps_s.size * slot_s  # a second's (s)
+        self._realtime = True
+        self.stretches: List[List[float]] = []
+
+    def add(self, waited_s: float, t_s: float) -> bool:
+        """Count a wait of ``waited_s`` (s) at simulated time ``t_s`` (s); returns
+        whether the loop may run at real-time priority from now."""
+        slot = self._count % self._sleeps_s.size
+        sleep_s = max(0.0, waited_s - RT_SPIN_S)
+        self._sum_s += sleep_s - self._sleeps_s[slot]
+        self._sleeps_s[slot] = sleep_s
+        self._count += 1
+        window = min(self._count, self._sleeps_s.size)
+        due_s = self._due_s * window / self._sleeps_s.size
+        if window < RT_WINDOW_MIN_SLOTS or due_s == 0.0:
+            return self._realtime
+        if self._realtime and self._sum_s < RT_BUDGET_MARGIN * due_s:
+            self._realtime = False
+            self.stretches.append([t_s, math.inf])
+        elif not self._realtime and self._sum_s > RT_RETURN_MARGIN * due_s:
+            self._realtime = True
+            self.stretches[-1][1] = t_s
+        return self._realtime
+
+    def describe(self) -> str:
+        """The stretches at normal priority, in words."""
+        spans = ", ".join(f"{start:.2f}-{end:.2f} s" if math.isfinite(end) else
+                          f"from {start:.2f} s" for start, end in self.stretches)
+        return (f"at normal priority {spans}: its waits left it under "
+                f"{1e3 * RT_BUDGET_MARGIN * self._due_s:.0f} ms of sleep a second, the "
+                f"real-time throttle's due {1e3 * self._due_s:.0f} ms")
 
 
 # A real-time loop's sleep is judged over at least this many slots (and at most a
@@ -285,8 +330,8 @@ def advance_paced(simulator, duration_s: float, tick_s: float, ticks: PacedTicks
     progress interval (Meshcat's panel, which stayed empty in Chromium with only the
     visualizers, published from here, to fill it). With ``raise_priority`` the loop runs
     at real-time priority where granted (``realtime_priority``: then it spins at most
-    RT_SPIN_S; a loop that slept under RT_BUDGET_MARGIN times the throttle's share of
-    its last second goes back to normal priority, ``ticks.priority`` says when). The wait for a slot spins for its last ``spin_s`` (s) and sleeps
+    RT_SPIN_S, and goes back to normal priority where its ticks leave it too little
+    sleep for the kernel's throttle, ``RealtimeBudget``; ``ticks.priority`` says when). The wait for a slot spins for its last ``spin_s`` (s) and sleeps
     before that. Returns the gaps' jobs, with what they cost and how late they ran."""
     context = simulator.get_context()
     start_s = context.get_time()
@@ -312,32 +357,20 @@ def advance_paced(simulator, duration_s: float, tick_s: float, ticks: PacedTicks
     between.measure()
     try:
         with realtime_priority(raise_priority) as ticks.priority:
-            normal_spin_s = spin_s
-            # The sleeps of the last second's slots (s), and their sum, at real-time priority.
-            slept_s, slept_sum_s = np.zeros(max(1, int(round(1.0 / ticks.slot_s)))), 0.0
-            due_s = rt_throttle_share() * slept_s.size * ticks.slot_s  # a second's (s)
-            realtime = is_realtime()
+            fifo, normal_spin_s = is_realtime(), spin_s
+            throttle = RealtimeBudget(ticks.slot_s)
+            realtime = fifo
             if realtime:
                 spin_s = min(spin_s, RT_SPIN_S)
             for k in range(ticks.compute_s.size):
                 if k > 0:  # the first tick runs before the clock starts (module docstring)
                     release = clock_zero + (k - 1) * ticks.slot_s
                     between.fill_gap(context.get_time(), release)
-                    slept = wait_until(release, spin_s)
-                    if realtime:
-                        slot = k % slept_s.size
-                        slept_sum_s += slept - slept_s[slot]
-                        slept_s[slot] = slept
-                        window = min(k, slept_s.size)  # slots so far, up to a second's
-                        window_due_s = due_s * window / slept_s.size
-                        if (window >= RT_WINDOW_MIN_SLOTS
-                                and slept_sum_s < RT_BUDGET_MARGIN * window_due_s):
-                            realtime, spin_s = False, normal_spin_s
-                            leave_realtime()
-                            ticks.priority += (
-                                f" until {context.get_time() - start_s:.3f} s, then normal: "
-                                f"it slept {1e3 * slept_sum_s:.1f} ms of its last {window} "
-                                f"slots, the real-time throttle's due {1e3 * window_due_s:.1f} ms")
+                    waited = wait_until(release, spin_s)
+                    if fifo and throttle.add(waited, context.get_time() - start_s) != realtime:
+                        realtime = not realtime
+                        spin_s = min(normal_spin_s, RT_SPIN_S) if realtime else normal_spin_s
+                        set_loop_realtime(realtime)
                 begin = time.perf_counter()
                 simulator.AdvanceTo(start_s + (k + 1) * tick_s)
                 end = time.perf_counter()
@@ -349,6 +382,8 @@ def advance_paced(simulator, duration_s: float, tick_s: float, ticks: PacedTicks
                 ticks.done = k + 1
                 if ticks.done % ticks_per_update == 0 and stop is not None and stop(context):
                     break
+            if fifo and throttle.stretches:
+                ticks.priority += f" ({throttle.describe()})"
     finally:
         advance_bar(bar, context.get_time())
     # The last frame and the log's tail, off the clock (not after an error: what

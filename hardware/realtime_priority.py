@@ -16,7 +16,8 @@ real-time priority: measured on a 2-core machine, a loop spinning 880 us of each
 1 ms slot slept not at all, met the throttle, stopped 53 ms each second and missed
 63 % of its slots (2.9 % at normal priority). So a loop that slept less than
 RT_BUDGET_MARGIN times the throttle's share (``rt_throttle_share``) over its last
-second goes back to normal priority (``leave_realtime``) for the rest of its run; the helpers it waits on (the scene worker process, the lattice's worker
+second goes back to normal priority (``set_loop_realtime``) until its ticks would
+leave it twice that again; the helpers it waits on (the scene worker process, the lattice's worker
 thread), told as followers, take up the same priority, and the scene worker sleeps
 between requests and the lattice's worker polls by sleeping RT_POLL_US. Work the
 loop does not wait on (the log's writer thread) runs at BACKGROUND_PRIORITY, just
@@ -50,8 +51,10 @@ RT_SPIN_S = 150e-6
 # A helper thread at real-time priority polls for requests this often (us): no timer
 # slack at SCHED_FIFO, a few microseconds a look.
 RT_POLL_US = 20
-# A real-time loop sleeps at least this many times the throttle's share of a second.
+# A real-time loop sleeps at least this many times the throttle's share of a second,
+# and one sent back to normal priority returns once it would sleep twice that.
 RT_BUDGET_MARGIN = 1.5
+RT_RETURN_MARGIN = 2 * RT_BUDGET_MARGIN
 RT_THROTTLE_FILES = ("/proc/sys/kernel/sched_rt_runtime_us",
                      "/proc/sys/kernel/sched_rt_period_us")
 
@@ -101,11 +104,12 @@ def rt_throttle_share(throttle_files=RT_THROTTLE_FILES) -> float:
     return max(0.0, 1.0 - runtime_us / period_us)
 
 
-def leave_realtime() -> None:
-    """The calling thread back at normal priority, and the followers told
-    (``add_follower``); ``realtime_priority``'s exit then restores what it found."""
-    os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
-    _tell_followers(False)
+def set_loop_realtime(realtime: bool) -> None:
+    """Inside ``realtime_priority``: the calling thread back at normal priority
+    (False) or at SCHED_FIFO LOOP_PRIORITY again (True), and the followers told
+    (``add_follower``); its exit restores what it found."""
+    set_thread_priority(0, realtime)
+    _tell_followers(realtime)
 
 
 def is_realtime(pid: int = 0) -> bool:
