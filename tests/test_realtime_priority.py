@@ -99,7 +99,6 @@ def test_a_loop_with_too_little_sleep_for_the_throttle_goes_back_to_normal(compu
         assert report["priority"].startswith(
             f"SCHED_FIFO {LOOP_PRIORITY} (at normal priority from 0.50 s: its waits left it "
             "under 75 ms of sleep a second, the real-time throttle's due 50 ms)"), report
-        assert report["longest_stall_ms"] < 50.0  # never stopped by the throttle
     assert not is_realtime()
 
 
