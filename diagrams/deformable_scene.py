@@ -31,7 +31,7 @@ from maglev_haptics.systems.heightmap import (
 from maglev_haptics.systems.lattice_construction import Lattice, build_lattice
 from maglev_haptics.systems.lattice_dynamics import (
     INTEGRATORS, LINEARLY_IMPLICIT, SYMPLECTIC_EULER, TICK_ARGUMENTS, LatticeModel, ProbeContact,
-    implicit_workspace, lattice_model, max_stable_link_stiffness, tick_from)
+    implicit_workspace, lattice_model, max_stable_link_stiffness, state_contact, tick_from)
 from maglev_haptics.systems.step_worker import tick_server
 
 # The worker loop for the lattice's tick (its arguments after masses in, out and probe).
@@ -133,10 +133,15 @@ def lattice_dynamics(model: LatticeModel, *, probe: ProbeContact, period_s: floa
                 model.gravity_m_s2, model.surface, np.zeros((n, 3)), constants, implicit,
                 int(substeps), int(cg_max_iterations), np.zeros((n, 3)),
                 *implicit_workspace(n, len(model.links)))
+    contact_constants = probe_constants(probe)
+    first_step_s = period_s if implicit else period_s / substeps
+
+    def contact(state, p_TP):
+        return state_contact(state, model.surface, p_TP, contact_constants, model.mass_kg,
+                             first_step_s)
     return DeformableDynamics(
         node_mass_kg=model.mass_kg, surface_nodes=model.surface, tick=tick_from,
-        tick_arguments=tick_arguments, server=LATTICE_SERVER,
-        first_step_s=period_s if implicit else period_s / substeps, probe=probe)
+        tick_arguments=tick_arguments, server=LATTICE_SERVER, state_contact=contact)
 
 
 def lattice_grid(scene: DeformableSurface):

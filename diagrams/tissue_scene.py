@@ -96,7 +96,7 @@ def tissue_dynamics(model: TissueModel, probe: TissueProbe, period_s: float,
     return DeformableDynamics(
         node_mass_kg=model.mass_kg, surface_nodes=model.surface, tick=tissue_tick_from,
         tick_arguments=lambda: tick_arguments(model, probe, period_s, substeps),
-        server=TISSUE_SERVER, first_step_s=first_step_s, probe=None, state_contact=contact)
+        server=TISSUE_SERVER, state_contact=contact)
 
 
 def probe_start_problem(body: TissueBody, p_WP, radius_m: float) -> Optional[str]:

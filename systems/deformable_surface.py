@@ -33,14 +33,14 @@ positions, column by column, for drawing.
 Float only: a state of tens of thousands of numbers has no use for AutoDiffXd.
 """
 
-from typing import Callable, NamedTuple, Optional
+from typing import Callable, NamedTuple
 
 import numpy as np
 from pydrake.common.value import AbstractValue
 from pydrake.math import RigidTransform
 from pydrake.systems.framework import LeafSystem, ValueProducer
 
-from maglev_haptics.systems.lattice_dynamics import ProbeContact, probe_arguments, state_contact
+from maglev_haptics.systems.lattice_dynamics import ProbeContact, probe_arguments
 from maglev_haptics.systems.step_worker import StepWorker
 
 
@@ -49,9 +49,8 @@ class DeformableDynamics(NamedTuple):
     probe touches it. The tick is a ``kernel`` (``hardware/kernels.py``),
     ``tick(masses_in, masses_out, probe, *tick_arguments())``: ``masses_out`` ([x; v],
     6 n) one tick from ``masses_in`` (the same array for a step in place), the probe
-    [p_WP, v_WP, p_WT] (9) held, its contact ``add_probe_forces`` on the surface nodes
-    with the constants ``probe_constants(probe)``, applied over ``first_step_s``; or
-    the model's own contact, ``state_contact``."""
+    [p_WP, v_WP, p_WT] (9) held; ``state_contact`` the contact's wrench on the tool
+    that tick applies from a state."""
 
     node_mass_kg: np.ndarray  # (n,) every node's mass (kg): caps the contact's damping
     surface_nodes: np.ndarray  # (n_s,) int64 indices of the nodes the probe touches
@@ -60,12 +59,10 @@ class DeformableDynamics(NamedTuple):
     # (the model's read-only arrays may be shared): the worker and the update each get one.
     tick_arguments: Callable[[], tuple]
     server: Callable  # the worker loop ``step_worker.tick_server`` declared for ``tick``
-    first_step_s: float  # the step the contact is applied over first: a tick or substep (s)
-    probe: Optional[ProbeContact]  # the node law's; None where state_contact is given
-    # A model's own contact: (wrench on the tool [f; tau] in W about T's origin, count
-    # in contact) = state_contact(state [x; v; X_WT; V_WT], p_TP), the forces' opposite
-    # over the tick's first contact step. None: ``add_probe_forces`` with ``probe``.
-    state_contact: Optional[Callable] = None
+    # (wrench on the tool [f; tau] in W about T's origin, count in contact) =
+    # state_contact(state [x; v; X_WT; V_WT], p_TP): the opposite of the contact forces
+    # the tick's first contact step (a tick or a substep) applies from that state.
+    state_contact: Callable
 
 
 def probe_constants(probe: ProbeContact) -> np.ndarray:
@@ -96,8 +93,6 @@ class DeformableBody(LeafSystem):
         self._use_worker = worker_thread
         self._worker = None  # started by the first update
         self._surface_rows = np.asarray(dynamics.surface_nodes)
-        self._state_contact = dynamics.state_contact or self._node_contact
-        self._constants = None if dynamics.probe is None else probe_constants(dynamics.probe)
         self._X_WT = self.DeclareVectorInputPort("X_WT", 7)
         self._V_WT = self.DeclareVectorInputPort("V_WT", 6)
         q = X_WT_start.rotation().ToQuaternion()
@@ -123,12 +118,8 @@ class DeformableBody(LeafSystem):
     def num_nodes(self) -> int:
         return self._n
 
-    def _node_contact(self, state, p_TP):
-        return state_contact(state, self._dynamics.surface_nodes, p_TP, self._constants,
-                             self._dynamics.node_mass_kg, self._dynamics.first_step_s)
-
     def _calc_contact(self, context, value):
-        value.set_value(self._state_contact(
+        value.set_value(self._dynamics.state_contact(
             context.get_discrete_state(self._state).get_value(), self._p_TP))
 
     def _calc_wrench(self, context, output):

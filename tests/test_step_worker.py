@@ -19,7 +19,7 @@ from maglev_haptics.systems.deformable_surface import (
     DeformableBody, DeformableDynamics, probe_constants)
 from maglev_haptics.systems.lattice_construction import build_lattice
 from maglev_haptics.systems.lattice_dynamics import (
-    ProbeContact, add_probe_forces, lattice_model)
+    ProbeContact, add_probe_forces, lattice_model, state_contact)
 
 P_TP_M = np.array([0.0, 0.0, -0.030])
 PERIOD_S = 1e-3
@@ -60,10 +60,13 @@ def oscillator_body():
     def tick_arguments():
         return (positions_m, np.arange(n), mass_kg, probe_constants(probe), 300.0, 0.05,
                 PERIOD_S, np.zeros((n, 3)))
+    def contact(state, p_TP):
+        return state_contact(state, np.arange(n), p_TP, probe_constants(probe), mass_kg,
+                             PERIOD_S)
     return DeformableDynamics(
         node_mass_kg=mass_kg, surface_nodes=np.arange(n), tick=oscillator_tick,
-        tick_arguments=tick_arguments, server=OSCILLATOR_SERVER, first_step_s=PERIOD_S,
-        probe=probe), positions_m
+        tick_arguments=tick_arguments, server=OSCILLATOR_SERVER,
+        state_contact=contact), positions_m
 
 
 def lattice_body(integrator: str):
@@ -83,7 +86,7 @@ def pressing_diagram(worker_thread: bool, body: str = "symplectic_euler"):
     """A body (a lattice with that integrator, or the oscillators) and a tool held with
     its probe 1.5 mm under z = 0, sliding."""
     dynamics, positions_m = oscillator_body() if body == "oscillators" else lattice_body(body)
-    p_WT = np.array([0.0, 0.0, 0.030 + dynamics.probe.radius_m - 0.0015])
+    p_WT = np.array([0.0, 0.0, 0.030 + ProbeContact().radius_m - 0.0015])
     builder = DiagramBuilder()
     surface = builder.AddSystem(DeformableBody(
         dynamics=dynamics, positions_m=positions_m, p_TP_m=P_TP_M,
