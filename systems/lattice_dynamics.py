@@ -278,6 +278,31 @@ def probe_point(X_WT, V_WT, p_TP):
     return p_WP, v_WP
 
 
+@numba.njit(cache=True, inline="always")
+def penalty_force(nx, ny, nz, rx, ry, rz, depth, stiffness, onset, d_hc, damping_cap, mu,
+                  slip_speed):
+    """The probe's force (N) on a surface point ``depth`` (m) inside it: n (unit) out
+    of the sphere through the point, r (m/s) the point's velocity less the probe's;
+    ``stiffness`` (N/m) on the depth smoothed over ``onset`` (m), Hunt-Crossley
+    dissipation ``d_hc`` (s/m) along n and friction ``mu`` regularized below
+    ``slip_speed`` (m/s) across it, the damping capped at ``damping_cap`` (N s/m).
+    Returns (fx, fy, fz, pressed); not pressed (no force) where it would pull."""
+    approach = rx * nx + ry * ny + rz * nz
+    if depth < onset:
+        squeeze = 0.5 * depth * depth / onset
+    else:
+        squeeze = depth - 0.5 * onset
+    normal = stiffness * squeeze - min(stiffness * squeeze * d_hc, damping_cap) * approach
+    if normal <= 0.0:
+        return 0.0, 0.0, 0.0, False
+    tx, ty, tz = rx - approach * nx, ry - approach * ny, rz - approach * nz
+    # At small slip the friction is a damper mu normal / slip_speed: keep it under the cap.
+    regularization = max(slip_speed, mu * normal / damping_cap)
+    slip = math.sqrt(tx * tx + ty * ty + tz * tz + regularization * regularization)
+    drag = -mu * normal / slip
+    return normal * nx + drag * tx, normal * ny + drag * ty, normal * nz + drag * tz, True
+
+
 @numba.njit(cache=True)
 def add_probe_forces(x, v, surface, p_WP, v_WP, p_WT, radius, k_c, onset, d_hc, mu, slip_speed,
                      mass, h, f):
@@ -301,26 +326,12 @@ def add_probe_forces(x, v, surface, p_WP, v_WP, p_WT, radius, k_c, onset, d_hc, 
         if distance >= radius or distance == 0.0:
             continue
         nx, ny, nz = nx / distance, ny / distance, nz / distance
-        rx, ry, rz = v[i, 0] - v_WP[0], v[i, 1] - v_WP[1], v[i, 2] - v_WP[2]
-        approach = rx * nx + ry * ny + rz * nz
-        depth = radius - distance
-        if depth < onset:
-            squeeze = 0.5 * depth * depth / onset
-        else:
-            squeeze = depth - 0.5 * onset
-        damping_cap = mass[i] / h
-        normal = k_c * squeeze - min(k_c * squeeze * d_hc, damping_cap) * approach
-        if normal <= 0.0:
+        fx, fy, fz, pressed = penalty_force(
+            nx, ny, nz, v[i, 0] - v_WP[0], v[i, 1] - v_WP[1], v[i, 2] - v_WP[2],
+            radius - distance, k_c, onset, d_hc, mass[i] / h, mu, slip_speed)
+        if not pressed:
             continue
         touching += 1
-        tx, ty, tz = rx - approach * nx, ry - approach * ny, rz - approach * nz
-        # At small slip the friction is a damper mu normal / slip_speed: keep it under the cap.
-        regularization = max(slip_speed, mu * normal / damping_cap)
-        slip = math.sqrt(tx * tx + ty * ty + tz * tz + regularization * regularization)
-        drag = -mu * normal / slip
-        fx = normal * nx + drag * tx
-        fy = normal * ny + drag * ty
-        fz = normal * nz + drag * tz
         if f.shape[0] > 0:
             f[i, 0] += fx
             f[i, 1] += fy

@@ -68,7 +68,7 @@ from maglev_haptics.hardware.constants import GRAVITY_M_S2
 from maglev_haptics.hardware.kernels import (
     FLOAT32_VECTOR, INDEX, INDEX_MATRIX, MATRIX, READONLY_VECTOR, SCALAR,
     UINT32_VECTOR, VECTOR, kernel)
-from maglev_haptics.systems.lattice_dynamics import LINK_MATH, probe_arguments
+from maglev_haptics.systems.lattice_dynamics import LINK_MATH, penalty_force, probe_arguments
 
 # Tetrahedra per block of the element passes: the block's 9 rows of differences and
 # the 20 rows of rotation and rest data it reads stay in the L1 cache.
@@ -626,29 +626,14 @@ def add_contact_forces(x, v, triangles, triangle_rows, quadrature, p_WP, v_WP, p
             if distance >= radius or distance == 0.0:
                 continue
             nx, ny, nz = nx / distance, ny / distance, nz / distance
-            rx = wa * v[a, 0] + wb * v[b, 0] + wc * v[c, 0] - v_WP[0]
-            ry = wa * v[a, 1] + wb * v[b, 1] + wc * v[c, 1] - v_WP[1]
-            rz = wa * v[a, 2] + wb * v[b, 2] + wc * v[c, 2] - v_WP[2]
-            approach = rx * nx + ry * ny + rz * nz
-            depth = radius - distance
-            if depth < onset:
-                squeeze = 0.5 * depth * depth / onset
-            else:
-                squeeze = depth - 0.5 * onset
-            normal = (stiffness * squeeze
-                      - min(stiffness * squeeze * d_hc, damping_cap) * approach)
-            if normal <= 0.0:
+            fx, fy, fz, pressed = penalty_force(
+                nx, ny, nz, wa * v[a, 0] + wb * v[b, 0] + wc * v[c, 0] - v_WP[0],
+                wa * v[a, 1] + wb * v[b, 1] + wc * v[c, 1] - v_WP[1],
+                wa * v[a, 2] + wb * v[b, 2] + wc * v[c, 2] - v_WP[2], radius - distance,
+                stiffness, onset, d_hc, damping_cap, mu, slip_speed)
+            if not pressed:
                 continue
             touching += 1
-            tx, ty, tz = rx - approach * nx, ry - approach * ny, rz - approach * nz
-            # At small slip the friction is a damper mu normal / slip_speed: keep it
-            # under the cap.
-            regularization = max(slip_speed, mu * normal / damping_cap)
-            slip = math.sqrt(tx * tx + ty * ty + tz * tz + regularization * regularization)
-            drag = -mu * normal / slip
-            fx = normal * nx + drag * tx
-            fy = normal * ny + drag * ty
-            fz = normal * nz + drag * tz
             if f.shape[0] > 0:
                 f[a, 0] += wa * fx
                 f[a, 1] += wa * fy
