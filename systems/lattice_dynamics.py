@@ -303,6 +303,18 @@ def penalty_force(nx, ny, nz, rx, ry, rz, depth, stiffness, onset, d_hc, damping
     return normal * nx + drag * tx, normal * ny + drag * ty, normal * nz + drag * tz, True
 
 
+@numba.njit(cache=True, inline="always")
+def add_reaction(wrench, fx, fy, fz, ax, ay, az):
+    """wrench [f; tau] (N, N m) -= the force f (N) applied at a (m) from its origin:
+    the reaction on the tool of a contact force on the surface."""
+    wrench[0] -= fx
+    wrench[1] -= fy
+    wrench[2] -= fz
+    wrench[3] -= ay * fz - az * fy
+    wrench[4] -= az * fx - ax * fz
+    wrench[5] -= ax * fy - ay * fx
+
+
 @numba.njit(cache=True)
 def add_probe_forces(x, v, surface, p_WP, v_WP, p_WT, radius, k_c, onset, d_hc, mu, slip_speed,
                      mass, h, f):
@@ -337,13 +349,8 @@ def add_probe_forces(x, v, surface, p_WP, v_WP, p_WT, radius, k_c, onset, d_hc, 
             f[i, 1] += fy
             f[i, 2] += fz
         # The opposite force on the tool, applied at the vertex.
-        ax, ay, az = x[i, 0] - p_WT[0], x[i, 1] - p_WT[1], x[i, 2] - p_WT[2]
-        wrench[0] -= fx
-        wrench[1] -= fy
-        wrench[2] -= fz
-        wrench[3] -= ay * fz - az * fy
-        wrench[4] -= az * fx - ax * fz
-        wrench[5] -= ax * fy - ay * fx
+        add_reaction(wrench, fx, fy, fz, x[i, 0] - p_WT[0], x[i, 1] - p_WT[1],
+                     x[i, 2] - p_WT[2])
     return wrench, touching
 
 

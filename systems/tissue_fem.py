@@ -68,7 +68,8 @@ from maglev_haptics.hardware.constants import GRAVITY_M_S2
 from maglev_haptics.hardware.kernels import (
     FLOAT32_VECTOR, INDEX, INDEX_MATRIX, MATRIX, READONLY_VECTOR, SCALAR,
     UINT32_VECTOR, VECTOR, kernel)
-from maglev_haptics.systems.lattice_dynamics import LINK_MATH, penalty_force, probe_arguments
+from maglev_haptics.systems.lattice_dynamics import (
+    LINK_MATH, add_reaction, penalty_force, probe_arguments)
 
 # Tetrahedra per block of the element passes: the block's 9 rows of differences and
 # the 20 rows of rotation and rest data it reads stay in the L1 cache.
@@ -645,13 +646,7 @@ def add_contact_forces(x, v, triangles, triangle_rows, quadrature, p_WP, v_WP, p
                 f[c, 1] += wc * fy
                 f[c, 2] += wc * fz
             # The opposite force on the tool, applied at the point.
-            ax, ay, az = px - p_WT[0], py - p_WT[1], pz - p_WT[2]
-            wrench[0] -= fx
-            wrench[1] -= fy
-            wrench[2] -= fz
-            wrench[3] -= ay * fz - az * fy
-            wrench[4] -= az * fx - ax * fz
-            wrench[5] -= ax * fy - ay * fx
+            add_reaction(wrench, fx, fy, fz, px - p_WT[0], py - p_WT[1], pz - p_WT[2])
     return wrench, touching
 
 
