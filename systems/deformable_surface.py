@@ -26,8 +26,9 @@ exchange the next step is known one tick ahead and runs on the other core
 ``wrench_on_tool_W`` [f; tau] (N, N*m, in W about T's origin) is the contact's
 wrench on the tool from the state alone: exactly the opposite of the forces the
 next tick applies to the nodes (over the model's first contact step: with
-substeps, the first substep's). ``in_contact`` is 1.0 while any surface node is
-inside the probe. ``surface_positions_m`` (3 n_s) are the surface nodes'
+substeps, the first substep's; ``DeformableDynamics.state_contact``). ``in_contact``
+is 1.0 while the probe presses anything (the lattice: a surface node; tissue: a
+point of its boundary triangles). ``surface_positions_m`` (3 n_s) are the surface nodes'
 positions, column by column, for drawing.
 
 Float only: a state of tens of thousands of numbers has no use for AutoDiffXd.
