@@ -33,7 +33,7 @@ from maglev_haptics.diagrams.application import MESHCAT_PERIOD_S
 from maglev_haptics.diagrams.motion import IDLE_AFTER_S
 from maglev_haptics.hardware.constants import SAME_INSTANT_S
 from maglev_haptics.hardware.realtime_priority import (
-    RT_BUDGET_MARGIN, RT_RETURN_MARGIN, RT_SPIN_S, is_realtime, realtime_priority,
+    RT_RETURN_MARGIN, RT_SPIN_S, is_realtime, realtime_priority,
     rt_throttle_share, set_loop_realtime)
 from maglev_haptics.hardware.kernels import compile_kernels
 
@@ -99,8 +99,8 @@ def wait_until(wall_s: float, spin_s: float) -> float:
 class RealtimeBudget:
     """Whether a paced loop of ``slot_s`` (s) slots may run at real-time priority:
     over its last second's slots (at least RT_WINDOW_MIN_SLOTS), a loop at it sleeps
-    each wait but its last RT_SPIN_S, and must sleep RT_BUDGET_MARGIN times the
-    kernel's throttle's due (``rt_throttle_share``) or be stopped by it; back at
+    each wait but its last RT_SPIN_S, and must sleep the kernel's throttle's due
+    (``rt_throttle_share``) or be stopped by it; back at
     normal priority, it returns once its waits would sleep RT_RETURN_MARGIN times
     that. ``stretches``: [start, end] (s) of each stretch at normal priority."""
 
@@ -124,7 +124,7 @@ class RealtimeBudget:
         due_s = self._due_s * window / self._sleeps_s.size
         if window < RT_WINDOW_MIN_SLOTS or due_s == 0.0:
             return self._realtime
-        if self._realtime and self._sum_s < RT_BUDGET_MARGIN * due_s:
+        if self._realtime and self._sum_s < due_s:
             self._realtime = False
             self.stretches.append([t_s, math.inf])
         elif not self._realtime and self._sum_s > RT_RETURN_MARGIN * due_s:
@@ -136,9 +136,8 @@ class RealtimeBudget:
         """The stretches at normal priority, in words."""
         spans = ", ".join(f"{start:.2f}-{end:.2f} s" if math.isfinite(end) else
                           f"from {start:.2f} s" for start, end in self.stretches)
-        return (f"at normal priority {spans}: its waits left it under "
-                f"{1e3 * RT_BUDGET_MARGIN * self._due_s:.0f} ms of sleep a second, the "
-                f"real-time throttle's due {1e3 * self._due_s:.0f} ms")
+        return (f"at normal priority {spans}: its waits left it less sleep than the "
+                f"real-time throttle's due, {1e3 * self._due_s:.0f} ms a second")
 
 
 # A real-time loop's sleep is judged over at least this many slots (and at most a

@@ -14,10 +14,9 @@ for 50 ms: so at real-time priority the loop sleeps until RT_SPIN_S before each
 slot. A loop whose ticks leave it too little of that sleep cannot stay at
 real-time priority: measured on a 2-core machine, a loop spinning 880 us of each
 1 ms slot slept not at all, met the throttle, stopped 53 ms each second and missed
-63 % of its slots (2.9 % at normal priority). So a loop that slept less than
-RT_BUDGET_MARGIN times the throttle's share (``rt_throttle_share``) over its last
-second goes back to normal priority (``set_loop_realtime``) until its ticks would
-leave it twice that again; the helpers it waits on (the scene worker process, the lattice's worker
+63 % of its slots (2.9 % at normal priority). So a loop that slept less than the
+throttle's due (``rt_throttle_share`` of its last second) goes back to normal
+priority (``set_loop_realtime``) until its ticks would leave it twice that; the helpers it waits on (the scene worker process, the lattice's worker
 thread), told as followers, take up the same priority, and the scene worker sleeps
 between requests and the lattice's worker polls by sleeping RT_POLL_US. Work the
 loop does not wait on (the log's writer thread) runs at BACKGROUND_PRIORITY, just
@@ -51,10 +50,9 @@ RT_SPIN_S = 150e-6
 # A helper thread at real-time priority polls for requests this often (us): no timer
 # slack at SCHED_FIFO, a few microseconds a look.
 RT_POLL_US = 20
-# A real-time loop sleeps at least this many times the throttle's share of a second,
-# and one sent back to normal priority returns once it would sleep twice that.
-RT_BUDGET_MARGIN = 1.5
-RT_RETURN_MARGIN = 2 * RT_BUDGET_MARGIN
+# A loop sent back to normal priority returns once its waits would sleep this many
+# times the throttle's due (-): less, and one slow second would send it back again.
+RT_RETURN_MARGIN = 2.0
 RT_THROTTLE_FILES = ("/proc/sys/kernel/sched_rt_runtime_us",
                      "/proc/sys/kernel/sched_rt_period_us")
 
