@@ -96,13 +96,18 @@ def wait_until(wall_s: float, spin_s: float) -> float:
     return max(0.0, waited_s)
 
 
+# A real-time loop's sleep is judged over at least this many slots (and at most a
+# second's): long enough for one long tick not to count, short of the throttle's 0.95 s.
+RT_WINDOW_MIN_SLOTS = 500
+
+
 class RealtimeBudget:
     """Whether a paced loop of ``slot_s`` (s) slots may run at real-time priority:
     over its last second's slots (at least RT_WINDOW_MIN_SLOTS), a loop at it sleeps
     each wait but its last RT_SPIN_S, and must sleep the kernel's throttle's due
-    (``rt_throttle_share``) or be stopped by it; back at
-    normal priority, it returns once its waits would sleep RT_RETURN_MARGIN times
-    that. ``stretches``: [start, end] (s) of each stretch at normal priority."""
+    (``rt_throttle_share``) or be stopped by it; back at normal priority, it returns
+    once its waits would sleep RT_RETURN_MARGIN times that. ``stretches``: [start,
+    end] (s) of each stretch at normal priority."""
 
     def __init__(self, slot_s: float):
         self._sleeps_s = np.zeros(max(1, int(round(1.0 / slot_s))))
@@ -139,10 +144,6 @@ class RealtimeBudget:
         return (f"at normal priority {spans}: its waits left it less sleep than the "
                 f"real-time throttle's due, {1e3 * self._due_s:.0f} ms a second")
 
-
-# A real-time loop's sleep is judged over at least this many slots (and at most a
-# second's): long enough for one long tick not to count, short of the throttle's 0.95 s.
-RT_WINDOW_MIN_SLOTS = 500
 
 # A paced process that shares the machine with another (the device's, on LCM) sleeps
 # until this much before each slot, so the other one gets a core (s).
@@ -330,7 +331,8 @@ def advance_paced(simulator, duration_s: float, tick_s: float, ticks: PacedTicks
     visualizers, published from here, to fill it). With ``raise_priority`` the loop runs
     at real-time priority where granted (``realtime_priority``: then it spins at most
     RT_SPIN_S, and goes back to normal priority where its ticks leave it too little
-    sleep for the kernel's throttle, ``RealtimeBudget``; ``ticks.priority`` says when). The wait for a slot spins for its last ``spin_s`` (s) and sleeps
+    sleep for the kernel's throttle, ``RealtimeBudget``; ``ticks.priority`` says
+    when). The wait for a slot spins for its last ``spin_s`` (s) and sleeps
     before that. Returns the gaps' jobs, with what they cost and how late they ran."""
     context = simulator.get_context()
     start_s = context.get_time()

@@ -16,9 +16,11 @@ real-time priority: measured on a 2-core machine, a loop spinning 880 us of each
 1 ms slot slept not at all, met the throttle, stopped 53 ms each second and missed
 63 % of its slots (2.9 % at normal priority). So a loop that slept less than the
 throttle's due (``rt_throttle_share`` of its last second) goes back to normal
-priority (``set_loop_realtime``) until its ticks would leave it twice that; the helpers it waits on (the scene worker process, the lattice's worker
-thread), told as followers, take up the same priority, and the scene worker sleeps
-between requests and the lattice's worker polls by sleeping RT_POLL_US. Work the
+priority (``set_loop_realtime``) until its ticks would leave it twice that
+(``runner.RealtimeBudget``). The helpers it waits on (the scene worker process, the
+lattice's worker thread), told as followers, take up the same priority, and the
+scene worker sleeps between requests and the lattice's worker polls by sleeping
+RT_POLL_US. Work the
 loop does not wait on (the log's writer thread) runs at BACKGROUND_PRIORITY, just
 below: above every normal thread, preempted at once by the loop and its helpers.
 Measured, deformable_surface paced for 30 s: with the writer at the loop's priority,
@@ -34,6 +36,7 @@ from __future__ import annotations
 
 import os
 import weakref
+from pathlib import Path
 from contextlib import contextmanager
 from typing import Callable, Iterator
 
@@ -94,7 +97,7 @@ def rt_throttle_share(throttle_files=RT_THROTTLE_FILES) -> float:
     threads (1 - runtime / period, read from ``throttle_files``, us): 0.05 by
     default; 0 where the throttle is off (runtime -1) or cannot be read."""
     try:
-        runtime_us, period_us = (int(open(path).read()) for path in throttle_files)
+        runtime_us, period_us = (int(Path(path).read_text()) for path in throttle_files)
     except (OSError, ValueError):
         return 0.0
     if runtime_us < 0 or period_us <= 0:
