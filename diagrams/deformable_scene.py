@@ -25,7 +25,7 @@ from maglev_haptics.hardware.config_checks import finite, nonnegative, positive,
 from maglev_haptics.hardware.constants import GRAVITY_M_S2
 from maglev_haptics.plant_models.scene_sdf import probe_tool_sdf
 from maglev_haptics.systems.deformable_surface import (
-    DeformableBody, DeformableDynamics, probe_constants)
+    DeformableBody, DeformableDynamics)
 from maglev_haptics.systems.heightmap import (
     Heightmap, ImageHeightmap, RandomHeightmap, heightmap_heights)
 from maglev_haptics.systems.lattice_construction import Lattice, build_lattice
@@ -123,7 +123,8 @@ def lattice_dynamics(model: LatticeModel, *, probe: ProbeContact, period_s: floa
     relative CG residual ``cg_tolerance`` in at most ``cg_max_iterations``."""
     implicit = integrator == LINEARLY_IMPLICIT
     n = len(model.mass_kg)
-    constants = np.append(probe_constants(probe), [period_s, cg_tolerance])
+    contact_constants = probe.constants()
+    constants = np.append(contact_constants, [period_s, cg_tolerance])
 
     def tick_arguments():
         # After the model's arrays: no external forces (N), the constants, the integrator's
@@ -133,7 +134,6 @@ def lattice_dynamics(model: LatticeModel, *, probe: ProbeContact, period_s: floa
                 model.gravity_m_s2, model.surface, np.zeros((n, 3)), constants, implicit,
                 int(substeps), int(cg_max_iterations), np.zeros((n, 3)),
                 *implicit_workspace(n, len(model.links)))
-    contact_constants = probe_constants(probe)
     first_step_s = period_s if implicit else period_s / substeps
 
     def contact(state, p_TP):

@@ -41,7 +41,7 @@ from pydrake.common.value import AbstractValue
 from pydrake.math import RigidTransform
 from pydrake.systems.framework import LeafSystem, ValueProducer
 
-from maglev_haptics.systems.lattice_dynamics import ProbeContact, probe_arguments
+from maglev_haptics.systems.lattice_dynamics import probe_arguments
 from maglev_haptics.systems.step_worker import StepWorker
 
 
@@ -64,13 +64,6 @@ class DeformableDynamics(NamedTuple):
     # state_contact(state [x; v; X_WT; V_WT], p_TP): the opposite of the contact forces
     # the tick's first contact step (a tick or a substep) applies from that state.
     state_contact: Callable
-
-
-def probe_constants(probe: ProbeContact) -> np.ndarray:
-    """The probe's radius (m), stiffness (N/m), onset (m), dissipation (s/m), friction (-)
-    and slip speed (m/s), in the order the contact kernels take them (6,)."""
-    return np.array([probe.radius_m, probe.stiffness_n_per_m, probe.onset_depth_m,
-                     probe.dissipation_s_per_m, probe.friction, probe.slip_speed_m_s])
 
 
 class DeformableBody(LeafSystem):

@@ -133,6 +133,12 @@ class ProbeContact:
         for name in ("dissipation_s_per_m", "friction"):
             nonnegative(f"{path}.{name}", getattr(self, name))
 
+    def constants(self) -> np.ndarray:
+        """The radius (m), stiffness (N/m), onset (m), dissipation (s/m), friction (-)
+        and slip speed (m/s), in the order the contact kernels take them (6,)."""
+        return np.array([self.radius_m, self.stiffness_n_per_m, self.onset_depth_m,
+                         self.dissipation_s_per_m, self.friction, self.slip_speed_m_s])
+
 
 def lattice_model(links, rest_lengths_m, fixed, surface, *, node_mass_kg: float,
                   link_stiffness_n_per_m: float, link_damping_n_s_per_m: float,

@@ -101,7 +101,7 @@ def test_every_figure_carries_the_machines_yardsticks(monkeypatch):
 def test_the_yardsticks_say_only_what_was_measured():
     assert bench.machine_yardsticks({}) == ""
     assert bench.machine_yardsticks({"takeoff_floor_us": 70.0}) == "  [takeoff floor 70 us]"
-    assert bench.machine_yardsticks({"host_half_load_miss_fraction": 0.0068}) == (
+    assert bench.machine_yardsticks({"host_half_load": {"miss_fraction": 0.0068}}) == (
         "  [host alone misses 0.68% at half load]")
 
 

@@ -16,7 +16,7 @@ from maglev_haptics.hardware.realtime_priority import (
     fifo_permitted, is_realtime, realtime_priority)
 from maglev_haptics.systems import step_worker
 from maglev_haptics.systems.deformable_surface import (
-    DeformableBody, DeformableDynamics, probe_constants)
+    DeformableBody, DeformableDynamics)
 from maglev_haptics.systems.lattice_construction import build_lattice
 from maglev_haptics.systems.lattice_dynamics import (
     ProbeContact, add_probe_forces, lattice_model, state_contact)
@@ -58,10 +58,10 @@ def oscillator_body():
     probe = ProbeContact()
 
     def tick_arguments():
-        return (positions_m, np.arange(n), mass_kg, probe_constants(probe), 300.0, 0.05,
+        return (positions_m, np.arange(n), mass_kg, probe.constants(), 300.0, 0.05,
                 PERIOD_S, np.zeros((n, 3)))
     def contact(state, p_TP):
-        return state_contact(state, np.arange(n), p_TP, probe_constants(probe), mass_kg,
+        return state_contact(state, np.arange(n), p_TP, probe.constants(), mass_kg,
                              PERIOD_S)
     return DeformableDynamics(
         node_mass_kg=mass_kg, surface_nodes=np.arange(n), tick=oscillator_tick,
