@@ -120,7 +120,6 @@ def AddApplication(builder: DiagramBuilder, *, scenario: Scenario, station: Stat
         plan_landing=landing_planner(scenario.motion, spec.rest_height_m),
         n_coils=device.n_coils, watchdog_period_s=WATCHDOG_PERIOD_S,
         weight_n=spec.mass_kg * GRAVITY_M_S2,
-        max_currents_age_s=station.measured_currents_max_age_s,
         measured_lag_ticks=station.measured_currents_lag_ticks))
     for name in ("X_WI_measured", "V_WI_measured", "tracking_ok"):
         builder.Connect(estimator.GetOutputPort(name), supervisor.GetInputPort(name))

@@ -2,8 +2,9 @@
 
 The device's end of ``diagrams/lcm_station.py``: the same instrument, coils,
 amplifiers, tracker and (scripted) hand as the all-in-one run, publishing the
-markers, the currents that flow and the device's status, and taking its coil
-currents from the application's commands. The hand's script waits for the
+markers, the currents that flow (with the sequence of the command they follow, 0
+once the command timeout turned the coils off) and the device's status, and taking
+its coil currents from the application's commands. The hand's script waits for the
 application's first command and then runs on the application's clock. Run paced
 to the wall clock, as the real device is.
 
@@ -23,7 +24,8 @@ from typing import Optional
 
 import numpy as np
 from pydrake.systems.framework import Diagram, DiagramBuilder
-from pydrake.systems.primitives import ConstantVectorSource, Demultiplexer, Multiplexer
+from pydrake.systems.primitives import (
+    ConstantVectorSource, Demultiplexer, Multiplexer, ZeroOrderHold)
 
 from maglev_haptics.diagrams.haptics import AddHandCommands
 from maglev_haptics.diagrams.lcm_station import (
@@ -39,13 +41,15 @@ from maglev_haptics.hardware.thermal import coil_thermal
 from maglev_haptics.systems.coil_thermal import CoilTemperatures
 from maglev_haptics.systems.marker_sensor import newest_sample_before
 from maglev_haptics.systems.station_messages import (
-    US_PER_S, MessageReceiver, MessageSender, ReceivedChannel, currents_and_power_from_message,
+    US_PER_S, MessageReceiver, MessageSender, ReceivedChannel, command_from_message,
     currents_message, glasses_measurement_message, markers_message, status_message)
 
 # The grip sensor, the coils' temperatures (time constant ~1 min) and the 10 Hz head
 # tracker need no more than 100 Hz.
 STATUS_PERIOD_S = 0.01
-COMMANDS_PORT = "commands"  # the receiver's: [currents (A); power], the station's two inputs
+# The receiver's: [currents (A); power; the command's sequence], the first two the
+# station's inputs.
+COMMANDS_PORT = "commands"
 LEASE_REQUESTS = "lease_requests"  # the receiver's channel of lease requests (no port)
 
 
@@ -90,8 +94,8 @@ def MakeCommandReceiver(*, lcm, station, limits: LinkLimits, lease: LeaseServer,
                         period_s: float, log=None, on_command=None) -> MessageReceiver:
     """The device's receiver of the application's lease requests and commands on ``lcm``
     (``station``: the LcmStation's channels and timeouts): output ``commands``
-    [currents (A); power], the lease holder's newest good command, zeros once it is
-    older than ``command_timeout_s``. ``on_command(message, now_s)``, if given, hears
+    [currents (A); power; its sequence], the lease holder's newest good command, zeros
+    (sequence 0: none) once it is older than ``command_timeout_s``. ``on_command(message, now_s)``, if given, hears
     of every command accepted."""
     n_coils = limits.n_coils
 
@@ -110,9 +114,9 @@ def MakeCommandReceiver(*, lcm, station, limits: LinkLimits, lease: LeaseServer,
                 on_accept=lease.request),
             ReceivedChannel(
                 port=COMMANDS_PORT, channel=channel(station, COIL_CURRENTS_COMMANDED),
-                message_type=coil_currents_t, size=n_coils + 1,
-                decode=lambda message, _: currents_and_power_from_message(message),
-                stale_value=np.zeros(n_coils + 1), stale_after_s=station.command_timeout_s,
+                message_type=coil_currents_t, size=n_coils + 2,
+                decode=lambda message, _: command_from_message(message),
+                stale_value=np.zeros(n_coils + 2), stale_after_s=station.command_timeout_s,
                 check=lambda message: check_command(message, limits),
                 session_of=lambda message: message.session, admit=lease.admit,
                 on_accept=accepted)])
@@ -150,7 +154,7 @@ def BuildDeviceSim(scenario) -> DeviceSim:
     commands = builder.AddNamedSystem("commands_receiver", MakeCommandReceiver(
         lcm=open_lcm(station_config.command_url), station=station_config, limits=limits,
         lease=lease, period_s=period_s, on_command=on_command))
-    command = builder.AddNamedSystem("command", Demultiplexer([n_coils, 1]))
+    command = builder.AddNamedSystem("command", Demultiplexer([n_coils, 1, 1]))
     builder.Connect(commands.GetOutputPort(COMMANDS_PORT), command.get_input_port())
     builder.Connect(command.get_output_port(0), station.GetInputPort("coil_currents_commanded"))
     builder.Connect(command.get_output_port(1), station.GetInputPort("coil_power"))
@@ -178,10 +182,18 @@ def BuildDeviceSim(scenario) -> DeviceSim:
         return markers_message(number + 1, value[-1] - device.tracker.latency_s, t, value[:-1])
 
     send(MARKERS, sample.get_output_port(), marker_message, period_s)
-    measured = builder.AddNamedSystem("measured", Multiplexer([n_coils, 1]))
+    # The measured currents say which command they follow: the amplifiers' sampled lag
+    # takes a tick's command at the next update, and so does this hold its sequence.
+    followed = builder.AddNamedSystem("followed_command", ZeroOrderHold(period_s, 1))
+    builder.Connect(command.get_output_port(2), followed.get_input_port())
+    measured = builder.AddNamedSystem("measured", Multiplexer([n_coils, 1, 1]))
     builder.Connect(station.GetOutputPort("coil_currents"), measured.get_input_port(0))
     builder.Connect(command.get_output_port(1), measured.get_input_port(1))
-    send(COIL_CURRENTS, measured.get_output_port(), currents_message, period_s)
+    builder.Connect(followed.get_output_port(), measured.get_input_port(2))
+    send(COIL_CURRENTS, measured.get_output_port(),
+         lambda sequence, t, value: currents_message(sequence, t, value[:-1],
+                                                     command_sequence=round(value[-1])),
+         period_s)
     thermal = coil_thermal(device)
     temperatures = builder.AddNamedSystem("coil_temperatures", CoilTemperatures(
         model=thermal, n_coils=n_coils, period_s=STATUS_PERIOD_S))

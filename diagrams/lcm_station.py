@@ -49,7 +49,7 @@ fly, since the coils no longer take its commands (``StopWhenDeviceSilent``).
 
 import math
 from dataclasses import dataclass
-from typing import Dict, Optional
+from typing import Callable, Dict, Optional
 
 import lcm
 import numpy as np
@@ -185,11 +185,21 @@ def marker_stale_after_s(scenario, station: LcmStation) -> float:
     return 1.0 / tracker.rate_hz + tracker.latency_s + station.stale_margin_s
 
 
-def measured_currents_max_age_s(scenario, station: LcmStation) -> float:
-    """How old the measured currents may be for the stuck-amplifier watchdog to compare
-    them with their commands (s): the station publishes them every control tick, so a
-    control period plus ``stale_margin_s``, as the markers' bound."""
-    return 1.0 / scenario.control_rate_hz + station.stale_margin_s
+def followed_command_s(scenario) -> Callable:
+    """``dated(message)`` of the measured currents: when the application sent the
+    command they follow (s, on its clock; ``MessageSender`` numbers tick k's command
+    k + 1), from the command's sequence the device reports; -inf for none (its
+    command timeout turned the coils off). Their age, the watchdog's, is then that of
+    their command however late either end ran: over LCM a stalled application read
+    the currents of the device's own zero, fresh, against its commands, and latched
+    healthy coils as stuck."""
+    period_s = 1.0 / scenario.control_rate_hz
+
+    def dated(message) -> float:
+        if message.command_sequence <= 0:
+            return -math.inf
+        return (message.command_sequence - 1) * period_s
+    return dated
 
 
 def measured_currents_lag_ticks(scenario, station: LcmStation) -> int:
@@ -226,7 +236,7 @@ def station_channels(scenario, lease: LeaseClient) -> list:
         inbound(COIL_CURRENTS, coil_currents_t, n_coils,
                 lambda message, _: np.array(message.current_a, dtype=float),
                 check_measured_currents, initial_value=np.zeros(n_coils),
-                age_port="coil_currents_age_s")]
+                age_port="coil_currents_age_s", dated=followed_command_s(scenario))]
     if scenario.hand is not None:
         channels.append(inbound(DEVICE_STATUS, device_status_t, 1,
                                 lambda message, _: np.array([float(message.handle_gripped)]),
@@ -357,7 +367,6 @@ class LcmStationInterface(Station):
         self.config = scenario.station
         self.receiver = receiver
         self.lease = lease
-        self.measured_currents_max_age_s = measured_currents_max_age_s(scenario, self.config)
         self.measured_currents_lag_ticks = measured_currents_lag_ticks(scenario, self.config)
 
     def newest_arrivals(self, context) -> Dict[str, float]:

@@ -12,7 +12,8 @@ Diagram, named ``station``, has the same ports either way:
   hidden: the newest tracker sample), ``markers_sample_time_s`` (1: when it was published, s; over LCM
   when it was read), ``markers_sample_count`` (1: its frame number, from 1),
   ``coil_currents`` (n_coils, A, what flows), ``coil_currents_age_s`` (1: how old
-  they are, s; 0 simulated, the link's age over LCM), ``instrument_state`` (13, the
+  the command they follow is, s; a tick simulated, over LCM from the command's
+  sequence the device reports, infinite for none), ``instrument_state`` (13, the
   true free-body state, simulation only), ``query_object`` (for visualizers).
 
 With a hand in the scenario (the simulated user), also:
@@ -197,7 +198,6 @@ class SimulatedStation(Station):
     keeps_wall_clock = False
     lands_before_run_end = False
     shares_cores = False
-    measured_currents_max_age_s = 0.0
     measured_currents_lag_ticks = 1
 
 
@@ -301,8 +301,10 @@ def _simulated_station(scenario: Scenario, device, magnetics) -> Diagram:
     for name in ("markers_measured", "markers_sample_time_s", "markers_sample_count"):
         builder.ExportOutput(sensor.GetOutputPort(name), name)
     builder.ExportOutput(amplifiers.get_output_port(), "coil_currents")
-    # Measured in the tick that reads them (the LCM station's are as old as its link).
-    currents_age = builder.AddNamedSystem("coil_currents_age", ConstantVectorSource([0.0]))
+    # Measured in the tick that reads them, following the tick before's command (the
+    # amplifiers' lag takes a tick's command at the next).
+    currents_age = builder.AddNamedSystem("coil_currents_age", ConstantVectorSource(
+        [1.0 / scenario.control_rate_hz]))
     builder.ExportOutput(currents_age.get_output_port(), "coil_currents_age_s")
     builder.ExportOutput(state_port, "instrument_state")
     builder.ExportOutput(scene_graph.get_query_output_port(), "query_object")

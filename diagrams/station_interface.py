@@ -15,9 +15,8 @@ none of them asks which kind it has:
 - ``lands_before_run_end``: a flying instrument is landed before the run's time
   ends (a real one is not let fall; a simulated one's run may end anywhere);
 - ``shares_cores``: another paced process (the device's) runs on this machine;
-- ``measured_currents_max_age_s`` and ``measured_currents_lag_ticks``: how old the
-  measured coil currents may be, and how many ticks they follow their commands, for
-  the stuck-amplifier watchdog;
+- ``measured_currents_lag_ticks``: how many ticks' commands the measured coil
+  currents may follow, for the stuck-amplifier watchdog;
 - ``watch(stop)``: the run's stop, with what the station itself stops a run for
   (a device gone silent);
 - ``silence(context)``: how the device went silent (``device_silence``), or None
@@ -42,7 +41,6 @@ class Station:
     keeps_wall_clock: bool
     lands_before_run_end: bool
     shares_cores: bool
-    measured_currents_max_age_s: float  # s
     measured_currents_lag_ticks: int
     lease = None  # hardware.link.lease.LeaseClient, where there is a lease
 

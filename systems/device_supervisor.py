@@ -55,9 +55,13 @@ THERMAL_LIMIT_PERSIST_S = 0.1
 # bandwidth). The commands it may follow: the simulated station's, the tick before's;
 # over LCM, those of the link's round trip (measured currents 2-3 ticks behind). Against
 # one tick's command alone a fast allocation change (the active set switching, or a
-# saturating step) would look like one.
+# saturating step) would look like one. A check compares only currents whose command
+# (``coil_currents_age_s`` old) lies in that span.
 STUCK_MISMATCH_A = 1.0
 STUCK_PERSIST_S = 0.01
+# A command's age in ticks is a whole number, computed in floats: this much of a tick
+# forgives their rounding.
+COMMAND_AGE_ROUNDING = 1e-6
 # With a coil stuck, a force the others cannot produce past this fraction of the
 # instrument's weight means they cannot carry it against the stuck one: the power is
 # cut and it falls level rather than be pulled or pushed off its landing.
@@ -291,7 +295,7 @@ def supervisor_state(n_coils: int) -> Tuple[Tuple[str, int], ...]:
 
 @numba.njit(cache=True)
 def watchdog_check(inputs, at, state, next_state, rows, limits, lost_grace_s: float,
-                   watch_period_s: float, weight_n: float, max_currents_age_s: float) -> int:
+                   watch_period_s: float, weight_n: float, max_command_age_s: float) -> int:
     """The watchdogs' check, every ``watch_period_s`` (s): their timers, the stuck
     coils and the coils' power into ``next_state``; returns the fault bits raised that
     are not latched yet (``supervisor_update`` names the arguments)."""
@@ -304,9 +308,9 @@ def watchdog_check(inputs, at, state, next_state, rows, limits, lost_grace_s: fl
     stuck = state[rows[STUCK]:rows[STUCK] + n].copy()
     carrying = state[rows[ENABLE]] > 0.0
     if state[rows[POWER]] > 0.5:  # unpowered, no coil follows its command
-        # Stale currents follow an older command: compared, a stalled link would read
-        # as a stuck coil. Their timers hold until fresh ones come.
-        if inputs[at[CURRENTS_AGE_S]] <= max_currents_age_s:
+        # Currents that follow an older command, or none (the device's own zero),
+        # compared, would read as a stuck coil. Their timers hold until fresh ones come.
+        if inputs[at[CURRENTS_AGE_S]] <= max_command_age_s:
             mismatched = mismatched_coils(
                 currents, state[rows[SENT_LOW_A]:rows[SENT_LOW_A] + n],
                 state[rows[SENT_HIGH_A]:rows[SENT_HIGH_A] + n], limits[0])
@@ -331,18 +335,18 @@ def watchdog_check(inputs, at, state, next_state, rows, limits, lost_grace_s: fl
 
 
 @kernel((VECTOR, INDEX_VECTOR, VECTOR, VECTOR, INDEX_VECTOR, MATRIX, INDEX, INDEX, FLAG,
-         VECTOR, SCALAR, SCALAR, INDEX, INDEX, SCALAR, SCALAR))
+         VECTOR, SCALAR, SCALAR, INDEX, INDEX, SCALAR))
 def supervisor_update(inputs, at, state, next_state, rows, commands, first_tick, tick,
                       landing, limits, lost_grace_s, period_s, watchdog_ticks,
-                      lag_ticks, weight_n, max_currents_age_s) -> bool:
+                      lag_ticks, weight_n) -> bool:
     """One tick (number ``tick``) of the supervisor: ``inputs`` (``supervisor_inputs``
     stacked, each port's first row at its entry of ``at``) and ``state`` (the
     context's, ``supervisor_state`` stacked, each at its entry of ``rows``) into
     ``next_state`` (a copy of ``state`` on entry): the tracking-lost timer; every
     ``watchdog_ticks`` ticks the watchdogs (``watchdog_check``, with ``limits`` as
-    ``WatchLimits.as_vector``; measured currents older than ``max_currents_age_s``, s,
-    not compared with their commands, the others with the span of the commands of the
-    ``lag_ticks`` ticks before the check, 1 to ``watchdog_ticks``), which latch a new
+    ``WatchLimits.as_vector``; measured currents compared with the span of the
+    commands of the ``lag_ticks`` ticks before the check, 1 to ``watchdog_ticks``,
+    where the command they follow is one of those), which latch a new
     fault; the next tick's command from the active motion (its ``commands`` from ``first_tick``; ``landing``: it is a
     landing). True when a new fault must start a landing: the caller plans it and
     writes its command (Python, once a fault)."""
@@ -362,7 +366,8 @@ def supervisor_update(inputs, at, state, next_state, rows, commands, first_tick,
             high[i] = commanded[i] if first else max(high[i], commanded[i])
     if tick % watchdog_ticks == 0:
         new = watchdog_check(inputs, at, state, next_state, rows, limits, lost_grace_s,
-                             watchdog_ticks * period_s, weight_n, max_currents_age_s)
+                             watchdog_ticks * period_s, weight_n,
+                             (lag_ticks + COMMAND_AGE_ROUNDING) * period_s)
         if new:
             next_state[rows[FAULT_BITS]] = int(state[rows[FAULT_BITS]]) | new
             if not landing:
@@ -402,7 +407,7 @@ class SupervisorLogic(LeafSystem):
 
     def __init__(self, *, initial_motion: Motion, limits: WatchLimits, lost_grace_s: float,
                  plan_landing: Callable, n_coils: int, watchdog_period_s: float,
-                 weight_n: float, max_currents_age_s: float, measured_lag_ticks: int = 1):
+                 weight_n: float, measured_lag_ticks: int = 1):
         super().__init__()
         self._weight_n = float(weight_n)
         self._plan_landing = plan_landing
@@ -410,10 +415,6 @@ class SupervisorLogic(LeafSystem):
         self._period_s = initial_motion.period_s
         # Every whole number of ticks nearest watchdog_period_s, at least every tick.
         self._watchdog_ticks = max(1, round(watchdog_period_s / self._period_s))
-        # Under the checks' period (a tick less), so the stale currents of a stalled
-        # link are compared at one check at most (half of STUCK_PERSIST_S).
-        self._max_currents_age_s = min(float(max_currents_age_s),
-                                       (self._watchdog_ticks - 1) * self._period_s)
         self._lag_ticks = min(max(1, int(measured_lag_ticks)), self._watchdog_ticks)
         inputs = supervisor_inputs(n_coils)
         self._at = np.array([rows.start for rows in stacked_slices(inputs).values()])
@@ -509,8 +510,7 @@ class SupervisorLogic(LeafSystem):
                 self._starts, motion.commands, motion.first_tick, tick, motion.landing,
                 context.get_abstract_parameter(self._limits).get_value().as_vector,
                 self._lost_grace_s, self._period_s, self._watchdog_ticks, self._lag_ticks,
-                self._weight_n,
-                self._max_currents_age_s):
+                self._weight_n):
             # A new fault: land from the commanded motion's setpoint, now.
             now_s = context.get_time()
             next_state[self._landing_start] = now_s
@@ -547,9 +547,10 @@ class DeviceSupervisor(Diagram):
     - ``fault_bits`` (1): the latched FAULT_* bits.
     - ``coils_stuck`` (n_coils): 1 for a coil whose amplifier no longer follows its
       command (its measured current off by more than STUCK_MISMATCH_A at every check
-      for STUCK_PERSIST_S, counting only checks whose currents, ``coil_currents_age_s``
-      old, are no older than ``max_currents_age_s``, s, and than the checks' period
-      less a tick), latched until
+      for STUCK_PERSIST_S, counting only checks whose currents follow one of the
+      commands compared, ``coil_currents_age_s`` (s) saying how old theirs is: for
+      the simulated station a tick, over LCM the age of the command sequence the
+      device reports, infinite for none), latched until
       ``reset_faults``: the controller allocates without it and takes its measured
       current as a given.
     - ``tracking_lost_s`` (1): how long tracking has been lost (s), counted every
@@ -571,10 +572,7 @@ class DeviceSupervisor(Diagram):
     lost instrument on its own).
     ``plan_landing(pose, enable, period_s) -> commands`` (a Motion's, from the
     landing's start) bring the instrument from ``pose`` onto the glass and ramp its
-    force gain from ``enable`` to zero. ``max_currents_age_s`` (s): how old the
-    station's measured currents may be and still be compared with their commands
-    (the station's own bound: over LCM a device that stalls 9-14 ms left them stale
-    while the commands moved, and compared, a healthy coil would latch as stuck).
+    force gain from ``enable`` to zero.
     ``measured_lag_ticks``: how many ticks' commands a measured current may follow,
     the checks' span (1: the tick before's, the simulated station's; over LCM, the
     link's round trip: against the tick before's alone a saturating step, measured 2
@@ -584,12 +582,12 @@ class DeviceSupervisor(Diagram):
 
     def __init__(self, *, initial_motion: Motion, limits: WatchLimits, lost_grace_s: float,
                  plan_landing: Callable, n_coils: int, watchdog_period_s: float,
-                 weight_n: float, max_currents_age_s: float, measured_lag_ticks: int = 1):
+                 weight_n: float, measured_lag_ticks: int = 1):
         Diagram.__init__(self)
         self._logic = SupervisorLogic(
             initial_motion=initial_motion, limits=limits, lost_grace_s=lost_grace_s,
             plan_landing=plan_landing, n_coils=n_coils, watchdog_period_s=watchdog_period_s,
-            weight_n=weight_n, max_currents_age_s=max_currents_age_s,
+            weight_n=weight_n,
             measured_lag_ticks=measured_lag_ticks)
         BuildStacked(self, leaf=self._logic, leaf_name="logic",
                      inputs=supervisor_inputs(n_coils), outputs=supervisor_outputs(n_coils),

@@ -118,12 +118,15 @@ def glasses_measurement_from_message(message: glasses_t, arrival_s: float) -> np
 
 
 def currents_message(sequence: int, t_s: float, currents_and_power: np.ndarray,
-                     session: int = 0) -> coil_currents_t:
+                     session: int = 0, command_sequence: int = 0) -> coil_currents_t:
     """``currents_and_power``: the coils' currents (A) then the supply (1 on, 0 off);
-    ``session``: the commanding application's lease session (0: measured currents)."""
+    ``session``: the commanding application's lease session (0: measured currents);
+    ``command_sequence``: measured, the sequence of the newest command the amplifiers
+    were given (0: none)."""
     message = coil_currents_t()
     message.sequence = int(sequence)
     message.session = int(session)
+    message.command_sequence = int(command_sequence)
     message.utime = to_utime(t_s)
     message.num_coils = len(currents_and_power) - 1
     message.current_a = currents_and_power[:-1].tolist()
@@ -131,9 +134,10 @@ def currents_message(sequence: int, t_s: float, currents_and_power: np.ndarray,
     return message
 
 
-def currents_and_power_from_message(message: coil_currents_t) -> np.ndarray:
-    """[currents (A); supply (1 on, 0 off)]: ``currents_message``'s value."""
-    return np.array([*message.current_a, float(message.power_enabled)])
+def command_from_message(message: coil_currents_t) -> np.ndarray:
+    """A command's [currents (A); supply (1 on, 0 off); its sequence], the first two
+    ``currents_message``'s value."""
+    return np.array([*message.current_a, float(message.power_enabled), float(message.sequence)])
 
 
 def status_message(sequence: int, t_s: float, handle_gripped: bool, fault_bits: int,
@@ -262,7 +266,9 @@ class ReceivedChannel:
     raises a TimeoutError naming the channel if none comes. ``age_port``: an output
     port of that name (1) gives the newest accepted message's age (s, on the
     diagram's clock: 0 in the tick that read it; infinite before the first), for a
-    reader that must not take a stale value for a fresh one. ``sample_time_port``: an
+    reader that must not take a stale value for a fresh one; with ``dated``, the age
+    of what the message reports instead, ``dated(message)`` saying when that was (s,
+    on the diagram's clock; -inf: nothing of this run). ``sample_time_port``: an
     output port of that name (1) gives when the value on ``port`` was read (s, on the
     diagram's clock): the newest accepted message's arrival, or while the value is
     stale the tick before now, so a reader that takes each reading once (the pose
@@ -289,6 +295,7 @@ class ReceivedChannel:
     admit: Optional[Callable] = None
     on_accept: Optional[Callable] = None
     age_port: Optional[str] = None
+    dated: Optional[Callable] = None
     sample_time_port: Optional[str] = None
     sequence_port: Optional[str] = None
 
@@ -333,7 +340,7 @@ class MessageReceiver(LeafSystem):
         # its session's lease request finds the lease granted, and one sent before its
         # session's release is still the holder's.
         self._arrived = []
-        self._counters, self._latencies, self._held = {}, {}, {}
+        self._counters, self._latencies, self._held, self._dated = {}, {}, {}, {}
         for spec in channels:
             subscription = lcm.subscribe(spec.channel,
                                          lambda _, data, port=spec.port:
@@ -343,11 +350,13 @@ class MessageReceiver(LeafSystem):
             subscription.set_queue_capacity(MESSAGE_QUEUE_CAPACITY)
             self._counters[spec.port] = self.DeclareDiscreteState(_NEVER)
             self._latencies[spec.port] = self.DeclareDiscreteState(np.zeros(LATENCY_BINS))
+            if spec.dated is not None:
+                self._dated[spec.port] = self.DeclareDiscreteState([-math.inf])
             if spec.age_port is not None:
                 self.DeclareVectorOutputPort(
                     spec.age_port, 1,
                     lambda context, output, spec=spec: output.SetAtIndex(
-                        0, context.get_time() - self._arrival_s(spec, context)),
+                        0, context.get_time() - self._dated_s(spec, context)),
                     {self.xd_ticket(), self.time_ticket()})
             if spec.sample_time_port is not None:
                 self.DeclareVectorOutputPort(
@@ -435,6 +444,8 @@ class MessageReceiver(LeafSystem):
                 histogram.SetAtIndex(k, histogram.GetAtIndex(k) + 1.0)
             if spec.size:
                 discrete_state.set_value(self._held[port], spec.decode(newest, t_s))
+            if spec.dated is not None:
+                discrete_state.set_value(self._dated[port], [spec.dated(newest)])
         if self._on_tick is not None:
             self._on_tick(t_s)
 
@@ -445,6 +456,13 @@ class MessageReceiver(LeafSystem):
     def _arrival_s(self, spec, context) -> float:
         """When the newest accepted message of ``spec``'s channel was read (s; -inf: none)."""
         return context.get_discrete_state(self._counters[spec.port]).GetAtIndex(1)
+
+    def _dated_s(self, spec, context) -> float:
+        """When what the newest message of ``spec``'s channel reports dates from (s):
+        ``spec.dated``'s, or when it was read."""
+        if spec.dated is None:
+            return self._arrival_s(spec, context)
+        return context.get_discrete_state(self._dated[spec.port]).GetAtIndex(0)
 
     def _is_stale(self, spec, context) -> bool:
         return (spec.stale_value is not None

@@ -9,7 +9,7 @@ from pydrake.systems.analysis import Simulator
 from pydrake.systems.primitives import TrajectorySource
 
 from maglev_haptics.diagrams.lcm_station import (
-    LcmStation, measured_currents_lag_ticks, measured_currents_max_age_s)
+    LcmStation, followed_command_s, measured_currents_lag_ticks)
 from maglev_haptics.diagrams.motion import flight_plan, landing_planner
 from maglev_haptics.diagrams.scenario import ScenarioError, load_scenario
 from maglev_haptics.systems.blends import (
@@ -18,6 +18,7 @@ from maglev_haptics.systems.device_supervisor import (
     FAULT_COIL_OVER_CURRENT, FAULT_COIL_OVER_TEMPERATURE, FAULT_OVER_SPEED,
     FAULT_SENSOR_OUT_OF_RANGE, DeviceSupervisor, WatchLimits, detect_faults, make_motion,
     STUCK_PERSIST_S, tracking_lost_after)
+from maglev_haptics.systems.station_messages import currents_message
 
 N_COILS = 27
 TICK_S = 1e-3
@@ -52,7 +53,7 @@ def test_the_instruments_faults_count_only_while_the_coils_carry_it():
         FAULT_COIL_OVER_CURRENT
 
 
-def build(scenario, max_currents_age_s=0.0, measured_lag_ticks=1):
+def build(scenario, measured_lag_ticks=1):
     spec = scenario.device.instrument_spec()
     plan = flight_plan(scenario.motion, spec.rest_height_m)
     supervisor = DeviceSupervisor(
@@ -60,7 +61,7 @@ def build(scenario, max_currents_age_s=0.0, measured_lag_ticks=1):
         lost_grace_s=LOST_GRACE_S,
         plan_landing=landing_planner(scenario.motion, spec.rest_height_m), n_coils=N_COILS,
         watchdog_period_s=WATCHDOG_PERIOD_S, weight_n=spec.mass_kg * 9.81,
-        max_currents_age_s=max_currents_age_s, measured_lag_ticks=measured_lag_ticks)
+        measured_lag_ticks=measured_lag_ticks)
     context = supervisor.CreateDefaultContext()
     pose = np.array([1.0, 0, 0, 0, 0.0, 0.0, 0.02])
     for port, value in (("X_WI_measured", pose), ("V_WI_measured", np.zeros(6)),
@@ -69,7 +70,7 @@ def build(scenario, max_currents_age_s=0.0, measured_lag_ticks=1):
                         ("thermally_limited", [0.0]),
                         ("coil_currents_commanded", np.zeros(N_COILS)),
                         ("allocation_shortfall_W", np.zeros(6)),
-                        ("coil_currents_age_s", [0.0])):
+                        ("coil_currents_age_s", [TICK_S])):
         supervisor.GetInputPort(port).FixValue(context, value)
     return supervisor, context, plan, spec
 
@@ -197,36 +198,13 @@ def test_a_bad_watchdog_names_its_field():
         load_scenario("levitate", scenario_text="{watchdog: {max_speed_m_s: 0.0}}")
 
 
-def test_stale_currents_are_not_taken_for_a_stuck_coil():
-    """Over LCM a stalled device leaves the measured currents stale while the commands
-    move: no coil latches as stuck then; fresh currents that do not follow still do."""
-    supervisor, context, _, _ = build(load_scenario("levitate"), max_currents_age_s=0.003)
-    simulator = Simulator(supervisor, context)
-    simulator.AdvanceTo(2.0)  # hovering, coils on
-    commanded = np.zeros(N_COILS)
-    commanded[3] = 2.0  # coil 3 asked for 2 A, still measured at 0 A
-    supervisor.GetInputPort("coil_currents_commanded").FixValue(context, commanded)
-    supervisor.GetInputPort("coil_currents_age_s").FixValue(context, [0.009])
-    simulator.AdvanceTo(2.0 + 4 * STUCK_PERSIST_S)
-    assert not np.any(supervisor.GetOutputPort("coils_stuck").Eval(context))
-    assert supervisor.faults(context) == 0
-    supervisor.GetInputPort("coil_currents_age_s").FixValue(context, [0.0])
-    simulator.AdvanceTo(2.0 + 8 * STUCK_PERSIST_S)
-    stuck = supervisor.GetOutputPort("coils_stuck").Eval(context)
-    assert stuck[3] == 1.0 and stuck.sum() == 1.0
-    assert supervisor.faults(context) & FAULT_COIL_OVER_CURRENT
-
-
-@pytest.mark.parametrize("max_currents_age_s, age_s, compared", [
-    (0.003, 0.0025, True), (0.003, 0.0035, False),  # the station's bound
-    (0.02, 0.0035, True), (0.02, 0.0045, False),  # capped a tick under the checks' 5 ms
-    (0.0, 0.0, True)])  # the simulated station's: measured in the tick that reads them
-def test_currents_are_compared_up_to_the_stations_age_under_the_checks_period(
-        max_currents_age_s, age_s, compared):
-    """A coil that does not follow latches as stuck while its currents are no older than
-    the station's bound, and than the checks' period less a tick: a stalled link's
-    stale currents are compared at one check at most."""
-    supervisor, context, _, _ = build(load_scenario("levitate"), max_currents_age_s)
+@pytest.mark.parametrize("age_s", [0.009, math.inf], ids=["an older command", "none"])
+def test_currents_of_another_command_are_not_taken_for_a_stuck_coil(age_s):
+    """Over LCM the measured currents may follow a command older than those compared (a
+    stalled device), or none (the device's own zero once its commands timed out): no
+    coil latches as stuck then; currents that follow a command compared and do not
+    match it still latch."""
+    supervisor, context, _, _ = build(load_scenario("levitate"), measured_lag_ticks=5)
     simulator = Simulator(supervisor, context)
     simulator.AdvanceTo(2.0)  # hovering, coils on
     commanded = np.zeros(N_COILS)
@@ -234,15 +212,45 @@ def test_currents_are_compared_up_to_the_stations_age_under_the_checks_period(
     supervisor.GetInputPort("coil_currents_commanded").FixValue(context, commanded)
     supervisor.GetInputPort("coil_currents_age_s").FixValue(context, [age_s])
     simulator.AdvanceTo(2.0 + 4 * STUCK_PERSIST_S)
+    assert not np.any(supervisor.GetOutputPort("coils_stuck").Eval(context))
+    assert supervisor.faults(context) == 0
+    supervisor.GetInputPort("coil_currents_age_s").FixValue(context, [2 * TICK_S])
+    simulator.AdvanceTo(2.0 + 8 * STUCK_PERSIST_S)
+    stuck = supervisor.GetOutputPort("coils_stuck").Eval(context)
+    assert stuck[3] == 1.0 and stuck.sum() == 1.0
+    assert supervisor.faults(context) & FAULT_COIL_OVER_CURRENT
+
+
+@pytest.mark.parametrize("lag_ticks, age_ticks, compared", [
+    (1, 1, True), (1, 2, False),  # the simulated station's: the tick before's command
+    (5, 5, True), (5, 6, False),  # over LCM: the link's round trip
+    (7, 6, False)])  # capped at the ticks between two checks (5)
+def test_currents_are_compared_while_their_command_is_among_those_compared(
+        lag_ticks, age_ticks, compared):
+    """A coil that does not follow latches as stuck while the command its currents
+    follow (``age_ticks`` old) is one of the ``lag_ticks`` ticks' before the check."""
+    supervisor, context, _, _ = build(load_scenario("levitate"), lag_ticks)
+    simulator = Simulator(supervisor, context)
+    simulator.AdvanceTo(2.0)  # hovering, coils on
+    commanded = np.zeros(N_COILS)
+    commanded[3] = 2.0  # coil 3 asked for 2 A, still measured at 0 A
+    supervisor.GetInputPort("coil_currents_commanded").FixValue(context, commanded)
+    supervisor.GetInputPort("coil_currents_age_s").FixValue(context, [age_ticks * TICK_S])
+    simulator.AdvanceTo(2.0 + 4 * STUCK_PERSIST_S)
     assert supervisor.GetOutputPort("coils_stuck").Eval(context)[3] == float(compared)
 
 
-def test_the_lcm_stations_currents_may_be_a_control_period_and_its_margin_old():
+def test_the_lcm_stations_currents_are_dated_by_the_command_they_follow():
+    """The device reports the sequence of the command its currents follow; the
+    application numbers tick k's command k + 1: 1001 was sent at 1 s. None (0: the
+    device's command timeout turned the coils off) is never compared."""
     scenario = load_scenario("levitate")
     assert scenario.control_rate_hz == 1000.0
-    assert measured_currents_max_age_s(scenario, LcmStation()) == pytest.approx(0.003)
-    assert measured_currents_max_age_s(scenario, LcmStation(stale_margin_s=0.01)) == \
-        pytest.approx(0.011)  # the supervisor caps it under its checks' period
+    dated = followed_command_s(scenario)
+    message = currents_message(5, 7.0, np.r_[np.zeros(N_COILS), 1.0], command_sequence=1001)
+    assert dated(message) == pytest.approx(1.0)
+    message.command_sequence = 0
+    assert dated(message) == -math.inf
 
 
 def fly_lagging_currents(measured_lag_ticks: int, stuck_coil=None):
@@ -250,8 +258,9 @@ def fly_lagging_currents(measured_lag_ticks: int, stuck_coil=None):
     STUCK_MISMATCH_A every tick, as a saturating allocation swings) and every current
     measured 2 ticks after its command, as over LCM; ``stuck_coil`` measured at +4 A
     whatever its 0.5 A command. Returns the coils latched stuck."""
-    supervisor, context, _, _ = build(load_scenario("levitate"), max_currents_age_s=0.003,
+    supervisor, context, _, _ = build(load_scenario("levitate"),
                                       measured_lag_ticks=measured_lag_ticks)
+    supervisor.GetInputPort("coil_currents_age_s").FixValue(context, [2 * TICK_S])
     simulator = Simulator(supervisor, context)
     simulator.AdvanceTo(2.0)  # hovering, coils on
     commands = []
@@ -269,12 +278,14 @@ def fly_lagging_currents(measured_lag_ticks: int, stuck_coil=None):
 
 
 def test_currents_measured_a_round_trip_late_are_not_taken_for_a_stuck_coil():
-    """Over LCM a measured current follows its command 2-3 ticks late: against the tick
-    before's command alone a healthy coil whose command swings latched as stuck (the
-    device API's saturating step cut the power in flight); against the span of the
-    link's round trip it does not, and a coil that follows no command still latches."""
+    """Over LCM a measured current follows its command 2-3 ticks late: compared with
+    the tick before's command alone a healthy coil whose command swings latched as
+    stuck (the device API's saturating step cut the power in flight), and a tick's span
+    cannot check them at all (their command is not in it: a stuck coil goes unseen);
+    against the span of the link's round trip a healthy coil does not latch, and a coil
+    that follows no command does."""
     lcm_lag_ticks = measured_currents_lag_ticks(load_scenario("levitate"), LcmStation())
     assert lcm_lag_ticks == 6  # (1 ms + 2 ms) each way; the supervisor caps it at 5
-    assert fly_lagging_currents(measured_lag_ticks=1) == [3]
+    assert fly_lagging_currents(measured_lag_ticks=1, stuck_coil=20) == []
     assert fly_lagging_currents(measured_lag_ticks=lcm_lag_ticks) == []
     assert fly_lagging_currents(measured_lag_ticks=lcm_lag_ticks, stuck_coil=20) == [20]

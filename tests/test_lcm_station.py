@@ -28,7 +28,7 @@ from maglev_haptics.hardware.link.lease import (
     DeviceInUseError, InstrumentMismatchError, LeaseClient, LeaseServer)
 from maglev_haptics.hardware.link.link_checks import REASONS, LinkLimits
 from maglev_haptics.systems.station_messages import (
-    LATENCY_BINS, MessageReceiver, ReceivedChannel, currents_and_power_from_message,
+    LATENCY_BINS, MessageReceiver, ReceivedChannel, command_from_message,
     currents_message, glasses_measurement_from_message, glasses_measurement_message,
     latency_bin, markers_from_message, markers_message, message_sequence, receiver_counts,
     receiver_step, status_message)
@@ -48,9 +48,10 @@ def test_markers_round_trip_with_hidden_markers():
 @pytest.mark.parametrize("power", [1.0, 0.0])
 def test_coil_currents_and_the_power_round_trip(power):
     value = np.r_[np.linspace(-4.0, 4.0, 27), power]
-    message = coil_currents_t.decode(currents_message(3, 2.0, value).encode())
+    message = coil_currents_t.decode(currents_message(3, 2.0, value, command_sequence=2).encode())
     assert message.num_coils == 27 and message.power_enabled is bool(power)
-    np.testing.assert_array_equal(currents_and_power_from_message(message), value)
+    assert message.command_sequence == 2
+    np.testing.assert_array_equal(command_from_message(message), np.r_[value, 3.0])
 
 
 def test_receiver_counts_gaps_as_lost_and_ignores_repeats():
@@ -93,63 +94,95 @@ def test_glasses_sample_keeps_its_age_across_clocks():
         glasses_t.decode(glasses_measurement_message(4, 1.1, unseen).encode()), 5.1)[8] == 0.0
 
 
-@pytest.fixture(scope="module", params=[("levitate", 2.0), ("peg_in_hole", 3.0)],
-                ids=["levitate", "peg_in_hole"])
-def lockstep_run(request):
-    """The application and device-sim diagrams stepped in lock-step in this process,
-    talking only through LCM (multicast that stays on this host): the instrument flies
-    as in the all-in-one run, within what the messages' added tick of latency explains.
-    Returns (scenario, duration_s, application, its context, the run's log)."""
-    name, duration_s = request.param
-    port = 7700 + 4 * (os.getpid() % 50) + 2 * (name == "peg_in_hole")  # no other run's traffic
-    # peg_in_hole with the stereo display (views only): the glasses come over LCM too.
-    stereo = ", stereo: {images: {rate_hz: 0}}" if name == "peg_in_hole" else ""
-    scenario = load_scenario(name, scenario_text=(
+def lockstep_scenario(name: str, port: int, extra: str = ""):
+    """``name`` with its station on LCM (multicast that stays on this host, ``port``
+    and the next: no other run's traffic), and ``extra`` scenario text."""
+    return load_scenario(name, scenario_text=(
         f"{{station: !LcmStation {{url: 'udpm://239.255.76.67:{port}?ttl=0', "
         f"command_url: 'udpm://239.255.76.67:{port + 1}?ttl=0', channel_prefix: TEST_}}"
-        f"{stereo}}}"))
-    application = BuildDiagram(scenario)  # subscribes before the device publishes
-    device = BuildDeviceSim(scenario)
-    device_simulator = Simulator(device.diagram)
-    device_simulator.Initialize()
-    tick_s = application.tick_s
-    # A tick ahead: its first tracker sample, for the application's start. Both sides
-    # advance to the very times their ticks fall at (k * tick_s): the device publishes
-    # at its ticks, and a target an ulp short would hold a message over to the next.
-    device_simulator.AdvanceTo(tick_s)
-    simulator = Simulator(application.diagram)
-    simulator.Initialize()
-    # Each side's messages of a step are in the other side's hands before it steps: a
-    # barrier message behind them on the sender's socket (delivery is in order),
-    # awaited on the receiver's own LCM, which queues what comes before it for the
-    # receiver's next update. Else a loaded host hands some over a step late (LCM
-    # reads its socket on a thread of its own).
-    station = application.diagram.GetSubsystemByName("station")
-    links = []  # (sender's LCM, receiver's LCM, barriers seen)
-    for sender, receiver in (
-            (station.GetSubsystemByName("coil_currents_commanded_sender"),
-             device.command_receiver),
-            (device.diagram.GetSubsystemByName("coil_currents_sender"),
-             station.GetSubsystemByName("receiver"))):
-        seen = []
-        receiver._lcm.subscribe("TEST_BARRIER", lambda _, data, seen=seen: seen.append(data))
-        links.append((sender._lcm, receiver._lcm, seen))
+        f"{extra}}}"))
 
-    def handed_over(sender, receiver, seen):
+
+class Lockstep:
+    """The application and device-sim diagrams of ``scenario`` in this process, talking
+    only through LCM, each stepped a tick when told (``app_tick``, ``device_tick``);
+    the device starts a tick ahead, with its first tracker sample for the application's
+    start. Both advance to the very times their ticks fall at (k * tick_s): the device
+    publishes at its ticks, and a target an ulp short would hold a message over to the
+    next. Each side's messages of a tick are in the other side's hands before it steps:
+    a barrier message behind them on the sender's socket (delivery is in order),
+    awaited on the receiver's own LCM, which queues what comes before it for the
+    receiver's next update. Else a loaded host hands some over a step late (LCM reads
+    its socket on a thread of its own)."""
+
+    def __init__(self, scenario):
+        self.application = BuildDiagram(scenario)  # subscribes before the device publishes
+        self.device = BuildDeviceSim(scenario)
+        self.tick_s = self.application.tick_s
+        self.device_simulator = Simulator(self.device.diagram)
+        self.device_simulator.Initialize()
+        self.device_simulator.AdvanceTo(self.tick_s)
+        self.simulator = Simulator(self.application.diagram)
+        self.simulator.Initialize()
+        self.station = self.application.diagram.GetSubsystemByName("station")
+        self._links = []  # (sender's LCM, receiver's LCM, barriers seen)
+        for sender, receiver in (
+                (self.station.GetSubsystemByName("coil_currents_commanded_sender"),
+                 self.device.command_receiver),
+                (self.device.diagram.GetSubsystemByName("coil_currents_sender"),
+                 self.station.GetSubsystemByName("receiver"))):
+            seen = []
+            receiver._lcm.subscribe("TEST_BARRIER",
+                                    lambda _, data, seen=seen: seen.append(data))
+            self._links.append((sender._lcm, receiver._lcm, seen))
+
+    @staticmethod
+    def _step(simulator, tick_s, link):
+        ticks = round(simulator.get_context().get_time() / tick_s)
+        simulator.AdvanceTo((ticks + 1) * tick_s)
+        sender, receiver, seen = link
         before = len(seen)
         sender.publish("TEST_BARRIER", b"")
         deadline = time.monotonic() + 1.0
         while len(seen) == before and time.monotonic() < deadline:
             receiver.handle_timeout(10)
 
-    for k in range(int(round(duration_s / tick_s))):
-        simulator.AdvanceTo((k + 1) * tick_s)
-        handed_over(*links[0])
-        device_simulator.AdvanceTo((k + 2) * tick_s)
-        handed_over(*links[1])
-    log = log_arrays(application.logger, application.log_layout, simulator.get_context(),
-                     scenario.device)
-    return name, scenario, duration_s, application, simulator.get_context(), log
+    def app_tick(self):
+        self._step(self.simulator, self.tick_s, self._links[0])
+
+    def device_tick(self):
+        self._step(self.device_simulator, self.tick_s, self._links[1])
+
+    def run(self, duration_s: float):
+        """Both sides in turn, the application's tick first, for ``duration_s`` (s)."""
+        for _ in range(int(round(duration_s / self.tick_s))):
+            self.app_tick()
+            self.device_tick()
+
+    def app_port(self, system: str, port: str) -> np.ndarray:
+        """The application's ``system``'s output ``port`` now."""
+        subsystem = self.application.diagram.GetSubsystemByName(system)
+        return subsystem.GetOutputPort(port).Eval(
+            subsystem.GetMyContextFromRoot(self.simulator.get_context()))
+
+
+@pytest.fixture(scope="module", params=[("levitate", 2.0), ("peg_in_hole", 3.0)],
+                ids=["levitate", "peg_in_hole"])
+def lockstep_run(request):
+    """The application and device-sim diagrams stepped in lock-step (``Lockstep``): the
+    instrument flies as in the all-in-one run, within what the messages' added tick of
+    latency explains. Returns (scenario, duration_s, application, its context, the
+    run's log)."""
+    name, duration_s = request.param
+    port = 7700 + 4 * (os.getpid() % 50) + 2 * (name == "peg_in_hole")
+    # peg_in_hole with the stereo display (views only): the glasses come over LCM too.
+    stereo = ", stereo: {images: {rate_hz: 0}}" if name == "peg_in_hole" else ""
+    scenario = lockstep_scenario(name, port, stereo)
+    lockstep = Lockstep(scenario)
+    lockstep.run(duration_s)
+    log = log_arrays(lockstep.application.logger, lockstep.application.log_layout,
+                     lockstep.simulator.get_context(), scenario.device)
+    return name, scenario, duration_s, lockstep.application, lockstep.simulator.get_context(), log
 
 
 def test_levitation_over_lcm_follows_the_all_in_one_run(lockstep_run):
@@ -173,6 +206,44 @@ def test_levitation_over_lcm_follows_the_all_in_one_run(lockstep_run):
         seen = log["glasses_measured"][:, 8] > 0.5
         assert seen[-1000:].mean() > 0.9  # the head tracker's samples arrive
         assert np.all(np.isfinite(log["X_WG_predicted"][-100:]))
+
+
+def test_the_devices_own_zero_is_not_taken_for_a_stuck_coil():
+    """In lock-step the measured currents say which command they follow: taking off,
+    they are those of the command their age says (the link's tick each way), within
+    the amplifiers' lag, and not the tick's before or after. Then the device runs 13
+    ticks to each of the application's, as after a stall of its own: past its 10 ms
+    command timeout it turns the coils off and says it follows no command, and the
+    application reads those zeros fresh every tick. Taken for its commands' currents,
+    they latched healthy coils as stuck and cut the power in flight (a false
+    over-current on a loaded host); no fault latches now, and the instrument flies on."""
+    scenario = lockstep_scenario("levitate", 7900 + 2 * (os.getpid() % 50))
+    lockstep = Lockstep(scenario)
+    lockstep.run(0.9)  # taking off: the commands move
+    commanded, measured = [], []
+    for _ in range(40):
+        lockstep.app_tick()
+        commanded.append(lockstep.app_port("levitation_controller", "coil_currents_commanded"))
+        measured.append(lockstep.app_port("station", "coil_currents"))
+        assert lockstep.app_port("station", "coil_currents_age_s")[0] == pytest.approx(
+            2 * lockstep.tick_s)
+        lockstep.device_tick()
+    commanded, measured = np.array(commanded), np.array(measured)
+    for lag_ticks in (1, 2, 3):
+        following = np.abs(measured[lag_ticks:] - commanded[:-lag_ticks]).max()
+        assert (following < 1e-3) == (lag_ticks == 2), (lag_ticks, following)
+    lockstep.run(0.6)  # hovering
+    zeros_read = 0
+    for _ in range(12):
+        lockstep.app_tick()
+        zeros_read += (np.abs(lockstep.app_port("station", "coil_currents")).max() < 0.01
+                       and lockstep.app_port("station", "coil_currents_age_s")[0] == np.inf)
+        for _ in range(13):
+            lockstep.device_tick()
+    assert zeros_read >= 10
+    lockstep.run(0.5)
+    assert lockstep.app_port("device_supervisor", "fault_bits")[0] == 0
+    assert lockstep.app_port("pose_estimator", "X_WI_measured")[6] > 0.015  # still hovering
 
 
 def test_no_message_is_lost_in_steady_state(lockstep_run):
@@ -401,7 +472,7 @@ def test_the_issues_five_messages_never_reach_the_coils():
     publish(bus, "T_COIL_CURRENTS_COMMANDED", a_command(1, 7, good))
     tick(receiver, context, 0.001)
     assert replies[-1].action == lease_t.HELD and replies[-1].session == 7
-    np.testing.assert_array_equal(commands.Eval(context), np.r_[good, 1.0])
+    np.testing.assert_array_equal(commands.Eval(context), np.r_[good, 1.0, 1.0])
 
     rng = np.random.default_rng(26)
     bad = [rng.bytes(int(rng.integers(0, 300))),
@@ -414,7 +485,7 @@ def test_the_issues_five_messages_never_reach_the_coils():
     for data in bad:
         bus.publish("T_COIL_CURRENTS_COMMANDED", data)
     tick(receiver, context, 0.002)
-    np.testing.assert_array_equal(commands.Eval(context), np.r_[good, 1.0])
+    np.testing.assert_array_equal(commands.Eval(context), np.r_[good, 1.0, 1.0])
     counts = receiver.counts(context, COMMANDS_PORT)
     assert counts["refused"] == {"malformed": 1, "wrong_size": 1, "not_finite": 2,
                                  "out_of_range": 1, "other_session": 1, "replayed": 1,
@@ -427,9 +498,9 @@ def test_the_issues_five_messages_never_reach_the_coils():
     # The next good command, newer, is used; then silence turns the coils off.
     publish(bus, "T_COIL_CURRENTS_COMMANDED", a_command(9, 7, -good))
     tick(receiver, context, 0.003)
-    np.testing.assert_array_equal(commands.Eval(context), np.r_[-good, 1.0])
+    np.testing.assert_array_equal(commands.Eval(context), np.r_[-good, 1.0, 9.0])
     context.SetTime(0.0135)
-    np.testing.assert_array_equal(commands.Eval(context), np.zeros(28))
+    np.testing.assert_array_equal(commands.Eval(context), np.zeros(29))  # sequence 0: none
 
 
 def device_end(instrument: str):
@@ -465,7 +536,7 @@ def test_a_second_application_is_told_who_holds_the_device_and_commands_nothing(
     publish(bus, "T_COIL_CURRENTS_COMMANDED", a_command(1, second.session, np.ones(27)))
     tick(receiver, context, 0.002)
     np.testing.assert_array_equal(receiver.GetOutputPort(COMMANDS_PORT).Eval(context),
-                                  np.zeros(28))  # never reached the coils
+                                  np.zeros(29))  # never reached the coils
     with pytest.raises(DeviceInUseError) as error:
         second.on_reply(replies[-1], 0.002)
     assert str(error.value) == (

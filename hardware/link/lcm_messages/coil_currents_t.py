@@ -13,11 +13,11 @@ class coil_currents_t(object):
     by the station's amplifiers; and the amplifiers' supply (the enable line).
     """
 
-    __slots__ = ["sequence", "sent_wall_utime", "session", "utime", "num_coils", "current_a", "power_enabled"]
+    __slots__ = ["sequence", "sent_wall_utime", "session", "command_sequence", "utime", "num_coils", "current_a", "power_enabled"]
 
-    __typenames__ = ["int64_t", "int64_t", "int64_t", "int64_t", "int16_t", "double", "boolean"]
+    __typenames__ = ["int64_t", "int64_t", "int64_t", "int64_t", "int64_t", "int16_t", "double", "boolean"]
 
-    __dimensions__ = [None, None, None, None, None, ["num_coils"], None]
+    __dimensions__ = [None, None, None, None, None, None, ["num_coils"], None]
 
     def __init__(self):
         self.sequence = 0
@@ -35,10 +35,19 @@ class coil_currents_t(object):
         LCM Type: int64_t
         """
 
-        self.utime = 0
+        self.command_sequence = 0
         """
         commanded: the application's lease session (random, non-zero; lease_t);
         a command of any other session is refused. Measured: 0
+        LCM Type: int64_t
+        """
+
+        self.utime = 0
+        """
+        measured: the sequence of the newest command the amplifiers
+        were given, so the application knows which command the
+        currents follow (0: none, before the first or once the
+        device's command timeout turned the coils off). Commanded: 0
         LCM Type: int64_t
         """
 
@@ -64,7 +73,7 @@ class coil_currents_t(object):
         return buf.getvalue()
 
     def _encode_one(self, buf):
-        buf.write(struct.pack(">qqqqh", self.sequence, self.sent_wall_utime, self.session, self.utime, self.num_coils))
+        buf.write(struct.pack(">qqqqqh", self.sequence, self.sent_wall_utime, self.session, self.command_sequence, self.utime, self.num_coils))
         buf.write(struct.pack('>%dd' % self.num_coils, *self.current_a[:self.num_coils]))
         buf.write(struct.pack(">b", self.power_enabled))
 
@@ -81,7 +90,7 @@ class coil_currents_t(object):
     @staticmethod
     def _decode_one(buf):
         self = coil_currents_t()
-        self.sequence, self.sent_wall_utime, self.session, self.utime, self.num_coils = struct.unpack(">qqqqh", buf.read(34))
+        self.sequence, self.sent_wall_utime, self.session, self.command_sequence, self.utime, self.num_coils = struct.unpack(">qqqqqh", buf.read(42))
         self.current_a = struct.unpack('>%dd' % self.num_coils, buf.read(self.num_coils * 8))
         self.power_enabled = bool(struct.unpack('b', buf.read(1))[0])
         return self
@@ -89,7 +98,7 @@ class coil_currents_t(object):
     @staticmethod
     def _get_hash_recursive(parents):
         if coil_currents_t in parents: return 0
-        tmphash = (0xe20ae31490cb66f5) & 0xffffffffffffffff
+        tmphash = (0xbbcf4a2855ca4bae) & 0xffffffffffffffff
         tmphash  = (((tmphash<<1)&0xffffffffffffffff) + (tmphash>>63)) & 0xffffffffffffffff
         return tmphash
     _packed_fingerprint = None

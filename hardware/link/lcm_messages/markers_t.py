@@ -48,7 +48,9 @@ class markers_t(object):
         """ LCM Type: double[num_markers][3] """
         self.visible = []
         """
-        p_WK in W (m); unused where not visible
+        p_TK in the tracker's own frame T (m; the
+        application's device.tracker.X_WT takes it to W);
+        unused where not visible
         LCM Type: boolean[num_markers]
         """
 
