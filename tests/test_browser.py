@@ -19,6 +19,12 @@ LIFT_AT_SIM_S = 6.0
 # A page rendering in software beside the run can lag seconds behind it: the grip and
 # the lift may arrive late, so the run leaves them time to arrive and settle.
 RUN_S = 20.0
+# Half speed: the page renders its WebGL in software on the cores the run shares. At
+# full speed hanging_ball with the page open takes more than a 2-core host has
+# (measured: 62-100 % of the slots missed at 750-900 us a tick, stalls to 1.4 s), and
+# the run reached its end, its controls gone, before the page pressed them. The full
+# rate with a page open is the README's Performance measurement, not this wiring's.
+RUN_RATE = 0.5
 SETTLED_S = 2.0  # the last seconds, where the lifted instrument is held
 LIFT_MM = 20.0
 STARTUP_TIMEOUT_S = 240.0  # building the diagram and, on a fresh install, compiling kernels
@@ -68,7 +74,8 @@ def test_meshcat_hand_grips_and_lifts_the_instrument(tmp_path):
     out = tmp_path / "run"
     process = subprocess.Popen(
         [sys.executable, "-m", "maglev_haptics.cli", "run", "hanging_ball",
-         "--interactive", "--duration", str(RUN_S), "--out", str(out)],
+         "--interactive", "--duration", str(RUN_S), "--realtime", str(RUN_RATE),
+         "--out", str(out)],
         stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
         env={**os.environ, "MPLBACKEND": "Agg"})
     output = RunOutput(process)
