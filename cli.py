@@ -158,7 +158,8 @@ def _cmd_run(args) -> int:
     from maglev_haptics.diagrams.thermal_forecast import thermal_outlook
     from maglev_haptics.analysis.loop_studies import stability_warnings
     from maglev_haptics.analysis.run_outcome import (
-        EXIT_DEVICE_IN_USE, EXIT_INSTRUMENT_LOST, injected_faults_outcome, instrument_outcome)
+        EXIT_DEVICE_IN_USE, EXIT_INSTRUMENT_LOST, device_cuts_sentence, injected_faults_outcome,
+        instrument_outcome)
     from maglev_haptics.hardware.link.lease import DeviceInUseError
 
     scenario, label = _load(args)
@@ -204,6 +205,9 @@ def _cmd_run(args) -> int:
               f"{100 * MISS_WARNING_FRACTION:.1f}%); longest stall "
               f"{realtime_summary['longest_stall_ms']:.1f} ms: see {out}/realtime.png",
               file=sys.stderr)
+    cuts = device_cuts_sentence(result.summary)
+    if cuts is not None:
+        print(f"warning: {cuts}: this application or the link stalled", file=sys.stderr)
     for name in result.summary.get("stereo", {}).get("video", {}).get("files", []):
         print(f"wrote {out / name}")
     stopped_by = result.summary.get("stopped_by")

@@ -68,6 +68,17 @@ def injects_faults(scenario) -> bool:
     return bool(scenario.faults) or bool(scenario.occlusions)
 
 
+def device_cuts_sentence(summary: Dict) -> Optional[str]:
+    """How often a device on LCM turned the coils off on its command timeout (summary's
+    ``station.device_cut_coils``), in words; None when it never did."""
+    cuts = (summary.get("station") or {}).get("device_cut_coils") or {}
+    if not cuts.get("times"):
+        return None
+    return (f"the device cut the coils {cuts['times']} times from {cuts['first_at_s']:.3f} s, "
+            f"the longest {cuts['longest_ms']:.0f} ms (no command within its "
+            f"{1e3 * cuts['command_timeout_s']:g} ms timeout)")
+
+
 def device_silent_outcome(summary: Dict, label: str) -> Optional[str]:
     """One line saying that the device went silent, when, on which channels and for how
     long, and when the run stopped; None when it was heard to the end."""
@@ -102,6 +113,9 @@ def instrument_outcome(scenario, summary: Dict, log: Dict[str, np.ndarray],
         if markers.get("stale_gaps"):
             reasons.append(f"markers stale {markers['stale_gaps']} times, the longest "
                            f"silence {markers['longest_gap_ms']:.0f} ms")
+        cuts = device_cuts_sentence(summary)
+        if cuts is not None:
+            reasons.append(cuts)
         if station.get("messages_refused"):
             refused = ", ".join(f"{count} {reason}" for reason, count in
                                 station["refused"].items() if count)

@@ -95,8 +95,8 @@ def MakeCommandReceiver(*, lcm, station, limits: LinkLimits, lease: LeaseServer,
     """The device's receiver of the application's lease requests and commands on ``lcm``
     (``station``: the LcmStation's channels and timeouts): output ``commands``
     [currents (A); power; its sequence], the lease holder's newest good command, zeros
-    (sequence 0: none) once it is older than ``command_timeout_s``. ``on_command(message, now_s)``, if given, hears
-    of every command accepted."""
+    (sequence 0: none) once it is older than ``command_timeout_s``.
+    ``on_command(message, now_s)``, if given, hears of every command accepted."""
     n_coils = limits.n_coils
 
     def accepted(command, now_s: float) -> None:

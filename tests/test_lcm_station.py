@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from pydrake.systems.analysis import Simulator
 
-from maglev_haptics.analysis.run_metrics import log_arrays
+from maglev_haptics.analysis.run_metrics import device_coil_cuts, log_arrays
 from maglev_haptics.analysis.run_outcome import instrument_outcome
 from maglev_haptics.diagrams.application import BuildDiagram
 from maglev_haptics.diagrams.device_sim import COMMANDS_PORT, BuildDeviceSim, MakeCommandReceiver
@@ -243,6 +243,10 @@ def test_the_devices_own_zero_is_not_taken_for_a_stuck_coil():
     assert zeros_read >= 10
     lockstep.run(0.5)
     assert lockstep.app_port("device_supervisor", "fault_bits")[0] == 0
+    log = log_arrays(lockstep.application.logger, lockstep.application.log_layout,
+                     lockstep.simulator.get_context(), scenario.device)
+    cuts = device_coil_cuts(log["t"], log["coil_currents_age_s"])  # what the run says
+    assert cuts["times"] >= 1 and cuts["longest_ms"] >= 10.0
     assert lockstep.app_port("pose_estimator", "X_WI_measured")[6] > 0.015  # still hovering
 
 
