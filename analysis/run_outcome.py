@@ -74,7 +74,8 @@ def device_cuts_sentence(summary: Dict) -> Optional[str]:
     cuts = (summary.get("station") or {}).get("device_cut_coils") or {}
     if not cuts.get("times"):
         return None
-    return (f"the device cut the coils {cuts['times']} times from {cuts['first_at_s']:.3f} s, "
+    times = "once" if cuts["times"] == 1 else f"{cuts['times']} times"
+    return (f"the device cut the coils {times} from {cuts['first_at_s']:.3f} s, "
             f"the longest {cuts['longest_ms']:.0f} ms (no command within its "
             f"{1e3 * cuts['command_timeout_s']:g} ms timeout)")
 

@@ -36,6 +36,10 @@ def test_the_devices_coil_cuts_are_counted_and_said():
     assert device_cuts_sentence(summary) == (
         "the device cut the coils 2 times from 0.010 s, the longest 12 ms (no command "
         "within its 10 ms timeout)")
+    age_s[20:32] = 0.002
+    assert device_cuts_sentence({"station": {"device_cut_coils": {
+        **device_coil_cuts(t, age_s), "command_timeout_s": 0.01}}}).startswith(
+        "the device cut the coils once from 0.010 s, the longest 3 ms")
     never = device_coil_cuts(t, np.full(40, 0.002))
     assert never == {"times": 0, "first_at_s": None, "longest_ms": 0.0}
     assert device_cuts_sentence({"station": {"device_cut_coils": never}}) is None
