@@ -93,31 +93,9 @@ def recorded_pose(log: Dict[str, np.ndarray]):
     return log["p_WI_measured"], log["q_WI_measured"], log["V_WI_measured"], "measured"
 
 
-def device_coil_cuts(t: np.ndarray, currents_age_s: np.ndarray) -> dict:
-    """The stretches in which a device on LCM said its coils followed no command (its
-    command timeout had turned them off), from the log's times ``t`` (s) and the
-    measured currents' ``coil_currents_age_s`` (s; infinite then): how many, when the
-    first began (s; None: none) and the longest (ms, to the log's period). Before the
-    first currents that follow a command nothing was commanded yet: not counted."""
-    followed = np.isfinite(currents_age_s)
-    if not followed.any():
-        return {"times": 0, "first_at_s": None, "longest_ms": 0.0}
-    cut = ~followed
-    cut[:np.argmax(followed)] = False
-    edges = np.diff(np.r_[0, cut.astype(int), 0])
-    starts, ends = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
-    if starts.size == 0:
-        return {"times": 0, "first_at_s": None, "longest_ms": 0.0}
-    period_s = float(np.median(np.diff(t))) if len(t) > 1 else 0.0
-    return {"times": int(starts.size), "first_at_s": float(t[starts[0]]),
-            "longest_ms": 1e3 * period_s * float(np.max(ends - starts))}
-
-
 def _optional_arrays(data) -> Dict[str, np.ndarray]:
     """The hand's, the scene's and the stereo display's logs, where the scenario has them."""
     arrays = {}
-    if "coil_currents_age_s" in data:  # a station on LCM's
-        arrays["coil_currents_age_s"] = data["coil_currents_age_s"][:, 0]
     if "markers_sample_time_s" in data:  # a calibration flight's
         arrays["markers_measured"] = data["markers_measured"]
         arrays["markers_sample_time_s"] = data["markers_sample_time_s"][:, 0]

@@ -15,8 +15,7 @@ import numpy as np
 
 from maglev_haptics.analysis.haptic_metrics import haptic_summary
 from maglev_haptics.analysis.run_log import RunLogWriter
-from maglev_haptics.analysis.run_metrics import (
-    device_coil_cuts, for_people, log_arrays, summarize)
+from maglev_haptics.analysis.run_metrics import for_people, log_arrays, summarize
 from maglev_haptics.analysis.run_outcome import latched_faults
 from maglev_haptics.analysis.run_plots import plot_haptics, plot_run, plot_tick_times
 from maglev_haptics.analysis.stereo_metrics import plot_colocation, stereo_summary
@@ -108,10 +107,6 @@ def run_scenario(scenario: Scenario, *, label: str, out_dir: Optional[Path] = No
                                **realtime_report(flown.tick_times)}
     station_summary = built.station.summary(simulator.get_context())
     if station_summary is not None:
-        if "coil_currents_age_s" in log:
-            station_summary["device_cut_coils"] = {
-                **device_coil_cuts(log["t"], log["coil_currents_age_s"]),
-                "command_timeout_s": scenario.station.command_timeout_s}
         summary["station"] = station_summary
     if scenario.stereo is not None:
         summary["stereo"] = stereo_summary(log, scenario, built.stereo, video_summary)

@@ -228,8 +228,6 @@ def AddLogging(builder: DiagramBuilder, *, scenario: Scenario, station: Station,
         "fault_bits": supervisor.GetOutputPort("fault_bits"),
         "coil_power": supervisor.GetOutputPort("coil_power"),
     }
-    if not simulated:  # infinite where the device said its currents follow no command
-        logged_ports["coil_currents_age_s"] = station.GetOutputPort("coil_currents_age_s")
     if scenario.calibration is not None:  # what a calibration fits the device to
         for name in ("markers_measured", "markers_sample_time_s", "coil_temperature_reported_c"):
             logged_ports[name] = station.GetOutputPort(name)

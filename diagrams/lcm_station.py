@@ -68,7 +68,7 @@ from maglev_haptics.hardware.link.link_checks import (
     REASONS, LinkLimits, check_glasses, check_lease_reply, check_markers,
     check_measured_currents, check_status)
 from maglev_haptics.systems.station_messages import (
-    MessageReceiver, MessageSender, ReceivedChannel, currents_message,
+    US_PER_S, MessageReceiver, MessageSender, ReceivedChannel, currents_message,
     glasses_measurement_from_message, markers_from_message)
 
 DEFAULT_LCM_URL = "udpm://239.255.76.67:7667?ttl=0"
@@ -202,6 +202,47 @@ def followed_command_s(scenario) -> Callable:
     return dated
 
 
+class DeviceCoilCuts:
+    """The times the device said its currents followed no command (``command_sequence``
+    0 after it had followed one: its command timeout had turned the coils off), read
+    from every measured-currents message the application accepts (``on_currents``):
+    how many, when the application first read one (s, its clock) and how long the
+    longest lasted on the device's own clock (its messages' ``utime``, so a stall of
+    the application that hid the cut's start does not shorten it)."""
+
+    def __init__(self):
+        self.times = 0
+        self.first_at_s = None
+        self.longest_s = 0.0
+        self._followed = False  # the device has followed a command
+        self._since_utime = None  # the cut under way: its first message's utime (us)
+        self._newest_utime = None
+
+    def on_currents(self, message, t_s: float) -> None:
+        if message.command_sequence > 0:
+            if self._since_utime is not None:
+                self._end(message.utime)
+            self._followed = True
+        elif self._followed and self._since_utime is None:
+            self.times += 1
+            self.first_at_s = t_s if self.first_at_s is None else self.first_at_s
+            self._since_utime = message.utime
+        self._newest_utime = message.utime
+
+    def _end(self, utime: int) -> None:
+        self.longest_s = max(self.longest_s, (utime - self._since_utime) / US_PER_S)
+        self._since_utime = None
+
+    def summary(self, command_timeout_s: float) -> dict:
+        """``station.device_cut_coils`` in summary.json (a cut under way counts to the
+        device's newest message)."""
+        longest_s = self.longest_s
+        if self._since_utime is not None:
+            longest_s = max(longest_s, (self._newest_utime - self._since_utime) / US_PER_S)
+        return {"times": self.times, "first_at_s": self.first_at_s,
+                "longest_ms": 1e3 * longest_s, "command_timeout_s": command_timeout_s}
+
+
 def measured_currents_lag_ticks(scenario, station: LcmStation) -> int:
     """How many control ticks' commands a measured current read over LCM may follow:
     a command reaches the device within a control period and ``stale_margin_s``, and
@@ -210,10 +251,10 @@ def measured_currents_lag_ticks(scenario, station: LcmStation) -> int:
     return math.ceil(round(2.0 * (period_s + station.stale_margin_s) / period_s, 9))
 
 
-def station_channels(scenario, lease: LeaseClient) -> list:
+def station_channels(scenario, lease: LeaseClient, coil_cuts: DeviceCoilCuts) -> list:
     """The application's inbound channels for ``scenario`` (its LcmStation's names),
     each with the link's checks (``hardware/link/link_checks.py``), the lease's answers
-    going to ``lease``."""
+    going to ``lease``, the measured currents to ``coil_cuts``."""
     station = scenario.station
     device = scenario.device
     n_coils = device.n_coils
@@ -236,7 +277,8 @@ def station_channels(scenario, lease: LeaseClient) -> list:
         inbound(COIL_CURRENTS, coil_currents_t, n_coils,
                 lambda message, _: np.array(message.current_a, dtype=float),
                 check_measured_currents, initial_value=np.zeros(n_coils),
-                age_port="coil_currents_age_s", dated=followed_command_s(scenario))]
+                age_port="coil_currents_age_s", dated=followed_command_s(scenario),
+                on_accept=coil_cuts.on_currents)]
     if scenario.hand is not None:
         channels.append(inbound(DEVICE_STATUS, device_status_t, 1,
                                 lambda message, _: np.array([float(message.handle_gripped)]),
@@ -277,7 +319,8 @@ def MakeLcmStation(scenario) -> "LcmStationInterface":
     lease = LeaseClient(lcm=command_lcm, channel=channel(station, LEASE_REQUEST),
                         wait_s=station.wait_for_station_s,
                         instrument=scenario.device.instrument)
-    channels = station_channels(scenario, lease)
+    coil_cuts = DeviceCoilCuts()
+    channels = station_channels(scenario, lease, coil_cuts)
     receiver = builder.AddNamedSystem("receiver", MessageReceiver(
         lcm=open_lcm(station.url), channels=channels, period_s=period_s,
         on_tick=lease.on_tick))
@@ -293,7 +336,8 @@ def MakeLcmStation(scenario) -> "LcmStationInterface":
     builder.ExportInput(command.get_input_port(1), "coil_power")
     diagram = builder.Build()
     diagram.set_name("station")
-    return LcmStationInterface(diagram, scenario=scenario, receiver=receiver, lease=lease)
+    return LcmStationInterface(diagram, scenario=scenario, receiver=receiver, lease=lease,
+                               coil_cuts=coil_cuts)
 
 
 def silent_channels(newest_arrivals: Dict[str, float], now_s: float,
@@ -362,11 +406,13 @@ class LcmStationInterface(Station):
     lands_before_run_end = True
     shares_cores = True
 
-    def __init__(self, system, *, scenario, receiver: MessageReceiver, lease: LeaseClient):
+    def __init__(self, system, *, scenario, receiver: MessageReceiver, lease: LeaseClient,
+                 coil_cuts: DeviceCoilCuts):
         super().__init__(system)
         self.config = scenario.station
         self.receiver = receiver
         self.lease = lease
+        self.coil_cuts = coil_cuts
         self.measured_currents_lag_ticks = measured_currents_lag_ticks(scenario, self.config)
 
     def newest_arrivals(self, context) -> Dict[str, float]:
@@ -406,5 +452,6 @@ class LcmStationInterface(Station):
                             for reason in REASONS},
                 "stale_gaps": sum(c["stale_gaps"] for c in counts.values()),
                 "lease": self.lease.counts(),
+                "device_cut_coils": self.coil_cuts.summary(self.config.command_timeout_s),
                 "device_silent": silent,
                 "channels": counts}

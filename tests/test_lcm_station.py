@@ -14,12 +14,12 @@ import numpy as np
 import pytest
 from pydrake.systems.analysis import Simulator
 
-from maglev_haptics.analysis.run_metrics import device_coil_cuts, log_arrays
+from maglev_haptics.analysis.run_metrics import log_arrays
 from maglev_haptics.analysis.run_outcome import instrument_outcome
 from maglev_haptics.diagrams.application import BuildDiagram
 from maglev_haptics.diagrams.device_sim import COMMANDS_PORT, BuildDeviceSim, MakeCommandReceiver
 from maglev_haptics.diagrams.lcm_station import (
-    LcmStation, marker_stale_after_s, station_channels)
+    DeviceCoilCuts, LcmStation, marker_stale_after_s, station_channels)
 from maglev_haptics.diagrams.scenario import ScenarioError, load_scenario
 from maglev_haptics.hardware.link.lcm_link import publish
 from maglev_haptics.hardware.link.lcm_messages import (
@@ -243,11 +243,35 @@ def test_the_devices_own_zero_is_not_taken_for_a_stuck_coil():
     assert zeros_read >= 10
     lockstep.run(0.5)
     assert lockstep.app_port("device_supervisor", "fault_bits")[0] == 0
-    log = log_arrays(lockstep.application.logger, lockstep.application.log_layout,
-                     lockstep.simulator.get_context(), scenario.device)
-    cuts = device_coil_cuts(log["t"], log["coil_currents_age_s"])  # what the run says
-    assert cuts["times"] >= 1 and cuts["longest_ms"] >= 10.0
+    # What the run says: one cut a race, 4 ms on the device's clock from its first
+    # message that follows no command to the first that follows one again.
+    cuts = lockstep.application.station.summary(lockstep.simulator.get_context())[
+        "device_cut_coils"]
+    assert cuts["times"] == 12 and cuts["longest_ms"] == pytest.approx(4.0)
     assert lockstep.app_port("pose_estimator", "X_WI_measured")[6] > 0.015  # still hovering
+
+
+def test_the_devices_coil_cuts_are_counted_on_its_clock():
+    """A cut starts where the device's currents first follow no command after they
+    followed one, and lasts to the first that follows one again, on the device's clock
+    (its messages' utime): a stall of the application's that hid its start does not
+    shorten it. Before the first command there is none; one under way counts to the
+    newest message."""
+    cuts = DeviceCoilCuts()
+    currents = np.r_[np.zeros(27), 1.0]
+
+    def read(command_sequence, device_s, t_s):
+        cuts.on_currents(currents_message(1, device_s, currents,
+                                          command_sequence=command_sequence), t_s)
+    read(0, 0.000, 0.000)  # nothing commanded yet
+    read(7, 0.001, 0.001)
+    read(0, 0.010, 0.030)  # the application, stalled, reads it 20 ms late
+    read(0, 0.011, 0.031)
+    read(9, 0.025, 0.032)
+    read(0, 0.040, 0.040)
+    read(0, 0.043, 0.043)
+    assert cuts.summary(0.01) == {"times": 2, "first_at_s": 0.030,
+                                  "longest_ms": pytest.approx(15.0), "command_timeout_s": 0.01}
 
 
 def test_no_message_is_lost_in_steady_state(lockstep_run):
@@ -567,7 +591,8 @@ def test_the_application_refuses_bad_station_messages():
                              "{channel_prefix: T_}}")
     bus = lcm.LCM("memq://")
     lease = application_end(bus)
-    receiver = MessageReceiver(lcm=bus, channels=station_channels(scenario, lease),
+    receiver = MessageReceiver(lcm=bus,
+                               channels=station_channels(scenario, lease, DeviceCoilCuts()),
                                period_s=0.001, log=lambda line: None)
     context = receiver.CreateDefaultContext()
     good = np.array([0.01, 0.0, 0.02, -0.01, 0.0, 0.02, 0.0, 0.01, 0.02])
