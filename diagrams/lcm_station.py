@@ -438,7 +438,8 @@ class LcmStationInterface(Station):
         """``station`` in summary.json: the URL; what the application read, refused (by
         reason) and lost, and the gaps in which a channel went stale, per channel and in
         all, the silence since each channel's last message counted up to the context's
-        time; its lease; and ``device_silent``, ``device_silence`` at the context's time
+        time; its lease; ``device_cut_coils`` (``DeviceCoilCuts``); and
+        ``device_silent``, ``device_silence`` at the context's time
         (None: the device was heard)."""
         receiver_context = self.receiver.GetMyContextFromRoot(context)
         counts = {name.lower(): self.receiver.counts(receiver_context, port)
