@@ -744,6 +744,38 @@ def test_maglev_run_exit_codes_say_what_happened(monkeypatch, tmp_path, capsys, 
                              "(sensor out of range)")
 
 
+@pytest.mark.parametrize("lost", [False, True], ids=["flown", "lost"])
+def test_maglev_run_says_when_the_device_cut_the_coils(monkeypatch, tmp_path, capsys, lost):
+    """A run over LCM whose device cut the coils on its command timeout: a warning line
+    from `maglev run`, and where the instrument was lost the same clause in the outcome
+    line; nothing said where it never did."""
+    from maglev_haptics.analysis import run_results
+    from maglev_haptics.cli import main
+
+    cut = {"times": 2, "first_at_s": 1.25, "longest_ms": 17.0, "command_timeout_s": 0.01}
+    said = ("the device cut the coils 2 times from 1.250 s, the longest 17 ms (no command "
+            "within its 10 ms timeout)")
+
+    def run_scenario(scenario, **_):
+        t = np.arange(0.0, 2.0, 0.001)
+        bits = np.where(t >= 1.3, 1, 0) if lost else np.zeros_like(t, dtype=int)
+        return run_results.RunResult(
+            summary={"duration_s": 2.0, "station": {"device_cut_coils": cut}}, meshcat=None,
+            log={"t": t, "fault_bits": bits})
+
+    monkeypatch.setattr(run_results, "run_scenario", run_scenario)
+    code = main(["run", "levitate", "--no-meshcat", "--out", str(tmp_path)])
+    error = capsys.readouterr().err.strip().splitlines()
+    assert f"warning: {said}: this application or the link stalled" in error
+    assert code == (5 if lost else 0)
+    if lost:
+        assert error[-1] == ("levitate:takeoff_hover_land: the instrument was lost at 1.300 s "
+                             f"(sensor out of range): {said}")
+    cut["times"] = 0
+    main(["run", "levitate", "--no-meshcat", "--out", str(tmp_path)])
+    assert "cut the coils" not in capsys.readouterr().err
+
+
 def test_an_application_for_another_instrument_is_refused_and_told():
     """The device carries the four-magnet instrument, the application's scenario the
     two-magnet one: its request is refused (wrong_instrument), the lease stays free,
