@@ -44,7 +44,8 @@ from maglev_haptics.analysis.lattice_bench import (
     LATTICE_SIZES, format_lattice_report, lattice_costs, lattice_scaling, plot_lattice_scaling)
 from maglev_haptics.analysis.loop_floor import floor_loop_us, hover_transform
 from maglev_haptics.analysis.stereo_bench import format_stereo_report, stereo_costs
-from maglev_haptics.analysis.timing import leaf_system_costs, time_per_call_us
+from maglev_haptics.analysis.timing import (
+    deformable_step_reports, leaf_system_costs, time_per_call_us)
 from maglev_haptics.analysis.tissue_bench import tissue_costs
 from maglev_haptics.diagrams.application import BuildDiagram
 from maglev_haptics.diagrams.runner import simulate
@@ -257,6 +258,9 @@ def run_benchmarks(duration_s: Optional[float] = None, progress: bool = True,
             "physics_floor": floor,
             "tick_over_floor": tick_us / floor_us(floor),
         }
+        deformable = deformable_step_reports(built.diagram)
+        if deformable:  # the other core's tick as these runs ran it, beside the rest
+            results["scenarios"][name]["deformable_steps"] = deformable
     if YARDSTICK_SCENARIO in results["scenarios"]:
         results["machine"]["takeoff_floor_us"] = floor_us(
             results["scenarios"][YARDSTICK_SCENARIO]["physics_floor"])
@@ -343,6 +347,16 @@ def format_report(results: Dict) -> str:
         lines.append(f"  {name:<24}{r['instrument']:<13}{r['simulated_s']:>7.2f}"
                      f"{r['realtime_factor']:>7.2f}{r['wall_us_per_1ms_tick']:>11.0f}"
                      f"{floor_us(r['physics_floor']):>10.0f}{r['tick_over_floor']:>12.2f}")
+    in_loop = {name: r["deformable_steps"] for name, r in results["scenarios"].items()
+               if "deformable_steps" in r}
+    if in_loop:
+        lines.append("Deformable bodies in those runs: the other core's tick as the loop ran it "
+                     "(us, timed around the kernel in the worker), and the ticks stepped here:")
+        for name, bodies in in_loop.items():
+            for body, r in bodies.items():
+                lines.append(f"  {name:<20}{body:<30}p50 {r['other_core_tick_us_p50']:>5.0f}  "
+                             f"p99 {r['other_core_tick_us_p99']:>5.0f}  "
+                             f"{r['ticks_on_other_core']} there, {r['ticks_stepped_here']} here")
     lines.append("One-system loop (analysis/loop_floor.py: the station's plant closed by one "
                  "Python system doing the floor's kernels, two Python calls a tick):")
     for name, r in results["one_system_loop"].items():

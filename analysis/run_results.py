@@ -20,6 +20,7 @@ from maglev_haptics.analysis.run_outcome import latched_faults
 from maglev_haptics.analysis.run_plots import plot_haptics, plot_run, plot_tick_times
 from maglev_haptics.analysis.stereo_metrics import plot_colocation, stereo_summary
 from maglev_haptics.analysis.stereo_video import StereoVideoWriter
+from maglev_haptics.analysis.timing import deformable_step_reports
 from maglev_haptics.diagrams.meshcat_lifetime import start_meshcat
 from maglev_haptics.diagrams.runner import realtime_report
 from maglev_haptics.diagrams.scenario import Scenario, scenario_yaml
@@ -105,6 +106,9 @@ def run_scenario(scenario: Scenario, *, label: str, out_dir: Optional[Path] = No
     if flown.tick_times is not None:
         summary["realtime"] = {"rate": flown.realtime_rate,
                                **realtime_report(flown.tick_times)}
+    deformable = deformable_step_reports(built.diagram)
+    if deformable:
+        summary["deformable_steps"] = deformable
     station_summary = built.station.summary(simulator.get_context())
     if station_summary is not None:
         summary["station"] = station_summary

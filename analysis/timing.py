@@ -1,4 +1,5 @@
-"""Wall-clock cost of a call and of a leaf system's update, for the benchmarks."""
+"""Wall-clock cost of a call and of a leaf system's update, for the benchmarks; and
+where a run's deformable bodies were stepped, and how long the other core took."""
 
 import time
 from typing import Dict
@@ -7,6 +8,7 @@ from pydrake.multibody.plant import MultibodyPlant
 from pydrake.systems.primitives import VectorLogSink
 
 from maglev_haptics.analysis.linearization import leaf_systems
+from maglev_haptics.systems.deformable_surface import DeformableBody
 
 WINDOWS = 5  # a leaf system's cost is the best of this many runs: one run drifts 2x here
 
@@ -78,3 +80,9 @@ def leaf_system_costs(built, context, n: int = 300, only=None) -> Dict[str, floa
                 - time_per_call_us(read_outputs, n, WINDOWS))
     return costs
 
+
+def deformable_step_reports(diagram) -> Dict[str, Dict]:
+    """Each deformable body's ``step_report`` (its ticks on the other core, how long
+    they took there, and those stepped on the loop's thread), by system name."""
+    return {system.get_name(): system.step_report() for system in leaf_systems(diagram)
+            if isinstance(system, DeformableBody)}

@@ -42,7 +42,7 @@ from pydrake.math import RigidTransform
 from pydrake.systems.framework import LeafSystem, ValueProducer
 
 from maglev_haptics.systems.lattice_dynamics import probe_arguments
-from maglev_haptics.systems.step_worker import StepWorker
+from maglev_haptics.systems.step_worker import StepWorker, other_core_report
 
 
 class DeformableDynamics(NamedTuple):
@@ -86,6 +86,7 @@ class DeformableBody(LeafSystem):
         self._tick_arguments = dynamics.tick_arguments()
         self._use_worker = worker_thread
         self._worker = None  # started by the first update
+        self._ticks_here = 0  # updates that stepped the body on this thread
         self._surface_rows = np.asarray(dynamics.surface_nodes)
         self._X_WT = self.DeclareVectorInputPort("X_WT", 7)
         self._V_WT = self.DeclareVectorInputPort("V_WT", 6)
@@ -112,6 +113,16 @@ class DeformableBody(LeafSystem):
     def num_nodes(self) -> int:
         return self._n
 
+    def step_report(self) -> dict:
+        """Where this body's ticks were stepped: ``other_core`` (the worker's), with
+        how long the worker took over them (us, timed around its tick), and ``here``
+        (on the loop's thread: the first tick, a context changed from outside, a
+        worker not yet done with an earlier request or turned off)."""
+        if self._worker is None:
+            return other_core_report(np.zeros(0), 0, self._ticks_here)
+        return other_core_report(self._worker.step_us(), self._worker.steps_taken,
+                                 self._ticks_here)
+
     def _calc_contact(self, context, value):
         value.set_value(self._dynamics.state_contact(
             context.get_discrete_state(self._state).get_value(), self._p_TP))
@@ -135,6 +146,7 @@ class DeformableBody(LeafSystem):
             self._worker = StepWorker(self._dynamics.server, self._n,
                                       self._dynamics.tick_arguments())
         if self._worker is None or not self._worker.result_into(current, new):
+            self._ticks_here += 1
             self._dynamics.tick(masses, masses, probe_arguments(tool, self._p_TP),
                                 *self._tick_arguments)
         tool[0:7] = self._X_WT.Eval(context)

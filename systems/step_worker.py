@@ -17,7 +17,8 @@ last request, [2] that of the last finished step, [3] 1 while the paced loop run
 at real-time priority (``hardware/realtime_priority.py``), which the worker then
 shares, polling by sleeping RT_POLL_US rather than yielding (a SCHED_FIFO thread
 that never sleeps is throttled by the kernel for 50 ms a second), [4] which of the
-two mass buffers holds the request's input (the other gets the result). The main
+two mass buffers holds the request's input (the other gets the result), [5] how long
+the worker's last step took (ns, CLOCK_MONOTONIC, timed around the tick alone). The main
 thread writes the inputs only while the worker is idle ([1] == [2]) and then bumps
 [1]; the worker polls [1], steps, and sets [2]. A tick that took the worker's result
 asks for the next from that result: the buffers swap roles and no state is copied
@@ -29,6 +30,10 @@ slack, and other processes go first); idle for FAST_POLLS looks it sleeps
 IDLE_POLL_US between them, and after IDLE_EXIT_POLLS of those (~0.5 s) it ends (a
 pydrake diagram keeps its Python systems alive, so a worker must not outlive its
 use); the next request starts a new one.
+
+Each result taken records its step's duration (``step_us``): the other core's tick as
+the loop ran it, beside the rest of the diagram, which the kernel timed alone
+understates (on a 2-core machine the lattice's tick took 1.1-1.5 times as long).
 """
 
 import ctypes
@@ -46,7 +51,10 @@ from maglev_haptics.systems.lattice_dynamics import probe_point
 FAST_POLLS = 20000  # looks by yielding (~5-10 ms idle) before the worker sleeps between them
 IDLE_POLL_US = 1000  # (us)
 IDLE_EXIT_POLLS = 500  # and after this many slow looks (~0.5 s) it ends
-_STOP, _REQUESTED, _DONE, _POLL_BY_SLEEPING, _INPUT = 0, 1, 2, 3, 4
+_STOP, _REQUESTED, _DONE, _POLL_BY_SLEEPING, _INPUT, _STEP_NS = 0, 1, 2, 3, 4, 5
+_CONTROL_SIZE = 6
+STEP_TIMES_KEPT = 1 << 17  # the last this many steps' durations (~131 s at 1 kHz)
+_CLOCK_MONOTONIC = 1
 _COMPARE_CHUNK = 512  # numbers compared between looks for a difference
 
 _libc = ctypes.CDLL(None)
@@ -56,6 +64,16 @@ _usleep.restype = ctypes.c_int
 _sched_yield = _libc.sched_yield
 _sched_yield.argtypes = []
 _sched_yield.restype = ctypes.c_int
+_clock_gettime = _libc.clock_gettime
+_clock_gettime.argtypes = [ctypes.c_int, ctypes.c_void_p]
+_clock_gettime.restype = ctypes.c_int
+
+
+@kernel((INDEX_VECTOR,), cache=False, nogil=True)
+def _monotonic_ns(timespec):
+    """CLOCK_MONOTONIC (ns), through ``timespec`` (2,) int64 work space."""
+    _clock_gettime(_CLOCK_MONOTONIC, timespec.ctypes)
+    return timespec[0] * 1_000_000_000 + timespec[1]
 
 
 def tick_server(tick, argument_types: tuple):
@@ -74,6 +92,7 @@ def tick_server(tick, argument_types: tuple):
     def serve(control, masses_a, masses_b, probe, arguments):
         done = control[_DONE]
         idle = 0
+        timespec = np.zeros(2, dtype=np.int64)
         while control[_STOP] == 0:
             sequence = control[_REQUESTED]
             if sequence == done:
@@ -88,10 +107,12 @@ def tick_server(tick, argument_types: tuple):
                     _sched_yield()
                 continue
             idle = 0
+            start_ns = _monotonic_ns(timespec)
             if control[_INPUT] == 0:
                 tick(masses_a, masses_b, probe, *arguments)
             else:
                 tick(masses_b, masses_a, probe, *arguments)
+            control[_STEP_NS] = _monotonic_ns(timespec) - start_ns
             _usleep(0)  # a compiler barrier: the result is stored before it is announced
             control[_DONE] = sequence
             done = sequence
@@ -129,6 +150,21 @@ def _store_request(state, p_TP, masses, tool, probe, copy_masses):
     probe[6:9] = tool[4:7]
 
 
+def other_core_report(step_us: np.ndarray, ticks_there: int, ticks_here: int) -> dict:
+    """summary.json's account of a body's ticks: how many the worker stepped
+    (``ticks_there``) and how long it took over them (``step_us``, us, the last
+    STEP_TIMES_KEPT: median, 99th percentile, longest), and how many the update
+    stepped on the loop's thread (``ticks_here``)."""
+    timed = step_us.size > 0
+    return {
+        "ticks_on_other_core": int(ticks_there),
+        "ticks_stepped_here": int(ticks_here),
+        "other_core_tick_us_p50": float(np.percentile(step_us, 50)) if timed else 0.0,
+        "other_core_tick_us_p99": float(np.percentile(step_us, 99)) if timed else 0.0,
+        "other_core_tick_us_max": float(step_us.max()) if timed else 0.0,
+    }
+
+
 def _stop(control: np.ndarray) -> None:
     control[_STOP] = 1
 
@@ -142,7 +178,7 @@ class StepWorker:
         ``num_nodes``: n; ``tick_arguments``: the tick's arguments after the probe, the
         worker's own (no work space shared with another caller of the tick)."""
         self._server = server
-        self._control = np.zeros(5, dtype=np.int64)
+        self._control = np.zeros(_CONTROL_SIZE, dtype=np.int64)
         # Two buffers of [x; v] (6 n): a request's input in one ([_INPUT]), the step's
         # result in the other; the request's tool state (13) and probe point (9).
         self._masses = (np.zeros(6 * num_nodes), np.zeros(6 * num_nodes))
@@ -151,6 +187,8 @@ class StepWorker:
         self._pending = False  # a request not yet taken
         self._filled = None  # the array result_into last wrote the result into
         self._arguments = tuple(tick_arguments)
+        self._step_ns = np.zeros(STEP_TIMES_KEPT, dtype=np.int64)  # a ring of the steps taken
+        self._steps_taken = 0
         self._thread = None
         weakref.finalize(self, _stop, self._control)
         add_follower(self._follow_loop)
@@ -210,4 +248,18 @@ class StepWorker:
         result = self._masses[1 - source]
         out[:len(result)] = result
         self._filled = out
+        self._step_ns[self._steps_taken % STEP_TIMES_KEPT] = self._control[_STEP_NS]
+        self._steps_taken += 1
         return True
+
+    @property
+    def steps_taken(self) -> int:
+        """How many of the worker's results ``result_into`` gave."""
+        return self._steps_taken
+
+    def step_us(self) -> np.ndarray:
+        """How long the worker took over each step whose result was taken (us), the
+        last STEP_TIMES_KEPT of them, oldest first."""
+        if self._steps_taken <= STEP_TIMES_KEPT:
+            return 1e-3 * self._step_ns[:self._steps_taken]
+        return 1e-3 * np.roll(self._step_ns, -(self._steps_taken % STEP_TIMES_KEPT))

@@ -60,6 +60,16 @@ def test_bench_quick_runs_a_second_a_scenario_no_analysis_and_two_lattice_sizes(
     assert results["analysis"] == {}
     assert len(results["lattice"]["sizes"]) == QUICK_LATTICE_SIZES
     assert "Offline analysis (wall s): not run (--quick)" in results["report"]
+    # The other core's tick as the run ran it, for every scene with a deformable body.
+    steps = {name: row["deformable_steps"] for name, row in results["scenarios"].items()
+             if "deformable_steps" in row}
+    assert set(steps) == {"deformable_surface", "palpate_inclusion", "palpate_organ"}
+    for name, bodies in steps.items():
+        for body, row in bodies.items():
+            assert row["ticks_on_other_core"] > 0.9 * 1000 * QUICK_DURATION_S
+            assert row["other_core_tick_us_p50"] > 0.0
+            assert any(line.startswith(f"  {name:<20}{body:<30}p50 ")
+                       for line in results["report"].splitlines())
 
 
 def test_the_one_system_loop_hovers_the_instrument_with_the_floors_kernels():

@@ -122,6 +122,19 @@ def test_runs_shorter_than_the_guard_windows_still_summarize(name):
     assert result.summary["duration_s"] == pytest.approx(0.1)
 
 
+def test_the_summary_says_where_the_lattice_was_stepped_and_how_long_the_other_core_took():
+    result = run_scenario(load_scenario("deformable_surface"), label="deformable_surface",
+                          progress=False, duration_s=0.2)
+    steps = result.summary["deformable_steps"]["deformable_surface"]
+    assert steps["ticks_on_other_core"] + steps["ticks_stepped_here"] == 200
+    assert steps["ticks_on_other_core"] >= 150
+    assert 0.0 < steps["other_core_tick_us_p50"] <= steps["other_core_tick_us_p99"] \
+        <= steps["other_core_tick_us_max"]
+    rigid = run_scenario(load_scenario("peg_in_hole"), label="peg_in_hole", progress=False,
+                         duration_s=0.05)
+    assert "deformable_steps" not in rigid.summary
+
+
 @pytest.mark.parametrize("text, message", [
     ("{haptics: {scene: !DeformableSurface {link_stiffness_n_per_m: 400.0}}}",
      r"haptics.scene.link_stiffness_n_per_m = 400.0: must be below 3\d\d(\.\d)? N/m for "

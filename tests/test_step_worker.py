@@ -173,3 +173,58 @@ def test_the_worker_thread_takes_up_the_loops_real_time_priority():
     assert not is_realtime(thread_id) and worker._control[3] == 0
     state = surface.GetMyContextFromRoot(simulator.get_context()).get_discrete_state(0)
     assert np.array_equal(state.get_value(), simulate(worker_thread=False)[0])
+
+
+SLEEP_US = 3000
+
+
+@kernel((VECTOR, VECTOR, VECTOR, *OSCILLATOR_ARGUMENTS), cache=False, nogil=True)
+def sleepy_oscillator_tick(masses_in, masses_out, probe, rest, surface, mass, constants, k, c,
+                           h, forces):
+    """The oscillators' tick, then SLEEP_US (us) asleep: a step of known least length."""
+    oscillator_tick(masses_in, masses_out, probe, rest, surface, mass, constants, k, c, h,
+                    forces)
+    step_worker._usleep(SLEEP_US)
+
+
+def test_the_worker_times_each_step_around_its_tick():
+    """Every tick is stepped there or here, and each step there is timed around the tick
+    itself: a tick that sleeps 3 ms is timed at least that long, the request's wait not
+    counted (the loop asks every 1 ms of simulated time, free-running)."""
+    dynamics, positions_m = oscillator_body()
+    dynamics = dynamics._replace(tick=sleepy_oscillator_tick, server=step_worker.tick_server(
+        sleepy_oscillator_tick, OSCILLATOR_ARGUMENTS))
+    builder = DiagramBuilder()
+    body = builder.AddSystem(DeformableBody(
+        dynamics=dynamics, positions_m=positions_m, p_TP_m=P_TP_M,
+        X_WT_start=RigidTransform([0.0, 0.0, 0.05]), period_s=PERIOD_S))
+    for port, value in (("X_WT", [1.0, 0, 0, 0, 0, 0, 0.05]), ("V_WT", np.zeros(6))):
+        builder.Connect(builder.AddSystem(ConstantVectorSource(value)).get_output_port(),
+                        body.GetInputPort(port))
+    simulator = Simulator(builder.Build())
+    simulator.AdvanceTo(0.05)
+    report = body.step_report()
+    assert report["ticks_on_other_core"] + report["ticks_stepped_here"] == 50
+    assert report["ticks_on_other_core"] >= 40
+    assert SLEEP_US <= report["other_core_tick_us_p50"] <= report["other_core_tick_us_max"]
+    assert report["other_core_tick_us_p50"] < 3 * SLEEP_US
+
+
+def test_the_step_times_kept_are_the_last_ones_oldest_first(monkeypatch):
+    monkeypatch.setattr(step_worker, "STEP_TIMES_KEPT", 8)
+    recorded = []
+    result_into = step_worker.StepWorker.result_into
+
+    def recording(self, state, out):
+        taken = result_into(self, state, out)
+        if taken:
+            recorded.append(int(self._control[5]))
+            assert self.step_us().size == min(len(recorded), 8)
+        return taken
+
+    monkeypatch.setattr(step_worker.StepWorker, "result_into", recording)
+    diagram, surface = pressing_diagram(worker_thread=True, body="oscillators")
+    Simulator(diagram).AdvanceTo(0.1)
+    assert len(recorded) > 8 and surface._worker.steps_taken == len(recorded)
+    np.testing.assert_array_equal(surface._worker.step_us(), 1e-3 * np.array(recorded[-8:]))
+    assert surface.step_report()["ticks_on_other_core"] == len(recorded)
