@@ -530,6 +530,8 @@ takes several times as long):
                  script (about 35 s in all); --duration S: S simulated seconds each
   systems        each leaf system's update at hover, best of five, and the physics
                  floors (about 3 s)
+  in the loop    each Python callback's own time a tick in the running loop,
+                 levitate and the deformable surface (about 10 s)
   allocation     the wrench matrix and the current allocation (about 2 s)
   stereo         view matrices and a rendered frame pair (about 5 s)
   analysis       the multirate, linearize and zwidth studies of peg_in_hole (about 25 s)

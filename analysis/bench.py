@@ -11,6 +11,10 @@ Four kinds of numbers:
   cost of one update (discrete update plus output evaluation), with inputs fixed
   to their values in the running diagram and re-fixed every call so nothing is
   served from the cache;
+- the same callbacks in the running loop (``loop_callbacks``): each Python
+  callback's own time a tick in levitation and in the deformable surface, free-
+  running, and the tick's time outside them (on a 2-core machine 2-8 times the
+  figures above, which stay in the caches);
 - the one-system loop (``loop_floor``): the station's plant closed by one Python
   system doing the floor's kernels, the least a tick of such a diagram costs;
 - the electromagnetic model (a full 6 x n wrench matrix) and the allocation;
@@ -42,6 +46,7 @@ from tqdm import tqdm
 from maglev_haptics.analysis.host_pacing import HALF_LOAD_S, YARDSTICK_DURATION_S, host_pacing
 from maglev_haptics.analysis.lattice_bench import (
     LATTICE_SIZES, format_lattice_report, lattice_costs, lattice_scaling, plot_lattice_scaling)
+from maglev_haptics.analysis.loop_callbacks import loop_callback_costs
 from maglev_haptics.analysis.loop_floor import floor_loop_us, hover_transform
 from maglev_haptics.analysis.stereo_bench import format_stereo_report, stereo_costs
 from maglev_haptics.analysis.timing import (
@@ -79,6 +84,13 @@ PACED_SCENARIOS = (("levitate", "takeoff_hover_land"), ("peg_in_hole", None),
 QUICK_DURATION_S = 1.0  # --quick: simulated seconds a scenario
 QUICK_LATTICE_SIZES = 2  # --quick: the lattice's smallest sizes only
 YARDSTICK_SCENARIO = "takeoff_hover_land"  # its physics floor is the machine's yardstick
+# Split callback by callback in the running loop (``loop_callbacks``): levitation alone,
+# and the haptic loop over the lattice. Each runs LOOP_CALLBACKS_WARM_S, then is timed
+# for LOOP_CALLBACKS_S (s).
+LOOP_CALLBACK_SCENARIOS = (("levitate", "takeoff_hover_land"),
+                           ("deformable_surface", "deformable_surface"))
+LOOP_CALLBACKS_WARM_S, LOOP_CALLBACKS_S = 2.0, 1.0
+LOOP_CALLBACKS_LISTED = 12  # the costliest callbacks a scenario's report lists
 
 
 def _step_cost_us(builder, n_steps: int, period_s: float) -> float:
@@ -268,6 +280,10 @@ def run_benchmarks(duration_s: Optional[float] = None, progress: bool = True,
     built = BuildDiagram(scenario)
     simulator, _, _ = simulate(built, HOVER_TIME_S, progress=False)
     results["systems_us"] = leaf_system_costs(built, simulator.get_context())
+    results["loop_callbacks"] = {
+        name: loop_callback_costs(file, name, warm_s=LOOP_CALLBACKS_WARM_S,
+                                  duration_s=LOOP_CALLBACKS_S)
+        for file, name in LOOP_CALLBACK_SCENARIOS}
     results["one_system_loop"] = {
         name: {**floor_loop_us(load_scenario(str(LEVITATE_FILE), name)),
                "physics_floor_us": floor_us(results["scenarios"][name]["physics_floor"])}
@@ -365,6 +381,16 @@ def format_report(results: Dict) -> str:
     lines.append("Per-system cost of one update at hover (us):")
     for name, us in sorted(results["systems_us"].items(), key=lambda kv: -kv[1]):
         lines.append(f"  {name:<52}{us:>8.1f}")
+    if results.get("loop_callbacks"):
+        lines.append("The loop's thread in the running loop, free-running, each Python callback's "
+                     "own time (less the callbacks it evaluated; us a tick):")
+        for name, r in results["loop_callbacks"].items():
+            lines.append(f"  {name:<52}{r['tick_us']:>8.1f}  the tick")
+            for callback, us in list(r["callbacks_us"].items())[:LOOP_CALLBACKS_LISTED]:
+                lines.append(f"    {callback:<50}{us:>8.1f}  ({r['calls_per_tick'][callback]:.2f} "
+                             f"calls a tick)")
+            lines.append(f"    {'outside them: Drake, its plants, C++ systems':<50}"
+                         f"{r['outside_callbacks_us']:>8.1f}")
     lines.append("Wrench matrix 6 x 27 (us per call):")
     for kind, r in results["wrench_matrix_us"].items():
         lines.append(f"  {kind:<14} mean {r['mean_us']:.1f}  p99 {r['p99_us']:.1f}")

@@ -114,10 +114,10 @@ class DeformableBody(LeafSystem):
         return self._n
 
     def step_report(self) -> dict:
-        """Where this body's ticks were stepped: ``other_core`` (the worker's), with
-        how long the worker took over them (us, timed around its tick), and ``here``
-        (on the loop's thread: the first tick, a context changed from outside, a
-        worker not yet done with an earlier request or turned off)."""
+        """Where this body's ticks were stepped (``step_worker.other_core_report``):
+        by the worker, with how long it took over them (us, timed around its tick),
+        and on the loop's thread (the first tick, a context changed from outside, a
+        worker not yet done with an earlier request, or none)."""
         if self._worker is None:
             return other_core_report(np.zeros(0), 0, self._ticks_here)
         return other_core_report(self._worker.step_us(), self._worker.steps_taken,

@@ -32,8 +32,8 @@ pydrake diagram keeps its Python systems alive, so a worker must not outlive its
 use); the next request starts a new one.
 
 Each result taken records its step's duration (``step_us``): the other core's tick as
-the loop ran it, beside the rest of the diagram, which the kernel timed alone
-understates (on a 2-core machine the lattice's tick took 1.1-1.5 times as long).
+the loop ran it, beside the rest of the diagram (on a 2-core machine 0.8-1.4 times the
+kernel timed alone, as the machine's load came and went).
 """
 
 import ctypes

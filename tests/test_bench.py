@@ -60,6 +60,13 @@ def test_bench_quick_runs_a_second_a_scenario_no_analysis_and_two_lattice_sizes(
     assert results["analysis"] == {}
     assert len(results["lattice"]["sizes"]) == QUICK_LATTICE_SIZES
     assert "Offline analysis (wall s): not run (--quick)" in results["report"]
+    # The loop's thread split callback by callback, in levitation and over the lattice.
+    assert set(results["loop_callbacks"]) == {"takeoff_hover_land", "deformable_surface"}
+    for name, row in results["loop_callbacks"].items():
+        assert row["callbacks_us"]["LevitationLaw._calc_command"] > 0.0
+        assert f"  {name:<52}{row['tick_us']:>8.1f}  the tick" in results["report"]
+    assert results["loop_callbacks"]["deformable_surface"]["callbacks_us"][
+        "DeformableBody._update"] > 0.0
     # The other core's tick as the run ran it, for every scene with a deformable body.
     steps = {name: row["deformable_steps"] for name, row in results["scenarios"].items()
              if "deformable_steps" in row}
