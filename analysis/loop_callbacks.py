@@ -23,7 +23,7 @@ import gc
 import time
 from collections import Counter, defaultdict
 from contextlib import contextmanager
-from typing import Dict, Iterator, Sequence
+from typing import Callable, Dict, Iterator, Sequence
 
 from pydrake.systems.framework import LeafSystem
 
@@ -42,9 +42,10 @@ PACKAGE = "maglev_haptics"
 
 class CallbackClock:
     """Each wrapped callback's own time (s: its time less that of the wrapped callbacks
-    it ran) and calls, by name ``Class.method``."""
+    it ran) and calls, by name ``Class.method``, on the clock ``now()`` (s)."""
 
-    def __init__(self):
+    def __init__(self, now: Callable[[], float] = time.perf_counter):
+        self._now = now
         self.own_s: Dict[str, float] = defaultdict(float)
         self.calls: Counter = Counter()
         self._nested_s = 0.0  # the wrapped callbacks run inside the one now running
@@ -57,11 +58,11 @@ class CallbackClock:
         @functools.wraps(callback)
         def timed(*args, **kwargs):
             outer_nested_s, self._nested_s = self._nested_s, 0.0
-            start = time.perf_counter()
+            start = self._now()
             try:
                 return callback(*args, **kwargs)
             finally:
-                elapsed_s = time.perf_counter() - start
+                elapsed_s = self._now() - start
                 self.own_s[name] += elapsed_s - self._nested_s
                 self.calls[name] += 1
                 self._nested_s = outer_nested_s + elapsed_s

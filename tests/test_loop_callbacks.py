@@ -1,10 +1,7 @@
 """The loop's thread split callback by callback as the loop runs: each callback's own
 time, nested evaluations not counted twice, and the systems' classes untouched after."""
 
-import time
-
 import pytest
-from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder, LeafSystem
 
 from maglev_haptics.analysis.loop_callbacks import (
@@ -13,10 +10,20 @@ from maglev_haptics.analysis.loop_callbacks import (
 SOURCE_S, READER_S = 0.002, 0.004  # what each system's output spends of its own (s)
 
 
-def spin(seconds):
-    end = time.perf_counter() + seconds
-    while time.perf_counter() < end:
-        pass
+class FakeTime:
+    """A clock that moves only when a calc spends time: exact, whatever the machine's load."""
+
+    def __init__(self):
+        self.t_s = 0.0
+
+    def now(self) -> float:
+        return self.t_s
+
+    def spend(self, seconds: float) -> None:
+        self.t_s += seconds
+
+
+CLOCK = FakeTime()
 
 
 class Source(LeafSystem):
@@ -25,7 +32,7 @@ class Source(LeafSystem):
         self.DeclareVectorOutputPort("y", 1, self._calc)
 
     def _calc(self, context, output):
-        spin(SOURCE_S)
+        CLOCK.spend(SOURCE_S)
         output.SetAtIndex(0, context.get_time())
 
 
@@ -39,12 +46,12 @@ class Reader(LeafSystem):
 
     def _calc(self, context, output):
         value = self._u.Eval(context)[0]
-        spin(READER_S)
+        CLOCK.spend(READER_S)
         output.SetAtIndex(0, value)
 
 
 def test_each_callback_is_timed_less_the_callbacks_it_evaluated():
-    clock = CallbackClock()
+    clock = CallbackClock(now=CLOCK.now)
     with timed_callbacks(clock, modules=(__name__,)):
         builder = DiagramBuilder()
         source, reader = builder.AddSystem(Source()), builder.AddSystem(Reader())
@@ -57,8 +64,8 @@ def test_each_callback_is_timed_less_the_callbacks_it_evaluated():
         context.SetTime(float(k))  # a new time: both outputs computed again
         reader.get_output_port().Eval(reader.GetMyContextFromRoot(context))
     assert clock.calls == {"Source._calc": 10, "Reader._calc": 10}
-    assert clock.own_s["Source._calc"] == pytest.approx(10 * SOURCE_S, rel=0.3)
-    assert clock.own_s["Reader._calc"] == pytest.approx(10 * READER_S, rel=0.3)
+    assert clock.own_s["Source._calc"] == pytest.approx(10 * SOURCE_S, rel=1e-12)
+    assert clock.own_s["Reader._calc"] == pytest.approx(10 * READER_S, rel=1e-12)
 
 
 def test_the_levitation_loop_is_split_into_its_callbacks_and_the_rest():
